@@ -1,0 +1,45 @@
+//! # neuvolex-bricks
+//!
+//! Volumes on disk and in memory for neuvolex: readers for NIfTI-1, NRRD, raw and OME-Zarr
+//! into one [`VolumeMeta`] model, streaming ingest into an out-of-core OME-Zarr v3
+//! [`BrickStore`] with a multiscale pyramid, statistics and per-brick ranges, halo reads, and
+//! the per-brick derived quantities (normalised intensity, gradient, 5x5x5 mean/std) that the
+//! feature stage trains on.
+//!
+//! ```no_run
+//! use neuvolex_bricks::{open_volume, ingest, IngestOptions, BrickStore};
+//! let mut src = open_volume("ct.nii.gz".as_ref(), None)?;
+//! ingest(src.as_mut(), "ct.zarr".as_ref(), &IngestOptions::default(), &mut |_| {})?;
+//! let store = BrickStore::open("ct.zarr".as_ref())?;
+//! for b in store.occupied_bricks(None) {
+//!     let d = store.derived(&b)?;
+//!     assert_eq!(d.intensity.len(), b.voxels());
+//! }
+//! # Ok::<(), neuvolex_bricks::BrickError>(())
+//! ```
+
+pub mod derived;
+pub mod dtype;
+pub mod error;
+pub mod meta;
+pub mod nifti;
+pub mod nrrd;
+pub mod omezarr;
+pub mod open;
+pub mod raw;
+pub mod stats;
+pub mod store;
+mod stream;
+pub mod synth;
+
+pub use derived::{DerivedBrick, HaloBrick, Normaliser};
+pub use dtype::{DType, Endian};
+pub use error::{BrickError, Result};
+pub use meta::{MemVolume, Slab, VolumeMeta, VolumeSource};
+pub use open::{detect_format, open_volume, Format};
+pub use raw::RawSpec;
+pub use stats::VolumeStats;
+pub use store::{
+    ingest, Brick, BrickStore, IngestOptions, NonFinitePolicy, Progress, StoreInfo, VectorArray,
+    VectorEncoding,
+};

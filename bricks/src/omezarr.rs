@@ -1,0 +1,320 @@
+//! OME-Zarr 0.5 (Zarr v3) reading and the shared Zarr helpers used by the brick store.
+//!
+//! An image is a group whose `ome.multiscales[0]` lists datasets (pyramid levels) with axes
+//! ending in z, y, x. Leading axes (t, c) must have size 1. A bare Zarr v3 array with three
+//! dimensions is also accepted.
+
+use crate::dtype::DType;
+use crate::error::{BrickError, Result};
+use crate::meta::{check_slab_range, diag_affine, dims_from_i64, Slab, VolumeMeta, VolumeSource};
+use serde_json::{json, Value};
+use std::ops::Range;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use zarrs::array::{Array, ArrayBytes};
+use zarrs::storage::{ReadableWritableListableStorage, ReadableWritableListableStorageTraits};
+
+/// A Zarr array over any storage backend.
+pub type ZArray = Array<dyn ReadableWritableListableStorageTraits>;
+
+/// Opens a filesystem store rooted at `dir`.
+pub fn fs_store(dir: &Path) -> Result<ReadableWritableListableStorage> {
+    let s = zarrs::filesystem::FilesystemStore::new(dir).map_err(|e| BrickError::zarr(dir, e))?;
+    Ok(Arc::new(s))
+}
+
+/// Reads and parses `dir/zarr.json`, with clear errors for missing or malformed metadata.
+pub fn read_node_json(dir: &Path) -> Result<Value> {
+    let p = dir.join("zarr.json");
+    let text = match std::fs::read_to_string(&p) {
+        Ok(t) => t,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+            let hint = if dir.join(".zarray").exists() || dir.join(".zgroup").exists() {
+                " (this looks like Zarr v2; convert it to v3)"
+            } else {
+                ""
+            };
+            return Err(BrickError::corrupt(
+                dir,
+                format!("no zarr.json metadata{hint}"),
+            ));
+        }
+        Err(e) => return Err(BrickError::io(&p, e)),
+    };
+    let v: Value = serde_json::from_str(&text)
+        .map_err(|e| BrickError::corrupt(&p, format!("zarr.json is not valid JSON: {e}")))?;
+    if v.get("zarr_format").and_then(Value::as_u64) != Some(3) {
+        return Err(BrickError::corrupt(&p, "zarr_format is not 3"));
+    }
+    Ok(v)
+}
+
+/// The zarrs data type for `d`.
+pub fn zarr_dtype(d: DType) -> zarrs::array::DataType {
+    use zarrs::array::data_type as t;
+    match d {
+        DType::U8 => t::uint8(),
+        DType::I8 => t::int8(),
+        DType::U16 => t::uint16(),
+        DType::I16 => t::int16(),
+        DType::U32 => t::uint32(),
+        DType::I32 => t::int32(),
+        DType::F32 => t::float32(),
+        DType::F64 => t::float64(),
+    }
+}
+
+/// The data type name recorded in an array's metadata.
+pub fn dtype_name(array: &ZArray) -> String {
+    serde_json::to_value(array.metadata())
+        .ok()
+        .and_then(|v| v.get("data_type").cloned())
+        .map(|v| match v {
+            Value::String(s) => s,
+            other => other
+                .get("name")
+                .and_then(Value::as_str)
+                .unwrap_or("?")
+                .to_string(),
+        })
+        .unwrap_or_else(|| "?".into())
+}
+
+/// Reads a subset as native-endian bytes.
+pub fn read_bytes(array: &ZArray, subset: &[Range<u64>]) -> std::result::Result<Vec<u8>, String> {
+    let b: ArrayBytes<'static> = array
+        .retrieve_array_subset(&subset.to_vec())
+        .map_err(|e| e.to_string())?;
+    Ok(b.into_fixed().map_err(|e| e.to_string())?.into_owned())
+}
+
+/// Writes native-endian bytes to a subset. Chunks equal to the fill value are stored too, so a
+/// missing chunk always means damage, never "all zero".
+pub fn write_bytes(
+    array: &ZArray,
+    subset: &[Range<u64>],
+    bytes: Vec<u8>,
+) -> std::result::Result<(), String> {
+    let mut opts = zarrs::array::CodecOptions::default();
+    opts.set_store_empty_chunks(true);
+    array
+        .store_array_subset_opt(&subset.to_vec(), ArrayBytes::from(bytes), &opts)
+        .map_err(|e| e.to_string())
+}
+
+/// Errors with [`BrickError::MissingChunk`] if any chunk (shard) touching `subset` is absent.
+pub fn check_chunks_exist(
+    array: &ZArray,
+    root: &Path,
+    name: &str,
+    subset: &[Range<u64>],
+) -> Result<()> {
+    let chunks = array
+        .chunks_in_array_subset(&subset.to_vec())
+        .map_err(|e| BrickError::zarr(root, e))?
+        .ok_or_else(|| {
+            BrickError::corrupt(root, format!("array '{name}' has an irregular chunk grid"))
+        })?;
+    let storage = array.storage();
+    for idx in chunks.indices().iter() {
+        let key = array.chunk_key(&idx);
+        let size = storage
+            .size_key(&key)
+            .map_err(|e| BrickError::zarr(root, e))?;
+        if size.is_none() {
+            return Err(BrickError::MissingChunk {
+                path: root.to_path_buf(),
+                array: name.to_string(),
+                key: key.to_string(),
+            });
+        }
+    }
+    Ok(())
+}
+
+/// OME-Zarr 0.5 `multiscales` attributes for a z, y, x pyramid with 2x downsampling.
+pub fn multiscales(name: &str, levels: usize, spacing: [f64; 3], origin: [f64; 3]) -> Value {
+    let datasets: Vec<Value> = (0..levels)
+        .map(|k| {
+            let f = (1u64 << k) as f64;
+            // Voxel centres of a 2x mean-downsampled level shift by half the level-0 step.
+            let shift = |i: usize| origin[i] + (f - 1.0) * 0.5 * spacing[i];
+            json!({
+                "path": k.to_string(),
+                "coordinateTransformations": [
+                    {"type": "scale", "scale": [spacing[2] * f, spacing[1] * f, spacing[0] * f]},
+                    {"type": "translation", "translation": [shift(2), shift(1), shift(0)]}
+                ]
+            })
+        })
+        .collect();
+    json!([{
+        "name": name,
+        "axes": [
+            {"name": "z", "type": "space", "unit": "millimeter"},
+            {"name": "y", "type": "space", "unit": "millimeter"},
+            {"name": "x", "type": "space", "unit": "millimeter"}
+        ],
+        "datasets": datasets,
+        "type": "mean"
+    }])
+}
+
+/// An OME-Zarr image (level 0) or bare Zarr v3 array opened for slab reads.
+pub struct OmeZarrSource {
+    path: PathBuf,
+    meta: VolumeMeta,
+    array: ZArray,
+    array_name: String,
+    lead: usize,
+}
+
+impl OmeZarrSource {
+    /// Opens the image group (or array) at `path`. Labels are opened by pointing at
+    /// `store.zarr/labels/NAME`.
+    pub fn open(path: &Path) -> Result<Self> {
+        let node = read_node_json(path)?;
+        let storage = fs_store(path)?;
+        let (array_path, spacing, origin) = match node.get("node_type").and_then(Value::as_str) {
+            Some("array") => ("/".to_string(), [1.0; 3], [0.0; 3]),
+            Some("group") => {
+                let ms = node
+                    .pointer("/attributes/ome/multiscales/0")
+                    .ok_or_else(|| {
+                        BrickError::corrupt(
+                            path,
+                            "group has no ome.multiscales metadata (not an OME-Zarr 0.5 image)",
+                        )
+                    })?;
+                let axes: Vec<String> = ms
+                    .get("axes")
+                    .and_then(Value::as_array)
+                    .ok_or_else(|| BrickError::corrupt(path, "multiscales has no axes"))?
+                    .iter()
+                    .map(|a| {
+                        a.get("name")
+                            .and_then(Value::as_str)
+                            .unwrap_or("")
+                            .to_ascii_lowercase()
+                    })
+                    .collect();
+                if axes.len() < 3 || axes[axes.len() - 3..] != ["z", "y", "x"] {
+                    return Err(BrickError::corrupt(
+                        path,
+                        format!("axes {axes:?} do not end in z, y, x"),
+                    ));
+                }
+                let ds = ms
+                    .pointer("/datasets/0")
+                    .ok_or_else(|| BrickError::corrupt(path, "multiscales has no datasets"))?;
+                let p = ds
+                    .get("path")
+                    .and_then(Value::as_str)
+                    .ok_or_else(|| BrickError::corrupt(path, "dataset has no path"))?;
+                let mut spacing = [1.0; 3];
+                let mut origin = [0.0; 3];
+                for t in ds
+                    .get("coordinateTransformations")
+                    .and_then(Value::as_array)
+                    .into_iter()
+                    .flatten()
+                {
+                    let key = t.get("type").and_then(Value::as_str).unwrap_or("");
+                    let vals: Vec<f64> = t
+                        .get(key)
+                        .and_then(Value::as_array)
+                        .map(|a| a.iter().filter_map(Value::as_f64).collect())
+                        .unwrap_or_default();
+                    if vals.len() >= 3 {
+                        let n = vals.len();
+                        let xyz = [vals[n - 1], vals[n - 2], vals[n - 3]];
+                        match key {
+                            "scale" => spacing = xyz,
+                            "translation" => origin = xyz,
+                            _ => {}
+                        }
+                    }
+                }
+                (format!("/{}", p.trim_start_matches('/')), spacing, origin)
+            }
+            other => {
+                return Err(BrickError::corrupt(
+                    path,
+                    format!("node_type {other:?} is neither array nor group"),
+                ))
+            }
+        };
+        let array_dir = path.join(array_path.trim_start_matches('/'));
+        read_node_json(&array_dir)?;
+        let array: ZArray = Array::open(storage, &array_path)
+            .map_err(|e| BrickError::corrupt(&array_dir, e.to_string()))?;
+        let shape = array.shape().to_vec();
+        if shape.len() < 3 {
+            return Err(BrickError::BadDims {
+                path: array_dir,
+                detail: format!("array has {} dimensions; need z, y, x", shape.len()),
+            });
+        }
+        let lead = shape.len() - 3;
+        if let Some(i) = shape[..lead].iter().position(|&s| s != 1) {
+            return Err(BrickError::BadDims {
+                path: array_dir,
+                detail: format!("leading axis {i} has size {}; only single-channel, single-time images are supported", shape[i]),
+            });
+        }
+        let to_i = |v: u64| i64::try_from(v).unwrap_or(i64::MAX);
+        let dims = dims_from_i64(
+            path,
+            [
+                to_i(shape[lead + 2]),
+                to_i(shape[lead + 1]),
+                to_i(shape[lead]),
+            ],
+        )?;
+        let name = dtype_name(&array);
+        let dtype = DType::parse(&name).ok_or_else(|| BrickError::UnknownDtype {
+            path: array_dir.clone(),
+            dtype: name,
+        })?;
+        let meta = VolumeMeta {
+            dims,
+            spacing,
+            affine: diag_affine(spacing, origin),
+            dtype,
+            scaling: None,
+        };
+        meta.validate(path)?;
+        Ok(OmeZarrSource {
+            path: path.to_path_buf(),
+            meta,
+            array,
+            array_name: array_path,
+            lead,
+        })
+    }
+}
+
+impl VolumeSource for OmeZarrSource {
+    fn meta(&self) -> &VolumeMeta {
+        &self.meta
+    }
+    fn path(&self) -> &Path {
+        &self.path
+    }
+    fn read_slab(&mut self, z0: usize, depth: usize) -> Result<Slab> {
+        check_slab_range(&self.meta, &self.path, z0, depth)?;
+        let mut subset: Vec<Range<u64>> = vec![0..1; self.lead];
+        subset.push(z0 as u64..(z0 + depth) as u64);
+        subset.push(0..self.meta.dims[1] as u64);
+        subset.push(0..self.meta.dims[0] as u64);
+        check_chunks_exist(&self.array, &self.path, &self.array_name, &subset)?;
+        let bytes =
+            read_bytes(&self.array, &subset).map_err(|e| BrickError::corrupt(&self.path, e))?;
+        Ok(Slab {
+            z0,
+            depth,
+            dtype: self.meta.dtype,
+            bytes,
+        })
+    }
+}

@@ -1,0 +1,1589 @@
+//! The out-of-core brick store: an OME-Zarr 0.5 / Zarr v3 hierarchy written with zarrs.
+//!
+//! Layout of `X.zarr`:
+//! - `zarr.json`: root group; `ome.multiscales` plus `neuvolex` attributes ([`StoreInfo`]).
+//! - `0`, `1`, ...: intensity pyramid (z, y, x), chunked in bricks, zstd; level 0 keeps the
+//!   source type (f32 when the source has intensity scaling), coarser levels are f32 means.
+//! - `labels/NAME/0..`: OME label images (mode-downsampled pyramids).
+//! - `neuvolex/brick_min`, `neuvolex/brick_max`: per-brick value range (f64, z, y, x grid).
+//! - `neuvolex/vectors/NAME`: per-voxel vectors (z, y, x, c) in f16 or u8, one chunk a brick.
+//!
+//! Stores are written under a temporary name and renamed when complete; `neuvolex.complete`
+//! is set last, so an interrupted ingest never leaves a store that opens as complete.
+
+use crate::derived::{HaloBrick, Normaliser};
+use crate::dtype::DType;
+use crate::error::{BrickError, Result};
+use crate::meta::{VolumeMeta, VolumeSource};
+use crate::omezarr::{
+    check_chunks_exist, fs_store, multiscales, read_bytes, read_node_json, write_bytes, zarr_dtype,
+    ZArray,
+};
+use crate::stats::{FineHistogram, StatsAccumulator, VolumeStats};
+use serde::{Deserialize, Serialize};
+use serde_json::{json, Value};
+use std::collections::HashMap;
+use std::ops::Range;
+use std::path::{Path, PathBuf};
+use std::sync::{Arc, Mutex};
+use zarrs::array::{Array, ArrayBuilder};
+use zarrs::group::GroupBuilder;
+use zarrs::storage::ReadableWritableListableStorage;
+
+/// Version of the store layout written by this crate.
+pub const STORE_VERSION: u32 = 1;
+
+/// What to do with NaN/Inf voxel values.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "lowercase")]
+pub enum NonFinitePolicy {
+    /// Fail with [`BrickError::NonFinite`] naming the first offending voxel (default).
+    #[default]
+    Reject,
+    /// Replace with 0 and count them in [`VolumeStats::non_finite_replaced`].
+    Zero,
+}
+
+/// Options for [`ingest`].
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct IngestOptions {
+    /// Brick edge in voxels (a power of two, 8..=512). Default 64.
+    pub brick: usize,
+    /// Bricks per shard edge (Zarr sharding codec); `None` stores one file per brick.
+    pub shard: Option<usize>,
+    /// zstd level (1..=22). Default 3.
+    pub zstd_level: i32,
+    /// NaN/Inf handling.
+    pub non_finite: NonFinitePolicy,
+    /// Replace an existing output.
+    pub overwrite: bool,
+    /// Number of pyramid levels including level 0; `None` picks until the coarsest level's
+    /// largest axis is below 32 voxels or one brick.
+    pub levels: Option<usize>,
+}
+
+impl Default for IngestOptions {
+    fn default() -> Self {
+        IngestOptions {
+            brick: 64,
+            shard: None,
+            zstd_level: 3,
+            non_finite: NonFinitePolicy::Reject,
+            overwrite: false,
+            levels: None,
+        }
+    }
+}
+
+/// Progress of a long store operation.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Progress {
+    /// A named stage began; `total` units of work follow.
+    Stage {
+        /// Stage name.
+        name: &'static str,
+        /// Units of work in the stage.
+        total: u64,
+    },
+    /// `done` units of the current stage are finished.
+    Advance {
+        /// Units done so far.
+        done: u64,
+    },
+}
+
+/// The `neuvolex` attributes of a store's root group.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct StoreInfo {
+    /// Layout version.
+    pub version: u32,
+    /// True once every array has been written.
+    pub complete: bool,
+    /// Voxel grid (x, y, z).
+    pub dims: [usize; 3],
+    /// Brick edge.
+    pub brick: usize,
+    /// Bricks per shard edge, if sharded.
+    pub shard: Option<usize>,
+    /// Grid of every pyramid level (x, y, z).
+    pub levels: Vec<[usize; 3]>,
+    /// Type of level 0.
+    pub dtype: DType,
+    /// Type in the source file.
+    pub source_dtype: DType,
+    /// The source file.
+    pub source: String,
+    /// Voxel spacing (x, y, z).
+    pub spacing: [f64; 3],
+    /// Voxel -> world affine.
+    pub affine: [[f64; 4]; 4],
+    /// Intensity statistics.
+    pub stats: VolumeStats,
+    /// Default empty-brick threshold: a brick whose maximum is below it holds only background.
+    pub background: f64,
+    /// Label images under `labels/`.
+    #[serde(default)]
+    pub labels: Vec<String>,
+}
+
+impl StoreInfo {
+    /// Bricks per axis (x, y, z).
+    pub fn grid(&self) -> [usize; 3] {
+        grid_of(self.dims, self.brick)
+    }
+}
+
+fn grid_of(dims: [usize; 3], brick: usize) -> [usize; 3] {
+    [
+        dims[0].div_ceil(brick),
+        dims[1].div_ceil(brick),
+        dims[2].div_ceil(brick),
+    ]
+}
+
+/// One brick of the grid.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub struct Brick {
+    /// Brick index (x, y, z).
+    pub index: [usize; 3],
+    /// Voxel origin (x, y, z).
+    pub origin: [usize; 3],
+    /// Voxel extent (x, y, z); smaller at the far borders.
+    pub size: [usize; 3],
+}
+
+impl Brick {
+    /// Number of voxels.
+    pub fn voxels(&self) -> usize {
+        self.size.iter().product()
+    }
+}
+
+fn zyx(origin: [usize; 3], size: [usize; 3]) -> Vec<Range<u64>> {
+    (0..3)
+        .rev()
+        .map(|i| origin[i] as u64..(origin[i] + size[i]) as u64)
+        .collect()
+}
+
+fn build_array(
+    storage: &ReadableWritableListableStorage,
+    root: &Path,
+    path: &str,
+    shape_zyx: Vec<u64>,
+    chunk_zyx: Vec<u64>,
+    dtype: DType,
+    opts: &IngestOptions,
+) -> Result<ZArray> {
+    let names: Vec<Option<String>> = vec![Some("z".into()), Some("y".into()), Some("x".into())];
+    let (outer, inner) = match opts.shard {
+        Some(s) if s > 1 => {
+            let mut o = chunk_zyx.clone();
+            for v in o.iter_mut().take(3) {
+                *v *= s as u64;
+            }
+            (o, Some(chunk_zyx))
+        }
+        _ => (chunk_zyx, None),
+    };
+    let mut b = ArrayBuilder::new(shape_zyx, outer, zarr_dtype(dtype), 0u8);
+    b.bytes_to_bytes_codecs(vec![Arc::new(zarrs::array::codec::ZstdCodec::new(
+        opts.zstd_level.clamp(1, 22),
+        false,
+    ))]);
+    if let Some(i) = inner {
+        b.subchunk_shape(i);
+    }
+    b.dimension_names(Some(names));
+    let array = b
+        .build(storage.clone(), path)
+        .map_err(|e| BrickError::zarr(root, e))?;
+    array
+        .store_metadata()
+        .map_err(|e| BrickError::zarr(root, e))?;
+    Ok(array)
+}
+
+/// Number of pyramid levels for a grid.
+fn pick_levels(dims: [usize; 3], brick: usize, want: Option<usize>) -> usize {
+    let max_levels = brick.trailing_zeros() as usize + 1;
+    if let Some(w) = want {
+        return w.clamp(1, max_levels);
+    }
+    let mut n = 1;
+    let mut d = *dims.iter().max().unwrap_or(&1);
+    while n < max_levels && d > 32.max(brick / 2) {
+        d = d.div_ceil(2);
+        n += 1;
+    }
+    n
+}
+
+fn level_dims(dims: [usize; 3], k: usize) -> [usize; 3] {
+    let f = 1usize << k;
+    [
+        dims[0].div_ceil(f),
+        dims[1].div_ceil(f),
+        dims[2].div_ceil(f),
+    ]
+}
+
+/// 2x mean downsampling of a slab (x fastest) of `dims` into `ceil(dims/2)`; border cells
+/// average only the voxels that exist.
+pub fn downsample_mean(src: &[f32], dims: [usize; 3]) -> Vec<f32> {
+    let od = [
+        dims[0].div_ceil(2),
+        dims[1].div_ceil(2),
+        dims[2].div_ceil(2),
+    ];
+    let mut out = vec![0.0f32; od[0] * od[1] * od[2]];
+    for z in 0..od[2] {
+        for y in 0..od[1] {
+            for x in 0..od[0] {
+                let (mut s, mut n) = (0.0f64, 0u32);
+                for dz in 0..2 {
+                    for dy in 0..2 {
+                        for dx in 0..2 {
+                            let (sx, sy, sz) = (2 * x + dx, 2 * y + dy, 2 * z + dz);
+                            if sx < dims[0] && sy < dims[1] && sz < dims[2] {
+                                s += src[(sz * dims[1] + sy) * dims[0] + sx] as f64;
+                                n += 1;
+                            }
+                        }
+                    }
+                }
+                out[(z * od[1] + y) * od[0] + x] = (s / n as f64) as f32;
+            }
+        }
+    }
+    out
+}
+
+/// 2x mean downsampling of a native slab, two slices at a time, with scaling applied.
+fn downsample_slab(slab: &crate::meta::Slab, meta: &VolumeMeta) -> Vec<f32> {
+    let (nx, ny) = (meta.dims[0], meta.dims[1]);
+    let sl = nx * ny * slab.dtype.size();
+    let mut out = Vec::with_capacity(nx.div_ceil(2) * ny.div_ceil(2) * slab.depth.div_ceil(2));
+    let mut z = 0;
+    while z < slab.depth {
+        let d = 2.min(slab.depth - z);
+        let pair = crate::meta::Slab {
+            z0: 0,
+            depth: d,
+            dtype: slab.dtype,
+            bytes: slab.bytes[z * sl..(z + d) * sl].to_vec(),
+        };
+        out.extend(downsample_mean(&pair.to_f32_scaled(meta), [nx, ny, d]));
+        z += d;
+    }
+    out
+}
+
+/// 2x mode downsampling for labels; ties go to the smallest label.
+pub fn downsample_mode(src: &[u32], dims: [usize; 3]) -> Vec<u32> {
+    let od = [
+        dims[0].div_ceil(2),
+        dims[1].div_ceil(2),
+        dims[2].div_ceil(2),
+    ];
+    let mut out = vec![0u32; od[0] * od[1] * od[2]];
+    let mut vals = [0u32; 8];
+    for z in 0..od[2] {
+        for y in 0..od[1] {
+            for x in 0..od[0] {
+                let mut n = 0;
+                for dz in 0..2 {
+                    for dy in 0..2 {
+                        for dx in 0..2 {
+                            let (sx, sy, sz) = (2 * x + dx, 2 * y + dy, 2 * z + dz);
+                            if sx < dims[0] && sy < dims[1] && sz < dims[2] {
+                                vals[n] = src[(sz * dims[1] + sy) * dims[0] + sx];
+                                n += 1;
+                            }
+                        }
+                    }
+                }
+                let v = &mut vals[..n];
+                v.sort_unstable();
+                let (mut best, mut best_n, mut i) = (v[0], 0, 0);
+                while i < n {
+                    let mut j = i;
+                    while j < n && v[j] == v[i] {
+                        j += 1;
+                    }
+                    if j - i > best_n {
+                        best = v[i];
+                        best_n = j - i;
+                    }
+                    i = j;
+                }
+                out[(z * od[1] + y) * od[0] + x] = best;
+            }
+        }
+    }
+    out
+}
+
+fn validate_options(out: &Path, opts: &IngestOptions) -> Result<()> {
+    if !(8..=512).contains(&opts.brick) || !opts.brick.is_power_of_two() {
+        return Err(BrickError::InvalidArgument(format!(
+            "{}: brick size {} must be a power of two in 8..=512",
+            out.display(),
+            opts.brick
+        )));
+    }
+    if let Some(s) = opts.shard {
+        if s == 0 || s > 64 {
+            return Err(BrickError::InvalidArgument(format!(
+                "shard {s} must be 1..=64 bricks per edge"
+            )));
+        }
+    }
+    Ok(())
+}
+
+/// Moves `tmp` to `out` (replacing `out` only when `overwrite`), keeping the old store until
+/// the new one is in place.
+fn commit_dir(tmp: &Path, out: &Path, overwrite: bool) -> Result<()> {
+    if out.exists() {
+        if !overwrite {
+            return Err(BrickError::Exists {
+                path: out.to_path_buf(),
+            });
+        }
+        let old = out.with_file_name(format!(
+            ".{}.old-{}",
+            out.file_name().unwrap_or_default().to_string_lossy(),
+            std::process::id()
+        ));
+        std::fs::rename(out, &old).map_err(|e| BrickError::io(out, e))?;
+        std::fs::rename(tmp, out).map_err(|e| BrickError::io(out, e))?;
+        let _ = std::fs::remove_dir_all(&old);
+    } else {
+        std::fs::rename(tmp, out).map_err(|e| BrickError::io(out, e))?;
+    }
+    Ok(())
+}
+
+/// One streaming pass over slabs: statistics, per-brick ranges and the NaN/Inf policy.
+pub struct Scanner {
+    meta: VolumeMeta,
+    brick: usize,
+    grid: [usize; 3],
+    acc: StatsAccumulator,
+    bmin: Vec<f64>,
+    bmax: Vec<f64>,
+}
+
+impl Scanner {
+    /// A scanner for a volume of `meta` with bricks of edge `brick`.
+    pub fn new(meta: &VolumeMeta, brick: usize) -> Self {
+        let grid = grid_of(meta.dims, brick);
+        let nb = grid.iter().product::<usize>();
+        Scanner {
+            meta: meta.clone(),
+            brick,
+            grid,
+            acc: StatsAccumulator::new(meta.dtype, meta.scaling),
+            bmin: vec![f64::INFINITY; nb],
+            bmax: vec![f64::NEG_INFINITY; nb],
+        }
+    }
+
+    /// Applies the NaN/Inf policy to `slab` (rewriting it for [`NonFinitePolicy::Zero`]) and
+    /// accumulates it. Slabs must arrive front to back.
+    pub fn add_slab(
+        &mut self,
+        slab: &mut crate::meta::Slab,
+        policy: NonFinitePolicy,
+        path: &Path,
+    ) -> Result<()> {
+        let meta = &self.meta;
+        let slice = meta.slice_len();
+        if meta.dtype.is_float() {
+            let vals = slab.to_f64();
+            let bad: Vec<usize> = vals
+                .iter()
+                .enumerate()
+                .filter(|(_, v)| !v.is_finite())
+                .map(|(i, _)| i)
+                .collect();
+            if !bad.is_empty() {
+                match policy {
+                    NonFinitePolicy::Reject => {
+                        let i = bad[0];
+                        return Err(BrickError::NonFinite {
+                            path: path.to_path_buf(),
+                            count: bad.len() as u64,
+                            x: i % meta.dims[0],
+                            y: (i / meta.dims[0]) % meta.dims[1],
+                            z: slab.z0 + i / slice,
+                        });
+                    }
+                    NonFinitePolicy::Zero => {
+                        let mut vals = vals;
+                        for &i in &bad {
+                            vals[i] = 0.0;
+                        }
+                        self.acc.non_finite_replaced += bad.len() as u64;
+                        slab.bytes = crate::dtype::f64_to_bytes(&vals, meta.dtype);
+                    }
+                }
+            }
+        }
+        let (b, grid) = (self.brick, self.grid);
+        let esize = meta.dtype.size();
+        let mut raw = vec![0.0f64; slice];
+        for dz in 0..slab.depth {
+            crate::dtype::bytes_to_f64(
+                &slab.bytes[dz * slice * esize..(dz + 1) * slice * esize],
+                meta.dtype,
+                &mut raw,
+            );
+            self.acc.add_raw(&raw);
+            let bz = (slab.z0 + dz) / b;
+            for y in 0..meta.dims[1] {
+                let by = y / b;
+                for bx in 0..grid[0] {
+                    let xs = bx * b..((bx + 1) * b).min(meta.dims[0]);
+                    let row = &raw[y * meta.dims[0] + xs.start..y * meta.dims[0] + xs.end];
+                    let (lo, hi) = row
+                        .iter()
+                        .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, c), &v| {
+                            (a.min(v), c.max(v))
+                        });
+                    let i = (bz * grid[1] + by) * grid[0] + bx;
+                    let (lo, hi) = (meta.scale(lo), meta.scale(hi));
+                    self.bmin[i] = self.bmin[i].min(lo.min(hi));
+                    self.bmax[i] = self.bmax[i].max(lo.max(hi));
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// True when percentiles need a second pass over the data (types wider than 16 bits).
+    pub fn needs_second_pass(&self) -> bool {
+        self.acc.needs_second_pass()
+    }
+
+    /// Value range seen so far.
+    pub fn range(&self) -> (f64, f64) {
+        self.acc.range()
+    }
+
+    /// Statistics plus per-brick minima and maxima (grid order, x fastest).
+    pub fn finish(self, fine: Option<FineHistogram>) -> (VolumeStats, Vec<f64>, Vec<f64>) {
+        (self.acc.finish(fine), self.bmin, self.bmax)
+    }
+}
+
+/// Result of [`scan_volume`]: what `neuvolex info` reports for a file.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct ScanReport {
+    /// Intensity statistics (non-finite values counted and treated as 0).
+    pub stats: VolumeStats,
+    /// Brick edge used for occupancy.
+    pub brick: usize,
+    /// Bricks per axis.
+    pub grid: [usize; 3],
+    /// Empty-brick threshold (as [`StoreInfo::background`]).
+    pub background: f64,
+    /// Bricks whose maximum reaches the threshold.
+    pub occupied: usize,
+}
+
+/// Streams a source once (twice for wide types) and reports statistics and brick occupancy.
+pub fn scan_volume(
+    source: &mut dyn VolumeSource,
+    brick: usize,
+    progress: &mut dyn FnMut(Progress),
+) -> Result<ScanReport> {
+    let meta = source.meta().clone();
+    let path = source.path().to_path_buf();
+    meta.validate(&path)?;
+    let brick = brick.clamp(1, 4096);
+    let mut scanner = Scanner::new(&meta, brick);
+    let nz = meta.dims[2];
+    let step = brick.max(16);
+    progress(Progress::Stage {
+        name: "scan",
+        total: nz as u64,
+    });
+    let mut z = 0;
+    while z < nz {
+        let d = step.min(nz - z);
+        let mut slab = source.read_slab(z, d)?;
+        scanner.add_slab(&mut slab, NonFinitePolicy::Zero, &path)?;
+        source.release(z, d);
+        z += d;
+        progress(Progress::Advance { done: z as u64 });
+    }
+    let fine = if scanner.needs_second_pass() {
+        let (lo, hi) = scanner.range();
+        let mut fine = FineHistogram::new(lo, hi);
+        progress(Progress::Stage {
+            name: "percentiles",
+            total: nz as u64,
+        });
+        let mut z = 0;
+        while z < nz {
+            let d = step.min(nz - z);
+            let slab = source.read_slab(z, d)?;
+            let mut v = slab.to_f32_scaled(&meta);
+            v.iter_mut()
+                .filter(|x| !x.is_finite())
+                .for_each(|x| *x = 0.0);
+            fine.add(&v);
+            source.release(z, d);
+            z += d;
+            progress(Progress::Advance { done: z as u64 });
+        }
+        Some(fine)
+    } else {
+        None
+    };
+    let grid = scanner.grid;
+    let (stats, _, bmax) = scanner.finish(fine);
+    let background = background_threshold(&stats);
+    let occupied = bmax.iter().filter(|&&m| m >= background).count();
+    Ok(ScanReport {
+        stats,
+        brick,
+        grid,
+        background,
+        occupied,
+    })
+}
+
+/// The default empty-brick threshold: 5% of the way from the 0.5th to the 99.5th percentile.
+/// Bricks whose maximum is below it hold only background (air, zeroed haze).
+pub fn background_threshold(stats: &VolumeStats) -> f64 {
+    stats.p0_5 + 0.05 * (stats.p99_5 - stats.p0_5)
+}
+
+/// Streams `source` into a new brick store at `out`. Peak memory is about one slab of
+/// `brick` z-slices in the source type plus one coarser slab per pyramid level.
+pub fn ingest(
+    source: &mut dyn VolumeSource,
+    out: &Path,
+    opts: &IngestOptions,
+    progress: &mut dyn FnMut(Progress),
+) -> Result<StoreInfo> {
+    validate_options(out, opts)?;
+    if out.exists() && !opts.overwrite {
+        return Err(BrickError::Exists {
+            path: out.to_path_buf(),
+        });
+    }
+    let tmp = crate::nifti::tmp_name(out);
+    if tmp.exists() {
+        std::fs::remove_dir_all(&tmp).map_err(|e| BrickError::io(&tmp, e))?;
+    }
+    std::fs::create_dir_all(&tmp).map_err(|e| BrickError::io(&tmp, e))?;
+    let res = ingest_into(source, &tmp, opts, progress).and_then(|info| {
+        commit_dir(&tmp, out, opts.overwrite)?;
+        Ok(info)
+    });
+    if res.is_err() {
+        let _ = std::fs::remove_dir_all(&tmp);
+    }
+    res
+}
+
+struct LevelWriter {
+    array: ZArray,
+    dims: [usize; 3],
+}
+
+fn ingest_into(
+    source: &mut dyn VolumeSource,
+    root: &Path,
+    opts: &IngestOptions,
+    progress: &mut dyn FnMut(Progress),
+) -> Result<StoreInfo> {
+    let meta: VolumeMeta = source.meta().clone();
+    let src_path = source.path().to_path_buf();
+    meta.validate(&src_path)?;
+    let storage = fs_store(root)?;
+    let b = opts.brick;
+    let store_dtype = if meta.scaling.is_some() {
+        DType::F32
+    } else {
+        meta.dtype
+    };
+    let nlevels = pick_levels(meta.dims, b, opts.levels);
+    let mut levels = Vec::with_capacity(nlevels);
+    for k in 0..nlevels {
+        let d = level_dims(meta.dims, k);
+        let array = build_array(
+            &storage,
+            root,
+            &format!("/{k}"),
+            vec![d[2] as u64, d[1] as u64, d[0] as u64],
+            vec![b as u64; 3],
+            if k == 0 { store_dtype } else { DType::F32 },
+            opts,
+        )?;
+        levels.push(LevelWriter { array, dims: d });
+    }
+    let grid = grid_of(meta.dims, b);
+    let mut scanner = Scanner::new(&meta, b);
+    let nz = meta.dims[2];
+    progress(Progress::Stage {
+        name: "ingest",
+        total: nz as u64,
+    });
+    let mut z0 = 0;
+    while z0 < nz {
+        let depth = b.min(nz - z0);
+        let mut slab = source.read_slab(z0, depth)?;
+        scanner.add_slab(&mut slab, opts.non_finite, &src_path)?;
+        // Level 1 from pairs of slices of the native slab (no full-slab f32 copy).
+        let mut cur = if levels.len() > 1 {
+            downsample_slab(&slab, &meta)
+        } else {
+            Vec::new()
+        };
+        // Level 0 in the stored type.
+        let level0_bytes = if meta.scaling.is_some() {
+            bytemuck::cast_slice(&slab.to_f32_scaled(&meta)).to_vec()
+        } else {
+            std::mem::take(&mut slab.bytes)
+        };
+        drop(slab);
+        let sub = zyx([0, 0, z0], [meta.dims[0], meta.dims[1], depth]);
+        write_bytes(&levels[0].array, &sub, level0_bytes).map_err(|e| BrickError::zarr(root, e))?;
+        // Coarser levels.
+        let mut cur_dims = [
+            meta.dims[0].div_ceil(2),
+            meta.dims[1].div_ceil(2),
+            depth.div_ceil(2),
+        ];
+        let mut cz = z0 / 2;
+        for (k, lvl) in levels.iter().enumerate().skip(1) {
+            if k > 1 {
+                cur = downsample_mean(&cur, cur_dims);
+                cur_dims = [lvl.dims[0], lvl.dims[1], cur_dims[2].div_ceil(2)];
+                cz /= 2;
+            }
+            let sub = zyx([0, 0, cz], cur_dims);
+            write_bytes(&lvl.array, &sub, bytemuck::cast_slice(&cur).to_vec())
+                .map_err(|e| BrickError::zarr(root, e))?;
+        }
+        drop(cur);
+        source.release(z0, depth);
+        z0 += depth;
+        progress(Progress::Advance { done: z0 as u64 });
+    }
+    // Second pass for percentiles of wide types, over the stored level 0.
+    let fine = if scanner.acc.needs_second_pass() {
+        let (lo, hi) = scanner.acc.range();
+        let mut fine = FineHistogram::new(lo, hi);
+        progress(Progress::Stage {
+            name: "statistics",
+            total: nz as u64,
+        });
+        let mut z = 0;
+        while z < nz {
+            let d = b.min(nz - z);
+            let bytes = read_bytes(
+                &levels[0].array,
+                &zyx([0, 0, z], [meta.dims[0], meta.dims[1], d]),
+            )
+            .map_err(|e| BrickError::zarr(root, e))?;
+            let mut v = vec![0.0f32; bytes.len() / store_dtype.size()];
+            crate::dtype::bytes_to_f32(&bytes, store_dtype, &mut v);
+            fine.add(&v);
+            z += d;
+            progress(Progress::Advance { done: z as u64 });
+        }
+        Some(fine)
+    } else {
+        None
+    };
+    let (stats, bmin, bmax) = scanner.finish(fine);
+    // Per-brick ranges.
+    for (name, vals) in [("brick_min", &bmin), ("brick_max", &bmax)] {
+        let a = build_array(
+            &storage,
+            root,
+            &format!("/neuvolex/{name}"),
+            vec![grid[2] as u64, grid[1] as u64, grid[0] as u64],
+            vec![grid[2] as u64, grid[1] as u64, grid[0] as u64],
+            DType::F64,
+            &IngestOptions {
+                shard: None,
+                ..opts.clone()
+            },
+        )?;
+        write_bytes(&a, &zyx([0; 3], grid), bytemuck::cast_slice(vals).to_vec())
+            .map_err(|e| BrickError::zarr(root, e))?;
+    }
+    GroupBuilder::new()
+        .build(storage.clone(), "/neuvolex")
+        .map_err(|e| BrickError::zarr(root, e))?
+        .store_metadata()
+        .map_err(|e| BrickError::zarr(root, e))?;
+    let background = background_threshold(&stats);
+    let info = StoreInfo {
+        version: STORE_VERSION,
+        complete: true,
+        dims: meta.dims,
+        brick: b,
+        shard: opts.shard,
+        levels: levels.iter().map(|l| l.dims).collect(),
+        dtype: store_dtype,
+        source_dtype: meta.dtype,
+        source: src_path.display().to_string(),
+        spacing: meta.spacing,
+        affine: meta.affine,
+        stats,
+        background,
+        labels: vec![],
+    };
+    write_root_attrs(&storage, root, &info)?;
+    Ok(info)
+}
+
+fn write_root_attrs(
+    storage: &ReadableWritableListableStorage,
+    root: &Path,
+    info: &StoreInfo,
+) -> Result<()> {
+    let mut attrs = serde_json::Map::new();
+    attrs.insert(
+        "ome".into(),
+        json!({"version": "0.5", "multiscales": multiscales("image", info.levels.len(), info.spacing, [info.affine[0][3], info.affine[1][3], info.affine[2][3]])}),
+    );
+    attrs.insert(
+        "neuvolex".into(),
+        serde_json::to_value(info).map_err(|e| BrickError::corrupt(root, e.to_string()))?,
+    );
+    let mut g = GroupBuilder::new();
+    g.attributes(attrs);
+    g.build(storage.clone(), "/")
+        .map_err(|e| BrickError::zarr(root, e))?
+        .store_metadata()
+        .map_err(|e| BrickError::zarr(root, e))
+}
+
+/// How per-voxel vectors are stored.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "lowercase")]
+pub enum VectorEncoding {
+    /// IEEE half precision.
+    F16,
+    /// 8-bit linear quantisation of `[lo, hi]` per channel (values are clamped).
+    U8 {
+        /// Value mapped to 0, per channel.
+        lo: Vec<f32>,
+        /// Value mapped to 255, per channel.
+        hi: Vec<f32>,
+    },
+}
+
+/// Attributes of a vector array.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct VectorInfo {
+    /// Channels per voxel.
+    pub channels: usize,
+    /// Encoding.
+    pub encoding: VectorEncoding,
+    /// True once every brick has been written (or the writer was finished).
+    pub complete: bool,
+}
+
+/// A decoded brick and the tick it was last used.
+type CacheEntry = (Arc<Vec<f32>>, u64);
+
+struct Cache {
+    map: HashMap<(usize, [usize; 3]), CacheEntry>,
+    tick: u64,
+    cap: usize,
+}
+
+/// An opened, complete brick store.
+pub struct BrickStore {
+    root: PathBuf,
+    storage: ReadableWritableListableStorage,
+    info: StoreInfo,
+    levels: Vec<ZArray>,
+    brick_min: Vec<f64>,
+    brick_max: Vec<f64>,
+    cache: Mutex<Cache>,
+}
+
+impl std::fmt::Debug for BrickStore {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("BrickStore")
+            .field("root", &self.root)
+            .field("dims", &self.info.dims)
+            .finish()
+    }
+}
+
+impl BrickStore {
+    /// Opens a store written by [`ingest`]; errors if it is incomplete or damaged.
+    pub fn open(root: &Path) -> Result<Self> {
+        let node = read_node_json(root)?;
+        let nv = node
+            .pointer("/attributes/neuvolex")
+            .ok_or_else(|| BrickError::corrupt(root, "not a neuvolex brick store (no neuvolex attributes); run `neuvolex ingest` on it first"))?;
+        if nv.get("complete").and_then(Value::as_bool) != Some(true) {
+            return Err(BrickError::Incomplete {
+                path: root.to_path_buf(),
+                detail: "the store was not completely written (interrupted ingest?)".into(),
+            });
+        }
+        let info: StoreInfo = serde_json::from_value(nv.clone())
+            .map_err(|e| BrickError::corrupt(root, format!("neuvolex attributes: {e}")))?;
+        if info.version > STORE_VERSION {
+            return Err(BrickError::corrupt(
+                root,
+                format!(
+                    "store version {} is newer than this build ({STORE_VERSION})",
+                    info.version
+                ),
+            ));
+        }
+        crate::meta::validate_dims(root, info.dims)?;
+        if !(8..=512).contains(&info.brick) || info.levels.is_empty() {
+            return Err(BrickError::corrupt(
+                root,
+                format!(
+                    "brick {} / levels {:?} are invalid",
+                    info.brick, info.levels
+                ),
+            ));
+        }
+        let storage = fs_store(root)?;
+        let mut levels = Vec::new();
+        for (k, d) in info.levels.iter().enumerate() {
+            read_node_json(&root.join(k.to_string()))?;
+            let a: ZArray = Array::open(storage.clone(), &format!("/{k}"))
+                .map_err(|e| BrickError::corrupt(root.join(k.to_string()), e.to_string()))?;
+            let want = [d[2] as u64, d[1] as u64, d[0] as u64];
+            if a.shape() != want {
+                return Err(BrickError::corrupt(
+                    root,
+                    format!(
+                        "level {k} has shape {:?}, attributes say {want:?}",
+                        a.shape()
+                    ),
+                ));
+            }
+            levels.push(a);
+        }
+        let grid = info.grid();
+        let mut ranges = Vec::new();
+        for name in ["brick_min", "brick_max"] {
+            let p = format!("/neuvolex/{name}");
+            read_node_json(&root.join("neuvolex").join(name))?;
+            let a: ZArray = Array::open(storage.clone(), &p)
+                .map_err(|e| BrickError::corrupt(root, e.to_string()))?;
+            let sub = zyx([0; 3], grid);
+            check_chunks_exist(&a, root, &p, &sub)?;
+            let bytes = read_bytes(&a, &sub).map_err(|e| BrickError::corrupt(root, e))?;
+            ranges.push(bytemuck::pod_collect_to_vec::<u8, f64>(&bytes));
+        }
+        let brick_max = ranges.pop().unwrap_or_default();
+        let brick_min = ranges.pop().unwrap_or_default();
+        let cap = 128;
+        Ok(BrickStore {
+            root: root.to_path_buf(),
+            storage,
+            info,
+            levels,
+            brick_min,
+            brick_max,
+            cache: Mutex::new(Cache {
+                map: HashMap::new(),
+                tick: 0,
+                cap,
+            }),
+        })
+    }
+
+    /// The store's path.
+    pub fn root(&self) -> &Path {
+        &self.root
+    }
+
+    /// Store attributes.
+    pub fn info(&self) -> &StoreInfo {
+        &self.info
+    }
+
+    /// The volume model of level 0 (values are read back as f32).
+    pub fn meta(&self) -> VolumeMeta {
+        VolumeMeta {
+            dims: self.info.dims,
+            spacing: self.info.spacing,
+            affine: self.info.affine,
+            dtype: self.info.dtype,
+            scaling: None,
+        }
+    }
+
+    /// Robust intensity normalisation for derived quantities.
+    pub fn normaliser(&self) -> Normaliser {
+        Normaliser::robust(&self.info.stats)
+    }
+
+    /// Sets how many decoded bricks the read cache keeps (default 128).
+    pub fn set_cache_capacity(&self, bricks: usize) {
+        let mut c = self.cache.lock().unwrap_or_else(|p| p.into_inner());
+        c.cap = bricks.max(1);
+        c.map.clear();
+    }
+
+    /// Bricks per axis (x, y, z).
+    pub fn grid(&self) -> [usize; 3] {
+        self.info.grid()
+    }
+
+    /// The brick at grid index `i`.
+    pub fn brick(&self, i: [usize; 3]) -> Result<Brick> {
+        let g = self.grid();
+        if (0..3).any(|k| i[k] >= g[k]) {
+            return Err(BrickError::InvalidArgument(format!(
+                "brick {i:?} outside grid {g:?}"
+            )));
+        }
+        let b = self.info.brick;
+        let origin = [i[0] * b, i[1] * b, i[2] * b];
+        let size = [
+            b.min(self.info.dims[0] - origin[0]),
+            b.min(self.info.dims[1] - origin[1]),
+            b.min(self.info.dims[2] - origin[2]),
+        ];
+        Ok(Brick {
+            index: i,
+            origin,
+            size,
+        })
+    }
+
+    /// All bricks, x fastest.
+    pub fn bricks(&self) -> impl Iterator<Item = Brick> + '_ {
+        let g = self.grid();
+        (0..g[2])
+            .flat_map(move |z| (0..g[1]).flat_map(move |y| (0..g[0]).map(move |x| [x, y, z])))
+            .filter_map(|i| self.brick(i).ok())
+    }
+
+    fn flat(&self, i: [usize; 3]) -> usize {
+        let g = self.grid();
+        (i[2] * g[1] + i[1]) * g[0] + i[0]
+    }
+
+    /// Value range `(min, max)` of a brick.
+    pub fn brick_range(&self, b: &Brick) -> (f64, f64) {
+        let i = self.flat(b.index);
+        (self.brick_min[i], self.brick_max[i])
+    }
+
+    /// True when the brick holds something above `threshold` (default: [`StoreInfo::background`]).
+    pub fn is_occupied(&self, b: &Brick, threshold: Option<f64>) -> bool {
+        self.brick_range(b).1 >= threshold.unwrap_or(self.info.background)
+    }
+
+    /// Bricks holding something above the threshold; these are what later stages model.
+    pub fn occupied_bricks(&self, threshold: Option<f64>) -> Vec<Brick> {
+        self.bricks()
+            .filter(|b| self.is_occupied(b, threshold))
+            .collect()
+    }
+
+    fn load_brick(&self, level: usize, idx: [usize; 3]) -> Result<Arc<Vec<f32>>> {
+        {
+            let mut c = self.cache.lock().unwrap_or_else(|p| p.into_inner());
+            c.tick += 1;
+            let t = c.tick;
+            if let Some(e) = c.map.get_mut(&(level, idx)) {
+                e.1 = t;
+                return Ok(e.0.clone());
+            }
+        }
+        let d = self.info.levels[level];
+        let b = self.info.brick;
+        let origin = [idx[0] * b, idx[1] * b, idx[2] * b];
+        let size = [
+            b.min(d[0] - origin[0]),
+            b.min(d[1] - origin[1]),
+            b.min(d[2] - origin[2]),
+        ];
+        let sub = zyx(origin, size);
+        let a = &self.levels[level];
+        check_chunks_exist(a, &self.root, &format!("/{level}"), &sub)?;
+        let bytes = read_bytes(a, &sub).map_err(|e| BrickError::corrupt(&self.root, e))?;
+        let dt = if level == 0 {
+            self.info.dtype
+        } else {
+            DType::F32
+        };
+        let mut v = vec![0.0f32; bytes.len() / dt.size()];
+        crate::dtype::bytes_to_f32(&bytes, dt, &mut v);
+        let v = Arc::new(v);
+        let mut c = self.cache.lock().unwrap_or_else(|p| p.into_inner());
+        if c.map.len() >= c.cap {
+            if let Some(old) = c.map.iter().min_by_key(|(_, (_, t))| *t).map(|(k, _)| *k) {
+                c.map.remove(&old);
+            }
+        }
+        let t = c.tick;
+        c.map.insert((level, idx), (v.clone(), t));
+        Ok(v)
+    }
+
+    /// Reads the sub-box `origin..origin+size` (x, y, z) of pyramid `level` as f32, x fastest.
+    pub fn read_box(&self, level: usize, origin: [usize; 3], size: [usize; 3]) -> Result<Vec<f32>> {
+        let d = *self.info.levels.get(level).ok_or_else(|| {
+            BrickError::InvalidArgument(format!(
+                "level {level} does not exist (store has {})",
+                self.info.levels.len()
+            ))
+        })?;
+        for k in 0..3 {
+            if size[k] == 0 || origin[k].checked_add(size[k]).is_none_or(|e| e > d[k]) {
+                return Err(BrickError::InvalidArgument(format!(
+                    "box {origin:?}+{size:?} outside level {level} grid {d:?}"
+                )));
+            }
+        }
+        let b = self.info.brick;
+        let mut out = vec![0.0f32; size.iter().product()];
+        for bz in origin[2] / b..=(origin[2] + size[2] - 1) / b {
+            for by in origin[1] / b..=(origin[1] + size[1] - 1) / b {
+                for bx in origin[0] / b..=(origin[0] + size[0] - 1) / b {
+                    let data = self.load_brick(level, [bx, by, bz])?;
+                    let bo = [bx * b, by * b, bz * b];
+                    let bs = [
+                        b.min(d[0] - bo[0]),
+                        b.min(d[1] - bo[1]),
+                        b.min(d[2] - bo[2]),
+                    ];
+                    let lo = [
+                        origin[0].max(bo[0]),
+                        origin[1].max(bo[1]),
+                        origin[2].max(bo[2]),
+                    ];
+                    let hi = [
+                        (origin[0] + size[0]).min(bo[0] + bs[0]),
+                        (origin[1] + size[1]).min(bo[1] + bs[1]),
+                        (origin[2] + size[2]).min(bo[2] + bs[2]),
+                    ];
+                    let w = hi[0] - lo[0];
+                    for z in lo[2]..hi[2] {
+                        for y in lo[1]..hi[1] {
+                            let s = ((z - bo[2]) * bs[1] + (y - bo[1])) * bs[0] + (lo[0] - bo[0]);
+                            let o = ((z - origin[2]) * size[1] + (y - origin[1])) * size[0]
+                                + (lo[0] - origin[0]);
+                            out[o..o + w].copy_from_slice(&data[s..s + w]);
+                        }
+                    }
+                }
+            }
+        }
+        Ok(out)
+    }
+
+    /// Reads brick `b` of level 0 with `halo` voxels on each side, edge-clamped at the border.
+    pub fn read_halo(&self, b: &Brick, halo: usize) -> Result<HaloBrick> {
+        let d = self.info.dims;
+        let lo: Vec<usize> = (0..3).map(|k| b.origin[k].saturating_sub(halo)).collect();
+        let hi: Vec<usize> = (0..3)
+            .map(|k| (b.origin[k] + b.size[k] + halo).min(d[k]))
+            .collect();
+        let rs = [hi[0] - lo[0], hi[1] - lo[1], hi[2] - lo[2]];
+        let inner = self.read_box(0, [lo[0], lo[1], lo[2]], rs)?;
+        let p = [
+            b.size[0] + 2 * halo,
+            b.size[1] + 2 * halo,
+            b.size[2] + 2 * halo,
+        ];
+        let mut data = vec![0.0f32; p[0] * p[1] * p[2]];
+        let h = halo as isize;
+        let xs: Vec<usize> = (0..p[0] as isize)
+            .map(|x| {
+                ((b.origin[0] as isize + x - h).clamp(lo[0] as isize, hi[0] as isize - 1) as usize)
+                    - lo[0]
+            })
+            .collect();
+        for z in 0..p[2] {
+            let sz = (b.origin[2] as isize + z as isize - h)
+                .clamp(lo[2] as isize, hi[2] as isize - 1) as usize
+                - lo[2];
+            for y in 0..p[1] {
+                let sy = (b.origin[1] as isize + y as isize - h)
+                    .clamp(lo[1] as isize, hi[1] as isize - 1) as usize
+                    - lo[1];
+                let src = (sz * rs[1] + sy) * rs[0];
+                let dst = (z * p[1] + y) * p[0];
+                for (x, &sx) in xs.iter().enumerate() {
+                    data[dst + x] = inner[src + sx];
+                }
+            }
+        }
+        Ok(HaloBrick {
+            origin: b.origin,
+            size: b.size,
+            halo,
+            data,
+        })
+    }
+
+    /// Derived quantities (normalised intensity, gradient, local mean/std) of a brick.
+    pub fn derived(&self, b: &Brick) -> Result<crate::derived::DerivedBrick> {
+        let h = self.read_halo(b, crate::derived::DERIVED_HALO)?;
+        Ok(crate::derived::compute(&h, &self.normaliser()))
+    }
+
+    /// Adds a label volume under `labels/NAME` (grid must match; values non-negative integers).
+    /// Written under a temporary name and renamed, so an interrupted write leaves no label image.
+    pub fn add_labels(
+        &mut self,
+        name: &str,
+        source: &mut dyn VolumeSource,
+        classes: &[crate::synth::ClassInfo],
+        progress: &mut dyn FnMut(Progress),
+    ) -> Result<()> {
+        if name.is_empty()
+            || !name
+                .chars()
+                .all(|c| c.is_ascii_alphanumeric() || c == '_' || c == '-')
+        {
+            return Err(BrickError::InvalidArgument(format!(
+                "label name '{name}' must be alphanumeric, '_' or '-'"
+            )));
+        }
+        let lpath = source.path().to_path_buf();
+        self.meta().check_same_grid(source.meta(), &lpath)?;
+        let sdt = source.meta().dtype;
+        let dtype = match sdt {
+            DType::U8 | DType::I8 => DType::U8,
+            DType::U16 | DType::I16 | DType::F32 | DType::F64 => DType::U16,
+            DType::U32 | DType::I32 => DType::U32,
+        };
+        let labels_dir = self.root.join("labels");
+        let tmp_name = format!(".{name}.partial-{}", std::process::id());
+        let tmp_dir = labels_dir.join(&tmp_name);
+        let _ = std::fs::remove_dir_all(&tmp_dir);
+        let res = self.write_labels(&tmp_name, dtype, source, &lpath, classes, progress);
+        if let Err(e) = res {
+            let _ = std::fs::remove_dir_all(&tmp_dir);
+            return Err(e);
+        }
+        let dst = labels_dir.join(name);
+        if dst.exists() {
+            std::fs::remove_dir_all(&dst).map_err(|e| BrickError::io(&dst, e))?;
+        }
+        std::fs::rename(&tmp_dir, &dst).map_err(|e| BrickError::io(&dst, e))?;
+        if !self.info.labels.iter().any(|l| l == name) {
+            self.info.labels.push(name.to_string());
+        }
+        let mut g = GroupBuilder::new();
+        g.attributes(
+            json!({"ome": {"version": "0.5", "labels": self.info.labels}})
+                .as_object()
+                .cloned()
+                .unwrap_or_default(),
+        );
+        g.build(self.storage.clone(), "/labels")
+            .map_err(|e| BrickError::zarr(&self.root, e))?
+            .store_metadata()
+            .map_err(|e| BrickError::zarr(&self.root, e))?;
+        write_root_attrs(&self.storage, &self.root, &self.info)
+    }
+
+    fn write_labels(
+        &self,
+        tmp_name: &str,
+        dtype: DType,
+        source: &mut dyn VolumeSource,
+        lpath: &Path,
+        classes: &[crate::synth::ClassInfo],
+        progress: &mut dyn FnMut(Progress),
+    ) -> Result<()> {
+        let base = format!("/labels/{tmp_name}");
+        let opts = IngestOptions {
+            brick: self.info.brick,
+            shard: self.info.shard,
+            ..IngestOptions::default()
+        };
+        let mut arrays = Vec::new();
+        for (k, d) in self.info.levels.iter().enumerate() {
+            arrays.push(build_array(
+                &self.storage,
+                &self.root,
+                &format!("{base}/{k}"),
+                vec![d[2] as u64, d[1] as u64, d[0] as u64],
+                vec![self.info.brick as u64; 3],
+                dtype,
+                &opts,
+            )?);
+        }
+        let dims = self.info.dims;
+        let b = self.info.brick;
+        progress(Progress::Stage {
+            name: "labels",
+            total: dims[2] as u64,
+        });
+        let mut z0 = 0;
+        let max = dtype.range().1;
+        while z0 < dims[2] {
+            let depth = b.min(dims[2] - z0);
+            let raw = source.read_slab(z0, depth)?.to_f64();
+            let meta = source.meta().clone();
+            let mut lab = Vec::with_capacity(raw.len());
+            for (i, &r) in raw.iter().enumerate() {
+                let v = meta.scale(r);
+                if !v.is_finite() || v < 0.0 || v.fract() != 0.0 || v > max {
+                    let s = meta.slice_len();
+                    return Err(BrickError::header(lpath, format!("label value {v} at voxel (x={}, y={}, z={}) is not a non-negative integer", i % dims[0], (i / dims[0]) % dims[1], z0 + i / s)));
+                }
+                lab.push(v as u32);
+            }
+            let to_bytes = |l: &[u32]| {
+                crate::dtype::f64_to_bytes(&l.iter().map(|&v| v as f64).collect::<Vec<_>>(), dtype)
+            };
+            write_bytes(
+                &arrays[0],
+                &zyx([0, 0, z0], [dims[0], dims[1], depth]),
+                to_bytes(&lab),
+            )
+            .map_err(|e| BrickError::zarr(&self.root, e))?;
+            let mut cur = lab;
+            let mut cd = [dims[0], dims[1], depth];
+            let mut cz = z0;
+            for (k, a) in arrays.iter().enumerate().skip(1) {
+                cur = downsample_mode(&cur, cd);
+                cd = [
+                    self.info.levels[k][0],
+                    self.info.levels[k][1],
+                    cd[2].div_ceil(2),
+                ];
+                cz /= 2;
+                write_bytes(a, &zyx([0, 0, cz], cd), to_bytes(&cur))
+                    .map_err(|e| BrickError::zarr(&self.root, e))?;
+            }
+            z0 += depth;
+            progress(Progress::Advance { done: z0 as u64 });
+        }
+        let mut ms = multiscales(
+            tmp_name,
+            self.info.levels.len(),
+            self.info.spacing,
+            [
+                self.info.affine[0][3],
+                self.info.affine[1][3],
+                self.info.affine[2][3],
+            ],
+        );
+        ms[0]["type"] = json!("mode");
+        let mut g = GroupBuilder::new();
+        g.attributes(json!({"ome": {"version": "0.5", "multiscales": ms, "image-label": {
+            "version": "0.5",
+            "source": {"image": "../../"},
+            "colors": classes.iter().map(|c| json!({"label-value": c.id, "rgba": [c.color[0], c.color[1], c.color[2], 255]})).collect::<Vec<_>>(),
+            "properties": classes.iter().map(|c| json!({"label-value": c.id, "name": c.name})).collect::<Vec<_>>()
+        }}}).as_object().cloned().unwrap_or_default());
+        g.build(self.storage.clone(), &base)
+            .map_err(|e| BrickError::zarr(&self.root, e))?
+            .store_metadata()
+            .map_err(|e| BrickError::zarr(&self.root, e))
+    }
+
+    /// The class table stored with label image `name` (empty if none was given).
+    pub fn label_classes(&self, name: &str) -> Result<Vec<crate::synth::ClassInfo>> {
+        let dir = self.root.join("labels").join(name);
+        let node = read_node_json(&dir)?;
+        let il = node
+            .pointer("/attributes/ome/image-label")
+            .cloned()
+            .unwrap_or(Value::Null);
+        let mut out = Vec::new();
+        for p in il
+            .get("properties")
+            .and_then(Value::as_array)
+            .into_iter()
+            .flatten()
+        {
+            let id = p.get("label-value").and_then(Value::as_u64).unwrap_or(0) as u32;
+            let name = p
+                .get("name")
+                .and_then(Value::as_str)
+                .unwrap_or("")
+                .to_string();
+            let color = il
+                .get("colors")
+                .and_then(Value::as_array)
+                .and_then(|cs| {
+                    cs.iter()
+                        .find(|c| c.get("label-value").and_then(Value::as_u64) == Some(id as u64))
+                })
+                .and_then(|c| c.get("rgba").and_then(Value::as_array).cloned())
+                .map(|a| [0, 1, 2].map(|i| a.get(i).and_then(Value::as_u64).unwrap_or(128) as u8))
+                .unwrap_or([128; 3]);
+            out.push(crate::synth::ClassInfo { id, name, color });
+        }
+        Ok(out)
+    }
+
+    /// Reads labels `name` in the sub-box of level 0.
+    pub fn read_labels_box(
+        &self,
+        name: &str,
+        origin: [usize; 3],
+        size: [usize; 3],
+    ) -> Result<Vec<u32>> {
+        if !self.info.labels.iter().any(|l| l == name) {
+            return Err(BrickError::InvalidArgument(format!(
+                "{}: no label image '{name}' (have {:?})",
+                self.root.display(),
+                self.info.labels
+            )));
+        }
+        let d = self.info.dims;
+        for k in 0..3 {
+            if size[k] == 0 || origin[k] + size[k] > d[k] {
+                return Err(BrickError::InvalidArgument(format!(
+                    "box {origin:?}+{size:?} outside grid {d:?}"
+                )));
+            }
+        }
+        let p = format!("/labels/{name}/0");
+        let a: ZArray = Array::open(self.storage.clone(), &p)
+            .map_err(|e| BrickError::corrupt(&self.root, e.to_string()))?;
+        let sub = zyx(origin, size);
+        check_chunks_exist(&a, &self.root, &p, &sub)?;
+        let bytes = read_bytes(&a, &sub).map_err(|e| BrickError::corrupt(&self.root, e))?;
+        let dt = DType::parse(&crate::omezarr::dtype_name(&a)).unwrap_or(DType::U8);
+        let mut v = vec![0.0f64; bytes.len() / dt.size()];
+        crate::dtype::bytes_to_f64(&bytes, dt, &mut v);
+        Ok(v.into_iter().map(|x| x as u32).collect())
+    }
+
+    /// Creates (or replaces) the per-voxel vector array `name` with `channels` channels.
+    pub fn create_vectors(
+        &self,
+        name: &str,
+        channels: usize,
+        encoding: VectorEncoding,
+    ) -> Result<VectorArray> {
+        if name.is_empty()
+            || !name
+                .chars()
+                .all(|c| c.is_ascii_alphanumeric() || c == '_' || c == '-')
+        {
+            return Err(BrickError::InvalidArgument(format!(
+                "vector name '{name}' must be alphanumeric, '_' or '-'"
+            )));
+        }
+        if channels == 0 || channels > 4096 {
+            return Err(BrickError::InvalidArgument(format!(
+                "{channels} channels: must be 1..=4096"
+            )));
+        }
+        if let VectorEncoding::U8 { lo, hi } = &encoding {
+            if lo.len() != channels
+                || hi.len() != channels
+                || lo
+                    .iter()
+                    .zip(hi)
+                    .any(|(a, b)| !a.is_finite() || !b.is_finite() || b <= a)
+            {
+                return Err(BrickError::InvalidArgument(
+                    "u8 quantisation needs finite lo < hi for every channel".into(),
+                ));
+            }
+        }
+        let dir = self.root.join("neuvolex").join("vectors").join(name);
+        if dir.exists() {
+            std::fs::remove_dir_all(&dir).map_err(|e| BrickError::io(&dir, e))?;
+        }
+        let d = self.info.dims;
+        let b = self.info.brick as u64;
+        let dtype_name = match encoding {
+            VectorEncoding::F16 => zarrs::array::data_type::float16(),
+            VectorEncoding::U8 { .. } => zarrs::array::data_type::uint8(),
+        };
+        let path = format!("/neuvolex/vectors/{name}");
+        let vinfo = VectorInfo {
+            channels,
+            encoding,
+            complete: false,
+        };
+        let mut builder = ArrayBuilder::new(
+            vec![d[2] as u64, d[1] as u64, d[0] as u64, channels as u64],
+            vec![b, b, b, channels as u64],
+            dtype_name,
+            0u8,
+        );
+        builder.bytes_to_bytes_codecs(vec![Arc::new(zarrs::array::codec::ZstdCodec::new(
+            3, false,
+        ))]);
+        builder.dimension_names(Some(
+            ["z", "y", "x", "c"].map(|s| Some(s.to_string())).to_vec(),
+        ));
+        builder.attributes(
+            json!({"neuvolex": vinfo})
+                .as_object()
+                .cloned()
+                .unwrap_or_default(),
+        );
+        let array = builder
+            .build(self.storage.clone(), &path)
+            .map_err(|e| BrickError::zarr(&self.root, e))?;
+        array
+            .store_metadata()
+            .map_err(|e| BrickError::zarr(&self.root, e))?;
+        Ok(VectorArray {
+            root: self.root.clone(),
+            path,
+            array,
+            info: vinfo,
+            brick: self.info.brick,
+            dims: d,
+        })
+    }
+
+    /// Opens an existing vector array.
+    pub fn open_vectors(&self, name: &str) -> Result<VectorArray> {
+        let path = format!("/neuvolex/vectors/{name}");
+        let dir = self.root.join("neuvolex").join("vectors").join(name);
+        read_node_json(&dir)?;
+        let array: ZArray = Array::open(self.storage.clone(), &path)
+            .map_err(|e| BrickError::corrupt(&dir, e.to_string()))?;
+        let info: VectorInfo = array
+            .attributes()
+            .get("neuvolex")
+            .cloned()
+            .and_then(|v| serde_json::from_value(v).ok())
+            .ok_or_else(|| {
+                BrickError::corrupt(&dir, "vector array has no valid neuvolex attributes")
+            })?;
+        Ok(VectorArray {
+            root: self.root.clone(),
+            path,
+            array,
+            info,
+            brick: self.info.brick,
+            dims: self.info.dims,
+        })
+    }
+}
+
+/// A per-voxel vector array (features, class probabilities) in the store.
+pub struct VectorArray {
+    root: PathBuf,
+    path: String,
+    array: ZArray,
+    info: VectorInfo,
+    brick: usize,
+    dims: [usize; 3],
+}
+
+impl VectorArray {
+    /// Channels and encoding.
+    pub fn info(&self) -> &VectorInfo {
+        &self.info
+    }
+
+    fn chunk_of(&self, b: &Brick) -> Result<[u64; 4]> {
+        let g = grid_of(self.dims, self.brick);
+        if (0..3).any(|k| b.index[k] >= g[k])
+            || b.origin
+                != [
+                    b.index[0] * self.brick,
+                    b.index[1] * self.brick,
+                    b.index[2] * self.brick,
+                ]
+        {
+            return Err(BrickError::InvalidArgument(format!(
+                "brick {:?} does not belong to this store's grid",
+                b.index
+            )));
+        }
+        Ok([b.index[2] as u64, b.index[1] as u64, b.index[0] as u64, 0])
+    }
+
+    /// Writes one brick of vectors: `values` has `brick.voxels() * channels` entries, voxel-major
+    /// (channels fastest), voxels x fastest.
+    pub fn write_brick(&self, b: &Brick, values: &[f32]) -> Result<()> {
+        let c = self.info.channels;
+        if values.len() != b.voxels() * c {
+            return Err(BrickError::InvalidArgument(format!(
+                "brick {:?} needs {} values ({} voxels x {c}), got {}",
+                b.index,
+                b.voxels() * c,
+                b.voxels(),
+                values.len()
+            )));
+        }
+        if let Some(i) = values.iter().position(|v| !v.is_finite()) {
+            return Err(BrickError::InvalidArgument(format!(
+                "vector value {} at index {i} of brick {:?} is not finite",
+                values[i], b.index
+            )));
+        }
+        let _ = self.chunk_of(b)?;
+        let mut sub = zyx(b.origin, b.size);
+        sub.push(0..c as u64);
+        let r = match &self.info.encoding {
+            VectorEncoding::F16 => {
+                let v: Vec<half::f16> = values.iter().map(|&x| half::f16::from_f32(x)).collect();
+                write_bytes(&self.array, &sub, bytemuck::cast_slice(&v).to_vec())
+            }
+            VectorEncoding::U8 { lo, hi } => {
+                let v: Vec<u8> = values
+                    .iter()
+                    .enumerate()
+                    .map(|(i, &x)| {
+                        let (l, h) = (lo[i % c], hi[i % c]);
+                        (((x - l) / (h - l)).clamp(0.0, 1.0) * 255.0).round() as u8
+                    })
+                    .collect();
+                write_bytes(&self.array, &sub, v)
+            }
+        };
+        r.map_err(|e| BrickError::zarr(&self.root, e))
+    }
+
+    /// Reads one brick of vectors (voxel-major, channels fastest). A brick never written is an
+    /// error ([`BrickError::MissingChunk`]).
+    pub fn read_brick(&self, b: &Brick) -> Result<Vec<f32>> {
+        let _ = self.chunk_of(b)?;
+        let c = self.info.channels;
+        let mut sub = zyx(b.origin, b.size);
+        sub.push(0..c as u64);
+        check_chunks_exist(&self.array, &self.root, &self.path, &sub)?;
+        let bytes =
+            read_bytes(&self.array, &sub).map_err(|e| BrickError::corrupt(&self.root, e))?;
+        Ok(match &self.info.encoding {
+            VectorEncoding::F16 => bytemuck::pod_collect_to_vec::<u8, half::f16>(&bytes)
+                .iter()
+                .map(|h| h.to_f32())
+                .collect(),
+            VectorEncoding::U8 { lo, hi } => bytes
+                .iter()
+                .enumerate()
+                .map(|(i, &q)| lo[i % c] + (hi[i % c] - lo[i % c]) * q as f32 / 255.0)
+                .collect(),
+        })
+    }
+
+    /// Marks the array complete.
+    pub fn finish(&mut self) -> Result<()> {
+        self.info.complete = true;
+        self.array.attributes_mut().insert(
+            "neuvolex".into(),
+            serde_json::to_value(&self.info)
+                .map_err(|e| BrickError::corrupt(&self.root, e.to_string()))?,
+        );
+        self.array
+            .store_metadata()
+            .map_err(|e| BrickError::zarr(&self.root, e))
+    }
+}

@@ -1,0 +1,212 @@
+//! Random-access reads of voxel bytes from plain (memory-mapped) or gzip-compressed files.
+//!
+//! Plain files are memory-mapped with memmap2; gzip streams are decoded sequentially and
+//! restarted when a caller seeks backwards. Either way only the requested bytes are resident.
+
+use crate::error::{BrickError, Result};
+use flate2::bufread::MultiGzDecoder;
+use memmap2::Mmap;
+use std::fs::File;
+use std::io::{BufReader, Read, Seek, SeekFrom};
+use std::path::{Path, PathBuf};
+
+enum Kind {
+    Mmap(Mmap),
+    Gzip {
+        /// Byte offset in the file where the compressed stream starts.
+        start: u64,
+        dec: Box<MultiGzDecoder<BufReader<File>>>,
+        /// Decompressed bytes consumed so far.
+        pos: u64,
+    },
+}
+
+/// Voxel bytes of one file: `len` bytes starting `offset` bytes into the (decompressed) data.
+pub(crate) struct ByteStream {
+    path: PathBuf,
+    kind: Kind,
+    offset: u64,
+    len: u64,
+}
+
+fn open_file(path: &Path) -> Result<File> {
+    File::open(path).map_err(|e| BrickError::io(path, e))
+}
+
+fn gz_err(path: &Path, e: std::io::Error, expected: u64, found: u64) -> BrickError {
+    match e.kind() {
+        std::io::ErrorKind::UnexpectedEof => BrickError::Truncated {
+            path: path.to_path_buf(),
+            expected,
+            found,
+        },
+        std::io::ErrorKind::InvalidInput | std::io::ErrorKind::InvalidData => {
+            BrickError::CorruptGzip {
+                path: path.to_path_buf(),
+                detail: e.to_string(),
+            }
+        }
+        _ => BrickError::io(path, e),
+    }
+}
+
+impl ByteStream {
+    /// Maps `path`; voxel data is `len` bytes at `offset`. Errors if the file is too short
+    /// (truncated) or, with `exact`, if it has trailing bytes.
+    pub(crate) fn plain(path: &Path, offset: u64, len: u64, exact: bool) -> Result<Self> {
+        let file = open_file(path)?;
+        let flen = file.metadata().map_err(|e| BrickError::io(path, e))?.len();
+        let need = offset.checked_add(len).ok_or_else(|| BrickError::BadDims {
+            path: path.to_path_buf(),
+            detail: "byte size overflows".into(),
+        })?;
+        if flen < need {
+            return Err(BrickError::Truncated {
+                path: path.to_path_buf(),
+                expected: len,
+                found: flen.saturating_sub(offset),
+            });
+        }
+        if exact && flen != need {
+            return Err(BrickError::SizeMismatch {
+                path: path.to_path_buf(),
+                detail: format!(
+                    "file has {flen} bytes but the grid and type need {need} ({len} voxel bytes after an offset of {offset})"
+                ),
+            });
+        }
+        // SAFETY: the map is read-only; concurrent truncation by another process is the
+        // usual caveat of memory-mapped I/O and is documented for users.
+        let map = unsafe { Mmap::map(&file) }.map_err(|e| BrickError::io(path, e))?;
+        Ok(ByteStream {
+            path: path.to_path_buf(),
+            kind: Kind::Mmap(map),
+            offset,
+            len,
+        })
+    }
+
+    /// Opens a gzip stream starting at byte `start` of `path`; voxel data is `len`
+    /// decompressed bytes after skipping `offset` decompressed bytes.
+    pub(crate) fn gzip(path: &Path, start: u64, offset: u64, len: u64) -> Result<Self> {
+        let dec = Self::open_gz(path, start)?;
+        Ok(ByteStream {
+            path: path.to_path_buf(),
+            kind: Kind::Gzip {
+                start,
+                dec: Box::new(dec),
+                pos: 0,
+            },
+            offset,
+            len,
+        })
+    }
+
+    fn open_gz(path: &Path, start: u64) -> Result<MultiGzDecoder<BufReader<File>>> {
+        let mut f = open_file(path)?;
+        f.seek(SeekFrom::Start(start))
+            .map_err(|e| BrickError::io(path, e))?;
+        Ok(MultiGzDecoder::new(BufReader::with_capacity(1 << 16, f)))
+    }
+
+    /// Fills `buf` with voxel bytes starting at voxel-byte position `at`.
+    pub(crate) fn read_at(&mut self, at: u64, buf: &mut [u8]) -> Result<()> {
+        let want = at + buf.len() as u64;
+        if want > self.len {
+            return Err(BrickError::InvalidArgument(format!(
+                "{}: read past the end of the voxel data",
+                self.path.display()
+            )));
+        }
+        let abs = self.offset + at;
+        match &mut self.kind {
+            Kind::Mmap(m) => {
+                let s = abs as usize;
+                buf.copy_from_slice(&m[s..s + buf.len()]);
+            }
+            Kind::Gzip { start, dec, pos } => {
+                if abs < *pos {
+                    **dec = Self::open_gz(&self.path, *start)?;
+                    *pos = 0;
+                }
+                let skip = abs - *pos;
+                if skip > 0 {
+                    let copied = std::io::copy(&mut dec.as_mut().take(skip), &mut std::io::sink())
+                        .map_err(|e| {
+                            gz_err(&self.path, e, self.len, pos.saturating_sub(self.offset))
+                        })?;
+                    *pos += copied;
+                    if copied < skip {
+                        return Err(BrickError::Truncated {
+                            path: self.path.clone(),
+                            expected: self.len,
+                            found: pos.saturating_sub(self.offset),
+                        });
+                    }
+                }
+                let mut filled = 0usize;
+                while filled < buf.len() {
+                    match dec.read(&mut buf[filled..]) {
+                        Ok(0) => {
+                            return Err(BrickError::Truncated {
+                                path: self.path.clone(),
+                                expected: self.len,
+                                found: (*pos + filled as u64).saturating_sub(self.offset),
+                            })
+                        }
+                        Ok(n) => filled += n,
+                        Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
+                        Err(e) => {
+                            return Err(gz_err(
+                                &self.path,
+                                e,
+                                self.len,
+                                (*pos + filled as u64).saturating_sub(self.offset),
+                            ))
+                        }
+                    }
+                }
+                *pos += filled as u64;
+                // At the end of the voxel data, drain the stream so the gzip CRC and length
+                // trailer are checked: corrupt deflate data can otherwise decode silently.
+                if *pos == self.offset + self.len {
+                    let rest = std::io::copy(dec.as_mut(), &mut std::io::sink())
+                        .map_err(|e| gz_err(&self.path, e, self.len, self.len))?;
+                    *pos += rest;
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// Tells the kernel that bytes `at..at+len` will not be needed again (mmap only).
+    pub(crate) fn release(&mut self, at: u64, len: u64) {
+        if let Kind::Mmap(m) = &self.kind {
+            let page = 4096u64;
+            let start = (self.offset + at) / page * page;
+            let end = (self.offset + at + len).min(m.len() as u64);
+            if end > start {
+                // DontNeed on a read-only file mapping only drops clean pages; they are re-read
+                // from the file if touched again, so this cannot change the data.
+                let _ = unsafe {
+                    m.unchecked_advise_range(
+                        memmap2::UncheckedAdvice::DontNeed,
+                        start as usize,
+                        (end - start) as usize,
+                    )
+                };
+            }
+        }
+    }
+}
+
+/// True when the file starts with the gzip magic bytes.
+pub(crate) fn is_gzip_file(path: &Path) -> Result<bool> {
+    let mut f = open_file(path)?;
+    let mut magic = [0u8; 2];
+    match f.read_exact(&mut magic) {
+        Ok(()) => Ok(magic == [0x1f, 0x8b]),
+        Err(e) if e.kind() == std::io::ErrorKind::UnexpectedEof => Ok(false),
+        Err(e) => Err(BrickError::io(path, e)),
+    }
+}

@@ -1,0 +1,484 @@
+//! `neuvolex`: the command line of the neuvolex volume-exploration system.
+//!
+//! The binary only parses arguments, draws progress and prints; the work is in the library crates.
+
+use anyhow::{bail, Context, Result};
+use clap::{Parser, Subcommand, ValueEnum};
+use indicatif::{ProgressBar, ProgressStyle};
+use neuvolex_bricks::store::{scan_volume, ScanReport};
+use neuvolex_bricks::synth::{phantom_classes, Phantom, PhantomChannel, PhantomParams};
+use neuvolex_bricks::{
+    ingest, open_volume, BrickStore, DType, Endian, IngestOptions, NonFinitePolicy, Progress,
+    RawSpec, VolumeStats,
+};
+use std::path::{Path, PathBuf};
+
+#[derive(Parser)]
+#[command(
+    name = "neuvolex",
+    version,
+    about = "Explore large 3-D volumes with learned features"
+)]
+struct Cli {
+    #[command(subcommand)]
+    cmd: Cmd,
+    /// Hide progress bars.
+    #[arg(long, global = true)]
+    quiet: bool,
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum Scene {
+    /// A labelled CT-like abdomen phantom (the embedded default).
+    Phantom,
+}
+
+#[derive(clap::Args, Clone, Default)]
+struct RawArgs {
+    /// Raw files: grid as X,Y,Z.
+    #[arg(long, value_delimiter = ',', num_args = 3)]
+    dims: Option<Vec<usize>>,
+    /// Raw files: voxel type (u8, i8, u16, i16, u32, i32, f32, f64).
+    #[arg(long)]
+    dtype: Option<String>,
+    /// Raw files: byte order (little or big).
+    #[arg(long, default_value = "little")]
+    endian: String,
+    /// Raw files: voxel spacing as X,Y,Z.
+    #[arg(long, value_delimiter = ',', num_args = 3)]
+    spacing: Option<Vec<f64>>,
+    /// Raw files: bytes to skip before the data.
+    #[arg(long, default_value_t = 0)]
+    offset: u64,
+}
+
+impl RawArgs {
+    fn spec(&self) -> Result<Option<RawSpec>> {
+        let (Some(d), Some(t)) = (&self.dims, &self.dtype) else {
+            if self.dims.is_some() || self.dtype.is_some() {
+                bail!("raw input needs both --dims and --dtype");
+            }
+            return Ok(None);
+        };
+        let dtype = DType::parse(t).with_context(|| {
+            format!("unknown --dtype '{t}' (use u8, i8, u16, i16, u32, i32, f32 or f64)")
+        })?;
+        let endian = Endian::parse(&self.endian)
+            .with_context(|| format!("--endian '{}' must be little or big", self.endian))?;
+        let spacing = self
+            .spacing
+            .as_ref()
+            .map(|s| [s[0], s[1], s[2]])
+            .unwrap_or([1.0; 3]);
+        Ok(Some(RawSpec {
+            dims: [d[0], d[1], d[2]],
+            dtype,
+            endian,
+            spacing,
+            offset: self.offset,
+        }))
+    }
+}
+
+#[derive(Subcommand)]
+enum Cmd {
+    /// Generate a synthetic labelled scene (.zarr store, or .nii/.nii.gz plus a _labels file).
+    Synth {
+        /// Which scene.
+        scene: Scene,
+        /// Output path.
+        #[arg(long)]
+        out: PathBuf,
+        /// Width in voxels (x = y = size, z = 7/8 size).
+        #[arg(long, default_value_t = 128)]
+        size: usize,
+        /// Noise seed.
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
+        /// Brick edge for .zarr output.
+        #[arg(long, default_value_t = 64)]
+        brick: usize,
+        /// Replace an existing output.
+        #[arg(long)]
+        force: bool,
+    },
+    /// Ingest a volume (NIfTI, NRRD, raw, OME-Zarr) into an OME-Zarr brick store.
+    Ingest {
+        /// Input volume.
+        input: PathBuf,
+        /// Output store (.zarr).
+        output: PathBuf,
+        /// Brick edge in voxels (power of two, 8..512).
+        #[arg(long, default_value_t = 64)]
+        brick: usize,
+        /// Bricks per shard edge (enables Zarr sharding).
+        #[arg(long)]
+        shard: Option<usize>,
+        /// zstd compression level.
+        #[arg(long, default_value_t = 3)]
+        zstd_level: i32,
+        /// What to do with NaN/Inf values.
+        #[arg(long, value_enum, default_value = "reject")]
+        non_finite: NonFinite,
+        /// Ground-truth or scribble label volume on the same grid.
+        #[arg(long)]
+        labels: Option<PathBuf>,
+        /// Name of the label image in the store.
+        #[arg(long, default_value = "ground_truth")]
+        labels_name: String,
+        /// Replace an existing store.
+        #[arg(long)]
+        force: bool,
+        #[command(flatten)]
+        raw: RawArgs,
+    },
+    /// Describe a volume file or store: grid, type, spacing, value range, histogram, bricks.
+    Info {
+        /// Input volume or store.
+        input: PathBuf,
+        /// Brick edge for occupancy of plain files.
+        #[arg(long, default_value_t = 64)]
+        brick: usize,
+        /// Print JSON instead of text.
+        #[arg(long)]
+        json: bool,
+        #[command(flatten)]
+        raw: RawArgs,
+    },
+    /// Convert any readable volume (including a store or store/labels/NAME) to NIfTI.
+    Convert {
+        /// Input volume.
+        input: PathBuf,
+        /// Output .nii or .nii.gz.
+        output: PathBuf,
+        /// Replace an existing output.
+        #[arg(long)]
+        force: bool,
+        #[command(flatten)]
+        raw: RawArgs,
+    },
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum NonFinite {
+    /// Fail, naming the first NaN/Inf voxel.
+    Reject,
+    /// Replace NaN/Inf by 0 and count them.
+    Zero,
+}
+
+fn progress_sink(quiet: bool) -> impl FnMut(Progress) {
+    let mut bar: Option<ProgressBar> = None;
+    move |p| {
+        if quiet {
+            return;
+        }
+        match p {
+            Progress::Stage { name, total } => {
+                if let Some(b) = bar.take() {
+                    b.finish_and_clear();
+                }
+                let b = ProgressBar::new(total);
+                b.set_style(
+                    ProgressStyle::with_template(
+                        "{prefix:>10} [{bar:40}] {pos}/{len} slices {elapsed} eta {eta}",
+                    )
+                    .unwrap_or_else(|_| ProgressStyle::default_bar())
+                    .progress_chars("=> "),
+                );
+                b.set_prefix(name);
+                bar = Some(b);
+            }
+            Progress::Advance { done } => {
+                if let Some(b) = &bar {
+                    b.set_position(done);
+                    if b.length() == Some(done) {
+                        b.finish_and_clear();
+                    }
+                }
+            }
+        }
+    }
+}
+
+fn sparkline(hist: &[u64], width: usize) -> String {
+    let ticks = [' ', '▁', '▂', '▃', '▄', '▅', '▆', '▇', '█'];
+    let per = hist.len().div_ceil(width);
+    let sums: Vec<u64> = hist.chunks(per).map(|c| c.iter().sum()).collect();
+    // Log scale: CT histograms are dominated by air.
+    let max = sums
+        .iter()
+        .map(|&v| ((v + 1) as f64).ln())
+        .fold(0.0, f64::max);
+    sums.iter()
+        .map(|&v| {
+            if v == 0 {
+                ' '
+            } else {
+                ticks[(1.0 + ((v + 1) as f64).ln() / max.max(1e-9) * 7.0).round() as usize]
+            }
+        })
+        .collect()
+}
+
+fn print_stats(s: &VolumeStats) {
+    println!("value range : {} .. {}", s.min, s.max);
+    println!("mean ± std  : {:.4} ± {:.4}", s.mean, s.std);
+    println!("p0.5 / p99.5: {:.4} / {:.4}", s.p0_5, s.p99_5);
+    println!(
+        "histogram   : |{}| (256 bins, log counts)",
+        sparkline(&s.histogram, 64)
+    );
+    if s.non_finite_replaced > 0 {
+        println!(
+            "non-finite  : {} NaN/Inf values (treated as 0)",
+            s.non_finite_replaced
+        );
+    }
+}
+
+fn is_store(p: &Path) -> bool {
+    std::fs::read_to_string(p.join("zarr.json"))
+        .map(|t| t.contains("\"neuvolex\""))
+        .unwrap_or(false)
+}
+
+fn info(input: &Path, brick: usize, json: bool, raw: &RawArgs, quiet: bool) -> Result<()> {
+    if is_store(input) {
+        let store = BrickStore::open(input)?;
+        let i = store.info();
+        let occupied = store.occupied_bricks(None).len();
+        let total = store.bricks().count();
+        if json {
+            let mut v = serde_json::to_value(i)?;
+            v["bricks_total"] = total.into();
+            v["bricks_occupied"] = occupied.into();
+            println!("{}", serde_json::to_string_pretty(&v)?);
+            return Ok(());
+        }
+        println!(
+            "store       : {} (OME-Zarr 0.5, neuvolex v{})",
+            input.display(),
+            i.version
+        );
+        println!("source      : {} ({})", i.source, i.source_dtype);
+        println!(
+            "dims (xyz)  : {} x {} x {} = {} voxels",
+            i.dims[0], i.dims[1], i.dims[2], i.stats.voxels
+        );
+        println!("dtype       : {}", i.dtype);
+        println!("spacing     : {:?}", i.spacing);
+        print_stats(&i.stats);
+        let g = i.grid();
+        println!("bricks      : {}^3, grid {} x {} x {} = {total}, occupied {occupied} ({:.1}%) above {:.4}", i.brick, g[0], g[1], g[2], 100.0 * occupied as f64 / total as f64, i.background);
+        println!(
+            "pyramid     : {}",
+            i.levels
+                .iter()
+                .map(|d| format!("{}x{}x{}", d[0], d[1], d[2]))
+                .collect::<Vec<_>>()
+                .join(", ")
+        );
+        if let Some(s) = i.shard {
+            println!("sharding    : {s}^3 bricks per shard");
+        }
+        for l in &i.labels {
+            let classes = store.label_classes(l)?;
+            println!(
+                "labels      : {l} ({})",
+                classes
+                    .iter()
+                    .map(|c| format!("{}={}", c.id, c.name))
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            );
+        }
+        return Ok(());
+    }
+    let mut src = open_volume(input, raw.spec()?.as_ref())?;
+    let meta = src.meta().clone();
+    let rep: ScanReport = scan_volume(src.as_mut(), brick, &mut progress_sink(quiet || json))?;
+    if json {
+        println!(
+            "{}",
+            serde_json::to_string_pretty(
+                &serde_json::json!({"path": input, "meta": meta, "scan": rep})
+            )?
+        );
+        return Ok(());
+    }
+    let total: usize = rep.grid.iter().product();
+    println!(
+        "file        : {} ({:?})",
+        input.display(),
+        neuvolex_bricks::detect_format(input).ok()
+    );
+    println!(
+        "dims (xyz)  : {} x {} x {} = {} voxels",
+        meta.dims[0],
+        meta.dims[1],
+        meta.dims[2],
+        meta.voxels()
+    );
+    println!(
+        "dtype       : {}{}",
+        meta.dtype,
+        meta.scaling
+            .map(|(s, i)| format!(" (scaled: x{s} + {i})"))
+            .unwrap_or_default()
+    );
+    println!("spacing     : {:?}", meta.spacing);
+    println!("origin      : {:?}", meta.origin());
+    print_stats(&rep.stats);
+    println!(
+        "bricks      : {}^3, grid {} x {} x {} = {total}, occupied {} ({:.1}%) above {:.4}",
+        rep.brick,
+        rep.grid[0],
+        rep.grid[1],
+        rep.grid[2],
+        rep.occupied,
+        100.0 * rep.occupied as f64 / total as f64,
+        rep.background
+    );
+    Ok(())
+}
+
+fn main() -> Result<()> {
+    tracing_subscriber::fmt()
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into()),
+        )
+        .with_writer(std::io::stderr)
+        .init();
+    let cli = Cli::parse();
+    let quiet = cli.quiet;
+    match cli.cmd {
+        Cmd::Synth {
+            scene: Scene::Phantom,
+            out,
+            size,
+            seed,
+            brick,
+            force,
+        } => {
+            if !(1..=4096).contains(&size) {
+                bail!("--size {size} must be 1..=4096");
+            }
+            let params = PhantomParams::with_size(size, seed);
+            let name = out.to_string_lossy().to_ascii_lowercase();
+            if name.ends_with(".nii") || name.ends_with(".nii.gz") {
+                let stem = name
+                    .trim_end_matches(".gz")
+                    .trim_end_matches(".nii")
+                    .to_string();
+                let lab = PathBuf::from(format!("{stem}_labels.nii.gz"));
+                for p in [&out, &lab] {
+                    if p.exists() && !force {
+                        bail!(
+                            "{}: already exists (pass --force to replace it)",
+                            p.display()
+                        );
+                    }
+                }
+                neuvolex_bricks::nifti::write_nifti(
+                    &out,
+                    &mut Phantom::new(params, PhantomChannel::Image),
+                    16,
+                )?;
+                neuvolex_bricks::nifti::write_nifti(
+                    &lab,
+                    &mut Phantom::new(params, PhantomChannel::Labels),
+                    16,
+                )?;
+                tracing::info!(image = %out.display(), labels = %lab.display(), "phantom written");
+            } else {
+                let opts = IngestOptions {
+                    brick,
+                    overwrite: force,
+                    ..IngestOptions::default()
+                };
+                let mut sink = progress_sink(quiet);
+                ingest(
+                    &mut Phantom::new(params, PhantomChannel::Image),
+                    &out,
+                    &opts,
+                    &mut sink,
+                )?;
+                let mut store = BrickStore::open(&out)?;
+                store.add_labels(
+                    "ground_truth",
+                    &mut Phantom::new(params, PhantomChannel::Labels),
+                    &phantom_classes(),
+                    &mut sink,
+                )?;
+                tracing::info!(store = %out.display(), dims = ?params.dims, "phantom store written with labels/ground_truth");
+            }
+        }
+        Cmd::Ingest {
+            input,
+            output,
+            brick,
+            shard,
+            zstd_level,
+            non_finite,
+            labels,
+            labels_name,
+            force,
+            raw,
+        } => {
+            let mut src = open_volume(&input, raw.spec()?.as_ref())?;
+            // Open the labels first so a bad label file fails before any work is done.
+            let mut lab = match &labels {
+                Some(l) => {
+                    let s = open_volume(l, None)?;
+                    src.meta().check_same_grid(s.meta(), l)?;
+                    Some(s)
+                }
+                None => None,
+            };
+            let opts = IngestOptions {
+                brick,
+                shard,
+                zstd_level,
+                non_finite: match non_finite {
+                    NonFinite::Reject => NonFinitePolicy::Reject,
+                    NonFinite::Zero => NonFinitePolicy::Zero,
+                },
+                overwrite: force,
+                levels: None,
+            };
+            let t = std::time::Instant::now();
+            let mut sink = progress_sink(quiet);
+            let info = ingest(src.as_mut(), &output, &opts, &mut sink)?;
+            if let Some(l) = lab.as_mut() {
+                let mut store = BrickStore::open(&output)?;
+                store.add_labels(&labels_name, l.as_mut(), &[], &mut sink)?;
+            }
+            let mb = info.stats.voxels as f64 * info.source_dtype.size() as f64 / 1e6;
+            tracing::info!(store = %output.display(), dims = ?info.dims, bricks = info.grid().iter().product::<usize>(), seconds = t.elapsed().as_secs_f64(), mb_per_s = mb / t.elapsed().as_secs_f64(), "ingest complete");
+        }
+        Cmd::Info {
+            input,
+            brick,
+            json,
+            raw,
+        } => info(&input, brick, json, &raw, quiet)?,
+        Cmd::Convert {
+            input,
+            output,
+            force,
+            raw,
+        } => {
+            if output.exists() && !force {
+                bail!(
+                    "{}: already exists (pass --force to replace it)",
+                    output.display()
+                );
+            }
+            let mut src = open_volume(&input, raw.spec()?.as_ref())?;
+            neuvolex_bricks::nifti::write_nifti(&output, src.as_mut(), 16)?;
+            tracing::info!(output = %output.display(), "written");
+        }
+    }
+    Ok(())
+}
