@@ -406,12 +406,12 @@ fn small_store(dir: &Path) -> PathBuf {
 fn store_with_missing_chunks() {
     let d = tmp();
     let out = small_store(d.path());
-    std::fs::remove_file(out.join("0/c/1/1/1")).unwrap();
+    std::fs::remove_file(out.join("0/c.1.1.1")).unwrap();
     let store = BrickStore::open(&out).unwrap();
     let e = store.read_box(0, [0; 3], [24, 24, 24]).unwrap_err();
     assert!(
         matches!(e, BrickError::MissingChunk { .. })
-            && e.to_string().contains("c/1/1/1")
+            && e.to_string().contains("c.1.1.1")
             && e.to_string().contains("s.zarr"),
         "{e}"
     );
@@ -424,7 +424,7 @@ fn store_with_missing_chunks() {
         BrickError::MissingChunk { .. }
     ));
     // A missing per-brick table fails at open.
-    std::fs::remove_file(out.join("neuvolex/brick_max/c/0/0/0")).unwrap();
+    std::fs::remove_file(out.join("neuvolex/brick_max/c.0.0.0")).unwrap();
     assert!(matches!(
         BrickStore::open(&out).unwrap_err(),
         BrickError::MissingChunk { .. }

@@ -208,6 +208,28 @@ pub fn bytes_to_f32(bytes: &[u8], dtype: DType, out: &mut [f32]) {
     convert_into!(bytes, dtype, out, f32)
 }
 
+/// Converts native-endian bytes of a small integer type (8 or 16 bits) into i32 values.
+/// Returns false (leaving `out` untouched) for other types.
+pub fn small_ints_to_i32(bytes: &[u8], dtype: DType, out: &mut [i32]) -> bool {
+    match dtype {
+        DType::U8 => out.iter_mut().zip(bytes).for_each(|(o, &b)| *o = b as i32),
+        DType::I8 => out
+            .iter_mut()
+            .zip(bytes)
+            .for_each(|(o, &b)| *o = b as i8 as i32),
+        DType::U16 => out
+            .iter_mut()
+            .zip(bytes.chunks_exact(2))
+            .for_each(|(o, c)| *o = u16::from_ne_bytes([c[0], c[1]]) as i32),
+        DType::I16 => out
+            .iter_mut()
+            .zip(bytes.chunks_exact(2))
+            .for_each(|(o, c)| *o = i16::from_ne_bytes([c[0], c[1]]) as i32),
+        _ => return false,
+    }
+    true
+}
+
 /// Encodes f64 values as native-endian bytes of `dtype`, saturating and rounding for integers.
 pub fn f64_to_bytes(values: &[f64], dtype: DType) -> Vec<u8> {
     let mut out = Vec::with_capacity(values.len() * dtype.size());

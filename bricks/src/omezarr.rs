@@ -102,6 +102,54 @@ pub fn write_bytes(
         .map_err(|e| e.to_string())
 }
 
+/// Writes a slab of whole chunk layers: `bytes` holds `dims = [x, y, d]` voxels (x fastest) of
+/// `esize`-byte elements starting at z-slice `z0` of a (z, y, x) array whose chunks are
+/// `chunk = [cx, cy, cz]`. `z0` must be a multiple of `cz`, and `d` equal to `cz` except at the end.
+/// Chunks are cut out, padded and encoded in parallel; sharded arrays go through zarrs'
+/// subset writer instead.
+pub fn write_slab_chunks(
+    array: &ZArray,
+    bytes: &[u8],
+    esize: usize,
+    dims: [usize; 3],
+    z0: usize,
+    chunk: [usize; 3],
+) -> std::result::Result<(), String> {
+    use rayon::prelude::*;
+    use zarrs::array::ArrayShardedExt;
+    let [nx, ny, d] = dims;
+    if array.subchunk_shape().is_some() || z0 % chunk[2] != 0 || d > chunk[2] {
+        let subset = [z0 as u64..(z0 + d) as u64, 0..ny as u64, 0..nx as u64];
+        return write_bytes(array, &subset, bytes.to_vec());
+    }
+    let mut opts = zarrs::array::CodecOptions::default();
+    opts.set_store_empty_chunks(true);
+    opts.set_concurrent_target(1);
+    let (gx, gy) = (nx.div_ceil(chunk[0]), ny.div_ceil(chunk[1]));
+    let cz = z0 / chunk[2];
+    (0..gx * gy).into_par_iter().try_for_each(|i| {
+        let (bx, by) = (i % gx, i / gx);
+        let (x0, y0) = (bx * chunk[0], by * chunk[1]);
+        let w = chunk[0].min(nx - x0);
+        let h = chunk[1].min(ny - y0);
+        let mut c = vec![0u8; chunk[0] * chunk[1] * chunk[2] * esize];
+        for z in 0..d {
+            for y in 0..h {
+                let src = ((z * ny + y0 + y) * nx + x0) * esize;
+                let dst = ((z * chunk[1] + y) * chunk[0]) * esize;
+                c[dst..dst + w * esize].copy_from_slice(&bytes[src..src + w * esize]);
+            }
+        }
+        array
+            .store_chunk_opt(
+                &[cz as u64, by as u64, bx as u64],
+                ArrayBytes::from(c),
+                &opts,
+            )
+            .map_err(|e| e.to_string())
+    })
+}
+
 /// Errors with [`BrickError::MissingChunk`] if any chunk (shard) touching `subset` is absent.
 pub fn check_chunks_exist(
     array: &ZArray,

@@ -72,29 +72,103 @@ impl StatsAccumulator {
         }
     }
 
-    /// Adds raw (unscaled) values.
+    /// Adds raw (unscaled) values. Small integer types only count (everything else is derived
+    /// from the exact histogram at the end); other types keep shifted f64 sums.
     pub fn add_raw(&mut self, raw: &[f64]) {
         if let Some((lo, counts)) = &mut self.exact {
+            let lo = *lo;
             for &v in raw {
-                counts[(v - *lo) as usize] += 1;
+                counts[(v - lo) as usize] += 1;
             }
+            self.n += raw.len() as u64;
+            return;
         }
         let (s, i) = self.scaling.unwrap_or((1.0, 0.0));
         let shift = *self
             .shift
             .get_or_insert_with(|| raw.first().map(|&v| v * s + i).unwrap_or(0.0));
         let (mut sum, mut sumsq) = (0.0f64, 0.0f64);
+        let (mut mn, mut mx) = (self.min, self.max);
         for &r in raw {
             let v = r * s + i;
-            self.min = self.min.min(v);
-            self.max = self.max.max(v);
+            mn = mn.min(v);
+            mx = mx.max(v);
             let d = v - shift;
             sum += d;
             sumsq += d * d;
         }
+        self.min = mn;
+        self.max = mx;
         self.sum += sum;
         self.sumsq += sumsq;
         self.n += raw.len() as u64;
+    }
+
+    /// Counts small-integer raw values exactly (only valid when [`Self::needs_second_pass`] is false).
+    pub fn add_ints(&mut self, raw: &[i32]) {
+        if let Some((lo, counts)) = &mut self.exact {
+            let lo = *lo as i32;
+            for &v in raw {
+                counts[(v - lo) as usize] += 1;
+            }
+            self.n += raw.len() as u64;
+        }
+    }
+
+    /// Rebuilds min, max and the shifted sums from the exact counts.
+    fn derive_from_counts(&mut self) {
+        let Some((lo, counts)) = &self.exact else {
+            return;
+        };
+        let (s, i) = self.scaling.unwrap_or((1.0, 0.0));
+        let shift = self.shift.unwrap_or(0.0);
+        let (mut mn, mut mx, mut sum, mut sumsq) = (f64::INFINITY, f64::NEG_INFINITY, 0.0, 0.0);
+        for (k, &c) in counts.iter().enumerate() {
+            if c > 0 {
+                let v = (k as f64 + lo) * s + i;
+                mn = mn.min(v);
+                mx = mx.max(v);
+                let d = v - shift;
+                sum += d * c as f64;
+                sumsq += d * d * c as f64;
+            }
+        }
+        (self.min, self.max, self.sum, self.sumsq) = (mn, mx, sum, sumsq);
+    }
+
+    /// Fixes the shift used for the shifted sums (done once, before forking).
+    pub fn set_shift_if_unset(&mut self, raw_first: f64) {
+        let (s, i) = self.scaling.unwrap_or((1.0, 0.0));
+        self.shift.get_or_insert(raw_first * s + i);
+    }
+
+    /// An empty accumulator with the same type, scaling and shift, for parallel partial sums.
+    pub fn fork(&self) -> Self {
+        StatsAccumulator {
+            n: 0,
+            min: f64::INFINITY,
+            max: f64::NEG_INFINITY,
+            shift: self.shift,
+            sum: 0.0,
+            sumsq: 0.0,
+            exact: self.exact.as_ref().map(|(lo, c)| (*lo, vec![0; c.len()])),
+            scaling: self.scaling,
+            non_finite_replaced: 0,
+        }
+    }
+
+    /// Adds a forked accumulator's counts into this one (both must share the shift).
+    pub fn merge(&mut self, o: StatsAccumulator) {
+        debug_assert_eq!(self.shift, o.shift);
+        self.n += o.n;
+        self.min = self.min.min(o.min);
+        self.max = self.max.max(o.max);
+        self.sum += o.sum;
+        self.sumsq += o.sumsq;
+        self.non_finite_replaced += o.non_finite_replaced;
+        if let (Some((_, a)), Some((_, b))) = (&mut self.exact, o.exact) {
+            a.iter_mut().zip(b).for_each(|(x, y)| *x += y);
+        }
     }
 
     /// True when percentiles need a second pass (see [`FineHistogram`]).
@@ -104,11 +178,17 @@ impl StatsAccumulator {
 
     /// Current min and max.
     pub fn range(&self) -> (f64, f64) {
+        if self.exact.is_some() {
+            let mut c = self.clone();
+            c.derive_from_counts();
+            return (c.min, c.max);
+        }
         (self.min, self.max)
     }
 
     /// Finishes; `fine` must be given when [`Self::needs_second_pass`].
-    pub fn finish(self, fine: Option<FineHistogram>) -> VolumeStats {
+    pub fn finish(mut self, fine: Option<FineHistogram>) -> VolumeStats {
+        self.derive_from_counts();
         let n = self.n.max(1) as f64;
         let shift = self.shift.unwrap_or(0.0);
         let mean_d = self.sum / n;

@@ -16,8 +16,8 @@ use crate::dtype::DType;
 use crate::error::{BrickError, Result};
 use crate::meta::{VolumeMeta, VolumeSource};
 use crate::omezarr::{
-    check_chunks_exist, fs_store, multiscales, read_bytes, read_node_json, write_bytes, zarr_dtype,
-    ZArray,
+    check_chunks_exist, fs_store, multiscales, read_bytes, read_node_json, write_bytes,
+    write_slab_chunks, zarr_dtype, ZArray,
 };
 use crate::stats::{FineHistogram, StatsAccumulator, VolumeStats};
 use serde::{Deserialize, Serialize};
@@ -187,6 +187,8 @@ fn build_array(
         _ => (chunk_zyx, None),
     };
     let mut b = ArrayBuilder::new(shape_zyx, outer, zarr_dtype(dtype), 0u8);
+    // `c.z.y.x` keys: one directory per array instead of one per chunk row (far fewer inodes).
+    b.chunk_key_encoding_default_separator(zarrs::array::ChunkKeySeparator::Dot);
     b.bytes_to_bytes_codecs(vec![Arc::new(zarrs::array::codec::ZstdCodec::new(
         opts.zstd_level.clamp(1, 22),
         false,
@@ -217,6 +219,12 @@ fn pick_levels(dims: [usize; 3], brick: usize, want: Option<usize>) -> usize {
         n += 1;
     }
     n
+}
+
+/// Chunk (brick) extent (x, y, z) of pyramid level `k`: `brick` in x and y, `brick >> k` in z,
+/// so that every level-0 slab of `brick` slices fills whole chunks at every level.
+pub fn level_chunk(brick: usize, k: usize) -> [usize; 3] {
+    [brick, brick, (brick >> k).max(1)]
 }
 
 fn level_dims(dims: [usize; 3], k: usize) -> [usize; 3] {
@@ -433,30 +441,82 @@ impl Scanner {
         }
         let (b, grid) = (self.brick, self.grid);
         let esize = meta.dtype.size();
-        let mut raw = vec![0.0f64; slice];
-        for dz in 0..slab.depth {
-            crate::dtype::bytes_to_f64(
-                &slab.bytes[dz * slice * esize..(dz + 1) * slice * esize],
-                meta.dtype,
-                &mut raw,
-            );
-            self.acc.add_raw(&raw);
-            let bz = (slab.z0 + dz) / b;
-            for y in 0..meta.dims[1] {
-                let by = y / b;
-                for bx in 0..grid[0] {
-                    let xs = bx * b..((bx + 1) * b).min(meta.dims[0]);
-                    let row = &raw[y * meta.dims[0] + xs.start..y * meta.dims[0] + xs.end];
-                    let (lo, hi) = row
-                        .iter()
-                        .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, c), &v| {
-                            (a.min(v), c.max(v))
-                        });
-                    let i = (bz * grid[1] + by) * grid[0] + bx;
-                    let (lo, hi) = (meta.scale(lo), meta.scale(hi));
-                    self.bmin[i] = self.bmin[i].min(lo.min(hi));
-                    self.bmax[i] = self.bmax[i].max(lo.max(hi));
+        if slab.depth == 0 {
+            return Ok(());
+        }
+        let mut first = [0.0f64];
+        crate::dtype::bytes_to_f64(&slab.bytes[..esize], meta.dtype, &mut first);
+        self.acc.set_shift_if_unset(first[0]);
+        // Brick layers touched by this slab; each worker keeps its own ranges for them.
+        let bz0 = slab.z0 / b;
+        let layers = (slab.z0 + slab.depth - 1) / b - bz0 + 1;
+        let per_layer = grid[0] * grid[1];
+        let workers = rayon::current_num_threads().clamp(1, slab.depth);
+        let per = slab.depth.div_ceil(workers);
+        use rayon::prelude::*;
+        let parts: Vec<(StatsAccumulator, Vec<f64>, Vec<f64>)> = slab
+            .bytes
+            .par_chunks(per * slice * esize)
+            .enumerate()
+            .map(|(w, bytes)| {
+                let mut acc = self.acc.fork();
+                let mut lmin = vec![f64::INFINITY; layers * per_layer];
+                let mut lmax = vec![f64::NEG_INFINITY; layers * per_layer];
+                let mut raw = vec![0.0f64; slice];
+                let mut ints = vec![0i32; slice];
+                let small = meta.dtype.is_small_int();
+                for (dz, sl) in bytes.chunks_exact(slice * esize).enumerate() {
+                    let layer = (slab.z0 + w * per + dz) / b - bz0;
+                    let mut range = |i: usize, lo: f64, hi: f64| {
+                        lmin[i] = lmin[i].min(lo);
+                        lmax[i] = lmax[i].max(hi);
+                    };
+                    if small {
+                        crate::dtype::small_ints_to_i32(sl, meta.dtype, &mut ints);
+                        acc.add_ints(&ints);
+                        for y in 0..meta.dims[1] {
+                            let row = &ints[y * meta.dims[0]..(y + 1) * meta.dims[0]];
+                            for (bx, seg) in row.chunks(b).enumerate() {
+                                let (lo, hi) = seg
+                                    .iter()
+                                    .fold((i32::MAX, i32::MIN), |(a, c), &v| (a.min(v), c.max(v)));
+                                range(
+                                    layer * per_layer + (y / b) * grid[0] + bx,
+                                    lo as f64,
+                                    hi as f64,
+                                );
+                            }
+                        }
+                    } else {
+                        crate::dtype::bytes_to_f64(sl, meta.dtype, &mut raw);
+                        acc.add_raw(&raw);
+                        for y in 0..meta.dims[1] {
+                            let row = &raw[y * meta.dims[0]..(y + 1) * meta.dims[0]];
+                            for (bx, seg) in row.chunks(b).enumerate() {
+                                let (lo, hi) = seg
+                                    .iter()
+                                    .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, c), &v| {
+                                        (a.min(v), c.max(v))
+                                    });
+                                range(layer * per_layer + (y / b) * grid[0] + bx, lo, hi);
+                            }
+                        }
+                    }
                 }
+                (acc, lmin, lmax)
+            })
+            .collect();
+        for (acc, lmin, lmax) in parts {
+            self.acc.merge(acc);
+            for i in 0..layers * per_layer {
+                if lmin[i] > lmax[i] {
+                    continue;
+                }
+                // Scaling may be negative: map both ends.
+                let (lo, hi) = (meta.scale(lmin[i]), meta.scale(lmax[i]));
+                let g = bz0 * per_layer + i;
+                self.bmin[g] = self.bmin[g].min(lo.min(hi));
+                self.bmax[g] = self.bmax[g].max(lo.max(hi));
             }
         }
         Ok(())
@@ -621,7 +681,7 @@ fn ingest_into(
             root,
             &format!("/{k}"),
             vec![d[2] as u64, d[1] as u64, d[0] as u64],
-            vec![b as u64; 3],
+            level_chunk(b, k).iter().rev().map(|&c| c as u64).collect(),
             if k == 0 { store_dtype } else { DType::F32 },
             opts,
         )?;
@@ -636,7 +696,8 @@ fn ingest_into(
     });
     let mut z0 = 0;
     while z0 < nz {
-        let depth = b.min(nz - z0);
+        // One brick (or, when sharded, one shard) deep: every write covers whole chunks.
+        let depth = (b * opts.shard.unwrap_or(1).max(1)).min(nz - z0);
         let mut slab = source.read_slab(z0, depth)?;
         scanner.add_slab(&mut slab, opts.non_finite, &src_path)?;
         // Level 1 from pairs of slices of the native slab (no full-slab f32 copy).
@@ -652,8 +713,16 @@ fn ingest_into(
             std::mem::take(&mut slab.bytes)
         };
         drop(slab);
-        let sub = zyx([0, 0, z0], [meta.dims[0], meta.dims[1], depth]);
-        write_bytes(&levels[0].array, &sub, level0_bytes).map_err(|e| BrickError::zarr(root, e))?;
+        write_slab_chunks(
+            &levels[0].array,
+            &level0_bytes,
+            store_dtype.size(),
+            [meta.dims[0], meta.dims[1], depth],
+            z0,
+            level_chunk(b, 0),
+        )
+        .map_err(|e| BrickError::zarr(root, e))?;
+        drop(level0_bytes);
         // Coarser levels.
         let mut cur_dims = [
             meta.dims[0].div_ceil(2),
@@ -667,9 +736,15 @@ fn ingest_into(
                 cur_dims = [lvl.dims[0], lvl.dims[1], cur_dims[2].div_ceil(2)];
                 cz /= 2;
             }
-            let sub = zyx([0, 0, cz], cur_dims);
-            write_bytes(&lvl.array, &sub, bytemuck::cast_slice(&cur).to_vec())
-                .map_err(|e| BrickError::zarr(root, e))?;
+            write_slab_chunks(
+                &lvl.array,
+                bytemuck::cast_slice(&cur),
+                4,
+                cur_dims,
+                cz,
+                level_chunk(b, k),
+            )
+            .map_err(|e| BrickError::zarr(root, e))?;
         }
         drop(cur);
         source.release(z0, depth);
@@ -1007,12 +1082,12 @@ impl BrickStore {
             }
         }
         let d = self.info.levels[level];
-        let b = self.info.brick;
-        let origin = [idx[0] * b, idx[1] * b, idx[2] * b];
+        let c = level_chunk(self.info.brick, level);
+        let origin = [idx[0] * c[0], idx[1] * c[1], idx[2] * c[2]];
         let size = [
-            b.min(d[0] - origin[0]),
-            b.min(d[1] - origin[1]),
-            b.min(d[2] - origin[2]),
+            c[0].min(d[0] - origin[0]),
+            c[1].min(d[1] - origin[1]),
+            c[2].min(d[2] - origin[2]),
         ];
         let sub = zyx(origin, size);
         let a = &self.levels[level];
@@ -1052,17 +1127,17 @@ impl BrickStore {
                 )));
             }
         }
-        let b = self.info.brick;
+        let c = level_chunk(self.info.brick, level);
         let mut out = vec![0.0f32; size.iter().product()];
-        for bz in origin[2] / b..=(origin[2] + size[2] - 1) / b {
-            for by in origin[1] / b..=(origin[1] + size[1] - 1) / b {
-                for bx in origin[0] / b..=(origin[0] + size[0] - 1) / b {
+        for bz in origin[2] / c[2]..=(origin[2] + size[2] - 1) / c[2] {
+            for by in origin[1] / c[1]..=(origin[1] + size[1] - 1) / c[1] {
+                for bx in origin[0] / c[0]..=(origin[0] + size[0] - 1) / c[0] {
                     let data = self.load_brick(level, [bx, by, bz])?;
-                    let bo = [bx * b, by * b, bz * b];
+                    let bo = [bx * c[0], by * c[1], bz * c[2]];
                     let bs = [
-                        b.min(d[0] - bo[0]),
-                        b.min(d[1] - bo[1]),
-                        b.min(d[2] - bo[2]),
+                        c[0].min(d[0] - bo[0]),
+                        c[1].min(d[1] - bo[1]),
+                        c[2].min(d[2] - bo[2]),
                     ];
                     let lo = [
                         origin[0].max(bo[0]),
@@ -1219,7 +1294,11 @@ impl BrickStore {
                 &self.root,
                 &format!("{base}/{k}"),
                 vec![d[2] as u64, d[1] as u64, d[0] as u64],
-                vec![self.info.brick as u64; 3],
+                level_chunk(self.info.brick, k)
+                    .iter()
+                    .rev()
+                    .map(|&c| c as u64)
+                    .collect(),
                 dtype,
                 &opts,
             )?);
@@ -1233,7 +1312,7 @@ impl BrickStore {
         let mut z0 = 0;
         let max = dtype.range().1;
         while z0 < dims[2] {
-            let depth = b.min(dims[2] - z0);
+            let depth = (b * self.info.shard.unwrap_or(1).max(1)).min(dims[2] - z0);
             let raw = source.read_slab(z0, depth)?.to_f64();
             let meta = source.meta().clone();
             let mut lab = Vec::with_capacity(raw.len());
@@ -1248,10 +1327,14 @@ impl BrickStore {
             let to_bytes = |l: &[u32]| {
                 crate::dtype::f64_to_bytes(&l.iter().map(|&v| v as f64).collect::<Vec<_>>(), dtype)
             };
-            write_bytes(
+            let esize = dtype.size();
+            write_slab_chunks(
                 &arrays[0],
-                &zyx([0, 0, z0], [dims[0], dims[1], depth]),
-                to_bytes(&lab),
+                &to_bytes(&lab),
+                esize,
+                [dims[0], dims[1], depth],
+                z0,
+                level_chunk(b, 0),
             )
             .map_err(|e| BrickError::zarr(&self.root, e))?;
             let mut cur = lab;
@@ -1265,7 +1348,7 @@ impl BrickStore {
                     cd[2].div_ceil(2),
                 ];
                 cz /= 2;
-                write_bytes(a, &zyx([0, 0, cz], cd), to_bytes(&cur))
+                write_slab_chunks(a, &to_bytes(&cur), esize, cd, cz, level_chunk(b, k))
                     .map_err(|e| BrickError::zarr(&self.root, e))?;
             }
             z0 += depth;

@@ -121,8 +121,17 @@ impl ByteStream {
         let abs = self.offset + at;
         match &mut self.kind {
             Kind::Mmap(m) => {
+                // Copy in pieces and drop each piece's mapped pages right after, so a slab is
+                // resident once (in `buf`), not twice; the pages stay in the page cache.
+                const PIECE: usize = 4 << 20;
                 let s = abs as usize;
-                buf.copy_from_slice(&m[s..s + buf.len()]);
+                let mut done = 0;
+                while done < buf.len() {
+                    let n = PIECE.min(buf.len() - done);
+                    buf[done..done + n].copy_from_slice(&m[s + done..s + done + n]);
+                    release_pages(m, (s + done) as u64, n as u64);
+                    done += n;
+                }
             }
             Kind::Gzip { start, dec, pos } => {
                 if abs < *pos {
@@ -182,21 +191,26 @@ impl ByteStream {
     /// Tells the kernel that bytes `at..at+len` will not be needed again (mmap only).
     pub(crate) fn release(&mut self, at: u64, len: u64) {
         if let Kind::Mmap(m) = &self.kind {
-            let page = 4096u64;
-            let start = (self.offset + at) / page * page;
-            let end = (self.offset + at + len).min(m.len() as u64);
-            if end > start {
-                // DontNeed on a read-only file mapping only drops clean pages; they are re-read
-                // from the file if touched again, so this cannot change the data.
-                let _ = unsafe {
-                    m.unchecked_advise_range(
-                        memmap2::UncheckedAdvice::DontNeed,
-                        start as usize,
-                        (end - start) as usize,
-                    )
-                };
-            }
+            release_pages(m, self.offset + at, len);
         }
+    }
+}
+
+/// Drops the mapped pages covering file bytes `start..start+len` from this process.
+fn release_pages(m: &Mmap, start: u64, len: u64) {
+    let page = 4096u64;
+    let s = start / page * page;
+    let end = (start + len).min(m.len() as u64);
+    if end > s {
+        // DontNeed on a read-only file mapping only drops clean pages; they are re-read from
+        // the file if touched again, so this cannot change the data.
+        let _ = unsafe {
+            m.unchecked_advise_range(
+                memmap2::UncheckedAdvice::DontNeed,
+                s as usize,
+                (end - s) as usize,
+            )
+        };
     }
 }
 

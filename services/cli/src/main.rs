@@ -36,8 +36,8 @@ enum Scene {
 #[derive(clap::Args, Clone, Default)]
 struct RawArgs {
     /// Raw files: grid as X,Y,Z.
-    #[arg(long, value_delimiter = ',', num_args = 3)]
-    dims: Option<Vec<usize>>,
+    #[arg(long)]
+    dims: Option<String>,
     /// Raw files: voxel type (u8, i8, u16, i16, u32, i32, f32, f64).
     #[arg(long)]
     dtype: Option<String>,
@@ -45,8 +45,8 @@ struct RawArgs {
     #[arg(long, default_value = "little")]
     endian: String,
     /// Raw files: voxel spacing as X,Y,Z.
-    #[arg(long, value_delimiter = ',', num_args = 3)]
-    spacing: Option<Vec<f64>>,
+    #[arg(long)]
+    spacing: Option<String>,
     /// Raw files: bytes to skip before the data.
     #[arg(long, default_value_t = 0)]
     offset: u64,
@@ -65,18 +65,33 @@ impl RawArgs {
         })?;
         let endian = Endian::parse(&self.endian)
             .with_context(|| format!("--endian '{}' must be little or big", self.endian))?;
-        let spacing = self
-            .spacing
-            .as_ref()
-            .map(|s| [s[0], s[1], s[2]])
-            .unwrap_or([1.0; 3]);
+        let spacing = match &self.spacing {
+            Some(s) => triple(s, "--spacing")?,
+            None => [1.0; 3],
+        };
         Ok(Some(RawSpec {
-            dims: [d[0], d[1], d[2]],
+            dims: triple(d, "--dims")?,
             dtype,
             endian,
             spacing,
             offset: self.offset,
         }))
+    }
+}
+
+/// Parses `A,B,C`.
+fn triple<T: std::str::FromStr + Copy>(s: &str, flag: &str) -> Result<[T; 3]> {
+    let v: Vec<T> = s
+        .split(',')
+        .map(|p| p.trim().parse::<T>().ok())
+        .collect::<Option<_>>()
+        .with_context(|| format!("{flag} '{s}': expected three comma-separated numbers"))?;
+    match v.as_slice() {
+        [a, b, c] => Ok([*a, *b, *c]),
+        _ => bail!(
+            "{flag} '{s}': expected three comma-separated numbers, got {}",
+            v.len()
+        ),
     }
 }
 
@@ -367,10 +382,13 @@ fn main() -> Result<()> {
             let params = PhantomParams::with_size(size, seed);
             let name = out.to_string_lossy().to_ascii_lowercase();
             if name.ends_with(".nii") || name.ends_with(".nii.gz") {
-                let stem = name
-                    .trim_end_matches(".gz")
-                    .trim_end_matches(".nii")
-                    .to_string();
+                let orig = out.to_string_lossy();
+                let suffix = if name.ends_with(".gz") {
+                    ".nii.gz".len()
+                } else {
+                    ".nii".len()
+                };
+                let stem = orig[..orig.len() - suffix].to_string();
                 let lab = PathBuf::from(format!("{stem}_labels.nii.gz"));
                 for p in [&out, &lab] {
                     if p.exists() && !force {

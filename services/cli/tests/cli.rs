@@ -1,0 +1,167 @@
+//! End-to-end tests of the `neuvolex` binary: the README's main job, and clear failures.
+
+use std::path::Path;
+use std::process::{Command, Output};
+
+fn neuvolex(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_neuvolex"))
+        .args(args)
+        .arg("--quiet")
+        .env("RUST_LOG", "warn")
+        .output()
+        .expect("run neuvolex")
+}
+
+fn ok(args: &[&str]) -> String {
+    let o = neuvolex(args);
+    assert!(
+        o.status.success(),
+        "neuvolex {args:?} failed: {}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    String::from_utf8_lossy(&o.stdout).into_owned()
+}
+
+fn fails(args: &[&str], needle: &str) {
+    let o = neuvolex(args);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success(), "neuvolex {args:?} should fail");
+    assert!(
+        err.contains(needle),
+        "stderr of {args:?} lacks '{needle}': {err}"
+    );
+    assert!(!err.contains("panicked"), "panic on {args:?}: {err}");
+}
+
+#[test]
+fn synth_info_ingest_convert_roundtrip() {
+    let d = tempfile::tempdir().unwrap();
+    let p = |n: &str| d.path().join(n).to_string_lossy().into_owned();
+    ok(&[
+        "synth",
+        "phantom",
+        "--out",
+        &p("ph.zarr"),
+        "--size",
+        "48",
+        "--brick",
+        "16",
+    ]);
+    let info = ok(&["info", &p("ph.zarr")]);
+    assert!(
+        info.contains("48 x 48 x 42")
+            && info.contains("ground_truth")
+            && info.contains("kidney_left"),
+        "{info}"
+    );
+    let json: serde_json::Value =
+        serde_json::from_str(&ok(&["info", &p("ph.zarr"), "--json"])).unwrap();
+    assert_eq!(json["dims"], serde_json::json!([48, 48, 42]));
+    assert!(json["bricks_occupied"].as_u64().unwrap() <= json["bricks_total"].as_u64().unwrap());
+    // NIfTI output of the phantom, then ingest with its labels.
+    ok(&["synth", "phantom", "--out", &p("ph.nii.gz"), "--size", "40"]);
+    assert!(Path::new(&p("ph_labels.nii.gz")).exists());
+    let finfo = ok(&["info", &p("ph.nii.gz")]);
+    assert!(finfo.contains("int16") && finfo.contains("p0.5"), "{finfo}");
+    ok(&[
+        "ingest",
+        &p("ph.nii.gz"),
+        &p("ing.zarr"),
+        "--brick",
+        "16",
+        "--labels",
+        &p("ph_labels.nii.gz"),
+    ]);
+    assert!(ok(&["info", &p("ing.zarr")]).contains("labels      : ground_truth"));
+    // Sharded ingest reads the same.
+    ok(&[
+        "ingest",
+        &p("ph.nii.gz"),
+        &p("sh.zarr"),
+        "--brick",
+        "8",
+        "--shard",
+        "2",
+    ]);
+    assert!(ok(&["info", &p("sh.zarr")]).contains("sharding"));
+    // Export labels back to NIfTI and compare bytes with the original through `info --json`.
+    ok(&[
+        "convert",
+        &p("ing.zarr/labels/ground_truth"),
+        &p("back.nii.gz"),
+    ]);
+    let a: serde_json::Value =
+        serde_json::from_str(&ok(&["info", &p("back.nii.gz"), "--json"])).unwrap();
+    let b: serde_json::Value =
+        serde_json::from_str(&ok(&["info", &p("ph_labels.nii.gz"), "--json"])).unwrap();
+    assert_eq!(a["scan"]["stats"], b["scan"]["stats"]);
+    // Raw input with explicit layout.
+    std::fs::write(p("r.raw"), vec![7u8; 4 * 5 * 6]).unwrap();
+    let rinfo = ok(&["info", &p("r.raw"), "--dims", "4,5,6", "--dtype", "u8"]);
+    assert!(rinfo.contains("4 x 5 x 6"), "{rinfo}");
+}
+
+#[test]
+fn clear_errors_and_no_partial_output() {
+    let d = tempfile::tempdir().unwrap();
+    let p = |n: &str| d.path().join(n).to_string_lossy().into_owned();
+    fails(&["info", &p("missing.nii.gz")], "missing.nii.gz");
+    std::fs::write(p("r.raw"), vec![7u8; 100]).unwrap();
+    fails(&["info", &p("r.raw")], "raw file without layout");
+    fails(
+        &["info", &p("r.raw"), "--dims", "4,5,6", "--dtype", "u8"],
+        "r.raw",
+    );
+    fails(
+        &["info", &p("r.raw"), "--dims", "4,5,6", "--dtype", "u64"],
+        "unknown --dtype",
+    );
+    fails(
+        &[
+            "ingest",
+            &p("r.raw"),
+            &p("o.zarr"),
+            "--dims",
+            "10,10,1",
+            "--dtype",
+            "u8",
+            "--brick",
+            "12",
+        ],
+        "power of two",
+    );
+    assert!(!Path::new(&p("o.zarr")).exists());
+    ok(&[
+        "synth",
+        "phantom",
+        "--out",
+        &p("a.zarr"),
+        "--size",
+        "24",
+        "--brick",
+        "8",
+    ]);
+    fails(
+        &["synth", "phantom", "--out", &p("a.zarr"), "--size", "24"],
+        "already exists",
+    );
+    ok(&["synth", "phantom", "--out", &p("b.nii.gz"), "--size", "20"]);
+    // Labels on another grid fail before any store is written.
+    fails(
+        &[
+            "ingest",
+            &p("b.nii.gz"),
+            &p("c.zarr"),
+            "--labels",
+            &p("a.zarr/labels/ground_truth"),
+        ],
+        "grid mismatch",
+    );
+    assert!(!Path::new(&p("c.zarr")).exists());
+    fails(
+        &["synth", "phantom", "--out", &p("z.zarr"), "--size", "0"],
+        "--size",
+    );
+    let o = neuvolex(&["frobnicate"]);
+    assert!(!o.status.success());
+}
