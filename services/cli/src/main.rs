@@ -6,7 +6,7 @@ use anyhow::{bail, Context, Result};
 use clap::{Parser, Subcommand, ValueEnum};
 use indicatif::{ProgressBar, ProgressStyle};
 use neuvolex_bricks::store::{scan_volume, ScanReport};
-use neuvolex_bricks::synth::{phantom_classes, Phantom, PhantomChannel, PhantomParams};
+use neuvolex_bricks::synth::{phantom_classes, ClassInfo, Phantom, PhantomChannel, PhantomParams};
 use neuvolex_bricks::{
     ingest, open_volume, BrickStore, DType, Endian, IngestOptions, NonFinitePolicy, Progress,
     RawSpec, VolumeStats,
@@ -79,6 +79,25 @@ impl RawArgs {
     }
 }
 
+/// Reads a JSON class table: `[{"id": 1, "name": "bone", "color": [r, g, b]}, ...]`.
+fn read_classes(p: &Path) -> Result<Vec<ClassInfo>> {
+    let text = std::fs::read_to_string(p)
+        .with_context(|| format!("{}: cannot read class table", p.display()))?;
+    let c: Vec<ClassInfo> = serde_json::from_str(&text).with_context(|| {
+        format!(
+            "{}: not a class table (expected [{{\"id\", \"name\", \"color\"}}, ...])",
+            p.display()
+        )
+    })?;
+    let mut ids: Vec<u32> = c.iter().map(|c| c.id).collect();
+    ids.sort_unstable();
+    ids.dedup();
+    if ids.len() != c.len() {
+        bail!("{}: duplicate class ids", p.display());
+    }
+    Ok(c)
+}
+
 /// Parses `A,B,C`.
 fn triple<T: std::str::FromStr + Copy>(s: &str, flag: &str) -> Result<[T; 3]> {
     let v: Vec<T> = s
@@ -141,6 +160,9 @@ enum Cmd {
         /// Name of the label image in the store.
         #[arg(long, default_value = "ground_truth")]
         labels_name: String,
+        /// JSON class table for the labels: [{"id": 1, "name": "bone", "color": [r, g, b]}, ...].
+        #[arg(long)]
+        classes: Option<PathBuf>,
         /// Replace an existing store.
         #[arg(long)]
         force: bool,
@@ -299,14 +321,16 @@ fn info(input: &Path, brick: usize, json: bool, raw: &RawArgs, quiet: bool) -> R
         }
         for l in &i.labels {
             let classes = store.label_classes(l)?;
-            println!(
-                "labels      : {l} ({})",
-                classes
-                    .iter()
-                    .map(|c| format!("{}={}", c.id, c.name))
-                    .collect::<Vec<_>>()
-                    .join(", ")
-            );
+            let names: Vec<String> = classes
+                .iter()
+                .map(|c| format!("{}={}", c.id, c.name))
+                .collect();
+            let names = if names.is_empty() {
+                "no class table".to_string()
+            } else {
+                names.join(", ")
+            };
+            println!("labels      : {l} ({names})");
         }
         return Ok(());
     }
@@ -390,6 +414,7 @@ fn main() -> Result<()> {
                 };
                 let stem = orig[..orig.len() - suffix].to_string();
                 let lab = PathBuf::from(format!("{stem}_labels.nii.gz"));
+                let classes = PathBuf::from(format!("{stem}_classes.json"));
                 for p in [&out, &lab] {
                     if p.exists() && !force {
                         bail!(
@@ -408,7 +433,9 @@ fn main() -> Result<()> {
                     &mut Phantom::new(params, PhantomChannel::Labels),
                     16,
                 )?;
-                tracing::info!(image = %out.display(), labels = %lab.display(), "phantom written");
+                std::fs::write(&classes, serde_json::to_string_pretty(&phantom_classes())?)
+                    .with_context(|| format!("{}: cannot write class table", classes.display()))?;
+                tracing::info!(image = %out.display(), labels = %lab.display(), classes = %classes.display(), "phantom written");
             } else {
                 let opts = IngestOptions {
                     brick,
@@ -441,9 +468,14 @@ fn main() -> Result<()> {
             non_finite,
             labels,
             labels_name,
+            classes,
             force,
             raw,
         } => {
+            let classes: Vec<ClassInfo> = match &classes {
+                Some(p) => read_classes(p)?,
+                None => Vec::new(),
+            };
             let mut src = open_volume(&input, raw.spec()?.as_ref())?;
             // Open the labels first so a bad label file fails before any work is done.
             let mut lab = match &labels {
@@ -470,7 +502,7 @@ fn main() -> Result<()> {
             let info = ingest(src.as_mut(), &output, &opts, &mut sink)?;
             if let Some(l) = lab.as_mut() {
                 let mut store = BrickStore::open(&output)?;
-                store.add_labels(&labels_name, l.as_mut(), &[], &mut sink)?;
+                store.add_labels(&labels_name, l.as_mut(), &classes, &mut sink)?;
             }
             let mb = info.stats.voxels as f64 * info.source_dtype.size() as f64 / 1e6;
             tracing::info!(store = %output.display(), dims = ?info.dims, bricks = info.grid().iter().product::<usize>(), seconds = t.elapsed().as_secs_f64(), mb_per_s = mb / t.elapsed().as_secs_f64(), "ingest complete");

@@ -71,8 +71,24 @@ fn synth_info_ingest_convert_roundtrip() {
         "16",
         "--labels",
         &p("ph_labels.nii.gz"),
+        "--classes",
+        &p("ph_classes.json"),
     ]);
-    assert!(ok(&["info", &p("ing.zarr")]).contains("labels      : ground_truth"));
+    assert!(ok(&["info", &p("ing.zarr")]).contains("labels      : ground_truth (1=bone"));
+    std::fs::write(p("bad.json"), "[{\"id\": 1}]").unwrap();
+    fails(
+        &[
+            "ingest",
+            &p("ph.nii.gz"),
+            &p("x.zarr"),
+            "--labels",
+            &p("ph_labels.nii.gz"),
+            "--classes",
+            &p("bad.json"),
+        ],
+        "not a class table",
+    );
+    assert!(!Path::new(&p("x.zarr")).exists());
     // Sharded ingest reads the same.
     ok(&[
         "ingest",
