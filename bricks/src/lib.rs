@@ -18,6 +18,8 @@
 //! # Ok::<(), neuvolex_bricks::BrickError>(())
 //! ```
 
+#![warn(missing_docs)]
+
 pub mod derived;
 pub mod dtype;
 pub mod error;
