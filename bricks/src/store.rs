@@ -867,6 +867,9 @@ pub struct VectorInfo {
     pub encoding: VectorEncoding,
     /// True once every brick has been written (or the writer was finished).
     pub complete: bool,
+    /// Free-form provenance set by the writer (e.g. which model and feature).
+    #[serde(default)]
+    pub extra: Value,
 }
 
 /// A decoded brick and the tick it was last used.
@@ -1497,6 +1500,7 @@ impl BrickStore {
             channels,
             encoding,
             complete: false,
+            extra: Value::Null,
         };
         let mut builder = ArrayBuilder::new(
             vec![d[2] as u64, d[1] as u64, d[0] as u64, channels as u64],
@@ -1655,6 +1659,11 @@ impl VectorArray {
                 .map(|(i, &q)| lo[i % c] + (hi[i % c] - lo[i % c]) * q as f32 / 255.0)
                 .collect(),
         })
+    }
+
+    /// Sets the provenance recorded with the array (stored by [`Self::finish`]).
+    pub fn set_extra(&mut self, extra: Value) {
+        self.info.extra = extra;
     }
 
     /// Marks the array complete.

@@ -182,6 +182,24 @@ enum Cmd {
         #[command(flatten)]
         raw: RawArgs,
     },
+    /// Train the INR on a brick store (by tile, checkpointed, resumable).
+    Train {
+        /// Brick store (.zarr) from `neuvolex ingest`.
+        store: PathBuf,
+        #[command(flatten)]
+        args: TrainArgs,
+    },
+    /// Extract per-voxel INR features of a trained store into it (f16, one chunk per brick).
+    Features {
+        /// Brick store with a trained model (`neuvolex train`).
+        store: PathBuf,
+        /// Feature: hidden (the paper's 64-D last hidden layer), pos, mod, or concat.
+        #[arg(long, default_value = "hidden")]
+        kind: String,
+        /// Also extract empty bricks.
+        #[arg(long)]
+        all_bricks: bool,
+    },
     /// Convert any readable volume (including a store or store/labels/NAME) to NIfTI.
     Convert {
         /// Input volume.
@@ -194,6 +212,210 @@ enum Cmd {
         #[command(flatten)]
         raw: RawArgs,
     },
+}
+
+/// Training options shared by `train`.
+#[derive(clap::Args, Clone)]
+struct TrainArgs {
+    /// Speed/accuracy preset (fast: 1 epoch; balanced: 5; paper: 100 at lr 1e-4).
+    #[arg(long, default_value = "fast")]
+    preset: String,
+    /// Budget in epochs (overrides the preset).
+    #[arg(long)]
+    epochs: Option<f64>,
+    /// Budget in samples.
+    #[arg(long)]
+    samples: Option<u64>,
+    /// Budget in wall-clock seconds.
+    #[arg(long)]
+    seconds: Option<f64>,
+    /// Samples per step.
+    #[arg(long)]
+    batch: Option<usize>,
+    /// MLP learning rate.
+    #[arg(long)]
+    lr: Option<f32>,
+    /// Hash-table learning rate.
+    #[arg(long)]
+    lr_table: Option<f32>,
+    /// Seed.
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Ablation: base, structural, film, full.
+    #[arg(long, default_value = "full")]
+    ablation: String,
+    /// Hash-table Adam: lazy (touched rows) or dense.
+    #[arg(long, default_value = "lazy")]
+    table_adam: String,
+    /// Bricks resident at once.
+    #[arg(long)]
+    tile_bricks: Option<usize>,
+    /// Train on empty bricks too.
+    #[arg(long)]
+    include_empty: bool,
+    /// Continue from the store's checkpoint.
+    #[arg(long)]
+    resume: bool,
+    /// Compute backend: cpu (fused engine), wgpu or cuda (need a build with those features).
+    #[arg(long, default_value = "cpu")]
+    backend: String,
+}
+
+impl TrainArgs {
+    fn configs(&self) -> Result<(neuvolex_features::InrConfig, neuvolex_features::TrainConfig)> {
+        use neuvolex_features::{InrConfig, Preset, TableAdam, TrainConfig};
+        let preset: Preset = self.preset.parse().map_err(anyhow::Error::msg)?;
+        let mut t = TrainConfig::preset(preset);
+        if self.epochs.is_some() || self.samples.is_some() || self.seconds.is_some() {
+            t.budget = neuvolex_features::Budget {
+                epochs: self.epochs,
+                samples: self.samples,
+                seconds: self.seconds,
+            };
+        }
+        for (name, v) in [("--epochs", self.epochs), ("--seconds", self.seconds)] {
+            if let Some(v) = v {
+                if !(v > 0.0 && v.is_finite()) {
+                    bail!("{name} {v} must be positive");
+                }
+            }
+        }
+        if let Some(b) = self.batch {
+            if b == 0 || b > 1 << 22 {
+                bail!("--batch {b} must be 1..=4194304");
+            }
+            t.batch = b;
+        }
+        if let Some(v) = self.lr {
+            t.lr = v;
+        }
+        if let Some(v) = self.lr_table {
+            t.lr_table = v;
+        }
+        if let Some(v) = self.tile_bricks {
+            t.tile_bricks = v;
+        }
+        t.seed = self.seed;
+        t.include_empty = self.include_empty;
+        t.table_adam = match self.table_adam.as_str() {
+            "lazy" => TableAdam::Lazy,
+            "dense" => TableAdam::Dense,
+            o => bail!("--table-adam '{o}' must be lazy or dense"),
+        };
+        let inr = InrConfig {
+            ablation: self.ablation.parse().map_err(anyhow::Error::msg)?,
+            ..InrConfig::default()
+        };
+        match self.backend.as_str() {
+            "cpu" => {}
+            "wgpu" | "cuda" => bail!(
+                "--backend {}: this build has no GPU backend; the fused CPU engine is the default \
+                 (a GPU build needs the `{}` cargo feature and a burn backend that builds offline)",
+                self.backend,
+                self.backend
+            ),
+            o => bail!("--backend '{o}' must be cpu, wgpu or cuda"),
+        }
+        Ok((inr, t))
+    }
+}
+
+fn run_train(store_path: &Path, args: &TrainArgs, quiet: bool) -> Result<()> {
+    use neuvolex_features::{checkpoint, train, TrainEvent};
+    let store = BrickStore::open(store_path)?;
+    let (inr, cfg) = args.configs()?;
+    let ckpt = neuvolex_features::train::checkpoint_path(&store);
+    let resume = if args.resume {
+        if !ckpt.exists() {
+            bail!(
+                "{}: no checkpoint to resume from (train without --resume first)",
+                ckpt.display()
+            );
+        }
+        Some(checkpoint::load(&ckpt)?)
+    } else {
+        None
+    };
+    let cancel = std::sync::atomic::AtomicBool::new(false);
+    let bar = if quiet {
+        ProgressBar::hidden()
+    } else {
+        ProgressBar::new(0)
+    };
+    bar.set_style(
+        ProgressStyle::with_template(
+            "train [{bar:40}] {pos}/{len} samples {msg} {elapsed} eta {eta}",
+        )
+        .unwrap_or_else(|_| ProgressStyle::default_bar())
+        .progress_chars("=> "),
+    );
+    let mut on_event = |e: TrainEvent| match &e {
+        TrainEvent::Started {
+            bricks,
+            total_bricks,
+            voxels,
+            params,
+            budget_samples,
+            from_step,
+        } => {
+            bar.set_length(budget_samples.unwrap_or(0));
+            tracing::info!(bricks, total_bricks, voxels, params, from_step, "training");
+        }
+        TrainEvent::Step {
+            samples,
+            loss,
+            psnr,
+            samples_per_sec,
+            epoch,
+            ..
+        } => {
+            bar.set_position(*samples);
+            bar.set_message(format!(
+                "epoch {epoch:.2} loss {loss:.3e} PSNR {psnr:.2} dB {:.0} k samples/s",
+                samples_per_sec / 1e3
+            ));
+        }
+        TrainEvent::Preview { step, psnr, .. } => tracing::debug!(step, psnr, "preview"),
+        TrainEvent::Checkpoint { step, path } => {
+            tracing::debug!(step, path = %path.display(), "checkpoint")
+        }
+        TrainEvent::Finished {
+            steps,
+            samples,
+            seconds,
+            psnr,
+            stopped_by,
+        } => {
+            bar.finish_and_clear();
+            tracing::info!(
+                steps,
+                samples,
+                seconds,
+                psnr,
+                stopped_by,
+                samples_per_sec = *samples as f64 / seconds.max(1e-9),
+                "training finished"
+            );
+        }
+    };
+    let t = train(
+        &store,
+        &inr,
+        &cfg,
+        resume,
+        Some(&ckpt),
+        &cancel,
+        &mut on_event,
+    )?;
+    let path = neuvolex_features::train::model_path(&store);
+    checkpoint::save(&path, &t.model, None)?;
+    println!(
+        "model: {} (PSNR {:.2} dB after {} samples)",
+        path.display(),
+        t.psnr,
+        t.state.samples
+    );
+    Ok(())
 }
 
 #[derive(Clone, Copy, ValueEnum)]
@@ -506,6 +728,35 @@ fn main() -> Result<()> {
             }
             let mb = info.stats.voxels as f64 * info.source_dtype.size() as f64 / 1e6;
             tracing::info!(store = %output.display(), dims = ?info.dims, bricks = info.grid().iter().product::<usize>(), seconds = t.elapsed().as_secs_f64(), mb_per_s = mb / t.elapsed().as_secs_f64(), "ingest complete");
+        }
+        Cmd::Train { store, args } => run_train(&store, &args, quiet)?,
+        Cmd::Features {
+            store,
+            kind,
+            all_bricks,
+        } => {
+            let kind: neuvolex_features::FeatureKind = kind.parse().map_err(anyhow::Error::msg)?;
+            let s = BrickStore::open(&store)?;
+            let mp = neuvolex_features::train::model_path(&s);
+            if !mp.exists() {
+                bail!(
+                    "{}: no trained model; run `neuvolex train {}` first",
+                    mp.display(),
+                    store.display()
+                );
+            }
+            let model = neuvolex_features::checkpoint::load(&mp)?.model;
+            let r = neuvolex_features::write_features(
+                &s,
+                &model,
+                kind,
+                all_bricks,
+                &mut progress_sink(quiet),
+            )?;
+            println!(
+                "features: {}/neuvolex/vectors/{} ({} channels, f16): {} bricks, {} voxels in {:.2} s ({:.0} k voxels/s)",
+                store.display(), r.name, r.channels, r.bricks, r.voxels, r.seconds, r.voxels as f64 / r.seconds.max(1e-9) / 1e3
+            );
         }
         Cmd::Info {
             input,

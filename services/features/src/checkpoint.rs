@@ -1,0 +1,233 @@
+//! Model files and resumable checkpoints.
+//!
+//! Layout: the magic `NVXINR01`, a little-endian u64 header length, a JSON header
+//! ([`Header`]), then little-endian f32 arrays: table, dense, and for checkpoints the Adam
+//! moments (table m, table v, dense m, dense v). The header carries a CRC-32 of the arrays, so
+//! truncated or corrupted files are refused with a clear error. Files are written under a
+//! temporary name and renamed, so a crash during a save keeps the previous checkpoint.
+
+use crate::adam::Adam;
+use crate::config::{InrConfig, TrainConfig};
+use crate::error::{FeatureError, Result};
+use crate::hashgrid::HashGrid;
+use crate::model::{DenseLayout, InrModel};
+use serde::{Deserialize, Serialize};
+use std::io::{Read, Write};
+use std::path::Path;
+
+const MAGIC: &[u8; 8] = b"NVXINR01";
+
+/// Where training stands, for resuming exactly where it stopped.
+#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
+pub struct TrainState {
+    /// Optimiser steps taken.
+    pub step: u64,
+    /// Samples consumed.
+    pub samples: u64,
+    /// Current epoch.
+    pub epoch: u64,
+    /// Tile group within the epoch.
+    pub group: usize,
+    /// Batch within the group.
+    pub batch: usize,
+    /// Training seconds so far.
+    pub seconds: f64,
+}
+
+/// The JSON header of a model or checkpoint file.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct Header {
+    /// "model" or "checkpoint".
+    pub kind: String,
+    /// Architecture.
+    pub inr: InrConfig,
+    /// Volume grid the model was built for.
+    pub dims: [usize; 3],
+    /// Training settings (checkpoints).
+    pub train: Option<TrainConfig>,
+    /// Training position (checkpoints).
+    pub state: Option<TrainState>,
+    /// Adam hyper-parameters and step count (checkpoints).
+    pub adam: Option<Adam>,
+    /// Table parameters.
+    pub table_len: usize,
+    /// Dense parameters.
+    pub dense_len: usize,
+    /// CRC-32 of the arrays.
+    pub crc32: u32,
+}
+
+fn io(path: &Path) -> impl Fn(std::io::Error) -> FeatureError + '_ {
+    move |e| FeatureError::Io {
+        path: path.to_path_buf(),
+        source: e,
+    }
+}
+
+fn bad(path: &Path, detail: impl Into<String>) -> FeatureError {
+    FeatureError::Checkpoint {
+        path: path.to_path_buf(),
+        detail: detail.into(),
+    }
+}
+
+/// Saves a model (and optionally optimiser state) atomically.
+pub fn save(
+    path: &Path,
+    model: &InrModel,
+    train: Option<(&TrainConfig, &TrainState, &Adam)>,
+) -> Result<()> {
+    let mut arrays: Vec<&[f32]> = vec![&model.table, &model.dense];
+    if let Some((_, _, a)) = train {
+        arrays.extend([
+            &a.m_table[..],
+            &a.v_table[..],
+            &a.m_dense[..],
+            &a.v_dense[..],
+        ]);
+    }
+    let mut crc = crc32fast::Hasher::new();
+    for a in &arrays {
+        crc.update(bytemuck::cast_slice(a));
+    }
+    let header = Header {
+        kind: if train.is_some() {
+            "checkpoint"
+        } else {
+            "model"
+        }
+        .into(),
+        inr: model.cfg.clone(),
+        dims: model_dims(model),
+        train: train.map(|t| t.0.clone()),
+        state: train.map(|t| *t.1),
+        adam: train.map(|t| t.2.clone()),
+        table_len: model.table.len(),
+        dense_len: model.dense.len(),
+        crc32: crc.finalize(),
+    };
+    let json = serde_json::to_vec(&header).map_err(|e| bad(path, e.to_string()))?;
+    if let Some(dir) = path.parent() {
+        std::fs::create_dir_all(dir).map_err(io(dir))?;
+    }
+    let tmp = path.with_extension(format!("partial-{}", std::process::id()));
+    let res = (|| -> Result<()> {
+        let mut f = std::io::BufWriter::new(std::fs::File::create(&tmp).map_err(io(&tmp))?);
+        f.write_all(MAGIC).map_err(io(&tmp))?;
+        f.write_all(&(json.len() as u64).to_le_bytes())
+            .map_err(io(&tmp))?;
+        f.write_all(&json).map_err(io(&tmp))?;
+        for a in &arrays {
+            f.write_all(bytemuck::cast_slice(a)).map_err(io(&tmp))?;
+        }
+        f.flush().map_err(io(&tmp))?;
+        f.into_inner()
+            .map_err(|e| bad(&tmp, e.to_string()))?
+            .sync_all()
+            .map_err(io(&tmp))?;
+        Ok(())
+    })();
+    match res {
+        Ok(()) => std::fs::rename(&tmp, path).map_err(io(path)),
+        Err(e) => {
+            let _ = std::fs::remove_file(&tmp);
+            Err(e)
+        }
+    }
+}
+
+/// The grid a model was built for (stored with it so features are computed on the same grid).
+fn model_dims(m: &InrModel) -> [usize; 3] {
+    m.dims
+}
+
+/// A loaded model file or checkpoint.
+pub struct Loaded {
+    /// The model.
+    pub model: InrModel,
+    /// Header.
+    pub header: Header,
+    /// Adam state (checkpoints).
+    pub adam: Option<Adam>,
+}
+
+/// Loads a model or checkpoint, checking magic, sizes and CRC.
+pub fn load(path: &Path) -> Result<Loaded> {
+    let mut f = std::fs::File::open(path).map_err(io(path))?;
+    let mut head = [0u8; 16];
+    f.read_exact(&mut head)
+        .map_err(|_| bad(path, "truncated: shorter than the 16-byte preamble"))?;
+    if &head[..8] != MAGIC {
+        return Err(bad(path, "not a neuvolex model file (bad magic)"));
+    }
+    let hl = u64::from_le_bytes(head[8..16].try_into().unwrap_or([0; 8]));
+    if hl > 1 << 24 {
+        return Err(bad(path, format!("header length {hl} is absurd")));
+    }
+    let mut json = vec![0u8; hl as usize];
+    f.read_exact(&mut json)
+        .map_err(|_| bad(path, "truncated header"))?;
+    let header: Header =
+        serde_json::from_slice(&json).map_err(|e| bad(path, format!("header: {e}")))?;
+    let grid = HashGrid::new(&header.inr, *header.dims.iter().max().unwrap_or(&1));
+    let layout = DenseLayout::for_config(&header.inr, grid.out_dim());
+    if grid.table_len() != header.table_len || layout.len != header.dense_len {
+        return Err(bad(
+            path,
+            "parameter counts do not match the stored configuration",
+        ));
+    }
+    let n_arrays = if header.kind == "checkpoint" { 6 } else { 2 };
+    let lens = [
+        header.table_len,
+        header.dense_len,
+        header.table_len,
+        header.table_len,
+        header.dense_len,
+        header.dense_len,
+    ];
+    let mut arrays = Vec::new();
+    let mut crc = crc32fast::Hasher::new();
+    for &len in lens.iter().take(n_arrays) {
+        let mut bytes = vec![0u8; len * 4];
+        f.read_exact(&mut bytes)
+            .map_err(|_| bad(path, "truncated: parameter data ends early"))?;
+        crc.update(&bytes);
+        arrays.push(bytemuck::pod_collect_to_vec::<u8, f32>(&bytes));
+    }
+    if crc.finalize() != header.crc32 {
+        return Err(bad(path, "CRC mismatch: the file is corrupted"));
+    }
+    if arrays.iter().flatten().any(|v| !v.is_finite()) {
+        return Err(bad(path, "parameters contain NaN or Inf"));
+    }
+    let mut it = arrays.into_iter();
+    let table = it.next().unwrap_or_default();
+    let dense = it.next().unwrap_or_default();
+    let model = InrModel {
+        cfg: header.inr.clone(),
+        grid,
+        layout,
+        table,
+        dense,
+        dims: header.dims,
+    };
+    let adam = if n_arrays == 6 {
+        let mut a = header
+            .adam
+            .clone()
+            .ok_or_else(|| bad(path, "checkpoint without optimiser state"))?;
+        a.m_table = it.next().unwrap_or_default();
+        a.v_table = it.next().unwrap_or_default();
+        a.m_dense = it.next().unwrap_or_default();
+        a.v_dense = it.next().unwrap_or_default();
+        Some(a)
+    } else {
+        None
+    };
+    Ok(Loaded {
+        model,
+        header,
+        adam,
+    })
+}

@@ -1,0 +1,505 @@
+//! Training by tile: batches are drawn brick by brick from the store, with only the current
+//! group of tiles (and the next, prefetched) in memory.
+//!
+//! Each epoch visits the training bricks in a seeded random order, in groups of
+//! `tile_bricks`; within a group every voxel is used once, in a seeded random order. A batch is
+//! split into a fixed number of lanes whose gradients are summed in lane order, so results are
+//! identical for any number of threads, and a checkpoint's (epoch, group, batch) position lets
+//! `--resume` continue exactly where training stopped.
+
+use crate::adam::{Adam, TableGrad};
+use crate::checkpoint::{save, Loaded, TrainState};
+use crate::config::{InrConfig, TrainConfig};
+use crate::error::{FeatureError, Result};
+use crate::model::{InrModel, Work, CHUNK, TARGETS};
+use crate::rng::Rng;
+use crate::tile::Tile;
+use neuvolex_bricks::{Brick, BrickStore};
+use rayon::prelude::*;
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::Instant;
+
+/// Independent gradient lanes per batch (fixed, for determinism across thread counts).
+pub const LANES: usize = 16;
+
+/// A progress event of training. The CLI prints them; the service forwards them to browsers.
+#[derive(Debug, Clone, PartialEq)]
+pub enum TrainEvent {
+    /// Training begins (or resumes).
+    Started {
+        /// Bricks trained on.
+        bricks: usize,
+        /// Bricks in the store.
+        total_bricks: usize,
+        /// Voxels per epoch.
+        voxels: u64,
+        /// Trainable parameters.
+        params: usize,
+        /// Sample budget, if bounded by samples or epochs.
+        budget_samples: Option<u64>,
+        /// Step training resumes from (0 for a fresh start).
+        from_step: u64,
+    },
+    /// A step finished (every `report_every` steps).
+    Step {
+        /// Optimiser steps so far.
+        step: u64,
+        /// Epochs so far (fractional).
+        epoch: f64,
+        /// Samples so far.
+        samples: u64,
+        /// Batch loss.
+        loss: f64,
+        /// PSNR of the intensity head on the batch, dB (normalised range 1).
+        psnr: f64,
+        /// Recent throughput.
+        samples_per_sec: f64,
+        /// Training seconds so far.
+        seconds: f64,
+    },
+    /// A reconstructed slice (intensity head) beside the truth, both normalised.
+    Preview {
+        /// Step.
+        step: u64,
+        /// Slice index (z).
+        z: usize,
+        /// Preview width.
+        width: usize,
+        /// Preview height.
+        height: usize,
+        /// Reconstruction, row-major.
+        recon: Vec<f32>,
+        /// Normalised input, row-major.
+        truth: Vec<f32>,
+        /// PSNR of the preview, dB.
+        psnr: f64,
+    },
+    /// A checkpoint was written.
+    Checkpoint {
+        /// Step.
+        step: u64,
+        /// File.
+        path: PathBuf,
+    },
+    /// Training ended.
+    Finished {
+        /// Steps.
+        steps: u64,
+        /// Samples.
+        samples: u64,
+        /// Seconds (all sessions).
+        seconds: f64,
+        /// PSNR of the last reported batch.
+        psnr: f64,
+        /// What stopped it: "epochs", "samples", "seconds" or "cancelled".
+        stopped_by: String,
+    },
+}
+
+/// Where the model and checkpoint of a store live.
+pub fn model_path(store: &BrickStore) -> PathBuf {
+    store.root().join("neuvolex").join("inr").join("model.nvx")
+}
+
+/// The resumable checkpoint of a store.
+pub fn checkpoint_path(store: &BrickStore) -> PathBuf {
+    store
+        .root()
+        .join("neuvolex")
+        .join("inr")
+        .join("checkpoint.nvx")
+}
+
+/// The bricks training uses: the occupied ones (all if none is occupied or `include_empty`).
+pub fn training_bricks(store: &BrickStore, include_empty: bool) -> Vec<Brick> {
+    let occ = if include_empty {
+        store.bricks().collect()
+    } else {
+        store.occupied_bricks(None)
+    };
+    if occ.is_empty() {
+        store.bricks().collect()
+    } else {
+        occ
+    }
+}
+
+fn mix(a: u64, b: u64, c: u64) -> u64 {
+    let mut r =
+        Rng::new(a ^ b.wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ c.wrapping_mul(0xC2B2_AE3D_27D4_EB4F));
+    r.next_u64()
+}
+
+/// A reconstructed slice beside its input.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PreviewSlice {
+    /// Slice index (z).
+    pub z: usize,
+    /// Width in preview pixels.
+    pub width: usize,
+    /// Height in preview pixels.
+    pub height: usize,
+    /// Intensity-head reconstruction, row-major, normalised.
+    pub recon: Vec<f32>,
+    /// Normalised input at the same pixels.
+    pub truth: Vec<f32>,
+}
+
+/// Reconstructs the middle z-slice (at most `max_px` wide) with the intensity head.
+pub fn preview(store: &BrickStore, model: &InrModel, max_px: usize) -> Result<PreviewSlice> {
+    let d = store.info().dims;
+    let z = d[2] / 2;
+    let patch = model.cfg.patch;
+    let r = patch / 2;
+    let z0 = z.saturating_sub(r);
+    let z1 = (z + r + 1).min(d[2]);
+    let raw = store.read_box(0, [0, 0, z0], [d[0], d[1], z1 - z0])?;
+    let norm = store.normaliser();
+    let vals: Vec<f32> = raw.iter().map(|&v| norm.apply(v)).collect();
+    let stride = d[0].max(d[1]).div_ceil(max_px.max(1)).max(1);
+    let (w, h) = (d[0].div_ceil(stride), d[1].div_ceil(stride));
+    let at = |x: isize, y: isize, zz: isize| {
+        let cx = x.clamp(0, d[0] as isize - 1) as usize;
+        let cy = y.clamp(0, d[1] as isize - 1) as usize;
+        let cz = zz.clamp(z0 as isize, z1 as isize - 1) as usize - z0;
+        vals[(cz * d[1] + cy) * d[0] + cx]
+    };
+    let pix: Vec<(usize, usize)> = (0..h)
+        .flat_map(|j| (0..w).map(move |i| (i * stride, j * stride)))
+        .collect();
+    let recon: Vec<f32> = pix
+        .par_chunks(CHUNK)
+        .flat_map_iter(|chunk| {
+            let mut wk = model.work();
+            model.load_with(&mut wk, chunk.len(), |i, x, p, t| {
+                let (px, py) = chunk[i];
+                *x = [
+                    (px as f32 + 0.5) / d[0] as f32,
+                    (py as f32 + 0.5) / d[1] as f32,
+                    (z as f32 + 0.5) / d[2] as f32,
+                ];
+                let mut k = 0;
+                for dz in 0..patch as isize {
+                    for dy in 0..patch as isize {
+                        for dx in 0..patch as isize {
+                            p[k] = at(
+                                px as isize + dx - r as isize,
+                                py as isize + dy - r as isize,
+                                z as isize + dz - r as isize,
+                            );
+                            k += 1;
+                        }
+                    }
+                }
+                t.iter_mut().for_each(|v| *v = 0.0);
+            });
+            model.forward(&mut wk);
+            let outs = model.layout.head.out;
+            model
+                .outputs(&wk)
+                .chunks(outs)
+                .map(|o| o[0])
+                .collect::<Vec<_>>()
+        })
+        .collect();
+    let truth: Vec<f32> = pix
+        .iter()
+        .map(|&(x, y)| at(x as isize, y as isize, z as isize))
+        .collect();
+    Ok(PreviewSlice {
+        z,
+        width: w,
+        height: h,
+        recon,
+        truth,
+    })
+}
+
+fn psnr(mse: f64) -> f64 {
+    10.0 * (1.0 / mse.max(1e-12)).log10()
+}
+
+/// The result of [`train`].
+pub struct Trained {
+    /// The trained model.
+    pub model: InrModel,
+    /// Final position.
+    pub state: TrainState,
+    /// PSNR of the last batch.
+    pub psnr: f64,
+}
+
+/// Trains the INR on `store`. With `resume`, continues from a checkpoint (its configuration
+/// wins over `inr`/`cfg`, except for the budget). Checkpoints go to `checkpoint` when given.
+pub fn train(
+    store: &BrickStore,
+    inr: &InrConfig,
+    cfg: &TrainConfig,
+    resume: Option<Loaded>,
+    checkpoint: Option<&Path>,
+    cancel: &AtomicBool,
+    events: &mut dyn FnMut(TrainEvent),
+) -> Result<Trained> {
+    if cfg.batch == 0 || cfg.tile_bricks == 0 {
+        return Err(FeatureError::Config(
+            "batch and tile_bricks must be positive".into(),
+        ));
+    }
+    if !(cfg.lr > 0.0 && cfg.lr.is_finite() && cfg.lr_table > 0.0 && cfg.lr_table.is_finite()) {
+        return Err(FeatureError::Config(format!(
+            "learning rates {} / {} must be positive and finite",
+            cfg.lr, cfg.lr_table
+        )));
+    }
+    if inr.patch % 2 == 0 || inr.patch == 0 || inr.patch > 9 {
+        return Err(FeatureError::Config(format!(
+            "patch {} must be odd and at most 9",
+            inr.patch
+        )));
+    }
+    if inr.features_per_level != 2 {
+        return Err(FeatureError::Config(
+            "the CPU engine supports 2 features per level".into(),
+        ));
+    }
+    if inr.log2_table > 24 || inr.levels == 0 || inr.levels > 32 {
+        return Err(FeatureError::Config(
+            "levels must be 1..=32 and log2_table at most 24".into(),
+        ));
+    }
+    let dims = store.info().dims;
+    let (mut model, mut adam, mut state, mut tc) = match resume {
+        Some(l) => {
+            if l.model.dims != dims {
+                return Err(FeatureError::Config(format!(
+                    "checkpoint was trained on a {:?} grid, the store is {dims:?}",
+                    l.model.dims
+                )));
+            }
+            let mut tc = l.header.train.clone().unwrap_or_else(|| cfg.clone());
+            tc.budget = cfg.budget;
+            let state = l.header.state.unwrap_or_default();
+            let adam = l
+                .adam
+                .unwrap_or_else(|| Adam::new(l.model.dense.len(), l.model.table.len()));
+            (l.model, adam, state, tc)
+        }
+        None => {
+            let m = InrModel::new(inr, dims, cfg.seed);
+            let a = Adam::new(m.dense.len(), m.table.len());
+            (m, a, TrainState::default(), cfg.clone())
+        }
+    };
+    tc.batch = tc.batch.max(1);
+    let bricks = training_bricks(store, tc.include_empty);
+    let voxels: u64 = bricks.iter().map(|b| b.voxels() as u64).sum();
+    let budget_samples = match (tc.budget.epochs, tc.budget.samples) {
+        (Some(e), Some(s)) => Some(((e * voxels as f64) as u64).min(s)),
+        (Some(e), None) => Some((e * voxels as f64).ceil() as u64),
+        (None, s) => s,
+    };
+    if budget_samples.is_none() && tc.budget.seconds.is_none() {
+        return Err(FeatureError::Config(
+            "no budget: give epochs, samples or seconds".into(),
+        ));
+    }
+    events(TrainEvent::Started {
+        bricks: bricks.len(),
+        total_bricks: store.bricks().count(),
+        voxels,
+        params: model.table.len() + model.dense.len(),
+        budget_samples,
+        from_step: state.step,
+    });
+    let patch = model.cfg.patch;
+    let mut works: Vec<Work> = (0..LANES).map(|_| model.work()).collect();
+    let mut tg = TableGrad::new(model.grid.levels.len(), model.grid.t, model.grid.f);
+    let mut g_dense = vec![0.0f32; model.dense.len()];
+    let start = Instant::now();
+    let seconds0 = state.seconds;
+    let mut last_ckpt = Instant::now();
+    let (mut last_psnr, mut win_samples, mut win_start) = (0.0f64, 0u64, Instant::now());
+    let tile_bricks = tc.tile_bricks;
+    let seed = tc.seed;
+    let groups_of = |epoch: u64| -> Vec<Vec<Brick>> {
+        let mut order = bricks.clone();
+        Rng::new(mix(seed, epoch, 0)).shuffle(&mut order);
+        order.chunks(tile_bricks).map(|c| c.to_vec()).collect()
+    };
+    let load_group = |g: &[Brick]| -> Result<Vec<Tile>> {
+        g.iter()
+            .map(|b| Tile::load(store, b, patch).map_err(FeatureError::from))
+            .collect()
+    };
+    let stopped_by: String = std::thread::scope(|scope| -> Result<String> {
+        loop {
+            let groups = groups_of(state.epoch);
+            let mut next: Option<std::thread::ScopedJoinHandle<'_, Result<Vec<Tile>>>> = None;
+            while state.group < groups.len() {
+                let tiles = match next.take() {
+                    Some(h) => h
+                        .join()
+                        .map_err(|_| FeatureError::Config("tile loader panicked".into()))??,
+                    None => load_group(&groups[state.group])?,
+                };
+                if state.group + 1 < groups.len() {
+                    let g = groups[state.group + 1].clone();
+                    next = Some(scope.spawn(move || load_group(&g)));
+                }
+                let mut order: Vec<(u32, u32)> = tiles
+                    .iter()
+                    .enumerate()
+                    .flat_map(|(t, tile)| (0..tile.voxels() as u32).map(move |v| (t as u32, v)))
+                    .collect();
+                Rng::new(mix(seed, state.epoch, state.group as u64 + 1)).shuffle(&mut order);
+                let batches: Vec<&[(u32, u32)]> = order.chunks(tc.batch).collect();
+                while state.batch < batches.len() {
+                    if cancel.load(Ordering::Relaxed) {
+                        return Ok("cancelled".into());
+                    }
+                    let batch = batches[state.batch];
+                    let len = batch.len();
+                    let per = len.div_ceil(LANES);
+                    let m = &model;
+                    works.par_iter_mut().enumerate().for_each(|(li, w)| {
+                        m.reset(w);
+                        let lane = &batch[(li * per).min(len)..((li + 1) * per).min(len)];
+                        for chunk in lane.chunks(CHUNK) {
+                            m.load_with(w, chunk.len(), |i, x, p, t| {
+                                let (ti, v) = chunk[i];
+                                tiles[ti as usize].sample(v as usize, patch, x, p, t);
+                            });
+                            m.forward_backward(w, len);
+                        }
+                    });
+                    g_dense.iter_mut().for_each(|g| *g = 0.0);
+                    let (mut loss, mut sse) = (0.0f64, 0.0f64);
+                    for w in &works {
+                        g_dense.iter_mut().zip(&w.grad).for_each(|(a, b)| *a += b);
+                        loss += w.loss;
+                        sse += w.sse_int;
+                    }
+                    let lanes: Vec<&Work> = works.iter().collect();
+                    tg.scatter(&lanes);
+                    if !loss.is_finite() {
+                        return Err(FeatureError::Config(format!(
+                            "loss became {loss} at step {}; lower the learning rate",
+                            state.step
+                        )));
+                    }
+                    adam.step(
+                        &mut model.dense,
+                        &g_dense,
+                        &mut model.table,
+                        &mut tg,
+                        crate::adam::Rates {
+                            lr: tc.lr,
+                            lr_table: tc.lr_table,
+                            mode: tc.table_adam,
+                        },
+                    );
+                    state.step += 1;
+                    state.batch += 1;
+                    state.samples += len as u64;
+                    state.seconds = seconds0 + start.elapsed().as_secs_f64();
+                    win_samples += len as u64;
+                    last_psnr = psnr(sse / len as f64);
+                    let done_samples = budget_samples.is_some_and(|b| state.samples >= b);
+                    let done_time = tc.budget.seconds.is_some_and(|s| state.seconds >= s);
+                    if tc.report_every > 0
+                        && (state.step % tc.report_every == 0 || done_samples || done_time)
+                    {
+                        let el = win_start.elapsed().as_secs_f64();
+                        events(TrainEvent::Step {
+                            step: state.step,
+                            epoch: state.samples as f64 / voxels.max(1) as f64,
+                            samples: state.samples,
+                            loss,
+                            psnr: last_psnr,
+                            samples_per_sec: win_samples as f64 / el.max(1e-9),
+                            seconds: state.seconds,
+                        });
+                        win_samples = 0;
+                        win_start = Instant::now();
+                    }
+                    if tc.preview_every > 0 && state.step % tc.preview_every == 0 {
+                        let PreviewSlice {
+                            z,
+                            width,
+                            height,
+                            recon,
+                            truth,
+                        } = preview(store, &model, 128)?;
+                        let mse = recon
+                            .iter()
+                            .zip(&truth)
+                            .map(|(a, b)| ((a - b) as f64).powi(2))
+                            .sum::<f64>()
+                            / recon.len().max(1) as f64;
+                        events(TrainEvent::Preview {
+                            step: state.step,
+                            z,
+                            width,
+                            height,
+                            recon,
+                            truth,
+                            psnr: psnr(mse),
+                        });
+                    }
+                    let ckpt_due = tc.checkpoint_every > 0 && state.step % tc.checkpoint_every == 0
+                        || last_ckpt.elapsed().as_secs_f64() > 120.0;
+                    if let (Some(p), true) = (checkpoint, ckpt_due) {
+                        save(p, &model, Some((&tc, &state, &adam)))?;
+                        last_ckpt = Instant::now();
+                        events(TrainEvent::Checkpoint {
+                            step: state.step,
+                            path: p.to_path_buf(),
+                        });
+                    }
+                    if done_samples {
+                        return Ok(if tc.budget.samples.is_some_and(|s| state.samples >= s) {
+                            "samples"
+                        } else {
+                            "epochs"
+                        }
+                        .into());
+                    }
+                    if done_time {
+                        return Ok("seconds".into());
+                    }
+                }
+                state.batch = 0;
+                state.group += 1;
+            }
+            if let Some(h) = next.take() {
+                let _ = h.join();
+            }
+            state.group = 0;
+            state.epoch += 1;
+        }
+    })?;
+    if let Some(p) = checkpoint {
+        save(p, &model, Some((&tc, &state, &adam)))?;
+        events(TrainEvent::Checkpoint {
+            step: state.step,
+            path: p.to_path_buf(),
+        });
+    }
+    events(TrainEvent::Finished {
+        steps: state.step,
+        samples: state.samples,
+        seconds: state.seconds,
+        psnr: last_psnr,
+        stopped_by: stopped_by.clone(),
+    });
+    if stopped_by == "cancelled" {
+        return Err(FeatureError::Cancelled);
+    }
+    let _ = TARGETS;
+    Ok(Trained {
+        model,
+        state,
+        psnr: last_psnr,
+    })
+}
