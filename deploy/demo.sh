@@ -13,6 +13,8 @@ NV=./target/release/neuvolex
 "$NV" info "$OUT/phantom.nii.gz"
 "$NV" ingest "$OUT/phantom.nii.gz" "$OUT/phantom.zarr" --labels "$OUT/phantom_labels.nii.gz" --classes "$OUT/phantom_classes.json" --force
 "$NV" info "$OUT/phantom.zarr"
+"$NV" train "$OUT/phantom.zarr" --preset fast
+"$NV" features "$OUT/phantom.zarr"
 
 DATA=../shared/data
 if [ -d "$DATA" ]; then

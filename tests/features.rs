@@ -206,6 +206,43 @@ fn extremes_give_finite_features() {
 }
 
 #[test]
+fn nan_input_is_rejected_or_zeroed_never_nan_features() {
+    let dims = [12, 10, 9];
+    let mut v = blobs(dims);
+    v[17] = f32::NAN;
+    v[300] = f32::INFINITY;
+    let d = tmp();
+    let p = d.path().join("nan.zarr");
+    // Default: refused at ingest with the voxel named.
+    let e = ingest(
+        &mut MemVolume::from_f32(dims, &v),
+        &p,
+        &IngestOptions {
+            brick: 8,
+            ..Default::default()
+        },
+        &mut |_| {},
+    )
+    .unwrap_err();
+    assert!(e.to_string().contains("non-finite"), "{e}");
+    // Replaced by zero on request: training and features stay finite.
+    let opts = IngestOptions {
+        brick: 8,
+        non_finite: neuvolex_bricks::NonFinitePolicy::Zero,
+        ..Default::default()
+    };
+    ingest(&mut MemVolume::from_f32(dims, &v), &p, &opts, &mut |_| {}).unwrap();
+    let store = BrickStore::open(&p).unwrap();
+    let t = run(&store, &small_inr(), &cfg(3000), None, None);
+    for b in store.bricks() {
+        assert!(extract_brick(&t.model, &store, &b, FeatureKind::Concat)
+            .unwrap()
+            .iter()
+            .all(|x| x.is_finite()));
+    }
+}
+
+#[test]
 fn every_ablation_trains_and_stored_equals_on_demand() {
     let p = PhantomParams::with_size(32, 4);
     let (_d, store) = store_of(&mut Phantom::new(p, PhantomChannel::Image), 16);
