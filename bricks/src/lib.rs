@@ -32,6 +32,7 @@ pub mod raw;
 pub mod stats;
 pub mod store;
 mod stream;
+pub use stream::FileVolume;
 pub mod synth;
 
 pub use derived::{DerivedBrick, HaloBrick, Normaliser};

@@ -6,8 +6,8 @@
 
 use crate::dtype::{to_native, DType, Endian};
 use crate::error::{BrickError, Result};
-use crate::meta::{check_slab_range, dims_from_i64, Slab, VolumeMeta, VolumeSource};
-use crate::stream::{is_gzip_file, ByteStream};
+use crate::meta::{dims_from_i64, VolumeMeta, VolumeSource};
+use crate::stream::{is_gzip_file, ByteStream, FileVolume};
 use flate2::read::MultiGzDecoder;
 use flate2::write::GzEncoder;
 use std::fs::File;
@@ -15,14 +15,6 @@ use std::io::{BufWriter, Read, Write};
 use std::path::{Path, PathBuf};
 
 const HEADER_LEN: usize = 348;
-
-/// A NIfTI-1 file opened for slab reads.
-pub struct NiftiSource {
-    path: PathBuf,
-    meta: VolumeMeta,
-    endian: Endian,
-    stream: ByteStream,
-}
 
 fn code_to_dtype(code: i16) -> Option<DType> {
     Some(match code {
@@ -250,73 +242,40 @@ pub fn parse_header(path: &Path, b: &[u8]) -> Result<(VolumeMeta, Endian, u64)> 
     ))
 }
 
-impl NiftiSource {
-    /// Opens `path` (`.nii` or `.nii.gz`; compression is detected from the content).
-    pub fn open(path: &Path) -> Result<Self> {
-        let gz = is_gzip_file(path)?;
-        let mut head = vec![0u8; HEADER_LEN];
-        let f = File::open(path).map_err(|e| BrickError::io(path, e))?;
-        let mut reader: Box<dyn Read> = if gz {
-            Box::new(MultiGzDecoder::new(std::io::BufReader::new(f)))
-        } else {
-            Box::new(f)
-        };
-        let mut got = 0;
-        while got < HEADER_LEN {
-            match reader.read(&mut head[got..]) {
-                Ok(0) => break,
-                Ok(n) => got += n,
-                Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
-                Err(e) if gz => {
-                    return Err(BrickError::CorruptGzip {
-                        path: path.to_path_buf(),
-                        detail: e.to_string(),
-                    })
-                }
-                Err(e) => return Err(BrickError::io(path, e)),
+/// Opens a NIfTI-1 file (`.nii` or `.nii.gz`; compression is detected from the content).
+pub fn open(path: &Path) -> Result<FileVolume> {
+    let gz = is_gzip_file(path)?;
+    let mut head = vec![0u8; HEADER_LEN];
+    let f = File::open(path).map_err(|e| BrickError::io(path, e))?;
+    let mut reader: Box<dyn Read> = if gz {
+        Box::new(MultiGzDecoder::new(std::io::BufReader::new(f)))
+    } else {
+        Box::new(f)
+    };
+    let mut got = 0;
+    while got < HEADER_LEN {
+        match reader.read(&mut head[got..]) {
+            Ok(0) => break,
+            Ok(n) => got += n,
+            Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
+            Err(e) if gz => {
+                return Err(BrickError::CorruptGzip {
+                    path: path.to_path_buf(),
+                    detail: e.to_string(),
+                })
             }
+            Err(e) => return Err(BrickError::io(path, e)),
         }
-        head.truncate(got);
-        let (meta, endian, offset) = parse_header(path, &head)?;
-        let len = meta.voxels() * meta.dtype.size() as u64;
-        let stream = if gz {
-            ByteStream::gzip(path, 0, offset, len)?
-        } else {
-            ByteStream::plain(path, offset, len, false)?
-        };
-        Ok(NiftiSource {
-            path: path.to_path_buf(),
-            meta,
-            endian,
-            stream,
-        })
     }
-}
-
-impl VolumeSource for NiftiSource {
-    fn meta(&self) -> &VolumeMeta {
-        &self.meta
-    }
-    fn path(&self) -> &Path {
-        &self.path
-    }
-    fn read_slab(&mut self, z0: usize, depth: usize) -> Result<Slab> {
-        check_slab_range(&self.meta, &self.path, z0, depth)?;
-        let sl = (self.meta.slice_len() * self.meta.dtype.size()) as u64;
-        let mut bytes = vec![0u8; (sl * depth as u64) as usize];
-        self.stream.read_at(sl * z0 as u64, &mut bytes)?;
-        to_native(&mut bytes, self.meta.dtype, self.endian);
-        Ok(Slab {
-            z0,
-            depth,
-            dtype: self.meta.dtype,
-            bytes,
-        })
-    }
-    fn release(&mut self, z0: usize, depth: usize) {
-        let sl = (self.meta.slice_len() * self.meta.dtype.size()) as u64;
-        self.stream.release(sl * z0 as u64, sl * depth as u64);
-    }
+    head.truncate(got);
+    let (meta, endian, offset) = parse_header(path, &head)?;
+    let len = meta.voxels() * meta.dtype.size() as u64;
+    let stream = if gz {
+        ByteStream::gzip(path, 0, offset, len)?
+    } else {
+        ByteStream::plain(path, offset, len, false)?
+    };
+    Ok(FileVolume::new(path, meta, endian, stream))
 }
 
 /// Builds a little-endian NIfTI-1 header for `meta` (sform and qform both set from the affine).

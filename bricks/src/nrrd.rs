@@ -3,19 +3,11 @@
 
 use crate::dtype::{to_native, DType, Endian};
 use crate::error::{BrickError, Result};
-use crate::meta::{check_slab_range, dims_from_i64, Slab, VolumeMeta, VolumeSource};
-use crate::stream::ByteStream;
+use crate::meta::{dims_from_i64, VolumeMeta};
+use crate::stream::{ByteStream, FileVolume};
 use std::collections::HashMap;
 use std::io::{BufRead, BufReader};
-use std::path::{Path, PathBuf};
-
-/// An NRRD volume opened for slab reads.
-pub struct NrrdSource {
-    path: PathBuf,
-    meta: VolumeMeta,
-    endian: Endian,
-    stream: ByteStream,
-}
+use std::path::Path;
 
 fn parse_vec(path: &Path, s: &str) -> Result<Vec<f64>> {
     let t = s.trim().trim_start_matches('(').trim_end_matches(')');
@@ -28,276 +20,243 @@ fn parse_vec(path: &Path, s: &str) -> Result<Vec<f64>> {
         .collect()
 }
 
-impl NrrdSource {
-    /// Opens an NRRD file, following `data file:` for detached headers.
-    pub fn open(path: &Path) -> Result<Self> {
-        let file = std::fs::File::open(path).map_err(|e| BrickError::io(path, e))?;
-        let mut rd = BufReader::new(file);
-        let mut consumed = 0u64;
-        let mut line = Vec::new();
-        let mut read_line =
-            |rd: &mut BufReader<std::fs::File>, consumed: &mut u64| -> Result<Option<String>> {
-                line.clear();
-                let n = rd
-                    .read_until(b'\n', &mut line)
-                    .map_err(|e| BrickError::io(path, e))?;
-                if n == 0 {
-                    return Ok(None);
-                }
-                *consumed += n as u64;
-                if line.len() > 1 << 16 {
-                    return Err(BrickError::header(path, "header line longer than 64 KiB"));
-                }
-                Ok(Some(
-                    String::from_utf8_lossy(&line)
-                        .trim_end_matches(['\n', '\r'])
-                        .to_string(),
-                ))
-            };
-        let magic = read_line(&mut rd, &mut consumed)?.unwrap_or_default();
-        if !magic.starts_with("NRRD000") {
-            return Err(BrickError::header(
-                path,
-                format!(
-                    "first line '{}' is not an NRRD magic",
-                    magic.chars().take(40).collect::<String>()
-                ),
-            ));
-        }
-        let mut fields: HashMap<String, String> = HashMap::new();
-        let mut ended_blank = false;
-        while let Some(l) = read_line(&mut rd, &mut consumed)? {
-            if l.is_empty() {
-                ended_blank = true;
-                break;
+/// Opens an NRRD file, following `data file:` for detached headers.
+pub fn open(path: &Path) -> Result<FileVolume> {
+    let file = std::fs::File::open(path).map_err(|e| BrickError::io(path, e))?;
+    let mut rd = BufReader::new(file);
+    let mut consumed = 0u64;
+    let mut line = Vec::new();
+    let mut read_line =
+        |rd: &mut BufReader<std::fs::File>, consumed: &mut u64| -> Result<Option<String>> {
+            line.clear();
+            let n = rd
+                .read_until(b'\n', &mut line)
+                .map_err(|e| BrickError::io(path, e))?;
+            if n == 0 {
+                return Ok(None);
             }
-            if l.starts_with('#') {
-                continue;
+            *consumed += n as u64;
+            if line.len() > 1 << 16 {
+                return Err(BrickError::header(path, "header line longer than 64 KiB"));
             }
-            if l.contains(":=") {
-                continue; // key/value pairs carry no geometry
-            }
-            let Some((k, v)) = l.split_once(": ") else {
-                return Err(BrickError::header(
-                    path,
-                    format!("malformed header line '{l}'"),
-                ));
-            };
-            fields.insert(k.trim().to_ascii_lowercase(), v.trim().to_string());
-            if fields.len() > 256 {
-                return Err(BrickError::header(path, "too many header fields"));
-            }
-        }
-        let get = |k: &str| fields.get(k).map(|s| s.as_str());
-        let need = |k: &str| {
-            get(k).ok_or_else(|| BrickError::header(path, format!("missing required field '{k}'")))
+            Ok(Some(
+                String::from_utf8_lossy(&line)
+                    .trim_end_matches(['\n', '\r'])
+                    .to_string(),
+            ))
         };
-        let ty = need("type")?;
-        let dtype = DType::parse(ty).ok_or_else(|| BrickError::UnknownDtype {
-            path: path.to_path_buf(),
-            dtype: ty.to_string(),
-        })?;
-        let ndim: usize = need("dimension")?
-            .parse()
-            .map_err(|_| BrickError::header(path, "dimension is not an integer"))?;
-        let sizes: Vec<i64> = need("sizes")?
-            .split_whitespace()
-            .map(|s| {
-                s.parse::<i64>().map_err(|_| BrickError::BadDims {
-                    path: path.to_path_buf(),
-                    detail: format!("size '{s}' is not an integer"),
-                })
-            })
-            .collect::<Result<_>>()?;
-        if sizes.len() != ndim {
+    let magic = read_line(&mut rd, &mut consumed)?.unwrap_or_default();
+    if !magic.starts_with("NRRD000") {
+        return Err(BrickError::header(
+            path,
+            format!(
+                "first line '{}' is not an NRRD magic",
+                magic.chars().take(40).collect::<String>()
+            ),
+        ));
+    }
+    let mut fields: HashMap<String, String> = HashMap::new();
+    let mut ended_blank = false;
+    while let Some(l) = read_line(&mut rd, &mut consumed)? {
+        if l.is_empty() {
+            ended_blank = true;
+            break;
+        }
+        if l.starts_with('#') {
+            continue;
+        }
+        if l.contains(":=") {
+            continue; // key/value pairs carry no geometry
+        }
+        let Some((k, v)) = l.split_once(": ") else {
             return Err(BrickError::header(
                 path,
-                format!("dimension {ndim} but {} sizes", sizes.len()),
+                format!("malformed header line '{l}'"),
             ));
+        };
+        fields.insert(k.trim().to_ascii_lowercase(), v.trim().to_string());
+        if fields.len() > 256 {
+            return Err(BrickError::header(path, "too many header fields"));
         }
-        // Accept 3-D, or 4-D with one axis of size 1 (kept as a 3-D grid).
-        let sizes3: Vec<i64> = if ndim == 3 {
-            sizes.clone()
-        } else if ndim == 4 && sizes.contains(&1) {
-            let mut s = sizes.clone();
-            let i = s.iter().position(|&v| v == 1).unwrap_or(0);
-            s.remove(i);
-            s
-        } else {
-            return Err(BrickError::BadDims {
+    }
+    let get = |k: &str| fields.get(k).map(|s| s.as_str());
+    let need = |k: &str| {
+        get(k).ok_or_else(|| BrickError::header(path, format!("missing required field '{k}'")))
+    };
+    let ty = need("type")?;
+    let dtype = DType::parse(ty).ok_or_else(|| BrickError::UnknownDtype {
+        path: path.to_path_buf(),
+        dtype: ty.to_string(),
+    })?;
+    let ndim: usize = need("dimension")?
+        .parse()
+        .map_err(|_| BrickError::header(path, "dimension is not an integer"))?;
+    let sizes: Vec<i64> = need("sizes")?
+        .split_whitespace()
+        .map(|s| {
+            s.parse::<i64>().map_err(|_| BrickError::BadDims {
                 path: path.to_path_buf(),
-                detail: format!(
-                    "dimension {ndim} with sizes {sizes:?}: only 3-D scalar volumes are supported"
-                ),
-            });
-        };
-        let dims = dims_from_i64(path, [sizes3[0], sizes3[1], sizes3[2]])?;
-        let encoding = need("encoding")?.to_ascii_lowercase();
-        let gz = match encoding.as_str() {
-            "raw" => false,
-            "gzip" | "gz" => true,
-            other => {
-                return Err(BrickError::header(
-                    path,
-                    format!("encoding '{other}' is not supported (raw and gzip are)"),
-                ))
-            }
-        };
-        let endian = if dtype.size() == 1 {
-            Endian::Little
-        } else {
-            let e = need("endian")?;
-            Endian::parse(e).ok_or_else(|| {
-                BrickError::header(path, format!("endian '{e}' is neither little nor big"))
-            })?
-        };
-        let mut spacing = [1.0f64; 3];
-        let mut affine = crate::meta::diag_affine(spacing, [0.0; 3]);
-        if let Some(dirs) = get("space directions") {
-            let vecs: Vec<&str> = dirs.split_whitespace().filter(|s| *s != "none").collect();
-            if vecs.len() == 3 {
-                for (j, v) in vecs.iter().enumerate() {
-                    let d = parse_vec(path, v)?;
-                    if d.len() != 3 {
-                        return Err(BrickError::header(
-                            path,
-                            format!("space direction '{v}' is not 3-D"),
-                        ));
-                    }
-                    for i in 0..3 {
-                        affine[i][j] = d[i];
-                    }
-                    spacing[j] = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
-                }
-            }
-        } else if let Some(sp) = get("spacings") {
-            let v: Vec<f64> = sp
-                .split_whitespace()
-                .filter(|s| !s.eq_ignore_ascii_case("nan"))
-                .map(|s| {
-                    s.parse::<f64>()
-                        .map_err(|_| BrickError::header(path, format!("bad spacing '{s}'")))
-                })
-                .collect::<Result<_>>()?;
-            if v.len() == 3 {
-                spacing = [v[0], v[1], v[2]];
-                affine = crate::meta::diag_affine(spacing, [0.0; 3]);
-            }
+                detail: format!("size '{s}' is not an integer"),
+            })
+        })
+        .collect::<Result<_>>()?;
+    if sizes.len() != ndim {
+        return Err(BrickError::header(
+            path,
+            format!("dimension {ndim} but {} sizes", sizes.len()),
+        ));
+    }
+    // Accept 3-D, or 4-D with one axis of size 1 (kept as a 3-D grid).
+    let sizes3: Vec<i64> = if ndim == 3 {
+        sizes.clone()
+    } else if ndim == 4 && sizes.contains(&1) {
+        let mut s = sizes.clone();
+        let i = s.iter().position(|&v| v == 1).unwrap_or(0);
+        s.remove(i);
+        s
+    } else {
+        return Err(BrickError::BadDims {
+            path: path.to_path_buf(),
+            detail: format!(
+                "dimension {ndim} with sizes {sizes:?}: only 3-D scalar volumes are supported"
+            ),
+        });
+    };
+    let dims = dims_from_i64(path, [sizes3[0], sizes3[1], sizes3[2]])?;
+    let encoding = need("encoding")?.to_ascii_lowercase();
+    let gz = match encoding.as_str() {
+        "raw" => false,
+        "gzip" | "gz" => true,
+        other => {
+            return Err(BrickError::header(
+                path,
+                format!("encoding '{other}' is not supported (raw and gzip are)"),
+            ))
         }
-        if let Some(o) = get("space origin") {
-            let v = parse_vec(path, o)?;
-            if v.len() == 3 {
-                for i in 0..3 {
-                    affine[i][3] = v[i];
-                }
-            }
-        }
-        let meta = VolumeMeta {
-            dims,
-            spacing,
-            affine,
-            dtype,
-            scaling: None,
-        };
-        meta.validate(path)?;
-        let len = meta.voxels() * dtype.size() as u64;
-        let line_skip: u64 = get("line skip")
-            .or(get("lineskip"))
-            .map(|s| s.parse().unwrap_or(0))
-            .unwrap_or(0);
-        let byte_skip: i64 = get("byte skip")
-            .or(get("byteskip"))
-            .map(|s| s.parse().unwrap_or(0))
-            .unwrap_or(0);
-        let data_file = get("data file").or(get("datafile"));
-        let (data_path, start) = match data_file {
-            Some(f) => {
-                if f.starts_with("LIST") || f.contains('%') {
+    };
+    let endian = if dtype.size() == 1 {
+        Endian::Little
+    } else {
+        let e = need("endian")?;
+        Endian::parse(e).ok_or_else(|| {
+            BrickError::header(path, format!("endian '{e}' is neither little nor big"))
+        })?
+    };
+    let mut spacing = [1.0f64; 3];
+    let mut affine = crate::meta::diag_affine(spacing, [0.0; 3]);
+    if let Some(dirs) = get("space directions") {
+        let vecs: Vec<&str> = dirs.split_whitespace().filter(|s| *s != "none").collect();
+        if vecs.len() == 3 {
+            for (j, v) in vecs.iter().enumerate() {
+                let d = parse_vec(path, v)?;
+                if d.len() != 3 {
                     return Err(BrickError::header(
                         path,
-                        format!("multi-file data '{f}' is not supported"),
+                        format!("space direction '{v}' is not 3-D"),
                     ));
                 }
-                let p = path.parent().unwrap_or(Path::new(".")).join(f);
-                (p, 0u64)
-            }
-            None => {
-                if !ended_blank {
-                    return Err(BrickError::Truncated {
-                        path: path.to_path_buf(),
-                        expected: len,
-                        found: 0,
-                    });
+                for i in 0..3 {
+                    affine[i][j] = d[i];
                 }
-                (path.to_path_buf(), consumed)
-            }
-        };
-        let mut start = start;
-        if line_skip > 0 {
-            // Skip whole lines in the data file before the data.
-            let f = std::fs::File::open(&data_path).map_err(|e| BrickError::io(&data_path, e))?;
-            let mut r = BufReader::new(f);
-            use std::io::Seek;
-            r.seek(std::io::SeekFrom::Start(start))
-                .map_err(|e| BrickError::io(&data_path, e))?;
-            let mut buf = Vec::new();
-            for _ in 0..line_skip {
-                buf.clear();
-                start += r
-                    .read_until(b'\n', &mut buf)
-                    .map_err(|e| BrickError::io(&data_path, e))? as u64;
+                spacing[j] = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
             }
         }
-        let stream = if gz {
-            ByteStream::gzip(&data_path, start, byte_skip.max(0) as u64, len)?
-        } else if byte_skip == -1 {
-            let flen = std::fs::metadata(&data_path)
-                .map_err(|e| BrickError::io(&data_path, e))?
-                .len();
-            if flen < len {
+    } else if let Some(sp) = get("spacings") {
+        let v: Vec<f64> = sp
+            .split_whitespace()
+            .filter(|s| !s.eq_ignore_ascii_case("nan"))
+            .map(|s| {
+                s.parse::<f64>()
+                    .map_err(|_| BrickError::header(path, format!("bad spacing '{s}'")))
+            })
+            .collect::<Result<_>>()?;
+        if v.len() == 3 {
+            spacing = [v[0], v[1], v[2]];
+            affine = crate::meta::diag_affine(spacing, [0.0; 3]);
+        }
+    }
+    if let Some(o) = get("space origin") {
+        let v = parse_vec(path, o)?;
+        if v.len() == 3 {
+            for i in 0..3 {
+                affine[i][3] = v[i];
+            }
+        }
+    }
+    let meta = VolumeMeta {
+        dims,
+        spacing,
+        affine,
+        dtype,
+        scaling: None,
+    };
+    meta.validate(path)?;
+    let len = meta.voxels() * dtype.size() as u64;
+    let line_skip: u64 = get("line skip")
+        .or(get("lineskip"))
+        .map(|s| s.parse().unwrap_or(0))
+        .unwrap_or(0);
+    let byte_skip: i64 = get("byte skip")
+        .or(get("byteskip"))
+        .map(|s| s.parse().unwrap_or(0))
+        .unwrap_or(0);
+    let data_file = get("data file").or(get("datafile"));
+    let (data_path, start) = match data_file {
+        Some(f) => {
+            if f.starts_with("LIST") || f.contains('%') {
+                return Err(BrickError::header(
+                    path,
+                    format!("multi-file data '{f}' is not supported"),
+                ));
+            }
+            let p = path.parent().unwrap_or(Path::new(".")).join(f);
+            (p, 0u64)
+        }
+        None => {
+            if !ended_blank {
                 return Err(BrickError::Truncated {
-                    path: data_path,
+                    path: path.to_path_buf(),
                     expected: len,
-                    found: flen,
+                    found: 0,
                 });
             }
-            ByteStream::plain(&data_path, flen - len, len, false)?
-        } else {
-            ByteStream::plain(&data_path, start + byte_skip.max(0) as u64, len, false)?
-        };
-        Ok(NrrdSource {
-            path: data_path,
-            meta,
-            endian,
-            stream,
-        })
+            (path.to_path_buf(), consumed)
+        }
+    };
+    let mut start = start;
+    if line_skip > 0 {
+        // Skip whole lines in the data file before the data.
+        let f = std::fs::File::open(&data_path).map_err(|e| BrickError::io(&data_path, e))?;
+        let mut r = BufReader::new(f);
+        use std::io::Seek;
+        r.seek(std::io::SeekFrom::Start(start))
+            .map_err(|e| BrickError::io(&data_path, e))?;
+        let mut buf = Vec::new();
+        for _ in 0..line_skip {
+            buf.clear();
+            start += r
+                .read_until(b'\n', &mut buf)
+                .map_err(|e| BrickError::io(&data_path, e))? as u64;
+        }
     }
-}
-
-impl VolumeSource for NrrdSource {
-    fn meta(&self) -> &VolumeMeta {
-        &self.meta
-    }
-    fn path(&self) -> &Path {
-        &self.path
-    }
-    fn read_slab(&mut self, z0: usize, depth: usize) -> Result<Slab> {
-        check_slab_range(&self.meta, &self.path, z0, depth)?;
-        let sl = (self.meta.slice_len() * self.meta.dtype.size()) as u64;
-        let mut bytes = vec![0u8; (sl * depth as u64) as usize];
-        self.stream.read_at(sl * z0 as u64, &mut bytes)?;
-        to_native(&mut bytes, self.meta.dtype, self.endian);
-        Ok(Slab {
-            z0,
-            depth,
-            dtype: self.meta.dtype,
-            bytes,
-        })
-    }
-    fn release(&mut self, z0: usize, depth: usize) {
-        let sl = (self.meta.slice_len() * self.meta.dtype.size()) as u64;
-        self.stream.release(sl * z0 as u64, sl * depth as u64);
-    }
+    let stream = if gz {
+        ByteStream::gzip(&data_path, start, byte_skip.max(0) as u64, len)?
+    } else if byte_skip == -1 {
+        let flen = std::fs::metadata(&data_path)
+            .map_err(|e| BrickError::io(&data_path, e))?
+            .len();
+        if flen < len {
+            return Err(BrickError::Truncated {
+                path: data_path,
+                expected: len,
+                found: flen,
+            });
+        }
+        ByteStream::plain(&data_path, flen - len, len, false)?
+    } else {
+        ByteStream::plain(&data_path, start + byte_skip.max(0) as u64, len, false)?
+    };
+    Ok(FileVolume::new(&data_path, meta, endian, stream))
 }
 
 /// Writes an NRRD header (and data) for tests and interchange: `encoding` is `raw` or `gzip`.

@@ -2,10 +2,8 @@
 
 use crate::error::{BrickError, Result};
 use crate::meta::VolumeSource;
-use crate::nifti::NiftiSource;
-use crate::nrrd::NrrdSource;
 use crate::omezarr::OmeZarrSource;
-use crate::raw::{RawSource, RawSpec};
+use crate::raw::RawSpec;
 use std::path::Path;
 
 /// The on-disk formats neuvolex reads.
@@ -66,11 +64,11 @@ pub fn detect_format(path: &Path) -> Result<Format> {
 /// sidecar JSON or a `name_WxHxD_dtype.raw` file name is required.
 pub fn open_volume(path: &Path, raw: Option<&RawSpec>) -> Result<Box<dyn VolumeSource>> {
     if let Some(spec) = raw {
-        return Ok(Box::new(RawSource::open(path, spec)?));
+        return Ok(Box::new(crate::raw::open(path, spec)?));
     }
     Ok(match detect_format(path)? {
-        Format::Nifti => Box::new(NiftiSource::open(path)?),
-        Format::Nrrd => Box::new(NrrdSource::open(path)?),
+        Format::Nifti => Box::new(crate::nifti::open(path)?),
+        Format::Nrrd => Box::new(crate::nrrd::open(path)?),
         Format::OmeZarr => Box::new(OmeZarrSource::open(path)?),
         Format::Raw => {
             let spec = RawSpec::discover(path)?.ok_or_else(|| BrickError::UnknownFormat {
@@ -80,7 +78,7 @@ pub fn open_volume(path: &Path, raw: Option<&RawSpec>) -> Result<Box<dyn VolumeS
                          add a JSON sidecar (X.raw.json), or name it name_WxHxD_dtype.raw"
                         .into(),
             })?;
-            Box::new(RawSource::open(path, &spec)?)
+            Box::new(crate::raw::open(path, &spec)?)
         }
     })
 }

@@ -3,10 +3,10 @@
 //! The layout comes from explicit parameters ([`RawSpec`]), a JSON sidecar (`X.raw.json` or
 //! `X.json`), or a file name of the form `name_WxHxD_dtype.raw` (as the Open SciVis data sets are named).
 
-use crate::dtype::{to_native, DType, Endian};
+use crate::dtype::{DType, Endian};
 use crate::error::{BrickError, Result};
-use crate::meta::{check_slab_range, diag_affine, validate_dims, Slab, VolumeMeta, VolumeSource};
-use crate::stream::ByteStream;
+use crate::meta::{diag_affine, validate_dims, VolumeMeta};
+use crate::stream::{ByteStream, FileVolume};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 
@@ -73,61 +73,20 @@ impl RawSpec {
     }
 }
 
-/// A memory-mapped raw volume.
-pub struct RawSource {
-    path: PathBuf,
-    meta: VolumeMeta,
-    endian: Endian,
-    stream: ByteStream,
-}
-
-impl RawSource {
-    /// Maps `path` with the given layout. The file size must match exactly.
-    pub fn open(path: &Path, spec: &RawSpec) -> Result<Self> {
-        validate_dims(path, spec.dims)?;
-        let meta = VolumeMeta {
-            dims: spec.dims,
-            spacing: spec.spacing,
-            affine: diag_affine(spec.spacing, [0.0; 3]),
-            dtype: spec.dtype,
-            scaling: None,
-        };
-        meta.validate(path)?;
-        let len = meta.voxels() * spec.dtype.size() as u64;
-        let stream = ByteStream::plain(path, spec.offset, len, true)?;
-        Ok(RawSource {
-            path: path.to_path_buf(),
-            meta,
-            endian: spec.endian,
-            stream,
-        })
-    }
-}
-
-impl VolumeSource for RawSource {
-    fn meta(&self) -> &VolumeMeta {
-        &self.meta
-    }
-    fn path(&self) -> &Path {
-        &self.path
-    }
-    fn read_slab(&mut self, z0: usize, depth: usize) -> Result<Slab> {
-        check_slab_range(&self.meta, &self.path, z0, depth)?;
-        let sl = (self.meta.slice_len() * self.meta.dtype.size()) as u64;
-        let mut bytes = vec![0u8; (sl * depth as u64) as usize];
-        self.stream.read_at(sl * z0 as u64, &mut bytes)?;
-        to_native(&mut bytes, self.meta.dtype, self.endian);
-        Ok(Slab {
-            z0,
-            depth,
-            dtype: self.meta.dtype,
-            bytes,
-        })
-    }
-    fn release(&mut self, z0: usize, depth: usize) {
-        let sl = (self.meta.slice_len() * self.meta.dtype.size()) as u64;
-        self.stream.release(sl * z0 as u64, sl * depth as u64);
-    }
+/// Maps a raw file with the given layout. The file size must match exactly.
+pub fn open(path: &Path, spec: &RawSpec) -> Result<FileVolume> {
+    validate_dims(path, spec.dims)?;
+    let meta = VolumeMeta {
+        dims: spec.dims,
+        spacing: spec.spacing,
+        affine: diag_affine(spec.spacing, [0.0; 3]),
+        dtype: spec.dtype,
+        scaling: None,
+    };
+    meta.validate(path)?;
+    let len = meta.voxels() * spec.dtype.size() as u64;
+    let stream = ByteStream::plain(path, spec.offset, len, true)?;
+    Ok(FileVolume::new(path, meta, spec.endian, stream))
 }
 
 #[cfg(test)]

@@ -580,26 +580,20 @@ pub fn scan_volume(
         progress(Progress::Advance { done: z as u64 });
     }
     let fine = if scanner.needs_second_pass() {
-        let (lo, hi) = scanner.range();
-        let mut fine = FineHistogram::new(lo, hi);
-        progress(Progress::Stage {
-            name: "percentiles",
-            total: nz as u64,
-        });
-        let mut z = 0;
-        while z < nz {
-            let d = step.min(nz - z);
-            let slab = source.read_slab(z, d)?;
-            let mut v = slab.to_f32_scaled(&meta);
-            v.iter_mut()
-                .filter(|x| !x.is_finite())
-                .for_each(|x| *x = 0.0);
-            fine.add(&v);
-            source.release(z, d);
-            z += d;
-            progress(Progress::Advance { done: z as u64 });
-        }
-        Some(fine)
+        Some(percentile_pass(
+            nz,
+            step,
+            scanner.range(),
+            progress,
+            |z, d| {
+                let mut v = source.read_slab(z, d)?.to_f32_scaled(&meta);
+                v.iter_mut()
+                    .filter(|x| !x.is_finite())
+                    .for_each(|x| *x = 0.0);
+                source.release(z, d);
+                Ok(v)
+            },
+        )?)
     } else {
         None
     };
@@ -614,6 +608,30 @@ pub fn scan_volume(
         background,
         occupied,
     })
+}
+
+/// Second pass for percentiles of wide types: reads the volume slab by slab through `read(z, depth)`
+/// into a fine histogram over the `(min, max)` found by the first pass.
+fn percentile_pass(
+    nz: usize,
+    step: usize,
+    range: (f64, f64),
+    progress: &mut dyn FnMut(Progress),
+    mut read: impl FnMut(usize, usize) -> Result<Vec<f32>>,
+) -> Result<FineHistogram> {
+    let mut fine = FineHistogram::new(range.0, range.1);
+    progress(Progress::Stage {
+        name: "percentiles",
+        total: nz as u64,
+    });
+    let mut z = 0;
+    while z < nz {
+        let d = step.min(nz - z);
+        fine.add(&read(z, d)?);
+        z += d;
+        progress(Progress::Advance { done: z as u64 });
+    }
+    Ok(fine)
 }
 
 /// The default empty-brick threshold: 5% of the way from the 0.5th to the 99.5th percentile.
@@ -752,28 +770,21 @@ fn ingest_into(
         progress(Progress::Advance { done: z0 as u64 });
     }
     // Second pass for percentiles of wide types, over the stored level 0.
-    let fine = if scanner.acc.needs_second_pass() {
-        let (lo, hi) = scanner.acc.range();
-        let mut fine = FineHistogram::new(lo, hi);
-        progress(Progress::Stage {
-            name: "statistics",
-            total: nz as u64,
-        });
-        let mut z = 0;
-        while z < nz {
-            let d = b.min(nz - z);
-            let bytes = read_bytes(
-                &levels[0].array,
-                &zyx([0, 0, z], [meta.dims[0], meta.dims[1], d]),
-            )
-            .map_err(|e| BrickError::zarr(root, e))?;
-            let mut v = vec![0.0f32; bytes.len() / store_dtype.size()];
-            crate::dtype::bytes_to_f32(&bytes, store_dtype, &mut v);
-            fine.add(&v);
-            z += d;
-            progress(Progress::Advance { done: z as u64 });
-        }
-        Some(fine)
+    let fine = if scanner.needs_second_pass() {
+        let level0 = &levels[0].array;
+        Some(percentile_pass(
+            nz,
+            b,
+            scanner.range(),
+            progress,
+            |z, d| {
+                let bytes = read_bytes(level0, &zyx([0, 0, z], [meta.dims[0], meta.dims[1], d]))
+                    .map_err(|e| BrickError::zarr(root, e))?;
+                let mut v = vec![0.0f32; bytes.len() / store_dtype.size()];
+                crate::dtype::bytes_to_f32(&bytes, store_dtype, &mut v);
+                Ok(v)
+            },
+        )?)
     } else {
         None
     };

@@ -3,7 +3,9 @@
 //! Plain files are memory-mapped with memmap2; gzip streams are decoded sequentially and
 //! restarted when a caller seeks backwards. Either way only the requested bytes are resident.
 
+use crate::dtype::{to_native, Endian};
 use crate::error::{BrickError, Result};
+use crate::meta::{check_slab_range, Slab, VolumeMeta, VolumeSource};
 use flate2::bufread::MultiGzDecoder;
 use memmap2::Mmap;
 use std::fs::File;
@@ -222,5 +224,50 @@ pub(crate) fn is_gzip_file(path: &Path) -> Result<bool> {
         Ok(()) => Ok(magic == [0x1f, 0x8b]),
         Err(e) if e.kind() == std::io::ErrorKind::UnexpectedEof => Ok(false),
         Err(e) => Err(BrickError::io(path, e)),
+    }
+}
+
+/// A volume read from one file (NIfTI, NRRD or raw): its model, byte order and byte stream.
+pub struct FileVolume {
+    path: PathBuf,
+    meta: VolumeMeta,
+    endian: Endian,
+    stream: ByteStream,
+}
+
+impl FileVolume {
+    pub(crate) fn new(path: &Path, meta: VolumeMeta, endian: Endian, stream: ByteStream) -> Self {
+        FileVolume {
+            path: path.to_path_buf(),
+            meta,
+            endian,
+            stream,
+        }
+    }
+}
+
+impl VolumeSource for FileVolume {
+    fn meta(&self) -> &VolumeMeta {
+        &self.meta
+    }
+    fn path(&self) -> &Path {
+        &self.path
+    }
+    fn read_slab(&mut self, z0: usize, depth: usize) -> Result<Slab> {
+        check_slab_range(&self.meta, &self.path, z0, depth)?;
+        let sl = (self.meta.slice_len() * self.meta.dtype.size()) as u64;
+        let mut bytes = vec![0u8; (sl * depth as u64) as usize];
+        self.stream.read_at(sl * z0 as u64, &mut bytes)?;
+        to_native(&mut bytes, self.meta.dtype, self.endian);
+        Ok(Slab {
+            z0,
+            depth,
+            dtype: self.meta.dtype,
+            bytes,
+        })
+    }
+    fn release(&mut self, z0: usize, depth: usize) {
+        let sl = (self.meta.slice_len() * self.meta.dtype.size()) as u64;
+        self.stream.release(sl * z0 as u64, sl * depth as u64);
     }
 }

@@ -239,15 +239,9 @@ pub(crate) fn prefetch<T>(v: &[T], i: usize) {
     let _ = (v, i);
 }
 
-/// `c[n x out] (+)= a[n x inp] * W^T (+ b)`.
-fn linear(a: &[f32], n: usize, l: &LayerSpec, p: &[f32], c: &mut [f32]) {
-    assert!(a.len() >= n * l.inp && c.len() >= n * l.out);
-    if let Some(b) = l.b {
-        for r in 0..n {
-            c[r * l.out..(r + 1) * l.out].copy_from_slice(&p[b..b + l.out]);
-        }
-    }
-    let beta = if l.b.is_some() { 1.0 } else { 0.0 };
+/// `c[n x out] = beta c + a[n x inp] * W^T`.
+fn gemm_xwt(a: &[f32], n: usize, l: &LayerSpec, p: &[f32], c: &mut [f32], beta: f32) {
+    assert!(a.len() >= n * l.inp && c.len() >= n * l.out && p.len() >= l.w + l.out * l.inp);
     // SAFETY: the slices were checked to hold n x inp, n x out and out x inp elements.
     unsafe {
         matrixmultiply::sgemm(
@@ -269,28 +263,23 @@ fn linear(a: &[f32], n: usize, l: &LayerSpec, p: &[f32], c: &mut [f32]) {
     }
 }
 
+/// `c[n x out] = a[n x inp] * W^T (+ b)`.
+fn linear(a: &[f32], n: usize, l: &LayerSpec, p: &[f32], c: &mut [f32]) {
+    let beta = match l.b {
+        Some(b) => {
+            for r in 0..n {
+                c[r * l.out..(r + 1) * l.out].copy_from_slice(&p[b..b + l.out]);
+            }
+            1.0
+        }
+        None => 0.0,
+    };
+    gemm_xwt(a, n, l, p, c, beta);
+}
+
 /// `c[n x out] += a[n x inp] * W^T` (accumulating, no bias).
 fn linear_acc(a: &[f32], n: usize, l: &LayerSpec, p: &[f32], c: &mut [f32]) {
-    assert!(a.len() >= n * l.inp && c.len() >= n * l.out && p.len() >= l.w + l.out * l.inp);
-    // SAFETY: sizes checked above.
-    unsafe {
-        matrixmultiply::sgemm(
-            n,
-            l.inp,
-            l.out,
-            1.0,
-            a.as_ptr(),
-            l.inp as isize,
-            1,
-            p[l.w..].as_ptr(),
-            1,
-            l.inp as isize,
-            1.0,
-            c.as_mut_ptr(),
-            l.out as isize,
-            1,
-        );
-    }
+    gemm_xwt(a, n, l, p, c, 1.0);
 }
 
 /// Backward of a linear layer: `dw += dc^T a`, `db += sum dc`, and `da (+)= dc W` if asked.
