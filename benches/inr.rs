@@ -185,7 +185,6 @@ fn main() {
     let store = store_for(&tooth, dir.path(), "tooth");
     // 1. Throughput against PyTorch, in one run.
     let (ours, psnr, secs) = run(&store, &cfg(2.0, TableAdam::Lazy));
-    let t = Instant::now();
     let model = train(
         &store,
         &InrConfig::default(),
@@ -197,7 +196,6 @@ fn main() {
     )
     .expect("train")
     .model;
-    let _ = t;
     let rep =
         write_features(&store, &model, FeatureKind::Hidden, false, &mut |_| {}).expect("extract");
     let t = Instant::now();

@@ -598,7 +598,6 @@ impl InrModel {
         let lay = &self.layout;
         let p = &self.dense;
         let e = self.grid.out_dim();
-        let f = self.grid.f;
         let nl = self.grid.levels.len();
         let hid = self.cfg.hidden;
         let mi = lay.mlp_in();
@@ -709,7 +708,6 @@ impl InrModel {
         w.lane_wts.extend_from_slice(&w.wts[..k]);
         w.lane_dpos.extend_from_slice(&w.dpos[..n * e]);
         w.lane_n += n;
-        let _ = f;
     }
 
     /// Per-sample outputs of the last forward pass (`n x heads`).

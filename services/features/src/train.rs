@@ -11,7 +11,7 @@ use crate::adam::{Adam, TableGrad};
 use crate::checkpoint::{save, Loaded, TrainState};
 use crate::config::{InrConfig, TrainConfig};
 use crate::error::{FeatureError, Result};
-use crate::model::{InrModel, Work, CHUNK, TARGETS};
+use crate::model::{InrModel, Work, CHUNK};
 use crate::rng::Rng;
 use crate::tile::Tile;
 use neuvolex_bricks::{Brick, BrickStore};
@@ -496,7 +496,6 @@ pub fn train(
     if stopped_by == "cancelled" {
         return Err(FeatureError::Cancelled);
     }
-    let _ = TARGETS;
     Ok(Trained {
         model,
         state,
