@@ -1,0 +1,192 @@
+//! Random-forest benchmark against scikit-learn on identical inputs
+//! (`cargo bench -p neuvolex-benches --bench forest -- [--trees 1000]`).
+//!
+//! Inputs are real: the 64-D INR features of the abdomen CT (trained 1 epoch) with its
+//! ground-truth labels. 20 000 voxels drawn at random (seeded) train both forests; 1 000 000
+//! other voxels are predicted. Fit time, predict time and the mean F1 over the four foreground
+//! classes are reported for both, from one run. scikit-learn runs where `NEUVOLEX_SKLEARN_PYTHON`
+//! (or `python3`) imports it.
+
+use neuvolex_benches::{machine, shared};
+use neuvolex_bricks::{ingest, open_volume, BrickStore, IngestOptions};
+use neuvolex_classify::{Dataset, Forest, ForestConfig};
+use neuvolex_features::extract::extract_brick;
+use neuvolex_features::rng::Rng;
+use neuvolex_features::{train, Budget, FeatureKind, InrConfig, TrainConfig};
+use std::sync::atomic::AtomicBool;
+use std::time::Instant;
+
+fn f1_mean(pred: &[u16], truth: &[u16], classes: usize) -> (f64, Vec<f64>) {
+    let mut f1s = Vec::new();
+    for c in 1..classes as u16 {
+        let tp = pred
+            .iter()
+            .zip(truth)
+            .filter(|(p, t)| **p == c && **t == c)
+            .count() as f64;
+        let fp = pred
+            .iter()
+            .zip(truth)
+            .filter(|(p, t)| **p == c && **t != c)
+            .count() as f64;
+        let fnn = pred
+            .iter()
+            .zip(truth)
+            .filter(|(p, t)| **p != c && **t == c)
+            .count() as f64;
+        if tp + fnn > 0.0 {
+            f1s.push(2.0 * tp / (2.0 * tp + fp + fnn));
+        }
+    }
+    (f1s.iter().sum::<f64>() / f1s.len().max(1) as f64, f1s)
+}
+
+fn main() {
+    let args: Vec<String> = std::env::args().collect();
+    let trees: usize = args
+        .iter()
+        .position(|a| a == "--trees")
+        .and_then(|i| args.get(i + 1))
+        .and_then(|s| s.parse().ok())
+        .unwrap_or(1000);
+    println!("machine: {}, {trees} trees", machine());
+    let (Some(ct), Some(lab)) = (
+        shared("abdomen_ct/ct.nii.gz"),
+        shared("abdomen_ct/labels.nii.gz"),
+    ) else {
+        return;
+    };
+    let dir = tempfile::tempdir().expect("tmp");
+    let sp = dir.path().join("ct.zarr");
+    let mut src = open_volume(&ct, None).expect("ct");
+    ingest(src.as_mut(), &sp, &IngestOptions::default(), &mut |_| {}).expect("ingest");
+    let mut store = BrickStore::open(&sp).expect("store");
+    let mut l = open_volume(&lab, None).expect("labels");
+    store
+        .add_labels("gt", l.as_mut(), &[], &mut |_| {})
+        .expect("labels");
+    let c = TrainConfig {
+        budget: Budget {
+            epochs: Some(1.0),
+            ..Default::default()
+        },
+        preview_every: 0,
+        checkpoint_every: 0,
+        ..TrainConfig::default()
+    };
+    let model = train(
+        &store,
+        &InrConfig::default(),
+        &c,
+        None,
+        None,
+        &AtomicBool::new(false),
+        &mut |_| {},
+    )
+    .expect("train")
+    .model;
+    // Features and labels of every voxel, brick by brick.
+    let (mut x, mut y) = (Vec::new(), Vec::new());
+    for b in store.bricks() {
+        x.extend(extract_brick(&model, &store, &b, FeatureKind::Hidden).expect("features"));
+        y.extend(
+            store
+                .read_labels_box("gt", b.origin, b.size)
+                .expect("labels")
+                .iter()
+                .map(|&v| v as u16),
+        );
+    }
+    let d = 64;
+    let n = y.len();
+    let classes = *y.iter().max().unwrap_or(&0) as usize + 1;
+    let mut order: Vec<usize> = (0..n).collect();
+    Rng::new(0).shuffle(&mut order);
+    let ntr = 20_000.min(n / 2);
+    let nte = 1_000_000.min(n - ntr);
+    let gather = |ids: &[usize]| -> (Vec<f32>, Vec<u16>) {
+        (
+            ids.iter()
+                .flat_map(|&i| x[i * d..(i + 1) * d].iter().copied())
+                .collect(),
+            ids.iter().map(|&i| y[i]).collect(),
+        )
+    };
+    let (xtr, ytr) = gather(&order[..ntr]);
+    let (xte, yte) = gather(&order[ntr..ntr + nte]);
+    let cfg = ForestConfig {
+        trees,
+        ..ForestConfig::default()
+    };
+    let t = Instant::now();
+    let f = Forest::fit(
+        Dataset {
+            x: &xtr,
+            y: &ytr,
+            d,
+            classes,
+        },
+        &cfg,
+    )
+    .expect("fit");
+    let fit = t.elapsed().as_secs_f64();
+    let t = Instant::now();
+    let pred = f.predict(&xte).expect("predict");
+    let predict = t.elapsed().as_secs_f64();
+    let (f1, per) = f1_mean(&pred, &yte, classes);
+    println!("| neuvolex forest | fit {fit:.1} s | predict {nte} rows {predict:.1} s ({:.0} k rows/s) | mean F1 {f1:.3} {per:.3?} | {} nodes |", nte as f64 / predict / 1e3, f.nodes());
+    // scikit-learn on the same arrays.
+    let w = |name: &str, bytes: &[u8]| std::fs::write(dir.path().join(name), bytes).expect("write");
+    w(
+        "xtr.f32",
+        &xtr.iter().flat_map(|v| v.to_le_bytes()).collect::<Vec<_>>(),
+    );
+    w(
+        "ytr.u16",
+        &ytr.iter().flat_map(|v| v.to_le_bytes()).collect::<Vec<_>>(),
+    );
+    w(
+        "xte.f32",
+        &xte.iter().flat_map(|v| v.to_le_bytes()).collect::<Vec<_>>(),
+    );
+    w(
+        "yte.u16",
+        &yte.iter().flat_map(|v| v.to_le_bytes()).collect::<Vec<_>>(),
+    );
+    w(
+        "meta.json",
+        format!("{{\"d\": {d}, \"classes\": {classes}}}").as_bytes(),
+    );
+    let py = std::env::var("NEUVOLEX_SKLEARN_PYTHON").unwrap_or_else(|_| "python3".into());
+    let script = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("forest_sklearn.py");
+    let threads = std::thread::available_parallelism()
+        .map(|n| n.get())
+        .unwrap_or(2);
+    match std::process::Command::new(py)
+        .arg(script)
+        .arg(dir.path())
+        .arg(trees.to_string())
+        .arg(threads.to_string())
+        .output()
+    {
+        Ok(o) if o.status.success() => {
+            let text = String::from_utf8_lossy(&o.stdout);
+            let v: serde_json::Value =
+                serde_json::from_str(text.lines().last().unwrap_or("{}")).unwrap_or_default();
+            let (sf, sp) = (
+                v["fit_s"].as_f64().unwrap_or(f64::NAN),
+                v["predict_s"].as_f64().unwrap_or(f64::NAN),
+            );
+            println!("| scikit-learn {} | fit {sf:.1} s | predict {predict_rows} rows {sp:.1} s ({:.0} k rows/s) | mean F1 {:.3} {:?} |", v["sklearn"], nte as f64 / sp / 1e3, v["f1_mean"].as_f64().unwrap_or(f64::NAN), v["f1"], predict_rows = nte);
+            println!("| ratio scikit-learn / neuvolex | fit {:.2}x | predict {:.2}x | F1 difference {:+.3} |", sf / fit, sp / predict, f1 - v["f1_mean"].as_f64().unwrap_or(f64::NAN));
+        }
+        Ok(o) => eprintln!(
+            "SKIP scikit-learn: {}",
+            String::from_utf8_lossy(&o.stderr)
+                .lines()
+                .last()
+                .unwrap_or("")
+        ),
+        Err(e) => eprintln!("SKIP scikit-learn: {e}"),
+    }
+}

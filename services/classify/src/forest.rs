@@ -1,0 +1,716 @@
+//! A random forest for dense per-voxel features, with scikit-learn's semantics for the settings
+//! the paper uses: exact CART splits on Gini impurity, `sqrt(d)` candidate features drawn per
+//! split (more are drawn if none of them can split the node), no bootstrap, `min_samples_split`,
+//! and `predict_proba` as the mean of the trees' leaf class fractions.
+//!
+//! Trees are trained in parallel from per-tree seeds, so a forest is deterministic for any
+//! number of threads. Prediction walks flat node arrays tree by tree over blocks of rows, so
+//! one tree stays in cache while a block of rows passes through it.
+
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+
+/// Features considered per split.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub enum MaxFeatures {
+    /// `max(1, floor(sqrt(d)))`, the paper's setting.
+    Sqrt,
+    /// All features (bagging-free CART ensembles).
+    All,
+    /// A fixed number.
+    Count(usize),
+}
+
+/// How samples are weighted by class.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub enum ClassWeight {
+    /// Every sample weighs 1 (the paper).
+    None,
+    /// Each class weighs `n / (classes * n_class)` in total, as scikit-learn's "balanced".
+    Balanced,
+}
+
+/// Forest settings; defaults are the paper's.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct ForestConfig {
+    /// Number of trees.
+    pub trees: usize,
+    /// A node with fewer samples becomes a leaf.
+    pub min_samples_split: usize,
+    /// Candidate features per split.
+    pub max_features: MaxFeatures,
+    /// Maximum depth (`None`: grow until pure or too small).
+    pub max_depth: Option<usize>,
+    /// Class weighting.
+    pub class_weight: ClassWeight,
+    /// Seed of the per-tree feature draws.
+    pub seed: u64,
+}
+
+impl Default for ForestConfig {
+    fn default() -> Self {
+        ForestConfig {
+            trees: 1000,
+            min_samples_split: 8,
+            max_features: MaxFeatures::Sqrt,
+            max_depth: None,
+            class_weight: ClassWeight::None,
+            seed: 0,
+        }
+    }
+}
+
+/// Errors of training or prediction.
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum ForestError {
+    /// The training set cannot train a classifier.
+    #[error("training data: {0}")]
+    Data(String),
+    /// Prediction input does not match the forest.
+    #[error("prediction input: {0}")]
+    Input(String),
+}
+
+/// Training samples: `n` rows of `d` features (row-major) and a class index per row.
+#[derive(Debug, Clone, Copy)]
+pub struct Dataset<'a> {
+    /// Features, `n x d`.
+    pub x: &'a [f32],
+    /// Class index of every row, `0..classes`.
+    pub y: &'a [u16],
+    /// Features per row.
+    pub d: usize,
+    /// Number of classes.
+    pub classes: usize,
+}
+
+const LEAF: u32 = u32::MAX;
+
+/// One node: a split on `feature <= threshold`, or a leaf (`feature == LEAF`, `left` = leaf index).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+struct Node {
+    feature: u32,
+    threshold: f32,
+    left: u32,
+    right: u32,
+}
+
+/// One tree in flat arrays. For prediction, leaves are made self-loops (`feature 0 <= +inf`
+/// leads back to themselves), so rows can walk a fixed `depth` steps without branching.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+struct Tree {
+    nodes: Vec<Node>,
+    /// `leaves x classes` class fractions.
+    probs: Vec<f32>,
+    /// Leaf index of every node (`LEAF` for split nodes).
+    leaf_of: Vec<u32>,
+    /// Depth of the deepest leaf.
+    depth: u32,
+}
+
+/// A trained forest.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Forest {
+    d: usize,
+    classes: usize,
+    trees: Vec<Tree>,
+}
+
+/// SplitMix64 for per-tree feature draws.
+struct Rng(u64);
+
+impl Rng {
+    fn next(&mut self) -> u64 {
+        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        let mut z = self.0;
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        z ^ (z >> 31)
+    }
+    fn below(&mut self, n: usize) -> usize {
+        (((self.next() >> 32) * n as u64) >> 32) as usize
+    }
+}
+
+/// Values closer than this count as equal when looking for split points (as scikit-learn).
+const FEATURE_EPS: f32 = 1e-7;
+
+struct Builder<'a> {
+    data: Dataset<'a>,
+    w: &'a [f32],
+    cfg: &'a ForestConfig,
+    mtry: usize,
+}
+
+impl Builder<'_> {
+    fn counts(&self, idx: &[u32], out: &mut [f64]) {
+        out.iter_mut().for_each(|c| *c = 0.0);
+        for &i in idx {
+            out[self.data.y[i as usize] as usize] += self.w[i as usize] as f64;
+        }
+    }
+
+    /// Best split of `idx` on feature `f`: (proxy improvement, threshold), if any.
+    fn best_on(
+        &self,
+        idx: &[u32],
+        f: usize,
+        total: &[f64],
+        buf: &mut Vec<(f32, u32)>,
+        left: &mut [f64],
+    ) -> Option<(f64, f32)> {
+        let d = self.data.d;
+        buf.clear();
+        buf.extend(idx.iter().map(|&i| (self.data.x[i as usize * d + f], i)));
+        buf.sort_unstable_by(|a, b| a.0.total_cmp(&b.0));
+        if buf[buf.len() - 1].0 <= buf[0].0 + FEATURE_EPS {
+            return None; // constant here
+        }
+        left.iter_mut().for_each(|c| *c = 0.0);
+        let wt: f64 = total.iter().sum();
+        let mut wl = 0.0f64;
+        let mut best: Option<(f64, f32)> = None;
+        for p in 0..buf.len() - 1 {
+            let (v, i) = buf[p];
+            let wi = self.w[i as usize] as f64;
+            left[self.data.y[i as usize] as usize] += wi;
+            wl += wi;
+            let next = buf[p + 1].0;
+            if next <= v + FEATURE_EPS {
+                continue;
+            }
+            let wr = wt - wl;
+            if wl <= 0.0 || wr <= 0.0 {
+                continue;
+            }
+            // Maximising sum_k l_k^2 / w_l + sum_k r_k^2 / w_r minimises the weighted Gini.
+            let mut sl = 0.0;
+            let mut sr = 0.0;
+            for k in 0..left.len() {
+                sl += left[k] * left[k];
+                let r = total[k] - left[k];
+                sr += r * r;
+            }
+            let proxy = sl / wl + sr / wr;
+            if best.is_none_or(|b| proxy > b.0) {
+                let mut thr = 0.5 * (v + next);
+                if thr >= next || !thr.is_finite() {
+                    thr = v;
+                }
+                best = Some((proxy, thr));
+            }
+        }
+        best
+    }
+
+    fn grow(&self, seed: u64) -> Tree {
+        let n = self.data.y.len();
+        let c = self.data.classes;
+        let d = self.data.d;
+        let mut rng = Rng(seed);
+        let mut idx: Vec<u32> = (0..n as u32).collect();
+        let mut nodes: Vec<Node> = Vec::new();
+        let mut probs: Vec<f32> = Vec::new();
+        let mut buf = Vec::with_capacity(n);
+        let mut total = vec![0.0f64; c];
+        let mut left = vec![0.0f64; c];
+        let mut feats: Vec<usize> = (0..d).collect();
+        // (node id, lo, hi, depth)
+        nodes.push(Node {
+            feature: LEAF,
+            threshold: 0.0,
+            left: 0,
+            right: 0,
+        });
+        let mut stack = vec![(0usize, 0usize, n, 0usize)];
+        let mut max_depth = 0usize;
+        while let Some((id, lo, hi, depth)) = stack.pop() {
+            max_depth = max_depth.max(depth);
+            let part = &idx[lo..hi];
+            self.counts(part, &mut total);
+            let wsum: f64 = total.iter().sum();
+            let pure = total.iter().filter(|&&v| v > 0.0).count() <= 1;
+            let can_split = hi - lo >= self.cfg.min_samples_split.max(2)
+                && !pure
+                && self.cfg.max_depth.is_none_or(|m| depth < m);
+            let mut split: Option<(f64, usize, f32)> = None;
+            if can_split {
+                // Draw features without replacement; keep drawing past mtry until a split exists.
+                let mut tried = 0;
+                let mut k = 0;
+                while k < d && (tried < self.mtry || split.is_none()) {
+                    let j = k + rng.below(d - k);
+                    feats.swap(k, j);
+                    let f = feats[k];
+                    k += 1;
+                    tried += 1;
+                    if let Some((proxy, thr)) = self.best_on(part, f, &total, &mut buf, &mut left) {
+                        if split.is_none_or(|s| proxy > s.0) {
+                            split = Some((proxy, f, thr));
+                        }
+                    }
+                }
+            }
+            match split {
+                Some((_, f, thr)) => {
+                    // Partition idx[lo..hi] into <= thr | > thr.
+                    let part = &mut idx[lo..hi];
+                    let mut m = 0;
+                    for q in 0..part.len() {
+                        if self.data.x[part[q] as usize * d + f] <= thr {
+                            part.swap(m, q);
+                            m += 1;
+                        }
+                    }
+                    let l = nodes.len();
+                    nodes.push(Node {
+                        feature: LEAF,
+                        threshold: 0.0,
+                        left: 0,
+                        right: 0,
+                    });
+                    nodes.push(Node {
+                        feature: LEAF,
+                        threshold: 0.0,
+                        left: 0,
+                        right: 0,
+                    });
+                    nodes[id] = Node {
+                        feature: f as u32,
+                        threshold: thr,
+                        left: l as u32,
+                        right: l as u32 + 1,
+                    };
+                    stack.push((l + 1, lo + m, hi, depth + 1));
+                    stack.push((l, lo, lo + m, depth + 1));
+                }
+                None => {
+                    let leaf = probs.len() / c;
+                    probs.extend(total.iter().map(|&v| {
+                        if wsum > 0.0 {
+                            (v / wsum) as f32
+                        } else {
+                            1.0 / c as f32
+                        }
+                    }));
+                    nodes[id] = Node {
+                        feature: LEAF,
+                        threshold: 0.0,
+                        left: leaf as u32,
+                        right: 0,
+                    };
+                }
+            }
+        }
+        // Self-looping leaves for branch-free prediction.
+        let mut leaf_of = vec![LEAF; nodes.len()];
+        for (i, nd) in nodes.iter_mut().enumerate() {
+            if nd.feature == LEAF {
+                leaf_of[i] = nd.left;
+                *nd = Node {
+                    feature: 0,
+                    threshold: f32::INFINITY,
+                    left: i as u32,
+                    right: i as u32,
+                };
+            }
+        }
+        Tree {
+            nodes,
+            probs,
+            leaf_of,
+            depth: max_depth as u32,
+        }
+    }
+}
+
+impl Forest {
+    /// Trains a forest.
+    pub fn fit(data: Dataset<'_>, cfg: &ForestConfig) -> Result<Forest, ForestError> {
+        let n = data.y.len();
+        if data.d == 0 || data.x.len() != n * data.d {
+            return Err(ForestError::Data(format!(
+                "{} values for {n} rows of {} features",
+                data.x.len(),
+                data.d
+            )));
+        }
+        if n == 0 {
+            return Err(ForestError::Data("no labelled samples".into()));
+        }
+        if data.classes < 2 || data.classes > u16::MAX as usize {
+            return Err(ForestError::Data(format!(
+                "{} classes: need at least 2",
+                data.classes
+            )));
+        }
+        if let Some(&bad) = data.y.iter().find(|&&c| c as usize >= data.classes) {
+            return Err(ForestError::Data(format!(
+                "class index {bad} is outside 0..{}",
+                data.classes
+            )));
+        }
+        let mut per = vec![0usize; data.classes];
+        data.y.iter().for_each(|&c| per[c as usize] += 1);
+        if per.iter().filter(|&&k| k > 0).count() < 2 {
+            return Err(ForestError::Data(
+                "only one class has samples; scribble at least two classes".into(),
+            ));
+        }
+        if let Some(i) = data.x.iter().position(|v| !v.is_finite()) {
+            return Err(ForestError::Data(format!(
+                "feature {} of row {} is not finite",
+                i % data.d,
+                i / data.d
+            )));
+        }
+        if cfg.trees == 0 {
+            return Err(ForestError::Data("0 trees".into()));
+        }
+        let w: Vec<f32> = match cfg.class_weight {
+            ClassWeight::None => vec![1.0; n],
+            ClassWeight::Balanced => {
+                let present = per.iter().filter(|&&k| k > 0).count() as f32;
+                data.y
+                    .iter()
+                    .map(|&c| n as f32 / (present * per[c as usize] as f32))
+                    .collect()
+            }
+        };
+        let mtry = match cfg.max_features {
+            MaxFeatures::Sqrt => ((data.d as f64).sqrt().floor() as usize).max(1),
+            MaxFeatures::All => data.d,
+            MaxFeatures::Count(k) => k.clamp(1, data.d),
+        };
+        let b = Builder {
+            data,
+            w: &w,
+            cfg,
+            mtry,
+        };
+        let trees = (0..cfg.trees)
+            .into_par_iter()
+            .map(|t| b.grow(cfg.seed ^ (t as u64 + 1).wrapping_mul(0xD1B5_4A32_D192_ED03)))
+            .collect();
+        Ok(Forest {
+            d: data.d,
+            classes: data.classes,
+            trees,
+        })
+    }
+
+    /// Features per row.
+    pub fn features(&self) -> usize {
+        self.d
+    }
+
+    /// Number of classes.
+    pub fn classes(&self) -> usize {
+        self.classes
+    }
+
+    /// Number of trees.
+    pub fn trees(&self) -> usize {
+        self.trees.len()
+    }
+
+    /// Total nodes in the forest.
+    pub fn nodes(&self) -> usize {
+        self.trees.iter().map(|t| t.nodes.len()).sum()
+    }
+
+    /// Class probabilities of `x` (`rows x d`), returned as `rows x classes`.
+    pub fn predict_proba(&self, x: &[f32]) -> Result<Vec<f32>, ForestError> {
+        if !x.len().is_multiple_of(self.d) {
+            return Err(ForestError::Input(format!(
+                "{} values are not whole rows of {} features",
+                x.len(),
+                self.d
+            )));
+        }
+        let rows = x.len() / self.d;
+        let c = self.classes;
+        let mut out = vec![0.0f32; rows * c];
+        const BLOCK: usize = 1024;
+        let inv = 1.0 / self.trees.len() as f32;
+        const LANES: usize = 16;
+        let d = self.d;
+        out.par_chunks_mut(BLOCK * c)
+            .zip(x.par_chunks(BLOCK * d))
+            .for_each(|(o, xb)| {
+                let nr = xb.len() / d;
+                for t in &self.trees {
+                    let mut r0 = 0;
+                    while r0 < nr {
+                        let lanes = LANES.min(nr - r0);
+                        let mut at = [0u32; LANES];
+                        // Walk all lanes in lockstep (independent loads overlap, no branches), and
+                        // stop early once every lane sits on a (self-looping) leaf.
+                        let mut step = 0;
+                        while step < t.depth {
+                            for _ in 0..4 {
+                                for (l, a) in at.iter_mut().enumerate().take(lanes) {
+                                    let nd = t.nodes[*a as usize];
+                                    let v = xb[(r0 + l) * d + nd.feature as usize];
+                                    *a = if v <= nd.threshold { nd.left } else { nd.right };
+                                }
+                            }
+                            step += 4;
+                            if at[..lanes].iter().all(|&a| t.leaf_of[a as usize] != LEAF) {
+                                break;
+                            }
+                        }
+                        for (l, a) in at.iter().enumerate().take(lanes) {
+                            let leaf = t.leaf_of[*a as usize] as usize;
+                            let p = &t.probs[leaf * c..(leaf + 1) * c];
+                            o[(r0 + l) * c..(r0 + l + 1) * c]
+                                .iter_mut()
+                                .zip(p)
+                                .for_each(|(a, b)| *a += b);
+                        }
+                        r0 += lanes;
+                    }
+                }
+                o.iter_mut().for_each(|v| *v *= inv);
+            });
+        Ok(out)
+    }
+
+    /// The most probable class of every row.
+    pub fn predict(&self, x: &[f32]) -> Result<Vec<u16>, ForestError> {
+        let p = self.predict_proba(x)?;
+        Ok(p.chunks(self.classes)
+            .map(|r| {
+                r.iter()
+                    .enumerate()
+                    .fold(
+                        (0usize, f32::MIN),
+                        |b, (k, &v)| if v > b.1 { (k, v) } else { b },
+                    )
+                    .0 as u16
+            })
+            .collect())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn cfg(trees: usize) -> ForestConfig {
+        ForestConfig {
+            trees,
+            ..Default::default()
+        }
+    }
+
+    #[test]
+    fn one_stump_splits_at_the_midpoint() {
+        let x = [0.0f32, 1.0, 2.0, 10.0, 11.0, 12.0, 13.0, 14.0];
+        let y = [0u16, 0, 0, 1, 1, 1, 1, 1];
+        let f = Forest::fit(
+            Dataset {
+                x: &x,
+                y: &y,
+                d: 1,
+                classes: 2,
+            },
+            &ForestConfig {
+                trees: 1,
+                min_samples_split: 2,
+                ..Default::default()
+            },
+        )
+        .unwrap();
+        assert_eq!(f.trees[0].nodes[0].threshold, 6.0);
+        assert_eq!(f.trees[0].depth, 1);
+        assert_eq!(f.predict(&[5.9, 6.1]).unwrap(), vec![0, 1]);
+        assert_eq!(f.predict_proba(&[-5.0]).unwrap(), vec![1.0, 0.0]);
+    }
+
+    #[test]
+    fn min_samples_split_stops_growth() {
+        // 7 samples < 8: the root is a leaf with the class fractions.
+        let x = [0.0f32, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0];
+        let y = [0u16, 0, 0, 1, 1, 1, 1];
+        let f = Forest::fit(
+            Dataset {
+                x: &x,
+                y: &y,
+                d: 1,
+                classes: 2,
+            },
+            &cfg(3),
+        )
+        .unwrap();
+        assert_eq!(f.nodes(), 3);
+        let p = f.predict_proba(&[0.0]).unwrap();
+        assert!((p[0] - 3.0 / 7.0).abs() < 1e-6 && (p[1] - 4.0 / 7.0).abs() < 1e-6);
+    }
+
+    fn xor(n: usize) -> (Vec<f32>, Vec<u16>) {
+        let mut r = Rng(3);
+        let mut x = Vec::new();
+        let mut y = Vec::new();
+        for _ in 0..n {
+            let (a, b) = (
+                (r.next() % 1000) as f32 / 1000.0,
+                (r.next() % 1000) as f32 / 1000.0,
+            );
+            x.extend([
+                a,
+                b,
+                (r.next() % 1000) as f32 / 1000.0,
+                (r.next() % 1000) as f32 / 1000.0,
+            ]);
+            y.push(((a > 0.5) ^ (b > 0.5)) as u16);
+        }
+        (x, y)
+    }
+
+    #[test]
+    fn learns_xor_with_noise_features_and_probabilities_sum_to_one() {
+        let (x, y) = xor(2000);
+        let f = Forest::fit(
+            Dataset {
+                x: &x,
+                y: &y,
+                d: 4,
+                classes: 2,
+            },
+            &cfg(50),
+        )
+        .unwrap();
+        let (xt, yt) = xor(500);
+        let pred = f.predict(&xt[..]).unwrap();
+        let acc = pred.iter().zip(&yt).filter(|(a, b)| a == b).count() as f64 / 500.0;
+        assert!(acc > 0.9, "accuracy {acc}");
+        for row in f.predict_proba(&xt).unwrap().chunks(2) {
+            assert!((row[0] + row[1] - 1.0).abs() < 1e-5);
+        }
+    }
+
+    #[test]
+    fn deterministic_for_any_thread_count() {
+        let (x, y) = xor(800);
+        let a = Forest::fit(
+            Dataset {
+                x: &x,
+                y: &y,
+                d: 4,
+                classes: 2,
+            },
+            &cfg(20),
+        )
+        .unwrap();
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(1)
+            .build()
+            .unwrap();
+        let b = pool.install(|| {
+            Forest::fit(
+                Dataset {
+                    x: &x,
+                    y: &y,
+                    d: 4,
+                    classes: 2,
+                },
+                &cfg(20),
+            )
+            .unwrap()
+        });
+        assert_eq!(a, b);
+        let c = Forest::fit(
+            Dataset {
+                x: &x,
+                y: &y,
+                d: 4,
+                classes: 2,
+            },
+            &ForestConfig { seed: 9, ..cfg(20) },
+        )
+        .unwrap();
+        assert_ne!(a, c);
+    }
+
+    #[test]
+    fn balanced_weights_favour_the_rare_class() {
+        // 95 of class 0 at x<1, 5 of class 1 at x in [0.9, 1.0]: overlapping region.
+        let mut x = Vec::new();
+        let mut y = Vec::new();
+        for i in 0..95 {
+            x.push(i as f32 / 95.0);
+            y.push(0u16);
+        }
+        for i in 0..5 {
+            x.push(0.9 + i as f32 * 0.02);
+            y.push(1u16);
+        }
+        let plain = Forest::fit(
+            Dataset {
+                x: &x,
+                y: &y,
+                d: 1,
+                classes: 2,
+            },
+            &ForestConfig {
+                trees: 5,
+                min_samples_split: 40,
+                ..Default::default()
+            },
+        )
+        .unwrap();
+        let bal = Forest::fit(
+            Dataset {
+                x: &x,
+                y: &y,
+                d: 1,
+                classes: 2,
+            },
+            &ForestConfig {
+                trees: 5,
+                min_samples_split: 40,
+                class_weight: ClassWeight::Balanced,
+                ..Default::default()
+            },
+        )
+        .unwrap();
+        assert!(bal.predict_proba(&[0.95]).unwrap()[1] > plain.predict_proba(&[0.95]).unwrap()[1]);
+    }
+
+    #[test]
+    fn bad_training_data_and_inputs() {
+        let x = [0.0f32, 1.0];
+        let e = |x: &[f32], y: &[u16], d, c| {
+            Forest::fit(
+                Dataset {
+                    x,
+                    y,
+                    d,
+                    classes: c,
+                },
+                &cfg(2),
+            )
+            .unwrap_err()
+            .to_string()
+        };
+        assert!(e(&[], &[], 1, 2).contains("no labelled samples"));
+        assert!(e(&x, &[0, 0], 1, 2).contains("only one class"));
+        assert!(e(&x, &[0, 5], 1, 2).contains("outside"));
+        assert!(e(&x, &[0, 1], 1, 1).contains("at least 2"));
+        assert!(e(&[0.0, f32::NAN], &[0, 1], 1, 2).contains("not finite"));
+        assert!(e(&x, &[0, 1, 1], 1, 2).contains("rows"));
+        let f = Forest::fit(
+            Dataset {
+                x: &[0.0, 0.0, 1.0, 1.0],
+                y: &[0, 1],
+                d: 2,
+                classes: 2,
+            },
+            &cfg(2),
+        )
+        .unwrap();
+        assert!(f.predict_proba(&[1.0, 2.0, 3.0]).is_err());
+    }
+}
