@@ -118,7 +118,7 @@ pub fn write_slab_chunks(
     use rayon::prelude::*;
     use zarrs::array::ArrayShardedExt;
     let [nx, ny, d] = dims;
-    if array.subchunk_shape().is_some() || z0 % chunk[2] != 0 || d > chunk[2] {
+    if array.subchunk_shape().is_some() || !z0.is_multiple_of(chunk[2]) || d > chunk[2] {
         let subset = [z0 as u64..(z0 + d) as u64, 0..ny as u64, 0..nx as u64];
         return write_bytes(array, &subset, bytes.to_vec());
     }

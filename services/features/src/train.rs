@@ -252,7 +252,7 @@ pub fn train(
             cfg.lr, cfg.lr_table
         )));
     }
-    if inr.patch % 2 == 0 || inr.patch == 0 || inr.patch > 9 {
+    if inr.patch.is_multiple_of(2) || inr.patch > 9 {
         return Err(FeatureError::Config(format!(
             "patch {} must be odd and at most 9",
             inr.patch
