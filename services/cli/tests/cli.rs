@@ -181,3 +181,54 @@ fn clear_errors_and_no_partial_output() {
     let o = neuvolex(&["frobnicate"]);
     assert!(!o.status.success());
 }
+
+#[test]
+fn train_features_and_their_errors() {
+    let d = tempfile::tempdir().unwrap();
+    let p = |n: &str| d.path().join(n).to_string_lossy().into_owned();
+    ok(&[
+        "synth",
+        "phantom",
+        "--out",
+        &p("ph.zarr"),
+        "--size",
+        "32",
+        "--brick",
+        "16",
+    ]);
+    // Features before training: a clear error naming the missing model.
+    fails(&["features", &p("ph.zarr")], "no trained model");
+    fails(&["train", &p("ph.zarr"), "--resume"], "no checkpoint");
+    fails(
+        &["train", &p("ph.zarr"), "--backend", "wgpu"],
+        "no GPU backend",
+    );
+    fails(
+        &["train", &p("ph.zarr"), "--preset", "turbo"],
+        "unknown preset",
+    );
+    fails(&["train", &p("ph.zarr"), "--epochs", "0"], "--epochs");
+    fails(&["train", &p("missing.zarr")], "missing.zarr");
+    let out = ok(&[
+        "train",
+        &p("ph.zarr"),
+        "--samples",
+        "20000",
+        "--batch",
+        "4096",
+    ]);
+    assert!(out.contains("model:") && out.contains("PSNR"), "{out}");
+    // Resume continues from the checkpoint with a larger budget.
+    let out = ok(&["train", &p("ph.zarr"), "--samples", "40000", "--resume"]);
+    assert!(out.contains("after 40960 samples"), "{out}");
+    let out = ok(&["features", &p("ph.zarr"), "--kind", "concat"]);
+    assert!(
+        out.contains("inr_concat") && out.contains("99 channels"),
+        "{out}"
+    );
+    assert!(Path::new(&p("ph.zarr/neuvolex/vectors/inr_concat/zarr.json")).exists());
+    fails(
+        &["features", &p("ph.zarr"), "--kind", "everything"],
+        "unknown feature kind",
+    );
+}
