@@ -200,6 +200,26 @@ enum Cmd {
         #[arg(long)]
         all_bricks: bool,
     },
+    /// Simulate scribbles (S1–S4) from a ground-truth label volume, deterministically.
+    ScribbleSim {
+        /// Ground-truth labels (0 = background), any readable format or store/labels/NAME.
+        labels: PathBuf,
+        /// Density: S1 (1 slice), S2 (~3), S3 (~9), S4 (~27).
+        #[arg(long, default_value = "S1")]
+        level: String,
+        /// Seed.
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
+        /// Label painted on background.
+        #[arg(long, default_value_t = 255)]
+        background: u32,
+        /// Output sparse label volume (.nii or .nii.gz); the strokes go beside it as JSON.
+        #[arg(long)]
+        out: PathBuf,
+        /// Replace existing outputs.
+        #[arg(long)]
+        force: bool,
+    },
     /// Convert any readable volume (including a store or store/labels/NAME) to NIfTI.
     Convert {
         /// Input volume.
@@ -730,6 +750,60 @@ fn main() -> Result<()> {
             tracing::info!(store = %output.display(), dims = ?info.dims, bricks = info.grid().iter().product::<usize>(), seconds = t.elapsed().as_secs_f64(), mb_per_s = mb / t.elapsed().as_secs_f64(), "ingest complete");
         }
         Cmd::Train { store, args } => run_train(&store, &args, quiet)?,
+        Cmd::ScribbleSim {
+            labels,
+            level,
+            seed,
+            background,
+            out,
+            force,
+        } => {
+            use neuvolex_classify::{simulate, ScribbleSource, SimConfig};
+            let level = level.parse().map_err(anyhow::Error::msg)?;
+            if background == 0 {
+                bail!("--background 0 would mean unlabelled; use 1..=65535");
+            }
+            let json = out.with_extension("").with_extension("strokes.json");
+            for p in [&out, &json] {
+                if p.exists() && !force {
+                    bail!(
+                        "{}: already exists (pass --force to replace it)",
+                        p.display()
+                    );
+                }
+            }
+            let mut src = open_volume(&labels, None)?;
+            let meta = src.meta().clone();
+            let cfg = SimConfig {
+                level,
+                seed,
+                background,
+                ..SimConfig::default()
+            };
+            let (strokes, s) = simulate(src.as_mut(), &cfg)
+                .with_context(|| format!("{}: cannot simulate scribbles", labels.display()))?;
+            neuvolex_bricks::nifti::write_nifti(
+                &out,
+                &mut ScribbleSource::new(s.clone(), &meta),
+                16,
+            )?;
+            std::fs::write(&json, serde_json::to_string_pretty(&strokes)?)
+                .with_context(|| format!("{}: cannot write strokes", json.display()))?;
+            let counts: Vec<String> = s
+                .counts()
+                .iter()
+                .map(|(c, n)| format!("{c}: {n}"))
+                .collect();
+            println!(
+                "scribbles: {} ({} strokes in {}): {} voxels = {:.4}% of the volume [{}]",
+                out.display(),
+                strokes.len(),
+                json.display(),
+                s.voxels.len(),
+                100.0 * s.fraction(),
+                counts.join(", ")
+            );
+        }
         Cmd::Features {
             store,
             kind,

@@ -232,3 +232,63 @@ fn train_features_and_their_errors() {
         "unknown feature kind",
     );
 }
+
+#[test]
+fn scribble_simulation() {
+    let d = tempfile::tempdir().unwrap();
+    let p = |n: &str| d.path().join(n).to_string_lossy().into_owned();
+    ok(&["synth", "phantom", "--out", &p("ph.nii.gz"), "--size", "48"]);
+    let out = ok(&[
+        "scribble-sim",
+        &p("ph_labels.nii.gz"),
+        "--level",
+        "S2",
+        "--seed",
+        "3",
+        "--out",
+        &p("s.nii.gz"),
+    ]);
+    assert!(out.contains("voxels =") && out.contains("255:"), "{out}");
+    assert!(Path::new(&p("s.strokes.json")).exists());
+    let again = ok(&[
+        "scribble-sim",
+        &p("ph_labels.nii.gz"),
+        "--level",
+        "S2",
+        "--seed",
+        "3",
+        "--out",
+        &p("t.nii.gz"),
+    ]);
+    let count = |s: &str| {
+        s.split(" voxels")
+            .next()
+            .and_then(|s| s.rsplit(' ').next())
+            .map(str::to_string)
+    };
+    assert_eq!(count(&out), count(&again));
+    fails(
+        &[
+            "scribble-sim",
+            &p("ph_labels.nii.gz"),
+            "--out",
+            &p("s.nii.gz"),
+        ],
+        "already exists",
+    );
+    fails(
+        &[
+            "scribble-sim",
+            &p("ph_labels.nii.gz"),
+            "--level",
+            "S9",
+            "--out",
+            &p("u.nii.gz"),
+        ],
+        "unknown scribble level",
+    );
+    fails(
+        &["scribble-sim", &p("nope.nii.gz"), "--out", &p("v.nii.gz")],
+        "nope.nii.gz",
+    );
+}

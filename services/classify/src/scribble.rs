@@ -1,0 +1,561 @@
+//! Scribbles: strokes drawn on slices, their rasterisation into a sparse label volume, and a
+//! deterministic simulator that draws S1–S4 scribbles from a ground-truth label volume.
+//!
+//! Label convention: 0 = unlabelled, 1..N = ROI classes, `background` (255 by default) =
+//! background/other.
+
+use neuvolex_bricks::meta::{check_slab_range, Slab, VolumeMeta, VolumeSource};
+use neuvolex_bricks::{BrickError, DType};
+use serde::{Deserialize, Serialize};
+use std::path::{Path, PathBuf};
+
+/// Slice orientation of a stroke.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Axis {
+    /// A sagittal slice (x fixed); points are (y, z).
+    X,
+    /// A coronal slice (y fixed); points are (x, z).
+    Y,
+    /// An axial slice (z fixed); points are (x, y).
+    Z,
+}
+
+/// One brush stroke on a slice.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Stroke {
+    /// Label painted (1..N, or the background label).
+    pub class: u32,
+    /// Slice orientation.
+    pub axis: Axis,
+    /// Slice index along `axis`.
+    pub slice: usize,
+    /// Polyline in in-slice voxel coordinates.
+    pub points: Vec<[f32; 2]>,
+    /// Brush radius in voxels.
+    pub radius: f32,
+}
+
+/// Errors of scribble handling.
+#[derive(Debug, thiserror::Error)]
+pub enum ScribbleError {
+    /// A volume could not be read.
+    #[error(transparent)]
+    Volume(#[from] BrickError),
+    /// A stroke that cannot be drawn.
+    #[error("stroke {index}: {detail}")]
+    Stroke {
+        /// Position in the list.
+        index: usize,
+        /// What is wrong.
+        detail: String,
+    },
+    /// A label volume that cannot be simulated from.
+    #[error("{0}")]
+    Labels(String),
+}
+
+/// Scribbled voxels: sorted linear indices (x fastest) and their labels.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct Scribbles {
+    /// Grid (x, y, z).
+    pub dims: [usize; 3],
+    /// `(voxel index, label)`, sorted by index, one entry per voxel.
+    pub voxels: Vec<(u64, u32)>,
+}
+
+impl Scribbles {
+    /// Number of scribbled voxels per label.
+    pub fn counts(&self) -> std::collections::BTreeMap<u32, u64> {
+        let mut m = std::collections::BTreeMap::new();
+        for &(_, c) in &self.voxels {
+            *m.entry(c).or_insert(0) += 1;
+        }
+        m
+    }
+
+    /// Fraction of the volume that is scribbled.
+    pub fn fraction(&self) -> f64 {
+        self.voxels.len() as f64 / self.dims.iter().map(|&d| d as f64).product::<f64>()
+    }
+}
+
+/// Rasterises strokes (a disc of `radius` swept along each polyline). Later strokes win.
+pub fn rasterise(strokes: &[Stroke], dims: [usize; 3]) -> Result<Scribbles, ScribbleError> {
+    let mut map = std::collections::BTreeMap::new();
+    for (si, s) in strokes.iter().enumerate() {
+        let bad = |detail: String| ScribbleError::Stroke { index: si, detail };
+        let (ua, va, wa) = match s.axis {
+            Axis::X => (1, 2, 0),
+            Axis::Y => (0, 2, 1),
+            Axis::Z => (0, 1, 2),
+        };
+        if s.slice >= dims[wa] {
+            return Err(bad(format!("slice {} outside 0..{}", s.slice, dims[wa])));
+        }
+        if s.class == 0 {
+            return Err(bad("class 0 means unlabelled and cannot be painted".into()));
+        }
+        if !(s.radius >= 0.0 && s.radius <= 64.0) {
+            return Err(bad(format!("brush radius {} must be 0..=64", s.radius)));
+        }
+        if s.points.is_empty() {
+            return Err(bad("no points".into()));
+        }
+        for p in &s.points {
+            if !p[0].is_finite()
+                || !p[1].is_finite()
+                || p[0] < -0.5
+                || p[1] < -0.5
+                || p[0] > dims[ua] as f32 - 0.5
+                || p[1] > dims[va] as f32 - 0.5
+            {
+                return Err(bad(format!(
+                    "point ({}, {}) outside the {} x {} slice",
+                    p[0], p[1], dims[ua], dims[va]
+                )));
+            }
+        }
+        let r = s.radius;
+        let mut stamp = |cu: f32, cv: f32| {
+            let (u0, u1) = (
+                (cu - r).floor().max(0.0) as usize,
+                ((cu + r).ceil() as usize).min(dims[ua] - 1),
+            );
+            let (v0, v1) = (
+                (cv - r).floor().max(0.0) as usize,
+                ((cv + r).ceil() as usize).min(dims[va] - 1),
+            );
+            for v in v0..=v1 {
+                for u in u0..=u1 {
+                    if (u as f32 - cu).powi(2) + (v as f32 - cv).powi(2) <= r * r + 1e-6 {
+                        let mut c = [0usize; 3];
+                        c[ua] = u;
+                        c[va] = v;
+                        c[wa] = s.slice;
+                        map.insert(((c[2] * dims[1] + c[1]) * dims[0] + c[0]) as u64, s.class);
+                    }
+                }
+            }
+        };
+        stamp(s.points[0][0], s.points[0][1]);
+        for w in s.points.windows(2) {
+            let (a, b) = (w[0], w[1]);
+            let len = ((b[0] - a[0]).powi(2) + (b[1] - a[1]).powi(2)).sqrt();
+            let steps = (len * 2.0).ceil().max(1.0) as usize;
+            for k in 1..=steps {
+                let t = k as f32 / steps as f32;
+                stamp(a[0] + (b[0] - a[0]) * t, a[1] + (b[1] - a[1]) * t);
+            }
+        }
+    }
+    Ok(Scribbles {
+        dims,
+        voxels: map.into_iter().collect(),
+    })
+}
+
+/// Scribble density, after the paper: S1 one slice, S2 about 3, S3 about 9, S4 about 27.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub enum Level {
+    /// One slice.
+    S1,
+    /// Three slices.
+    S2,
+    /// Nine slices.
+    S3,
+    /// Twenty-seven slices.
+    S4,
+}
+
+impl Level {
+    /// Slices scribbled at this level.
+    pub fn slices(self) -> usize {
+        match self {
+            Level::S1 => 1,
+            Level::S2 => 3,
+            Level::S3 => 9,
+            Level::S4 => 27,
+        }
+    }
+}
+
+impl std::str::FromStr for Level {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s.to_ascii_uppercase().as_str() {
+            "S1" => Ok(Level::S1),
+            "S2" => Ok(Level::S2),
+            "S3" => Ok(Level::S3),
+            "S4" => Ok(Level::S4),
+            _ => Err(format!("unknown scribble level '{s}' (S1, S2, S3, S4)")),
+        }
+    }
+}
+
+/// Simulator settings.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SimConfig {
+    /// Density.
+    pub level: Level,
+    /// Seed.
+    pub seed: u64,
+    /// Label written for background strokes.
+    pub background: u32,
+    /// Erosion of each class region before strokes are placed, in pixels.
+    pub erosion: usize,
+    /// Brush radius.
+    pub radius: f32,
+}
+
+impl Default for SimConfig {
+    fn default() -> Self {
+        SimConfig {
+            level: Level::S1,
+            seed: 0,
+            background: 255,
+            erosion: 2,
+            radius: 1.0,
+        }
+    }
+}
+
+struct Rng(u64);
+impl Rng {
+    fn next(&mut self) -> u64 {
+        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        let mut z = self.0;
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        z ^ (z >> 31)
+    }
+    fn f32(&mut self) -> f32 {
+        (self.next() >> 40) as f32 / (1u64 << 24) as f32
+    }
+    fn below(&mut self, n: usize) -> usize {
+        (((self.next() >> 32) * n as u64) >> 32) as usize
+    }
+}
+
+/// Erodes a 2-D mask with a (2e+1)^2 square (pixels outside the slice count as outside).
+fn erode(mask: &[bool], w: usize, h: usize, e: usize) -> Vec<bool> {
+    if e == 0 {
+        return mask.to_vec();
+    }
+    let mut tmp = vec![false; w * h];
+    for y in 0..h {
+        for x in 0..w {
+            tmp[y * w + x] = x >= e && x + e < w && (x - e..=x + e).all(|xx| mask[y * w + xx]);
+        }
+    }
+    let mut out = vec![false; w * h];
+    for y in 0..h {
+        for x in 0..w {
+            out[y * w + x] = y >= e && y + e < h && (y - e..=y + e).all(|yy| tmp[yy * w + x]);
+        }
+    }
+    out
+}
+
+/// Draws S1–S4 scribbles from a ground-truth label volume (0 = background), streaming it one
+/// axial slice at a time. Deterministic for a seed.
+pub fn simulate(
+    labels: &mut dyn VolumeSource,
+    cfg: &SimConfig,
+) -> Result<(Vec<Stroke>, Scribbles), ScribbleError> {
+    let meta = labels.meta().clone();
+    let [w, h, nz] = meta.dims;
+    // Pass 1: how many foreground classes each slice shows.
+    let mut fg_slices = Vec::new();
+    let mut richness = Vec::new();
+    for z in 0..nz {
+        let v = labels.read_slab(z, 1)?.to_f64();
+        let mut cls: Vec<u32> = v.iter().filter(|&&x| x > 0.0).map(|&x| x as u32).collect();
+        cls.sort_unstable();
+        cls.dedup();
+        if !cls.is_empty() {
+            fg_slices.push(z);
+            richness.push(cls.len());
+        }
+        labels.release(z, 1);
+    }
+    if fg_slices.is_empty() {
+        return Err(ScribbleError::Labels(format!(
+            "{}: no foreground label in the volume",
+            labels.path().display()
+        )));
+    }
+    let mut rng = Rng(cfg.seed ^ 0x5C21_B0E5);
+    // Spread the slices over the foreground range; in each interval take a slice showing the
+    // most classes (as a user scribbles where the ROIs are), ties broken by the seed.
+    let k = cfg.level.slices().min(fg_slices.len());
+    let n = fg_slices.len();
+    let mut chosen: Vec<usize> = (0..k)
+        .map(|i| {
+            let (lo, hi) = (i * n / k, ((i + 1) * n / k).max(i * n / k + 1));
+            let best = richness[lo..hi].iter().copied().max().unwrap_or(0);
+            let ties: Vec<usize> = (lo..hi).filter(|&j| richness[j] == best).collect();
+            fg_slices[ties[rng.below(ties.len())]]
+        })
+        .collect();
+    chosen.dedup();
+    let mut strokes = Vec::new();
+    for &z in &chosen {
+        let v = labels.read_slab(z, 1)?.to_f64();
+        let mut classes: Vec<u32> = v.iter().map(|&x| x as u32).collect();
+        classes.sort_unstable();
+        classes.dedup();
+        for c in classes {
+            let mask: Vec<bool> = v.iter().map(|&x| x as u32 == c).collect();
+            let er = erode(&mask, w, h, cfg.erosion);
+            let inside: Vec<usize> = (0..w * h).filter(|&i| er[i]).collect();
+            if inside.is_empty() {
+                continue;
+            }
+            let label = if c == 0 { cfg.background } else { c };
+            let n_strokes = if c == 0 { 2 } else { 1 };
+            for _ in 0..n_strokes {
+                let start = inside[rng.below(inside.len())];
+                let (sx, sy) = ((start % w) as f32, (start / w) as f32);
+                let ang = rng.f32() * std::f32::consts::TAU;
+                let (dx, dy) = (ang.cos(), ang.sin());
+                let max_len = (0.5 * (inside.len() as f32).sqrt()).clamp(3.0, 60.0);
+                let walk = |sign: f32| {
+                    let mut t = 0.0;
+                    while t < max_len {
+                        let (x, y) = (sx + sign * (t + 1.0) * dx, sy + sign * (t + 1.0) * dy);
+                        let (xi, yi) = (x.round(), y.round());
+                        if xi < 0.0
+                            || yi < 0.0
+                            || xi >= w as f32
+                            || yi >= h as f32
+                            || !er[yi as usize * w + xi as usize]
+                        {
+                            break;
+                        }
+                        t += 1.0;
+                    }
+                    t
+                };
+                let (a, b) = (walk(-1.0), walk(1.0));
+                let p0 = [(sx - a * dx).round(), (sy - a * dy).round()];
+                let p1 = [(sx + b * dx).round(), (sy + b * dy).round()];
+                strokes.push(Stroke {
+                    class: label,
+                    axis: Axis::Z,
+                    slice: z,
+                    points: vec![p0, [sx, sy], p1],
+                    radius: cfg.radius,
+                });
+            }
+        }
+    }
+    let s = rasterise(&strokes, meta.dims)?;
+    Ok((strokes, s))
+}
+
+/// A sparse scribble volume as a [`VolumeSource`] (u8, or u16 when labels exceed 255), so it
+/// can be written with the NIfTI writer or ingested as a label image.
+pub struct ScribbleSource {
+    scribbles: Scribbles,
+    meta: VolumeMeta,
+    name: PathBuf,
+}
+
+impl ScribbleSource {
+    /// Wraps scribbles on the grid (and geometry) of `like`.
+    pub fn new(scribbles: Scribbles, like: &VolumeMeta) -> Self {
+        let max = scribbles.voxels.iter().map(|v| v.1).max().unwrap_or(0);
+        let dtype = if max <= 255 { DType::U8 } else { DType::U16 };
+        let meta = VolumeMeta {
+            dtype,
+            scaling: None,
+            ..like.clone()
+        };
+        ScribbleSource {
+            scribbles,
+            meta,
+            name: PathBuf::from("<scribbles>"),
+        }
+    }
+}
+
+impl VolumeSource for ScribbleSource {
+    fn meta(&self) -> &VolumeMeta {
+        &self.meta
+    }
+    fn path(&self) -> &Path {
+        &self.name
+    }
+    fn read_slab(&mut self, z0: usize, depth: usize) -> Result<Slab, BrickError> {
+        check_slab_range(&self.meta, &self.name, z0, depth)?;
+        let sl = (self.meta.dims[0] * self.meta.dims[1]) as u64;
+        let (lo, hi) = (z0 as u64 * sl, (z0 + depth) as u64 * sl);
+        let mut vals = vec![0.0f64; (hi - lo) as usize];
+        let start = self.scribbles.voxels.partition_point(|v| v.0 < lo);
+        for &(i, c) in self.scribbles.voxels[start..]
+            .iter()
+            .take_while(|v| v.0 < hi)
+        {
+            vals[(i - lo) as usize] = c as f64;
+        }
+        Ok(Slab {
+            z0,
+            depth,
+            dtype: self.meta.dtype,
+            bytes: neuvolex_bricks::dtype::f64_to_bytes(&vals, self.meta.dtype),
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use neuvolex_bricks::synth::{Phantom, PhantomChannel, PhantomParams};
+    use neuvolex_bricks::MemVolume;
+
+    #[test]
+    fn rasterise_a_hand_drawn_stroke() {
+        let s = Stroke {
+            class: 2,
+            axis: Axis::Z,
+            slice: 1,
+            points: vec![[1.0, 1.0], [4.0, 1.0]],
+            radius: 0.0,
+        };
+        let r = rasterise(&[s], [6, 3, 2]).unwrap();
+        let idx: Vec<u64> = r.voxels.iter().map(|v| v.0).collect();
+        assert_eq!(idx, vec![18 + 6 + 1, 18 + 6 + 2, 18 + 6 + 3, 18 + 6 + 4]);
+        assert!(r.voxels.iter().all(|v| v.1 == 2));
+        // A sagittal stroke lands on x = slice.
+        let s = Stroke {
+            class: 1,
+            axis: Axis::X,
+            slice: 5,
+            points: vec![[0.0, 0.0]],
+            radius: 0.0,
+        };
+        assert_eq!(rasterise(&[s], [6, 3, 2]).unwrap().voxels, vec![(5, 1)]);
+    }
+
+    #[test]
+    fn bad_strokes_are_refused() {
+        let ok = Stroke {
+            class: 1,
+            axis: Axis::Z,
+            slice: 0,
+            points: vec![[0.0, 0.0]],
+            radius: 1.0,
+        };
+        let dims = [4, 4, 2];
+        let err = |s: Stroke| rasterise(&[s], dims).unwrap_err().to_string();
+        assert!(err(Stroke {
+            slice: 2,
+            ..ok.clone()
+        })
+        .contains("outside"));
+        assert!(err(Stroke {
+            points: vec![[9.0, 0.0]],
+            ..ok.clone()
+        })
+        .contains("outside"));
+        assert!(err(Stroke {
+            points: vec![[f32::NAN, 0.0]],
+            ..ok.clone()
+        })
+        .contains("outside"));
+        assert!(err(Stroke {
+            points: vec![],
+            ..ok.clone()
+        })
+        .contains("no points"));
+        assert!(err(Stroke {
+            class: 0,
+            ..ok.clone()
+        })
+        .contains("unlabelled"));
+        assert!(err(Stroke { radius: -1.0, ..ok }).contains("radius"));
+    }
+
+    #[test]
+    fn simulated_scribbles_lie_inside_their_classes_and_grow_with_the_level() {
+        let p = PhantomParams::with_size(64, 0);
+        let truth = MemVolume::read_all(&mut Phantom::new(p, PhantomChannel::Labels)).unwrap();
+        let mut last = 0;
+        for level in [Level::S1, Level::S2, Level::S3, Level::S4] {
+            let cfg = SimConfig {
+                level,
+                ..SimConfig::default()
+            };
+            let (strokes, s) = simulate(&mut truth.clone(), &cfg).unwrap();
+            assert!(!strokes.is_empty());
+            for &(i, c) in &s.voxels {
+                let gt = truth.bytes[i as usize] as u32;
+                assert_eq!(
+                    if gt == 0 { 255 } else { gt },
+                    c,
+                    "voxel {i} painted {c} over truth {gt}"
+                );
+            }
+            assert!(
+                s.voxels.len() > last,
+                "{level:?} not denser than the previous level"
+            );
+            last = s.voxels.len();
+            if level == Level::S1 {
+                assert!(s.fraction() < 0.005, "S1 fraction {}", s.fraction());
+                assert!(
+                    s.counts().len() >= 3,
+                    "S1 should touch several classes: {:?}",
+                    s.counts()
+                );
+            }
+        }
+        // Deterministic for a seed, different for another.
+        let a = simulate(&mut truth.clone(), &SimConfig::default())
+            .unwrap()
+            .1;
+        let b = simulate(&mut truth.clone(), &SimConfig::default())
+            .unwrap()
+            .1;
+        let c = simulate(
+            &mut truth.clone(),
+            &SimConfig {
+                seed: 5,
+                ..SimConfig::default()
+            },
+        )
+        .unwrap()
+        .1;
+        assert_eq!(a, b);
+        assert_ne!(a, c);
+        // Written out and read back through the NIfTI reader.
+        let d = tempfile::tempdir().unwrap();
+        let path = d.path().join("s.nii.gz");
+        neuvolex_bricks::nifti::write_nifti(
+            &path,
+            &mut ScribbleSource::new(a.clone(), &truth.meta),
+            8,
+        )
+        .unwrap();
+        let back = MemVolume::read_all(neuvolex_bricks::open_volume(&path, None).unwrap().as_mut())
+            .unwrap();
+        let nz: Vec<(u64, u32)> = back
+            .bytes
+            .iter()
+            .enumerate()
+            .filter(|(_, &v)| v > 0)
+            .map(|(i, &v)| (i as u64, v as u32))
+            .collect();
+        assert_eq!(nz, a.voxels);
+    }
+
+    #[test]
+    fn empty_labels_are_refused() {
+        let mut v = MemVolume::from_f64([4, 4, 4], DType::U8, &[0.0; 64]);
+        assert!(simulate(&mut v, &SimConfig::default())
+            .unwrap_err()
+            .to_string()
+            .contains("no foreground"));
+    }
+}
