@@ -29,6 +29,7 @@ pub mod nrrd;
 pub mod omezarr;
 pub mod open;
 pub mod raw;
+pub mod rng;
 pub mod stats;
 pub mod store;
 mod stream;

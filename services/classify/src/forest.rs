@@ -7,6 +7,7 @@
 //! number of threads. Prediction walks flat node arrays tree by tree over blocks of rows, so
 //! one tree stays in cache while a block of rows passes through it.
 
+use neuvolex_bricks::rng::Rng;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
@@ -115,22 +116,6 @@ pub struct Forest {
     d: usize,
     classes: usize,
     trees: Vec<Tree>,
-}
-
-/// SplitMix64 for per-tree feature draws.
-struct Rng(u64);
-
-impl Rng {
-    fn next(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        z ^ (z >> 31)
-    }
-    fn below(&mut self, n: usize) -> usize {
-        (((self.next() >> 32) * n as u64) >> 32) as usize
-    }
 }
 
 /// Values closer than this count as equal when looking for split points (as scikit-learn).
@@ -555,14 +540,14 @@ mod tests {
         let mut y = Vec::new();
         for _ in 0..n {
             let (a, b) = (
-                (r.next() % 1000) as f32 / 1000.0,
-                (r.next() % 1000) as f32 / 1000.0,
+                (r.next_u64() % 1000) as f32 / 1000.0,
+                (r.next_u64() % 1000) as f32 / 1000.0,
             );
             x.extend([
                 a,
                 b,
-                (r.next() % 1000) as f32 / 1000.0,
-                (r.next() % 1000) as f32 / 1000.0,
+                (r.next_u64() % 1000) as f32 / 1000.0,
+                (r.next_u64() % 1000) as f32 / 1000.0,
             ]);
             y.push(((a > 0.5) ^ (b > 0.5)) as u16);
         }

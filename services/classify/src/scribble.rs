@@ -5,6 +5,7 @@
 //! background/other.
 
 use neuvolex_bricks::meta::{check_slab_range, Slab, VolumeMeta, VolumeSource};
+use neuvolex_bricks::rng::Rng;
 use neuvolex_bricks::{BrickError, DType};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
@@ -217,23 +218,6 @@ impl Default for SimConfig {
             erosion: 2,
             radius: 1.0,
         }
-    }
-}
-
-struct Rng(u64);
-impl Rng {
-    fn next(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        z ^ (z >> 31)
-    }
-    fn f32(&mut self) -> f32 {
-        (self.next() >> 40) as f32 / (1u64 << 24) as f32
-    }
-    fn below(&mut self, n: usize) -> usize {
-        (((self.next() >> 32) * n as u64) >> 32) as usize
     }
 }
 

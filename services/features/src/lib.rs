@@ -15,7 +15,8 @@ pub mod error;
 pub mod extract;
 pub mod hashgrid;
 pub mod model;
-pub mod rng;
+/// The seeded generator, shared with the rest of neuvolex.
+pub use neuvolex_bricks::rng;
 pub mod tile;
 pub mod train;
 
