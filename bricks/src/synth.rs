@@ -23,6 +23,22 @@ pub struct ClassInfo {
     pub color: [u8; 3],
 }
 
+/// A distinct display colour for any class id (golden-ratio hues).
+pub fn palette(id: u32) -> [u8; 3] {
+    let h = (id as f64 * 0.618_033_988_75).fract() * 6.0;
+    let x = (1.0 - (h % 2.0 - 1.0).abs()) * 200.0 + 40.0;
+    let (hi, lo) = (240.0, 40.0);
+    let rgb = match h as u32 {
+        0 => [hi, x, lo],
+        1 => [x, hi, lo],
+        2 => [lo, hi, x],
+        3 => [lo, x, hi],
+        4 => [x, lo, hi],
+        _ => [hi, lo, x],
+    };
+    rgb.map(|v| v as u8)
+}
+
 /// The phantom's classes (0 is everything else).
 pub fn phantom_classes() -> Vec<ClassInfo> {
     let c = |id, name: &str, color| ClassInfo {

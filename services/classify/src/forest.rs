@@ -400,6 +400,16 @@ impl Forest {
         self.trees.len()
     }
 
+    /// The forest of the first `k` trees. Trees are grown from per-tree seeds, so this equals a
+    /// forest trained with `k` trees.
+    pub fn truncated(&self, k: usize) -> Forest {
+        Forest {
+            d: self.d,
+            classes: self.classes,
+            trees: self.trees[..k.clamp(1, self.trees.len())].to_vec(),
+        }
+    }
+
     /// Total nodes in the forest.
     pub fn nodes(&self) -> usize {
         self.trees.iter().map(|t| t.nodes.len()).sum()

@@ -1,16 +1,55 @@
 //! # neuvolex-classify
 //!
-//! Scribble-based classification for neuvolex: scribbles (strokes, rasterisation and the S1–S4
-//! simulator) and the random forest that turns per-voxel features into class probabilities, with the paper's settings as defaults
-//! (1000 trees, min samples split 8, sqrt features per split, no bootstrap, Gini,
-//! predict_proba).
+//! Scribble-based classification for neuvolex (image-based transfer-function design):
+//! scribbles (strokes, rasterisation and the S1–S4 simulator), feature sets (learned INR
+//! features, classic baselines, position), the random forest with the paper's settings as
+//! defaults (1000 trees, min samples split 8, sqrt features per split, no bootstrap, Gini,
+//! predict_proba), and sharded per-brick classification with F1 scoring.
 
 #![warn(missing_docs)]
 
+pub mod features;
 pub mod forest;
 pub mod scribble;
+pub mod shard;
 
+pub use features::{BrickFeatures, Component, FeatureSet, Quantise};
 pub use forest::{ClassWeight, Dataset, Forest, ForestConfig, ForestError, MaxFeatures};
 pub use scribble::{
-    rasterise, simulate, Level, ScribbleError, ScribbleSource, Scribbles, SimConfig, Stroke,
+    load_scribbles, rasterise, simulate, Level, ScribbleError, ScribbleSource, Scribbles,
+    SimConfig, Stroke,
 };
+pub use shard::{
+    classify_volume, f1_scores, fit, predict_brick, training_set, ClassTable, Classified,
+    ClassifyConfig, TrainingSet, F1,
+};
+
+use std::path::PathBuf;
+
+/// Errors of classification.
+#[derive(Debug, thiserror::Error)]
+pub enum ClassifyError {
+    /// A volume or store error.
+    #[error(transparent)]
+    Volume(#[from] neuvolex_bricks::BrickError),
+    /// A feature (INR) error.
+    #[error(transparent)]
+    Features(#[from] neuvolex_features::FeatureError),
+    /// A forest error.
+    #[error(transparent)]
+    Forest(#[from] ForestError),
+    /// A scribble error.
+    #[error(transparent)]
+    Scribble(#[from] ScribbleError),
+    /// A file that cannot be used.
+    #[error("{path}: {detail}")]
+    File {
+        /// The file.
+        path: PathBuf,
+        /// What is wrong.
+        detail: String,
+    },
+    /// Inputs that do not fit together.
+    #[error("{0}")]
+    Input(String),
+}

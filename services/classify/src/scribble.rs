@@ -194,6 +194,61 @@ impl std::str::FromStr for Level {
     }
 }
 
+/// Reads scribbles from a sparse label volume (NIfTI, NRRD, raw or OME-Zarr; 0 = unlabelled)
+/// or a JSON list of strokes (`.json`), on the grid of `like`. The volume is streamed slab by
+/// slab; its grid must match and its values must be non-negative integers.
+pub fn load_scribbles(path: &Path, like: &VolumeMeta) -> Result<Scribbles, ScribbleError> {
+    let is_json = path
+        .extension()
+        .is_some_and(|e| e.eq_ignore_ascii_case("json"));
+    if is_json {
+        let text = std::fs::read_to_string(path).map_err(|e| BrickError::io(path, e))?;
+        let strokes: Vec<Stroke> = serde_json::from_str(&text).map_err(|e| {
+            ScribbleError::Labels(format!(
+                "{}: not a stroke list ({e}); expected [{{\"class\", \"axis\", \"slice\", \
+                 \"points\", \"radius\"}}, ...]",
+                path.display()
+            ))
+        })?;
+        return rasterise(&strokes, like.dims).map_err(|e| match e {
+            ScribbleError::Stroke { index, detail } => {
+                ScribbleError::Labels(format!("{}: stroke {index}: {detail}", path.display()))
+            }
+            e => e,
+        });
+    }
+    let mut src = neuvolex_bricks::open::open_volume(path, None)?;
+    like.check_same_grid(src.meta(), path)?;
+    let dims = like.dims;
+    let slice = dims[0] * dims[1];
+    let depth = (4 << 20) / slice.max(1) + 1;
+    let mut voxels = Vec::new();
+    let mut z = 0;
+    while z < dims[2] {
+        let dz = depth.min(dims[2] - z);
+        let v = src.read_slab(z, dz)?.to_f64();
+        for (k, &x) in v.iter().enumerate() {
+            if x != 0.0 {
+                if !(x > 0.0 && x.fract() == 0.0 && x <= u32::MAX as f64) {
+                    let i = z * slice + k;
+                    return Err(ScribbleError::Labels(format!(
+                        "{}: voxel ({}, {}, {}) holds {x}; scribble labels must be \
+                         non-negative integers",
+                        path.display(),
+                        i % dims[0],
+                        (i / dims[0]) % dims[1],
+                        i / slice
+                    )));
+                }
+                voxels.push(((z * slice + k) as u64, x as u32));
+            }
+        }
+        src.release(z, dz);
+        z += dz;
+    }
+    Ok(Scribbles { dims, voxels })
+}
+
 /// Simulator settings.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct SimConfig {

@@ -2,6 +2,8 @@
 //!
 //! The binary only parses arguments, draws progress and prints; the work is in the library crates.
 
+mod classify;
+
 use anyhow::{bail, Context, Result};
 use clap::{Parser, Subcommand, ValueEnum};
 use indicatif::{ProgressBar, ProgressStyle};
@@ -200,6 +202,11 @@ enum Cmd {
         #[arg(long)]
         all_bricks: bool,
     },
+    /// Classify every voxel from scribbles: random forest on a feature set, per-class u8
+    /// probabilities and a label image in the store, optionally a NIfTI label volume.
+    Classify(classify::ClassifyArgs),
+    /// Score feature sets against ground truth: simulated scribbles, F1 per class and level.
+    Eval(classify::EvalArgs),
     /// Simulate scribbles (S1–S4) from a ground-truth label volume, deterministically.
     ScribbleSim {
         /// Ground-truth labels (0 = background), any readable format or store/labels/NAME.
@@ -750,6 +757,8 @@ fn main() -> Result<()> {
             tracing::info!(store = %output.display(), dims = ?info.dims, bricks = info.grid().iter().product::<usize>(), seconds = t.elapsed().as_secs_f64(), mb_per_s = mb / t.elapsed().as_secs_f64(), "ingest complete");
         }
         Cmd::Train { store, args } => run_train(&store, &args, quiet)?,
+        Cmd::Classify(a) => classify::run_classify(&a, quiet)?,
+        Cmd::Eval(a) => classify::run_eval(&a, quiet)?,
         Cmd::ScribbleSim {
             labels,
             level,

@@ -102,7 +102,7 @@ impl DenseLayout {
 }
 
 /// Which per-voxel feature to extract.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum FeatureKind {
     /// The paper's feature: the last hidden layer (64).

@@ -1,0 +1,550 @@
+//! Classic per-voxel features, computed per brick from a halo read: intensity, the explicit
+//! local features of Tzeng et al., and an ilastik-style Gaussian filter bank.
+//!
+//! Every function here is pure: the features of a brick depend only on its halo read, so bricks
+//! can be computed in any order, in one process or many, and equal a whole-volume computation.
+
+use neuvolex_bricks::derived::{HaloBrick, Normaliser};
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+
+/// Scales of the filter bank (ilastik's default set between 0.7 and 5).
+pub const SIGMAS: [f32; 5] = [0.7, 1.0, 1.6, 3.5, 5.0];
+
+/// Filter-bank channels per scale.
+pub const PER_SIGMA: usize = 10;
+
+/// Ratio of the inner Gaussian of the difference of Gaussians (ilastik: 0.66).
+const DOG_RATIO: f32 = 0.66;
+
+/// Gaussian truncation, in sigmas.
+const TRUNCATE: f32 = 3.0;
+
+/// Kernel radius of a Gaussian of `sigma`.
+pub fn radius(sigma: f32) -> usize {
+    (TRUNCATE * sigma).ceil().max(1.0) as usize
+}
+
+/// Halo the filter bank needs: the structure tensor chains a Gaussian of sigma/2, a central
+/// difference and a Gaussian of sigma.
+pub fn filter_halo() -> usize {
+    let s = SIGMAS[SIGMAS.len() - 1];
+    radius(0.5 * s) + 1 + radius(s)
+}
+
+/// A classic feature set.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Classic {
+    /// Robust-normalised intensity alone.
+    Intensity,
+    /// Intensity, gradient magnitude, the 6 face neighbours and normalised position.
+    Local,
+    /// The Gaussian filter bank at [`SIGMAS`].
+    Filters,
+}
+
+impl Classic {
+    /// Halo voxels needed around a brick.
+    pub fn halo(self) -> usize {
+        match self {
+            Classic::Intensity => 0,
+            Classic::Local => 1,
+            Classic::Filters => filter_halo(),
+        }
+    }
+
+    /// Channels per voxel.
+    pub fn channels(self) -> usize {
+        match self {
+            Classic::Intensity => 1,
+            Classic::Local => 11,
+            Classic::Filters => SIGMAS.len() * PER_SIGMA,
+        }
+    }
+
+    /// A name per channel.
+    pub fn names(self) -> Vec<String> {
+        match self {
+            Classic::Intensity => vec!["intensity".into()],
+            Classic::Local => [
+                "intensity",
+                "grad_mag",
+                "x-1",
+                "x+1",
+                "y-1",
+                "y+1",
+                "z-1",
+                "z+1",
+                "x",
+                "y",
+                "z",
+            ]
+            .map(String::from)
+            .to_vec(),
+            Classic::Filters => SIGMAS
+                .iter()
+                .flat_map(|s| {
+                    [
+                        "gauss", "log", "ggm", "dog", "st_e1", "st_e2", "st_e3", "hess_e1",
+                        "hess_e2", "hess_e3",
+                    ]
+                    .map(move |n| format!("{n}_s{s}"))
+                })
+                .collect(),
+        }
+    }
+}
+
+impl std::str::FromStr for Classic {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "intensity" => Ok(Classic::Intensity),
+            "local" => Ok(Classic::Local),
+            "filters" => Ok(Classic::Filters),
+            _ => Err(format!(
+                "unknown classic feature '{s}' (intensity, local, filters)"
+            )),
+        }
+    }
+}
+
+/// Normalised position of voxel `i` along an axis of `n` voxels, in `[0, 1]`.
+#[inline]
+fn pos(i: usize, n: usize) -> f32 {
+    if n <= 1 {
+        0.0
+    } else {
+        i as f32 / (n - 1) as f32
+    }
+}
+
+/// Computes `kind` for the core voxels of `b` (whose halo must be at least `kind.halo()`), in a
+/// volume of `dims` voxels. Returns `voxels x channels`, voxel-major, voxels x fastest.
+pub fn compute(kind: Classic, b: &HaloBrick, norm: &Normaliser, dims: [usize; 3]) -> Vec<f32> {
+    assert!(
+        b.halo >= kind.halo(),
+        "{kind:?} needs a halo of {}, got {}",
+        kind.halo(),
+        b.halo
+    );
+    let p = b.padded();
+    let n: Vec<f32> = b.data.iter().map(|&v| norm.apply(v)).collect();
+    match kind {
+        Classic::Intensity => core_map(b, |i| [n[i]]),
+        Classic::Local => {
+            let (sx, sy) = (1, p[0]);
+            let sz = p[0] * p[1];
+            let h = b.halo;
+            let mut out = Vec::with_capacity(b.size.iter().product::<usize>() * 11);
+            for z in 0..b.size[2] {
+                for y in 0..b.size[1] {
+                    for x in 0..b.size[0] {
+                        let i = ((z + h) * p[1] + y + h) * p[0] + x + h;
+                        let nb = [
+                            n[i - sx],
+                            n[i + sx],
+                            n[i - sy],
+                            n[i + sy],
+                            n[i - sz],
+                            n[i + sz],
+                        ];
+                        let g = [
+                            0.5 * (nb[1] - nb[0]),
+                            0.5 * (nb[3] - nb[2]),
+                            0.5 * (nb[5] - nb[4]),
+                        ];
+                        out.push(n[i]);
+                        out.push((g[0] * g[0] + g[1] * g[1] + g[2] * g[2]).sqrt());
+                        out.extend_from_slice(&nb);
+                        out.push(pos(b.origin[0] + x, dims[0]));
+                        out.push(pos(b.origin[1] + y, dims[1]));
+                        out.push(pos(b.origin[2] + z, dims[2]));
+                    }
+                }
+            }
+            out
+        }
+        Classic::Filters => filter_bank(b, &n),
+    }
+}
+
+/// Maps every core voxel through `f` (given its padded index).
+fn core_map<const C: usize>(b: &HaloBrick, f: impl Fn(usize) -> [f32; C]) -> Vec<f32> {
+    let p = b.padded();
+    let h = b.halo;
+    let mut out = Vec::with_capacity(b.size.iter().product::<usize>() * C);
+    for z in 0..b.size[2] {
+        for y in 0..b.size[1] {
+            for x in 0..b.size[0] {
+                out.extend_from_slice(&f(((z + h) * p[1] + y + h) * p[0] + x + h));
+            }
+        }
+    }
+    out
+}
+
+/// A normalised Gaussian kernel of `sigma`, `2 radius + 1` taps.
+pub fn gaussian_kernel(sigma: f32) -> Vec<f32> {
+    let r = radius(sigma) as isize;
+    let s2 = 2.0 * (sigma as f64) * (sigma as f64);
+    let w: Vec<f64> = (-r..=r).map(|i| (-(i * i) as f64 / s2).exp()).collect();
+    let sum: f64 = w.iter().sum();
+    w.iter().map(|v| (v / sum) as f32).collect()
+}
+
+/// Convolves along x (contiguous rows), clamping at the ends of each row.
+fn conv_x(src: &[f32], p: [usize; 3], w: &[f32]) -> Vec<f32> {
+    let r = w.len() / 2;
+    let mut dst = vec![0.0f32; src.len()];
+    dst.par_chunks_mut(p[0] * p[1])
+        .zip(src.par_chunks(p[0] * p[1]))
+        .for_each(|(dp, sp)| {
+            let mut row = vec![0.0f32; p[0] + 2 * r];
+            for (d, s) in dp.chunks_mut(p[0]).zip(sp.chunks(p[0])) {
+                row[..r].fill(s[0]);
+                row[r..r + p[0]].copy_from_slice(s);
+                row[r + p[0]..].fill(s[p[0] - 1]);
+                for (i, o) in d.iter_mut().enumerate() {
+                    *o = w.iter().zip(&row[i..i + w.len()]).map(|(a, b)| a * b).sum();
+                }
+            }
+        });
+    dst
+}
+
+/// Convolves along y (`axis` 1) or z (`axis` 2) as weighted sums of whole rows or planes,
+/// clamping at the ends.
+fn conv_lines(src: &[f32], p: [usize; 3], axis: usize, w: &[f32]) -> Vec<f32> {
+    let (n, inner) = if axis == 1 {
+        (p[1], p[0])
+    } else {
+        (p[2], p[0] * p[1])
+    };
+    let r = w.len() as isize / 2;
+    let mut dst = vec![0.0f32; src.len()];
+    dst.par_chunks_mut(inner).enumerate().for_each(|(k, d)| {
+        let (o, i) = (k / n, (k % n) as isize);
+        let base = o * n * inner;
+        for (t, &wt) in w.iter().enumerate() {
+            let j = (i + t as isize - r).clamp(0, n as isize - 1) as usize;
+            let s = &src[base + j * inner..base + (j + 1) * inner];
+            d.iter_mut().zip(s).for_each(|(a, b)| *a += wt * b);
+        }
+    });
+    dst
+}
+
+/// Separable Gaussian smoothing of a `p`-sized grid, clamped at its edges.
+pub fn smooth(src: &[f32], p: [usize; 3], sigma: f32) -> Vec<f32> {
+    let w = gaussian_kernel(sigma);
+    let a = conv_x(src, p, &w);
+    let a = conv_lines(&a, p, 1, &w);
+    conv_lines(&a, p, 2, &w)
+}
+
+/// Eigenvalues of the symmetric matrix `(xx, yy, zz, xy, xz, yz)`, descending. Closed form
+/// (trigonometric) in f64; finite for finite input.
+pub fn sym_eigen3(a: [f64; 6]) -> [f64; 3] {
+    let [a11, a22, a33, a12, a13, a23] = a;
+    let p1 = a12 * a12 + a13 * a13 + a23 * a23;
+    let q = (a11 + a22 + a33) / 3.0;
+    let p2 = (a11 - q).powi(2) + (a22 - q).powi(2) + (a33 - q).powi(2) + 2.0 * p1;
+    let p = (p2 / 6.0).sqrt();
+    if !(p > 1e-300) || !p.is_finite() {
+        return [q, q, q];
+    }
+    if p1 == 0.0 {
+        let mut d = [a11, a22, a33];
+        d.sort_by(|x, y| y.total_cmp(x));
+        return d;
+    }
+    let (b11, b22, b33) = ((a11 - q) / p, (a22 - q) / p, (a33 - q) / p);
+    let (b12, b13, b23) = (a12 / p, a13 / p, a23 / p);
+    let det = b11 * (b22 * b33 - b23 * b23) - b12 * (b12 * b33 - b23 * b13)
+        + b13 * (b12 * b23 - b22 * b13);
+    let r = (0.5 * det).clamp(-1.0, 1.0);
+    let phi = r.acos() / 3.0;
+    let e1 = q + 2.0 * p * phi.cos();
+    let e3 = q + 2.0 * p * (phi + 2.0 * std::f64::consts::PI / 3.0).cos();
+    let e2 = 3.0 * q - e1 - e3;
+    [e1, e2.clamp(e3, e1), e3]
+}
+
+/// Central difference of `s` along an axis with `stride` at padded coordinate `c` of `n`,
+/// clamped at the grid edge.
+#[inline]
+fn diff(s: &[f32], i: usize, c: usize, n: usize, stride: usize) -> f32 {
+    let lo = if c > 0 { i - stride } else { i };
+    let hi = if c + 1 < n { i + stride } else { i };
+    let span = (hi - lo) / stride;
+    if span == 0 {
+        0.0
+    } else {
+        (s[hi] - s[lo]) / span as f32
+    }
+}
+
+/// The filter bank of one brick (normalised intensities `n` over the padded grid).
+fn filter_bank(b: &HaloBrick, n: &[f32]) -> Vec<f32> {
+    let p = b.padded();
+    let (sx, sy, sz) = (1, p[0], p[0] * p[1]);
+    let core: usize = b.size.iter().product();
+    let ch = SIGMAS.len() * PER_SIGMA;
+    let mut out = vec![0.0f32; core * ch];
+    let h = b.halo;
+    let coord = |i: usize| [i % p[0], (i / p[0]) % p[1], i / sz];
+    let core_index = |x: usize, y: usize, z: usize| ((z + h) * p[1] + y + h) * p[0] + x + h;
+    for (si, &sigma) in SIGMAS.iter().enumerate() {
+        let s = smooth(n, p, sigma);
+        let s_in = smooth(n, p, DOG_RATIO * sigma);
+        // Structure tensor: gradient at the inner scale, products smoothed at the outer scale.
+        let g = smooth(n, p, 0.5 * sigma);
+        let mut prod: [Vec<f32>; 6] = std::array::from_fn(|_| vec![0.0f32; n.len()]);
+        {
+            let [pxx, pyy, pzz, pxy, pxz, pyz] = &mut prod;
+            for i in 0..n.len() {
+                let c = coord(i);
+                let gx = diff(&g, i, c[0], p[0], sx);
+                let gy = diff(&g, i, c[1], p[1], sy);
+                let gz = diff(&g, i, c[2], p[2], sz);
+                pxx[i] = gx * gx;
+                pyy[i] = gy * gy;
+                pzz[i] = gz * gz;
+                pxy[i] = gx * gy;
+                pxz[i] = gx * gz;
+                pyz[i] = gy * gz;
+            }
+        }
+        let st: Vec<Vec<f32>> = prod.par_iter().map(|c| smooth(c, p, sigma)).collect();
+        let base = si * PER_SIGMA;
+        out.par_chunks_mut(b.size[0] * b.size[1] * ch)
+            .enumerate()
+            .for_each(|(z, plane)| {
+                for y in 0..b.size[1] {
+                    for x in 0..b.size[0] {
+                        let i = core_index(x, y, z);
+                        let v = s[i];
+                        let dxx = s[i + sx] - 2.0 * v + s[i - sx];
+                        let dyy = s[i + sy] - 2.0 * v + s[i - sy];
+                        let dzz = s[i + sz] - 2.0 * v + s[i - sz];
+                        let d2 = |a: usize, c: usize| {
+                            0.25 * (s[i + a + c] - s[i + a - c] - s[i - a + c] + s[i - a - c])
+                        };
+                        let (dxy, dxz, dyz) = (d2(sx, sy), d2(sx, sz), d2(sy, sz));
+                        let gx = 0.5 * (s[i + sx] - s[i - sx]);
+                        let gy = 0.5 * (s[i + sy] - s[i - sy]);
+                        let gz = 0.5 * (s[i + sz] - s[i - sz]);
+                        let te = sym_eigen3(std::array::from_fn(|k| st[k][i] as f64));
+                        let he = sym_eigen3([dxx, dyy, dzz, dxy, dxz, dyz].map(|v| v as f64));
+                        let o = &mut plane[(y * b.size[0] + x) * ch + base..][..PER_SIGMA];
+                        o[0] = v;
+                        o[1] = dxx + dyy + dzz;
+                        o[2] = (gx * gx + gy * gy + gz * gz).sqrt();
+                        o[3] = v - s_in[i];
+                        for k in 0..3 {
+                            o[4 + k] = te[k] as f32;
+                            o[7 + k] = he[k] as f32;
+                        }
+                    }
+                }
+            });
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use neuvolex_bricks::derived::halo_from_volume;
+
+    fn norm() -> Normaliser {
+        Normaliser { lo: 0.0, hi: 1.0 }
+    }
+
+    #[test]
+    fn eigenvalues_match_known_matrices() {
+        let close = |a: [f64; 3], b: [f64; 3]| a.iter().zip(&b).all(|(x, y)| (x - y).abs() < 1e-9);
+        assert!(close(
+            sym_eigen3([3.0, 1.0, 2.0, 0.0, 0.0, 0.0]),
+            [3.0, 2.0, 1.0]
+        ));
+        // [[2,1,0],[1,2,0],[0,0,5]]: 5, 3, 1.
+        assert!(close(
+            sym_eigen3([2.0, 2.0, 5.0, 1.0, 0.0, 0.0]),
+            [5.0, 3.0, 1.0]
+        ));
+        assert_eq!(sym_eigen3([0.0; 6]), [0.0; 3]);
+        // Extreme magnitudes stay finite and ordered.
+        for s in [1e-30, 1e30] {
+            let e = sym_eigen3([s, -s, 0.5 * s, 0.3 * s, -0.2 * s, 0.1 * s]);
+            assert!(e.iter().all(|v| v.is_finite()) && e[0] >= e[1] && e[1] >= e[2]);
+            let tr = e.iter().sum::<f64>();
+            assert!((tr - 0.5 * s).abs() <= 1e-9 * s);
+        }
+    }
+
+    #[test]
+    fn gaussian_preserves_constants_and_mass() {
+        let k = gaussian_kernel(1.6);
+        assert_eq!(k.len(), 2 * 5 + 1);
+        assert!((k.iter().sum::<f32>() - 1.0).abs() < 1e-6);
+        let p = [7, 5, 9];
+        let s = smooth(&vec![3.5; 7 * 5 * 9], p, 5.0);
+        assert!(s.iter().all(|v| (v - 3.5).abs() < 1e-5));
+    }
+
+    /// A smooth test volume with structure at several scales.
+    fn volume(d: [usize; 3]) -> Vec<f32> {
+        let mut v = Vec::new();
+        for z in 0..d[2] {
+            for y in 0..d[1] {
+                for x in 0..d[0] {
+                    let (fx, fy, fz) = (x as f32, y as f32, z as f32);
+                    v.push((0.3 * fx).sin() + (0.17 * fy + 0.05 * fz).cos() + 0.01 * fx * fz);
+                }
+            }
+        }
+        v
+    }
+
+    #[test]
+    fn bricks_equal_a_whole_volume_computation() {
+        let d = [21, 13, 11];
+        let v = volume(d);
+        for kind in [Classic::Intensity, Classic::Local, Classic::Filters] {
+            let whole = compute(
+                kind,
+                &halo_from_volume(&v, d, [0; 3], d, kind.halo()),
+                &norm(),
+                d,
+            );
+            let ch = kind.channels();
+            assert_eq!(whole.len(), d.iter().product::<usize>() * ch);
+            assert!(whole.iter().all(|x| x.is_finite()));
+            let bs = [8, 8, 8];
+            for bz in (0..d[2]).step_by(bs[2]) {
+                for by in (0..d[1]).step_by(bs[1]) {
+                    for bx in (0..d[0]).step_by(bs[0]) {
+                        let o = [bx, by, bz];
+                        let s = [
+                            bs[0].min(d[0] - bx),
+                            bs[1].min(d[1] - by),
+                            bs[2].min(d[2] - bz),
+                        ];
+                        let part = compute(
+                            kind,
+                            &halo_from_volume(&v, d, o, s, kind.halo()),
+                            &norm(),
+                            d,
+                        );
+                        for z in 0..s[2] {
+                            for y in 0..s[1] {
+                                for x in 0..s[0] {
+                                    let pi = (z * s[1] + y) * s[0] + x;
+                                    let wi = ((z + bz) * d[1] + y + by) * d[0] + x + bx;
+                                    for c in 0..ch {
+                                        let (a, b) = (part[pi * ch + c], whole[wi * ch + c]);
+                                        assert!(
+                                            (a - b).abs() <= 1e-4 * (1.0 + b.abs()),
+                                            "{kind:?} channel {c} at {:?}: {a} vs {b}",
+                                            [x + bx, y + by, z + bz]
+                                        );
+                                    }
+                                }
+                            }
+                        }
+                    }
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn filters_respond_to_what_they_measure() {
+        // A bright ball: the Hessian at its centre is negative definite, the LoG negative,
+        // the gradient magnitude peaks on its surface, not at its centre.
+        let d = [24, 24, 24];
+        let mut v = vec![0.0f32; 24 * 24 * 24];
+        for z in 0..24 {
+            for y in 0..24 {
+                for x in 0..24 {
+                    let r2 = [x, y, z]
+                        .iter()
+                        .map(|&c| (c as f32 - 12.0).powi(2))
+                        .sum::<f32>();
+                    v[(z * 24 + y) * 24 + x] = if r2 < 16.0 { 1.0 } else { 0.0 };
+                }
+            }
+        }
+        let f = compute(
+            Classic::Filters,
+            &halo_from_volume(&v, d, [0; 3], d, filter_halo()),
+            &norm(),
+            d,
+        );
+        let ch = Classic::Filters.channels();
+        let at = |x: usize, y: usize, z: usize, c: usize| f[((z * 24 + y) * 24 + x) * ch + c];
+        // sigma 1.6 is scale 2.
+        let b = 2 * PER_SIGMA;
+        assert!(at(12, 12, 12, b + 1) < 0.0, "LoG at the centre");
+        assert!(
+            at(12, 12, 12, b + 7) < 0.0,
+            "largest Hessian eigenvalue at the centre"
+        );
+        assert!(at(16, 12, 12, b + 2) > 5.0 * at(12, 12, 12, b + 2).max(1e-4));
+        assert!(at(12, 12, 12, b) > at(2, 2, 2, b));
+    }
+
+    #[test]
+    fn extreme_and_constant_inputs_stay_finite() {
+        let d = [9, 9, 9];
+        for (v, nm) in [
+            (vec![7.0f32; 729], Normaliser { lo: 7.0, hi: 7.0 }),
+            (
+                volume(d).iter().map(|x| x * 1e30).collect(),
+                Normaliser {
+                    lo: -1e30,
+                    hi: 1e30,
+                },
+            ),
+            (
+                volume(d).iter().map(|x| x * 1e-30).collect(),
+                Normaliser {
+                    lo: -1e-30,
+                    hi: 1e-30,
+                },
+            ),
+        ] {
+            for kind in [Classic::Intensity, Classic::Local, Classic::Filters] {
+                let f = compute(
+                    kind,
+                    &halo_from_volume(&v, d, [0; 3], d, kind.halo()),
+                    &nm,
+                    d,
+                );
+                assert!(f.iter().all(|x| x.is_finite()), "{kind:?}");
+            }
+        }
+    }
+
+    #[test]
+    fn local_features_are_the_neighbours_and_position() {
+        let d = [4, 3, 2];
+        let v: Vec<f32> = (0..24).map(|i| i as f32).collect();
+        let f = compute(
+            Classic::Local,
+            &halo_from_volume(&v, d, [0; 3], d, 1),
+            &norm(),
+            d,
+        );
+        // Voxel (1, 1, 0) = 5: neighbours 4, 6, 1, 9, 5 (clamped), 17.
+        let o = &f[5 * 11..6 * 11];
+        assert_eq!(&o[..1], &[5.0]);
+        assert_eq!(&o[2..8], &[4.0, 6.0, 1.0, 9.0, 5.0, 17.0]);
+        assert_eq!(&o[8..], &[1.0 / 3.0, 0.5, 0.0]);
+        assert_eq!(Classic::Local.names().len(), 11);
+        assert_eq!(Classic::Filters.names().len(), 50);
+    }
+}
