@@ -292,3 +292,127 @@ fn scribble_simulation() {
         "nope.nii.gz",
     );
 }
+
+#[test]
+fn classify_and_eval_on_the_phantom() {
+    let d = tempfile::tempdir().unwrap();
+    let p = |n: &str| d.path().join(n).to_string_lossy().into_owned();
+    ok(&["synth", "phantom", "--out", &p("ph.nii.gz"), "--size", "48"]);
+    ok(&["ingest", &p("ph.nii.gz"), &p("s.zarr"), "--brick", "16"]);
+    ok(&[
+        "scribble-sim",
+        &p("ph_labels.nii.gz"),
+        "--level",
+        "S4",
+        "--out",
+        &p("scr.nii.gz"),
+    ]);
+    let out = ok(&[
+        "classify",
+        &p("s.zarr"),
+        "--scribbles",
+        &p("scr.nii.gz"),
+        "--features",
+        "local",
+        "--trees",
+        "20",
+        "--out",
+        &p("labels.nii.gz"),
+        "--report",
+        &p("r.json"),
+    ]);
+    assert!(out.contains("bricks predicted"), "{out}");
+    let r: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(p("r.json")).unwrap()).unwrap();
+    assert_eq!(r["trees"], 20);
+    // The label volume opens like any volume and holds ROI labels.
+    let info = ok(&["info", &p("labels.nii.gz"), "--json"]);
+    assert!(info.contains("\"u8\"") || info.contains("U8"), "{info}");
+    assert!(Path::new(&p("s.zarr/labels/classified")).exists());
+    assert!(Path::new(&p("s.zarr/neuvolex/vectors/classes_proba")).exists());
+    // Strokes work as scribbles too.
+    let out = ok(&[
+        "classify",
+        &p("s.zarr"),
+        "--scribbles",
+        &p("scr.strokes.json"),
+        "--features",
+        "intensity",
+        "--trees",
+        "5",
+    ]);
+    assert!(out.contains("intensity features"), "{out}");
+    // Errors: an existing output, INR features without a model, bad options.
+    fails(
+        &[
+            "classify",
+            &p("s.zarr"),
+            "--scribbles",
+            &p("scr.nii.gz"),
+            "--features",
+            "local",
+            "--out",
+            &p("labels.nii.gz"),
+        ],
+        "exists",
+    );
+    fails(
+        &["classify", &p("s.zarr"), "--scribbles", &p("scr.nii.gz")],
+        "need a trained INR",
+    );
+    fails(
+        &[
+            "classify",
+            &p("s.zarr"),
+            "--scribbles",
+            &p("scr.nii.gz"),
+            "--features",
+            "local",
+            "--tau",
+            "2",
+        ],
+        "--tau",
+    );
+    fails(
+        &[
+            "classify",
+            &p("s.zarr"),
+            "--scribbles",
+            &p("ph.nii.gz"),
+            "--features",
+            "local",
+        ],
+        "non-negative integers",
+    );
+    // Eval on the phantom: scores every method and writes JSON.
+    let spec = format!("phantom={},{}", p("ph.nii.gz"), p("ph_labels.nii.gz"));
+    let out = ok(&[
+        "eval",
+        "--datasets",
+        &spec,
+        "--levels",
+        "S3",
+        "--seeds",
+        "1",
+        "--methods",
+        "intensity,local,paper",
+        "--trees",
+        "10",
+        "--epochs",
+        "0.25",
+        "--work",
+        &p("work"),
+        "--json",
+        &p("eval.json"),
+    ]);
+    assert!(out.contains("| phantom | local |"), "{out}");
+    let e: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(p("eval.json")).unwrap()).unwrap();
+    let runs = e["runs"].as_array().unwrap();
+    assert_eq!(runs.len(), 3);
+    assert!(runs.iter().all(|r| r["mean_f1"].as_f64().unwrap() > 0.0));
+    fails(
+        &["eval", "--datasets", "nowhere", "--work", &p("work")],
+        "unknown dataset",
+    );
+}

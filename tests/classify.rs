@@ -1,0 +1,429 @@
+//! Scribble-based classification: end to end on the phantom and on the real abdomen CT (F1
+//! against ground truth), determinism, and every bad input the issue lists.
+
+use neuvolex_bricks::synth::{Phantom, PhantomChannel, PhantomParams};
+use neuvolex_bricks::{ingest, BrickStore, IngestOptions, MemVolume, VolumeSource};
+use neuvolex_classify::features::Quantise;
+use neuvolex_classify::{
+    classify_volume, f1_scores, fit, load_scribbles, simulate, training_set, BrickFeatures,
+    ClassTable, ClassifyConfig, ClassifyError, FeatureSet, ForestConfig, Level, Scribbles,
+    SimConfig,
+};
+use neuvolex_features::extract::write_features;
+use neuvolex_features::{train, Budget, FeatureKind, InrConfig, TrainConfig};
+use neuvolex_tests::{shared, tmp};
+use std::sync::atomic::AtomicBool;
+use std::sync::Arc;
+
+fn store_of(vol: &mut dyn VolumeSource, brick: usize) -> (tempfile::TempDir, BrickStore) {
+    let d = tmp();
+    let p = d.path().join("s.zarr");
+    ingest(
+        vol,
+        &p,
+        &IngestOptions {
+            brick,
+            ..Default::default()
+        },
+        &mut |_| {},
+    )
+    .unwrap();
+    let s = BrickStore::open(&p).unwrap();
+    (d, s)
+}
+
+fn truth_of(src: &mut dyn VolumeSource) -> Vec<u32> {
+    MemVolume::read_all(src)
+        .unwrap()
+        .to_f32()
+        .iter()
+        .map(|&v| v as u32)
+        .collect()
+}
+
+fn cfg(trees: usize) -> ClassifyConfig {
+    ClassifyConfig {
+        forest: ForestConfig {
+            trees,
+            ..ClassifyConfig::default().forest
+        },
+        ..Default::default()
+    }
+}
+
+fn run(
+    store: &BrickStore,
+    set: &str,
+    scr: &Scribbles,
+    c: &ClassifyConfig,
+) -> Result<neuvolex_classify::Classified, ClassifyError> {
+    let fx = BrickFeatures::new(store, set.parse::<FeatureSet>().unwrap(), None, false)?;
+    let ts = training_set(&fx, scr, c.background)?;
+    let f = fit(&ts, &c.forest)?;
+    classify_volume(&fx, &f, &ts, c, None, &|_| {})
+}
+
+#[test]
+fn phantom_classification_is_accurate_and_deterministic() {
+    let p = PhantomParams::with_size(64, 1);
+    let (_d, store) = store_of(&mut Phantom::new(p.clone(), PhantomChannel::Image), 16);
+    let truth = truth_of(&mut Phantom::new(p.clone(), PhantomChannel::Labels));
+    let (_, scr) = simulate(
+        &mut Phantom::new(p.clone(), PhantomChannel::Labels),
+        &SimConfig {
+            level: Level::S4,
+            ..Default::default()
+        },
+    )
+    .unwrap();
+    eprintln!("scribbled {:?}", scr.counts());
+    let c = cfg(40);
+    let a = run(&store, "local", &scr, &c).unwrap();
+    let f1 = f1_scores(&a.labels, &truth, &[1, 2, 3, 4, 5]);
+    eprintln!("phantom local S4: {f1:?}");
+    // Bone and liver are intensity-distinct; the kidneys need position.
+    assert!(f1[0].f1 > 0.6, "bone F1 {}", f1[0].f1);
+    assert!(f1[4].f1 > 0.6, "liver F1 {}", f1[4].f1);
+    // Intensity alone cannot tell the kidneys apart: position must beat it.
+    let i = run(&store, "intensity", &scr, &c).unwrap();
+    let fi = f1_scores(&i.labels, &truth, &[2, 3]);
+    let fl = &f1[1..3];
+    assert!(
+        fl[0].f1 + fl[1].f1 > fi[0].f1 + fi[1].f1,
+        "local {fl:?} vs intensity {fi:?}"
+    );
+    // Same inputs, same labels, whatever the thread count.
+    let b = rayon::ThreadPoolBuilder::new()
+        .num_threads(1)
+        .build()
+        .unwrap()
+        .install(|| run(&store, "local", &scr, &c).unwrap());
+    assert_eq!(a.labels, b.labels);
+    // Empty bricks were skipped, not predicted.
+    let all = run(
+        &store,
+        "local",
+        &scr,
+        &ClassifyConfig {
+            skip_empty: false,
+            ..c.clone()
+        },
+    )
+    .unwrap();
+    assert!(all.bricks_predicted >= a.bricks_predicted);
+    assert_eq!(a.bricks_predicted + a.bricks_skipped, all.bricks_predicted);
+}
+
+#[test]
+fn learned_features_classify_and_stored_equal_on_demand() {
+    let p = PhantomParams::with_size(48, 2);
+    let (_d, store) = store_of(&mut Phantom::new(p.clone(), PhantomChannel::Image), 16);
+    let inr = InrConfig {
+        levels: 8,
+        log2_table: 14,
+        ..Default::default()
+    };
+    let tc = TrainConfig {
+        batch: 2048,
+        budget: Budget {
+            samples: Some(60_000),
+            ..Default::default()
+        },
+        preview_every: 0,
+        checkpoint_every: 0,
+        ..TrainConfig::default()
+    };
+    let model = train(
+        &store,
+        &inr,
+        &tc,
+        None,
+        None,
+        &AtomicBool::new(false),
+        &mut |_| {},
+    )
+    .unwrap()
+    .model;
+    let (_, scr) = simulate(
+        &mut Phantom::new(p.clone(), PhantomChannel::Labels),
+        &SimConfig {
+            level: Level::S4,
+            ..Default::default()
+        },
+    )
+    .unwrap();
+    eprintln!("scribbled {:?}", scr.counts());
+    let c = cfg(20);
+    let set: FeatureSet = "inr".parse().unwrap();
+    let m = Arc::new(model);
+    let fx = BrickFeatures::new(&store, set.clone(), Some(m.clone()), false).unwrap();
+    let ts = training_set(&fx, &scr, 255).unwrap();
+    assert_eq!(ts.d, fx.channels());
+    assert!(ts.x.iter().all(|v| v.is_finite()));
+    let f = fit(&ts, &c.forest).unwrap();
+    let a = classify_volume(&fx, &f, &ts, &c, None, &|_| {}).unwrap();
+    let truth = truth_of(&mut Phantom::new(p.clone(), PhantomChannel::Labels));
+    let f1 = f1_scores(&a.labels, &truth, &[1, 5]);
+    eprintln!("phantom inr S4: {f1:?}");
+    assert!(f1[0].f1 > 0.4 && f1[1].f1 > 0.5, "{f1:?}");
+    // Stored f16 features (all bricks) give the f16-quantised on-demand features exactly.
+    write_features(&store, &m, FeatureKind::Concat, true, &mut |_| {}).unwrap();
+    let mut od = BrickFeatures::new(&store, set.clone(), Some(m.clone()), false).unwrap();
+    od.set_quantise(Quantise::F16);
+    let st = BrickFeatures::new(&store, set, Some(m), true).unwrap();
+    let b = store.bricks().nth(3).unwrap();
+    let (x, y) = (od.brick(&b).unwrap(), st.brick(&b).unwrap());
+    let ch = od.channels();
+    let local = neuvolex_filters::Classic::Local.channels();
+    for (r0, r1) in x.chunks(ch).zip(y.chunks(ch)) {
+        assert_eq!(&r0[..ch - local], &r1[..ch - local]);
+    }
+}
+
+#[test]
+fn real_abdomen_ct_local_features_find_bone_and_kidneys() {
+    let (Some(img), Some(lab)) = (
+        shared("abdomen_ct/ct.nii.gz"),
+        shared("abdomen_ct/labels.nii.gz"),
+    ) else {
+        return;
+    };
+    let mut src = neuvolex_bricks::open::open_volume(&img, None).unwrap();
+    let (_d, store) = store_of(&mut *src, 64);
+    let mut l = neuvolex_bricks::open::open_volume(&lab, None).unwrap();
+    let truth = truth_of(&mut *l);
+    let mut l = neuvolex_bricks::open::open_volume(&lab, None).unwrap();
+    let (_, scr) = simulate(
+        &mut *l,
+        &SimConfig {
+            level: Level::S4,
+            ..Default::default()
+        },
+    )
+    .unwrap();
+    let a = run(&store, "local", &scr, &cfg(50)).unwrap();
+    let f1 = f1_scores(&a.labels, &truth, &[1, 2, 3, 4]);
+    let mean = f1.iter().map(|f| f.f1).sum::<f64>() / 4.0;
+    eprintln!("abdomen_ct local S4, 50 trees: {f1:?} mean {mean:.3}");
+    assert!(f1[0].f1 > 0.65, "bone F1 {}", f1[0].f1);
+    assert!(mean > 0.4, "mean F1 {mean}");
+}
+
+fn phantom_store() -> (tempfile::TempDir, BrickStore, PhantomParams) {
+    let p = PhantomParams::with_size(24, 3);
+    let (d, s) = store_of(&mut Phantom::new(p.clone(), PhantomChannel::Image), 16);
+    (d, s, p)
+}
+
+fn err_text(r: Result<neuvolex_classify::Classified, ClassifyError>) -> String {
+    match r {
+        Ok(_) => panic!("expected an error"),
+        Err(e) => e.to_string(),
+    }
+}
+
+#[test]
+fn bad_scribbles_give_clear_errors() {
+    let (_d, store, _) = phantom_store();
+    let dims = store.info().dims;
+    let c = cfg(5);
+    // No labelled voxels.
+    let empty = Scribbles {
+        dims,
+        voxels: vec![],
+    };
+    assert!(err_text(run(&store, "local", &empty, &c)).contains("no voxel"));
+    // One class only.
+    let one = Scribbles {
+        dims,
+        voxels: vec![(10, 1), (11, 1)],
+    };
+    let e = err_text(run(&store, "local", &one, &c));
+    assert!(e.contains("one class only"), "{e}");
+    // A grid mismatch.
+    let off = Scribbles {
+        dims: [dims[0] + 1, dims[1], dims[2]],
+        voxels: vec![(10, 1), (11, 255)],
+    };
+    let e = err_text(run(&store, "local", &off, &c));
+    assert!(e.contains("grid"), "{e}");
+    // INR features without a trained model.
+    let two = Scribbles {
+        dims,
+        voxels: vec![(10, 1), (11, 255)],
+    };
+    let e = err_text(run(&store, "paper", &two, &c));
+    assert!(e.contains("need a trained INR"), "{e}");
+    assert!("local+bogus".parse::<FeatureSet>().is_err());
+    assert!("local+local".parse::<FeatureSet>().is_err());
+}
+
+#[test]
+fn bad_scribble_files_and_class_tables_give_clear_errors() {
+    let (d, store, _) = phantom_store();
+    let meta = store.meta();
+    // Strokes outside the grid.
+    let sp = d.path().join("strokes.json");
+    std::fs::write(
+        &sp,
+        r#"[{"class": 1, "axis": "z", "slice": 999, "points": [[1, 1], [5, 5]], "radius": 1}]"#,
+    )
+    .unwrap();
+    let e = load_scribbles(&sp, &meta).unwrap_err().to_string();
+    assert!(e.contains("strokes.json") && e.contains("slice 999"), "{e}");
+    // Malformed strokes.
+    std::fs::write(&sp, r#"[{"class": "bone"}]"#).unwrap();
+    let e = load_scribbles(&sp, &meta).unwrap_err().to_string();
+    assert!(e.contains("not a stroke list"), "{e}");
+    // Good strokes round-trip.
+    std::fs::write(
+        &sp,
+        r#"[{"class": 1, "axis": "z", "slice": 3, "points": [[4, 4], [8, 8]], "radius": 1},
+            {"class": 255, "axis": "x", "slice": 2, "points": [[1, 1], [1, 6]], "radius": 0}]"#,
+    )
+    .unwrap();
+    let s = load_scribbles(&sp, &meta).unwrap();
+    assert_eq!(s.counts().len(), 2);
+    // A scribble volume on another grid.
+    let np = d.path().join("wrong.nii");
+    neuvolex_tests::write_nifti_values(
+        &np,
+        [meta.dims[0], meta.dims[1], meta.dims[2] + 2],
+        neuvolex_bricks::DType::U8,
+        &vec![0.0; meta.dims[0] * meta.dims[1] * (meta.dims[2] + 2)],
+        None,
+    );
+    let e = load_scribbles(&np, &meta).unwrap_err().to_string();
+    assert!(e.contains("wrong.nii") && e.contains("dims"), "{e}");
+    // Non-integer scribble labels.
+    let n: usize = meta.dims.iter().product();
+    let mut v = vec![0.0; n];
+    v[7] = 1.5;
+    let fp = d.path().join("frac.nii");
+    let mut vol = MemVolume::from_f64(meta.dims, neuvolex_bricks::DType::F32, &v);
+    vol.meta.spacing = meta.spacing;
+    neuvolex_bricks::nifti::write_nifti(&fp, &mut vol, 8).unwrap();
+    let e = load_scribbles(&fp, &meta).unwrap_err().to_string();
+    assert!(e.contains("frac.nii") && e.contains("1.5"), "{e}");
+    // Class ids missing from the class table.
+    let tp = d.path().join("classes.json");
+    std::fs::write(
+        &tp,
+        r#"{"classes": [{"id": 1, "name": "bone", "color": [255, 255, 255]}], "background": 255}"#,
+    )
+    .unwrap();
+    let t = ClassTable::load(&tp).unwrap();
+    assert!(t.check(&[1, 255]).is_ok());
+    let e = t.check(&[1, 3, 255]).unwrap_err().to_string();
+    assert!(e.contains("[3]"), "{e}");
+    for bad in [
+        "{",
+        r#"{"classes": [{"id": 1, "name": "a", "color": [1, 2, 3]}, {"id": 1, "name": "b", "color": [1, 2, 3]}]}"#,
+        r#"{"classes": [{"id": 255, "name": "a", "color": [1, 2, 3]}]}"#,
+    ] {
+        std::fs::write(&tp, bad).unwrap();
+        let e = ClassTable::load(&tp).unwrap_err().to_string();
+        assert!(e.contains("classes.json"), "{e}");
+    }
+}
+
+#[test]
+fn features_missing_for_a_brick_is_an_error_naming_it() {
+    let (_d, store, p) = phantom_store();
+    let inr = InrConfig {
+        levels: 4,
+        log2_table: 12,
+        ..Default::default()
+    };
+    let tc = TrainConfig {
+        batch: 1024,
+        budget: Budget {
+            samples: Some(4096),
+            ..Default::default()
+        },
+        preview_every: 0,
+        checkpoint_every: 0,
+        ..TrainConfig::default()
+    };
+    let m = Arc::new(
+        train(
+            &store,
+            &inr,
+            &tc,
+            None,
+            None,
+            &AtomicBool::new(false),
+            &mut |_| {},
+        )
+        .unwrap()
+        .model,
+    );
+    write_features(&store, &m, FeatureKind::Hidden, true, &mut |_| {}).unwrap();
+    // Remove one brick's chunk.
+    let dir = store.root().join("neuvolex/vectors/inr_hidden");
+    let chunk = walk(&dir)
+        .into_iter()
+        .find(|p| p.file_name().is_some_and(|n| n != "zarr.json"))
+        .expect("a chunk file");
+    std::fs::remove_file(&chunk).unwrap();
+    let (_, scr) = simulate(
+        &mut Phantom::new(p, PhantomChannel::Labels),
+        &SimConfig::default(),
+    )
+    .unwrap();
+    let fx = BrickFeatures::new(&store, "paper".parse().unwrap(), Some(m), true).unwrap();
+    let e = store
+        .bricks()
+        .map(|b| fx.brick(&b))
+        .find_map(|r| r.err())
+        .expect("a brick without features")
+        .to_string();
+    assert!(e.contains("inr_hidden") && e.contains("brick"), "{e}");
+    let _ = training_set(&fx, &scr, 255);
+}
+
+fn walk(d: &std::path::Path) -> Vec<std::path::PathBuf> {
+    let mut out = Vec::new();
+    if let Ok(rd) = std::fs::read_dir(d) {
+        for e in rd.flatten() {
+            let p = e.path();
+            if p.is_dir() {
+                out.extend(walk(&p));
+            } else {
+                out.push(p);
+            }
+        }
+    }
+    out
+}
+
+#[test]
+fn extreme_volumes_classify_without_nan() {
+    // Constant, huge-range and tiny-range volumes: features stay finite, classification runs.
+    let dims = [20, 18, 16];
+    let n: usize = dims.iter().product();
+    for (i, scale) in [0.0f32, 1e30, 1e-30].into_iter().enumerate() {
+        let v: Vec<f32> = (0..n)
+            .map(|k| {
+                if scale == 0.0 {
+                    5.0
+                } else {
+                    scale * ((k % 97) as f32 - 40.0)
+                }
+            })
+            .collect();
+        let (_d, store) = store_of(&mut MemVolume::from_f32(dims, &v), 8);
+        let scr = Scribbles {
+            dims,
+            voxels: vec![(100, 1), (101, 1), (2000, 255), (2001, 255), (4000, 2)],
+        };
+        for set in ["intensity", "local", "filters"] {
+            let c = ClassifyConfig {
+                skip_empty: false,
+                ..cfg(5)
+            };
+            let r = run(&store, set, &scr, &c).unwrap_or_else(|e| panic!("case {i} {set}: {e}"));
+            assert_eq!(r.labels.len(), n);
+        }
+    }
+}
