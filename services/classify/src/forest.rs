@@ -97,11 +97,20 @@ struct Node {
     right: u32,
 }
 
+/// A node as prediction walks it: go to `left` when `x[feature] <= threshold`, else to
+/// `left + 1` (children are adjacent). Leaves loop to themselves with an infinite threshold.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+struct Flat {
+    threshold: f32,
+    feature: u32,
+    left: u32,
+}
+
 /// One tree in flat arrays. For prediction, leaves are made self-loops (`feature 0 <= +inf`
 /// leads back to themselves), so rows can walk a fixed `depth` steps without branching.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 struct Tree {
-    nodes: Vec<Node>,
+    nodes: Vec<Flat>,
     /// `leaves x classes` class fractions.
     probs: Vec<f32>,
     /// Leaf index of every node (`LEAF` for split nodes).
@@ -301,6 +310,17 @@ impl Builder<'_> {
                 };
             }
         }
+        let nodes = nodes
+            .iter()
+            .map(|n| {
+                debug_assert!(n.right == n.left + 1 || n.threshold == f32::INFINITY);
+                Flat {
+                    threshold: n.threshold,
+                    feature: n.feature,
+                    left: n.left,
+                }
+            })
+            .collect();
         Tree {
             nodes,
             probs,
@@ -442,17 +462,21 @@ impl Forest {
                         let mut at = [0u32; LANES];
                         // Walk all lanes in lockstep (independent loads overlap, no branches), and
                         // stop early once every lane sits on a (self-looping) leaf.
+                        let rows = &xb[r0 * d..(r0 + lanes) * d];
                         let mut step = 0;
                         while step < t.depth {
+                            let mut live = false;
                             for _ in 0..4 {
-                                for (l, a) in at.iter_mut().enumerate().take(lanes) {
+                                live = false;
+                                for (a, row) in at.iter_mut().zip(rows.chunks_exact(d)) {
                                     let nd = t.nodes[*a as usize];
-                                    let v = xb[(r0 + l) * d + nd.feature as usize];
-                                    *a = if v <= nd.threshold { nd.left } else { nd.right };
+                                    let v = row[nd.feature as usize];
+                                    *a = nd.left + (v > nd.threshold) as u32;
+                                    live |= nd.threshold != f32::INFINITY;
                                 }
                             }
                             step += 4;
-                            if at[..lanes].iter().all(|&a| t.leaf_of[a as usize] != LEAF) {
+                            if !live {
                                 break;
                             }
                         }
@@ -584,6 +608,54 @@ mod tests {
         for row in f.predict_proba(&xt).unwrap().chunks(2) {
             assert!((row[0] + row[1] - 1.0).abs() < 1e-5);
         }
+    }
+
+    /// Walks one row through one tree node by node.
+    fn naive(t: &Tree, row: &[f32]) -> usize {
+        let mut a = 0usize;
+        while t.leaf_of[a] == LEAF {
+            let n = t.nodes[a];
+            a = if row[n.feature as usize] <= n.threshold {
+                n.left as usize
+            } else {
+                n.left as usize + 1
+            };
+        }
+        t.leaf_of[a] as usize
+    }
+
+    #[test]
+    fn lockstep_prediction_equals_a_naive_walk_and_sub_forests_equal_small_ones() {
+        let (n, d, c) = (700, 6, 3);
+        let x: Vec<f32> = (0..n * d)
+            .map(|i| ((i * 2654435761usize) % 1000) as f32 / 100.0)
+            .collect();
+        let y: Vec<u16> = (0..n)
+            .map(|r| ((x[r * d] + x[r * d + 1] * 0.5) as u16 % c as u16))
+            .collect();
+        let data = Dataset {
+            x: &x,
+            y: &y,
+            d,
+            classes: c,
+        };
+        let f = Forest::fit(data, &cfg(12)).unwrap();
+        let p = f.predict_proba(&x).unwrap();
+        for r in 0..n {
+            let row = &x[r * d..(r + 1) * d];
+            let mut want = vec![0.0f32; c];
+            for t in &f.trees {
+                let l = naive(t, row);
+                for k in 0..c {
+                    want[k] += t.probs[l * c + k] / 12.0;
+                }
+            }
+            for k in 0..c {
+                assert!((p[r * c + k] - want[k]).abs() < 1e-5, "row {r}");
+            }
+        }
+        // The first k trees of a forest are the forest trained with k trees.
+        assert_eq!(f.truncated(5), Forest::fit(data, &cfg(5)).unwrap());
     }
 
     #[test]
