@@ -344,10 +344,21 @@ pub fn simulate(
         let mut classes: Vec<u32> = v.iter().map(|&x| x as u32).collect();
         classes.sort_unstable();
         classes.dedup();
+        // A user scribbles every ROI visible on the slice: thin structures (vessels) that
+        // vanish under the full erosion are eroded less, never below the brush radius, so
+        // every scribbled voxel stays inside its class.
+        let min_erosion = (cfg.radius.ceil() as usize).min(cfg.erosion);
         for c in classes {
             let mask: Vec<bool> = v.iter().map(|&x| x as u32 == c).collect();
-            let er = erode(&mask, w, h, cfg.erosion);
-            let inside: Vec<usize> = (0..w * h).filter(|&i| er[i]).collect();
+            let (er, inside) = (min_erosion..=cfg.erosion)
+                .rev()
+                .map(|e| {
+                    let er = erode(&mask, w, h, e);
+                    let inside: Vec<usize> = (0..w * h).filter(|&i| er[i]).collect();
+                    (er, inside)
+                })
+                .find(|(_, inside)| !inside.is_empty())
+                .unwrap_or_default();
             if inside.is_empty() {
                 continue;
             }
@@ -356,10 +367,8 @@ pub fn simulate(
             for _ in 0..n_strokes {
                 let start = inside[rng.below(inside.len())];
                 let (sx, sy) = ((start % w) as f32, (start / w) as f32);
-                let ang = rng.f32() * std::f32::consts::TAU;
-                let (dx, dy) = (ang.cos(), ang.sin());
                 let max_len = (0.5 * (inside.len() as f32).sqrt()).clamp(3.0, 60.0);
-                let walk = |sign: f32| {
+                let walk = |sign: f32, dx: f32, dy: f32| {
                     let mut t = 0.0;
                     while t < max_len {
                         let (x, y) = (sx + sign * (t + 1.0) * dx, sy + sign * (t + 1.0) * dy);
@@ -376,7 +385,16 @@ pub fn simulate(
                     }
                     t
                 };
-                let (a, b) = (walk(-1.0), walk(1.0));
+                // A user strokes along the structure: of 8 random directions, the longest.
+                let (mut dx, mut dy, mut a, mut b) = (1.0, 0.0, -1.0, -1.0);
+                for _ in 0..8 {
+                    let ang = rng.f32() * std::f32::consts::TAU;
+                    let (cx, cy) = (ang.cos(), ang.sin());
+                    let (ca, cb) = (walk(-1.0, cx, cy), walk(1.0, cx, cy));
+                    if ca + cb > a + b {
+                        (dx, dy, a, b) = (cx, cy, ca, cb);
+                    }
+                }
                 let p0 = [(sx - a * dx).round(), (sy - a * dy).round()];
                 let p1 = [(sx + b * dx).round(), (sy + b * dy).round()];
                 strokes.push(Stroke {
