@@ -66,10 +66,10 @@ fn run(
 #[test]
 fn phantom_classification_is_accurate_and_deterministic() {
     let p = PhantomParams::with_size(64, 1);
-    let (_d, store) = store_of(&mut Phantom::new(p.clone(), PhantomChannel::Image), 16);
-    let truth = truth_of(&mut Phantom::new(p.clone(), PhantomChannel::Labels));
+    let (_d, store) = store_of(&mut Phantom::new(p, PhantomChannel::Image), 16);
+    let truth = truth_of(&mut Phantom::new(p, PhantomChannel::Labels));
     let (_, scr) = simulate(
-        &mut Phantom::new(p.clone(), PhantomChannel::Labels),
+        &mut Phantom::new(p, PhantomChannel::Labels),
         &SimConfig {
             level: Level::S4,
             ..Default::default()
@@ -117,7 +117,7 @@ fn phantom_classification_is_accurate_and_deterministic() {
 #[test]
 fn learned_features_classify_and_stored_equal_on_demand() {
     let p = PhantomParams::with_size(48, 2);
-    let (_d, store) = store_of(&mut Phantom::new(p.clone(), PhantomChannel::Image), 16);
+    let (_d, store) = store_of(&mut Phantom::new(p, PhantomChannel::Image), 16);
     let inr = InrConfig {
         levels: 8,
         log2_table: 14,
@@ -145,7 +145,7 @@ fn learned_features_classify_and_stored_equal_on_demand() {
     .unwrap()
     .model;
     let (_, scr) = simulate(
-        &mut Phantom::new(p.clone(), PhantomChannel::Labels),
+        &mut Phantom::new(p, PhantomChannel::Labels),
         &SimConfig {
             level: Level::S4,
             ..Default::default()
@@ -162,7 +162,7 @@ fn learned_features_classify_and_stored_equal_on_demand() {
     assert!(ts.x.iter().all(|v| v.is_finite()));
     let f = fit(&ts, &c.forest).unwrap();
     let a = classify_volume(&fx, &f, &ts, &c, None, &|_| {}).unwrap();
-    let truth = truth_of(&mut Phantom::new(p.clone(), PhantomChannel::Labels));
+    let truth = truth_of(&mut Phantom::new(p, PhantomChannel::Labels));
     let f1 = f1_scores(&a.labels, &truth, &[1, 5]);
     eprintln!("phantom inr S4: {f1:?}");
     assert!(f1[0].f1 > 0.4 && f1[1].f1 > 0.5, "{f1:?}");
@@ -211,7 +211,7 @@ fn real_abdomen_ct_local_features_find_bone_and_kidneys() {
 
 fn phantom_store() -> (tempfile::TempDir, BrickStore, PhantomParams) {
     let p = PhantomParams::with_size(24, 3);
-    let (d, s) = store_of(&mut Phantom::new(p.clone(), PhantomChannel::Image), 16);
+    let (d, s) = store_of(&mut Phantom::new(p, PhantomChannel::Image), 16);
     (d, s, p)
 }
 

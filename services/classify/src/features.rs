@@ -136,7 +136,11 @@ impl Quantise {
         }
         for k in 0..d {
             if !(lo[k].is_finite() && hi[k] > lo[k]) {
-                lo[k] = lo[k].min(0.0).max(f32::MIN);
+                lo[k] = if lo[k].is_finite() {
+                    lo[k].min(0.0)
+                } else {
+                    0.0
+                };
                 hi[k] = lo[k] + 1.0;
             }
         }

@@ -631,7 +631,7 @@ mod tests {
             .map(|i| ((i * 2654435761usize) % 1000) as f32 / 100.0)
             .collect();
         let y: Vec<u16> = (0..n)
-            .map(|r| ((x[r * d] + x[r * d + 1] * 0.5) as u16 % c as u16))
+            .map(|r| (x[r * d] + x[r * d + 1] * 0.5) as u16 % c as u16)
             .collect();
         let data = Dataset {
             x: &x,
@@ -646,8 +646,8 @@ mod tests {
             let mut want = vec![0.0f32; c];
             for t in &f.trees {
                 let l = naive(t, row);
-                for k in 0..c {
-                    want[k] += t.probs[l * c + k] / 12.0;
+                for (w, p) in want.iter_mut().zip(&t.probs[l * c..(l + 1) * c]) {
+                    *w += p / 12.0;
                 }
             }
             for k in 0..c {

@@ -336,7 +336,7 @@ pub fn classify_volume(
     forest: &Forest,
     ts: &TrainingSet,
     cfg: &ClassifyConfig,
-    mut proba: Option<&mut VectorArray>,
+    proba: Option<&mut VectorArray>,
     progress: &(dyn Fn(u64) + Sync),
 ) -> Result<Classified, ClassifyError> {
     let t0 = Instant::now();
@@ -407,7 +407,7 @@ pub fn classify_volume(
             progress(done.fetch_add(1, Ordering::Relaxed) + 1);
             Ok(())
         })?;
-    if let Some(va) = proba.as_deref_mut() {
+    if let Some(va) = proba {
         va.finish()?;
     }
     let skipped = skipped.into_inner() as usize;

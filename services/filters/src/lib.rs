@@ -252,7 +252,7 @@ pub fn sym_eigen3(a: [f64; 6]) -> [f64; 3] {
     let q = (a11 + a22 + a33) / 3.0;
     let p2 = (a11 - q).powi(2) + (a22 - q).powi(2) + (a33 - q).powi(2) + 2.0 * p1;
     let p = (p2 / 6.0).sqrt();
-    if !(p > 1e-300) || !p.is_finite() {
+    if p.is_nan() || p <= 1e-300 || !p.is_finite() {
         return [q, q, q];
     }
     if p1 == 0.0 {
