@@ -2,7 +2,7 @@
 //! against ground truth), determinism, and every bad input the issue lists.
 
 use neuvolex_bricks::synth::{Phantom, PhantomChannel, PhantomParams};
-use neuvolex_bricks::{ingest, BrickStore, IngestOptions, MemVolume, VolumeSource};
+use neuvolex_bricks::{BrickStore, MemVolume, VolumeSource};
 use neuvolex_classify::features::Quantise;
 use neuvolex_classify::{
     classify_volume, f1_scores, fit, load_scribbles, simulate, training_set, BrickFeatures,
@@ -11,26 +11,9 @@ use neuvolex_classify::{
 };
 use neuvolex_features::extract::write_features;
 use neuvolex_features::{train, Budget, FeatureKind, InrConfig, TrainConfig};
-use neuvolex_tests::{shared, tmp};
+use neuvolex_tests::{shared, store_of};
 use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
-
-fn store_of(vol: &mut dyn VolumeSource, brick: usize) -> (tempfile::TempDir, BrickStore) {
-    let d = tmp();
-    let p = d.path().join("s.zarr");
-    ingest(
-        vol,
-        &p,
-        &IngestOptions {
-            brick,
-            ..Default::default()
-        },
-        &mut |_| {},
-    )
-    .unwrap();
-    let s = BrickStore::open(&p).unwrap();
-    (d, s)
-}
 
 fn truth_of(src: &mut dyn VolumeSource) -> Vec<u32> {
     MemVolume::read_all(src)

@@ -78,3 +78,24 @@ pub fn write_nifti_values(
     vol.meta.scaling = scaling;
     neuvolex_bricks::nifti::write_nifti(path, &mut vol, 7).expect("write nifti");
 }
+
+/// Ingests `vol` into a fresh temporary store with `brick`-sized bricks.
+pub fn store_of(
+    vol: &mut dyn neuvolex_bricks::VolumeSource,
+    brick: usize,
+) -> (tempfile::TempDir, neuvolex_bricks::BrickStore) {
+    let d = tmp();
+    let p = d.path().join("s.zarr");
+    neuvolex_bricks::ingest(
+        vol,
+        &p,
+        &neuvolex_bricks::IngestOptions {
+            brick,
+            ..Default::default()
+        },
+        &mut |_| {},
+    )
+    .expect("ingest");
+    let s = neuvolex_bricks::BrickStore::open(&p).expect("open store");
+    (d, s)
+}

@@ -2,32 +2,15 @@
 //! numerical extremes, the feature cache, and bad checkpoints/configurations.
 
 use neuvolex_bricks::synth::{Phantom, PhantomChannel, PhantomParams};
-use neuvolex_bricks::{ingest, BrickStore, IngestOptions, MemVolume, VolumeSource};
+use neuvolex_bricks::{ingest, BrickStore, IngestOptions, MemVolume};
 use neuvolex_features::checkpoint::{self, Loaded};
 use neuvolex_features::extract::{extract_brick, write_features, FeatureCache, FeatureSource};
 use neuvolex_features::{
     train, Ablation, Budget, FeatureError, FeatureKind, InrConfig, TrainConfig, TrainEvent,
 };
-use neuvolex_tests::{blobs, shared, tmp};
+use neuvolex_tests::{blobs, shared, store_of, tmp};
 use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
-
-fn store_of(vol: &mut dyn VolumeSource, brick: usize) -> (tempfile::TempDir, BrickStore) {
-    let d = tmp();
-    let p = d.path().join("s.zarr");
-    ingest(
-        vol,
-        &p,
-        &IngestOptions {
-            brick,
-            ..Default::default()
-        },
-        &mut |_| {},
-    )
-    .unwrap();
-    let s = BrickStore::open(&p).unwrap();
-    (d, s)
-}
 
 fn small_inr() -> InrConfig {
     InrConfig {

@@ -303,13 +303,7 @@ impl<'s> BrickFeatures<'s> {
                     )?,
                 },
                 Component::Xyz => {
-                    let p = |i: usize, d: usize| {
-                        if d <= 1 {
-                            0.0
-                        } else {
-                            i as f32 / (d - 1) as f32
-                        }
-                    };
+                    let p = neuvolex_filters::pos;
                     let mut v = Vec::with_capacity(n * 3);
                     for z in 0..b.size[2] {
                         for y in 0..b.size[1] {

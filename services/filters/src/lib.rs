@@ -112,7 +112,7 @@ impl std::str::FromStr for Classic {
 
 /// Normalised position of voxel `i` along an axis of `n` voxels, in `[0, 1]`.
 #[inline]
-fn pos(i: usize, n: usize) -> f32 {
+pub fn pos(i: usize, n: usize) -> f32 {
     if n <= 1 {
         0.0
     } else {
