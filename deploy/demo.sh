@@ -15,6 +15,10 @@ NV=./target/release/neuvolex
 "$NV" info "$OUT/phantom.zarr"
 "$NV" train "$OUT/phantom.zarr" --preset fast
 "$NV" features "$OUT/phantom.zarr"
+# Scribble (simulated S2) and classify every voxel with the learned + local features.
+rm -f "$OUT/phantom_scribbles.nii.gz" "$OUT/phantom_scribbles.strokes.json"
+"$NV" scribble-sim "$OUT/phantom_labels.nii.gz" --level S2 --seed 0 --out "$OUT/phantom_scribbles.nii.gz"
+"$NV" classify "$OUT/phantom.zarr" --scribbles "$OUT/phantom_scribbles.nii.gz" --classes "$OUT/phantom_classes.json" --trees 100 --out "$OUT/phantom_classified.nii.gz" --force
 
 DATA=../shared/data
 if [ -d "$DATA" ]; then
