@@ -101,32 +101,7 @@ fn phantom_classification_is_accurate_and_deterministic() {
 fn learned_features_classify_and_stored_equal_on_demand() {
     let p = PhantomParams::with_size(48, 2);
     let (_d, store) = store_of(&mut Phantom::new(p, PhantomChannel::Image), 16);
-    let inr = InrConfig {
-        levels: 8,
-        log2_table: 14,
-        ..Default::default()
-    };
-    let tc = TrainConfig {
-        batch: 2048,
-        budget: Budget {
-            samples: Some(60_000),
-            ..Default::default()
-        },
-        preview_every: 0,
-        checkpoint_every: 0,
-        ..TrainConfig::default()
-    };
-    let model = train(
-        &store,
-        &inr,
-        &tc,
-        None,
-        None,
-        &AtomicBool::new(false),
-        &mut |_| {},
-    )
-    .unwrap()
-    .model;
+    let m = small_model(&store, 8, 14, 2048, 60_000);
     let (_, scr) = simulate(
         &mut Phantom::new(p, PhantomChannel::Labels),
         &SimConfig {
@@ -138,7 +113,6 @@ fn learned_features_classify_and_stored_equal_on_demand() {
     eprintln!("scribbled {:?}", scr.counts());
     let c = cfg(20);
     let set: FeatureSet = "inr".parse().unwrap();
-    let m = Arc::new(model);
     let fx = BrickFeatures::new(&store, set.clone(), Some(m.clone()), false).unwrap();
     let ts = training_set(&fx, &scr, 255).unwrap();
     assert_eq!(ts.d, fx.channels());
@@ -190,6 +164,41 @@ fn real_abdomen_ct_local_features_find_bone_and_kidneys() {
     eprintln!("abdomen_ct local S4, 50 trees: {f1:?} mean {mean:.3}");
     assert!(f1[0].f1 > 0.65, "bone F1 {}", f1[0].f1);
     assert!(mean > 0.4, "mean F1 {mean}");
+}
+
+/// Trains a small INR on `store` for `samples` samples.
+fn small_model(
+    store: &BrickStore,
+    levels: usize,
+    log2_table: u32,
+    batch: usize,
+    samples: u64,
+) -> Arc<neuvolex_features::InrModel> {
+    let inr = InrConfig {
+        levels,
+        log2_table,
+        ..Default::default()
+    };
+    let tc = TrainConfig {
+        batch,
+        budget: Budget {
+            samples: Some(samples),
+            ..Default::default()
+        },
+        preview_every: 0,
+        checkpoint_every: 0,
+        ..TrainConfig::default()
+    };
+    let t = train(
+        store,
+        &inr,
+        &tc,
+        None,
+        None,
+        &AtomicBool::new(false),
+        &mut |_| {},
+    );
+    Arc::new(t.expect("train").model)
 }
 
 fn phantom_store() -> (tempfile::TempDir, BrickStore, PhantomParams) {
@@ -313,34 +322,7 @@ fn bad_scribble_files_and_class_tables_give_clear_errors() {
 #[test]
 fn features_missing_for_a_brick_is_an_error_naming_it() {
     let (_d, store, p) = phantom_store();
-    let inr = InrConfig {
-        levels: 4,
-        log2_table: 12,
-        ..Default::default()
-    };
-    let tc = TrainConfig {
-        batch: 1024,
-        budget: Budget {
-            samples: Some(4096),
-            ..Default::default()
-        },
-        preview_every: 0,
-        checkpoint_every: 0,
-        ..TrainConfig::default()
-    };
-    let m = Arc::new(
-        train(
-            &store,
-            &inr,
-            &tc,
-            None,
-            None,
-            &AtomicBool::new(false),
-            &mut |_| {},
-        )
-        .unwrap()
-        .model,
-    );
+    let m = small_model(&store, 4, 12, 1024, 4096);
     write_features(&store, &m, FeatureKind::Hidden, true, &mut |_| {}).unwrap();
     // Remove one brick's chunk.
     let dir = store.root().join("neuvolex/vectors/inr_hidden");

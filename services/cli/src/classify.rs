@@ -73,20 +73,28 @@ impl ForestArgs {
     }
 }
 
-fn bar(quiet: bool, len: u64, what: &str) -> ProgressBar {
+/// A progress bar with `template` (hidden when quiet).
+fn styled_bar(quiet: bool, len: u64, template: &str) -> ProgressBar {
     let b = if quiet {
         ProgressBar::hidden()
     } else {
         ProgressBar::new(len)
     };
     b.set_style(
-        ProgressStyle::with_template(&format!(
-            "{what:>10} [{{bar:40}}] {{pos}}/{{len}} bricks {{elapsed}} eta {{eta}}"
-        ))
-        .unwrap_or_else(|_| ProgressStyle::default_bar())
-        .progress_chars("=> "),
+        ProgressStyle::with_template(template)
+            .unwrap_or_else(|_| ProgressStyle::default_bar())
+            .progress_chars("=> "),
     );
     b
+}
+
+/// A progress bar over bricks.
+fn bar(quiet: bool, len: u64, what: &str) -> ProgressBar {
+    styled_bar(
+        quiet,
+        len,
+        &format!("{what:>10} [{{bar:40}}] {{pos}}/{{len}} bricks {{elapsed}} eta {{eta}}"),
+    )
 }
 
 fn load_model(store: &BrickStore) -> Result<Option<Arc<InrModel>>> {
@@ -427,15 +435,10 @@ fn eval_model(
         seconds: None,
     };
     let cancel = std::sync::atomic::AtomicBool::new(false);
-    let pb = if quiet {
-        ProgressBar::hidden()
-    } else {
-        ProgressBar::new(0)
-    };
-    pb.set_style(
-        ProgressStyle::with_template("     train [{bar:40}] {pos}/{len} samples {msg} eta {eta}")
-            .unwrap_or_else(|_| ProgressStyle::default_bar())
-            .progress_chars("=> "),
+    let pb = styled_bar(
+        quiet,
+        0,
+        "     train [{bar:40}] {pos}/{len} samples {msg} eta {eta}",
     );
     let t = Instant::now();
     let tr = train(store, &inr, &cfg, None, None, &cancel, &mut |e| match e {
@@ -689,23 +692,35 @@ fn level_name(l: Level) -> String {
     format!("S{}", l as usize + 1)
 }
 
+/// A configuration: dataset, method, ablation, epochs, trees, precision.
+type ConfigKey = (String, String, String, String, usize, String);
+
+fn key_of(r: &Row) -> ConfigKey {
+    (
+        r.dataset.clone(),
+        r.method.clone(),
+        r.ablation.clone(),
+        format!("{}", r.epochs),
+        r.trees,
+        r.quantise.clone(),
+    )
+}
+
 /// Prints mean F1 (over classes; mean ± std over seeds) per configuration and level, then the
 /// per-class F1 of each configuration.
 fn print_tables(rows: &[Row], levels: &[Level]) {
-    let mut keys: Vec<(String, String, String, String, usize, String)> = Vec::new();
+    let mut keys: Vec<ConfigKey> = Vec::new();
     for r in rows {
-        let k = (
-            r.dataset.clone(),
-            r.method.clone(),
-            r.ablation.clone(),
-            format!("{}", r.epochs),
-            r.trees,
-            r.quantise.clone(),
-        );
+        let k = key_of(r);
         if !keys.contains(&k) {
             keys.push(k);
         }
     }
+    let of = |k: &ConfigKey, l: &str| -> Vec<&Row> {
+        rows.iter()
+            .filter(|r| &key_of(r) == k && r.level == l)
+            .collect()
+    };
     let lv: Vec<String> = levels.iter().map(|&l| level_name(l)).collect();
     println!(
         "\n| dataset | features | INR | epochs | trees | precision | {} | classify s |",
@@ -713,19 +728,7 @@ fn print_tables(rows: &[Row], levels: &[Level]) {
     );
     println!("|---|---|---|---|---|---|{}---|", "---|".repeat(lv.len()));
     for k in &keys {
-        let sel = |l: &str| -> Vec<&Row> {
-            rows.iter()
-                .filter(|r| {
-                    r.dataset == k.0
-                        && r.method == k.1
-                        && r.ablation == k.2
-                        && format!("{}", r.epochs) == k.3
-                        && r.trees == k.4
-                        && r.quantise == k.5
-                        && r.level == l
-                })
-                .collect()
-        };
+        let sel = |l: &str| of(k, l);
         let cells: Vec<String> = lv
             .iter()
             .map(|l| {
@@ -758,18 +761,7 @@ fn print_tables(rows: &[Row], levels: &[Level]) {
     for k in &keys {
         let mut line = format!("  {} {} {} {}ep {}t {}:", k.0, k.1, k.2, k.3, k.4, k.5);
         for l in &lv {
-            let rs: Vec<&Row> = rows
-                .iter()
-                .filter(|r| {
-                    r.dataset == k.0
-                        && r.method == k.1
-                        && r.ablation == k.2
-                        && format!("{}", r.epochs) == k.3
-                        && r.trees == k.4
-                        && r.quantise == k.5
-                        && &r.level == l
-                })
-                .collect();
+            let rs = of(k, l);
             if rs.is_empty() {
                 continue;
             }
