@@ -23,6 +23,7 @@
 pub mod derived;
 pub mod dtype;
 pub mod error;
+pub mod lru;
 pub mod meta;
 pub mod nifti;
 pub mod nrrd;

@@ -74,7 +74,7 @@ impl ForestArgs {
 }
 
 /// A progress bar with `template` (hidden when quiet).
-fn styled_bar(quiet: bool, len: u64, template: &str) -> ProgressBar {
+pub(crate) fn styled_bar(quiet: bool, len: u64, template: &str) -> ProgressBar {
     let b = if quiet {
         ProgressBar::hidden()
     } else {

@@ -3,6 +3,7 @@
 //! The binary only parses arguments, draws progress and prints; the work is in the library crates.
 
 mod classify;
+mod render;
 
 use anyhow::{bail, Context, Result};
 use clap::{Parser, Subcommand, ValueEnum};
@@ -227,6 +228,8 @@ enum Cmd {
         #[arg(long)]
         force: bool,
     },
+    /// Render a store to PNG: intensity, class probabilities, or labels as probabilities.
+    Render(render::RenderArgs),
     /// Convert any readable volume (including a store or store/labels/NAME) to NIfTI.
     Convert {
         /// Input volume.
@@ -759,6 +762,7 @@ fn main() -> Result<()> {
         Cmd::Train { store, args } => run_train(&store, &args, quiet)?,
         Cmd::Classify(a) => classify::run_classify(&a, quiet)?,
         Cmd::Eval(a) => classify::run_eval(&a, quiet)?,
+        Cmd::Render(a) => render::run_render(&a, quiet)?,
         Cmd::ScribbleSim {
             labels,
             level,
@@ -864,5 +868,41 @@ fn main() -> Result<()> {
             tracing::info!(output = %output.display(), "written");
         }
     }
+    Ok(())
+}
+
+/// Renders on the GPU (this build has no `gpu` feature).
+#[cfg(not(feature = "gpu"))]
+fn gpu_render(
+    _src: neuvolex_render::StoreSource,
+    _p: &neuvolex_render::RenderParams,
+    _luts: &neuvolex_render::Luts,
+    _out: &Path,
+    _bar: &ProgressBar,
+) -> Result<()> {
+    bail!("--gpu needs a build with the gpu feature (cargo build --release --features gpu)")
+}
+
+/// Renders on the GPU and writes the PNG.
+#[cfg(feature = "gpu")]
+fn gpu_render(
+    src: neuvolex_render::StoreSource,
+    p: &neuvolex_render::RenderParams,
+    luts: &neuvolex_render::Luts,
+    out: &Path,
+    bar: &ProgressBar,
+) -> Result<()> {
+    let mut r = neuvolex_render::gpu::GpuRenderer::new(src)?;
+    let img = r.render(p, luts)?;
+    img.save_png(out)?;
+    bar.finish_and_clear();
+    let (load, gpu, all) = r.last_seconds;
+    println!(
+        "{}: {}x{} on {} in {all:.3} s (bricks {load:.3} s, GPU {gpu:.3} s)",
+        out.display(),
+        p.width,
+        p.height,
+        r.adapter()
+    );
     Ok(())
 }

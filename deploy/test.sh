@@ -1,0 +1,18 @@
+#!/usr/bin/env bash
+# The tests: every crate, release mode, with the wgpu renderer compared against the CPU one.
+# The GPU test needs a Vulkan driver; on a machine without a GPU, Mesa's lavapipe (a software
+# Vulkan) serves, so this installs it where it is missing and apt is usable. Without any adapter
+# the GPU test skips (and fails under CI=true).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+if ! ls /usr/share/vulkan/icd.d/*.json >/dev/null 2>&1; then
+  SUDO=""
+  [ "$(id -u)" -ne 0 ] && command -v sudo >/dev/null 2>&1 && SUDO="sudo -n"
+  if command -v apt-get >/dev/null 2>&1; then
+    echo "installing a software Vulkan driver (mesa-vulkan-drivers, libvulkan1) for the GPU tests"
+    $SUDO apt-get install -y -q mesa-vulkan-drivers libvulkan1 >/dev/null 2>&1 ||
+      { $SUDO apt-get update -q >/dev/null 2>&1 && $SUDO apt-get install -y -q mesa-vulkan-drivers libvulkan1 >/dev/null 2>&1; } ||
+      echo "could not install a Vulkan driver: the GPU renderer test will skip"
+  fi
+fi
+exec cargo test --workspace --release --features neuvolex-tests/gpu,neuvolex/gpu "$@"

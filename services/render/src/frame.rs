@@ -1,0 +1,309 @@
+//! The CPU renderer: schedules the pure per-brick march over bricks in visibility order, with a
+//! bounded brick cache, empty-space skipping, progressive passes and re-rendering of only the
+//! pixels that changed bricks affect.
+
+use crate::image::Image;
+use crate::march::{Accum, Frame, RenderParams};
+use crate::source::{BrickSource, RenderBrick, APRON};
+use crate::tf::Luts;
+use crate::Result;
+use neuvolex_bricks::lru::Lru;
+use rayon::prelude::*;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::Arc;
+use std::time::Instant;
+
+/// Bricks loaded in parallel ahead of marching.
+const PREFETCH: usize = 16;
+
+/// What a frame cost.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct RenderStats {
+    /// Bricks in the grid.
+    pub bricks: usize,
+    /// Bricks skipped without loading (off screen, empty by range, or fully occluded).
+    pub skipped_unloaded: usize,
+    /// Bricks loaded but skipped as invisible under the transfer function.
+    pub skipped_empty: usize,
+    /// Bricks marched.
+    pub marched: usize,
+    /// Samples taken.
+    pub samples: u64,
+    /// Pixels rendered.
+    pub pixels: usize,
+    /// Wall-clock seconds.
+    pub seconds: f64,
+}
+
+/// One pass of a progressive render.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Pass {
+    /// 0-based pass number.
+    pub index: usize,
+    /// Passes in all.
+    pub of: usize,
+    /// Resolution divisor of this pass (1 = full).
+    pub divisor: usize,
+    /// Its cost.
+    pub stats: RenderStats,
+}
+
+struct Last {
+    params: RenderParams,
+    luts: Luts,
+    acc: Vec<Accum>,
+}
+
+/// A CPU renderer over a brick source, keeping the last frame for incremental updates.
+pub struct Renderer<S: BrickSource> {
+    source: S,
+    cache: Lru<([usize; 3], bool), Arc<RenderBrick>>,
+    last: Option<Last>,
+    stats: RenderStats,
+}
+
+impl<S: BrickSource> Renderer<S> {
+    /// A renderer caching at most `cache_bytes` of bricks.
+    pub fn new(source: S, cache_bytes: usize) -> Self {
+        Renderer {
+            source,
+            cache: Lru::new(cache_bytes),
+            last: None,
+            stats: RenderStats::default(),
+        }
+    }
+
+    /// The source.
+    pub fn source(&self) -> &S {
+        &self.source
+    }
+
+    /// The source, to change it; follow with [`Self::update_bricks`] for what changed.
+    pub fn source_mut(&mut self) -> &mut S {
+        &mut self.source
+    }
+
+    /// Cost of the last render or update.
+    pub fn stats(&self) -> RenderStats {
+        self.stats
+    }
+
+    /// Renders a frame.
+    pub fn render(&mut self, params: &RenderParams, luts: &Luts) -> Result<Image> {
+        let frame = Frame::new(*params, self.source.geom(), luts)?;
+        let mut acc = vec![[0.0f32; 4]; params.width * params.height];
+        let stats = self.composite(&frame, &mut acc, None)?;
+        let img = finish(&frame, &acc);
+        self.stats = stats;
+        self.last = Some(Last {
+            params: *params,
+            luts: luts.clone(),
+            acc,
+        });
+        Ok(img)
+    }
+
+    /// Renders at `divisors` of the full resolution in turn (e.g. `[4, 2, 1]`), calling
+    /// `on_pass` with each image; coarse passes also step `divisor` times further (at most 2
+    /// voxels). The last pass is kept for [`Self::update_bricks`].
+    pub fn progressive(
+        &mut self,
+        params: &RenderParams,
+        luts: &Luts,
+        divisors: &[usize],
+        mut on_pass: impl FnMut(Pass, &Image),
+    ) -> Result<Image> {
+        let mut out = None;
+        for (n, &d) in divisors.iter().enumerate() {
+            let d = d.max(1);
+            let mut p = *params;
+            p.width = params.width.div_ceil(d);
+            p.height = params.height.div_ceil(d);
+            if d > 1 {
+                p.step = (params.step * d as f32).min(2.0f32.max(params.step));
+            }
+            let img = self.render(&p, luts)?;
+            on_pass(
+                Pass {
+                    index: n,
+                    of: divisors.len(),
+                    divisor: d,
+                    stats: self.stats,
+                },
+                &img,
+            );
+            out = Some(img);
+        }
+        out.ok_or_else(|| crate::RenderError::Param("no progressive passes".into()))
+    }
+
+    /// After the data of `changed` bricks changed (new probabilities, a new scribble), updates
+    /// the last frame by re-rendering only the pixels whose rays read those bricks, and
+    /// returns it (`None` when nothing was rendered yet). The result equals a full render.
+    pub fn update_bricks(&mut self, changed: &[[usize; 3]]) -> Result<Option<Image>> {
+        let g = self.source.geom().grid();
+        let mut stale = Vec::new();
+        for c in changed {
+            if (0..3).any(|k| c[k] >= g[k]) {
+                return Err(crate::RenderError::Input(format!(
+                    "changed brick {c:?} outside the {g:?} grid"
+                )));
+            }
+            // Its voxels sit in the aprons of its neighbours too.
+            for dz in 0..3 {
+                for dy in 0..3 {
+                    for dx in 0..3 {
+                        let n = [
+                            (c[0] + dx).wrapping_sub(1),
+                            (c[1] + dy).wrapping_sub(1),
+                            (c[2] + dz).wrapping_sub(1),
+                        ];
+                        if (0..3).all(|k| n[k] < g[k]) {
+                            stale.push(n);
+                        }
+                    }
+                }
+            }
+        }
+        self.source.invalidate(changed);
+        for n in &stale {
+            self.cache.remove(&(*n, false));
+            self.cache.remove(&(*n, true));
+        }
+        let Some(last) = self.last.take() else {
+            return Ok(None);
+        };
+        let frame = Frame::new(last.params, self.source.geom(), &last.luts)?;
+        let (w, h) = (last.params.width, last.params.height);
+        let mut mask = vec![false; w * h];
+        for c in changed {
+            if let Some(r) = frame.footprint(*c, APRON as f32 + 0.5) {
+                for j in r[2]..r[3] {
+                    mask[j * w + r[0]..j * w + r[1]].fill(true);
+                }
+            }
+        }
+        let mut acc = last.acc;
+        for (a, &m) in acc.iter_mut().zip(&mask) {
+            if m {
+                *a = [0.0; 4];
+            }
+        }
+        let stats = self.composite(&frame, &mut acc, Some(&mask))?;
+        let img = finish(&frame, &acc);
+        self.stats = stats;
+        self.last = Some(Last {
+            params: last.params,
+            luts: last.luts.clone(),
+            acc,
+        });
+        Ok(Some(img))
+    }
+
+    fn load(&self, index: [usize; 3], probs: bool) -> Result<Arc<RenderBrick>> {
+        self.cache.get_or_try_insert(&(index, probs), || {
+            let b = self.source.load(index, probs)?;
+            let cost = b.bytes();
+            Ok((Arc::new(b), cost))
+        })
+    }
+
+    /// Composites every brick, front to back, into `acc` (only masked pixels if a mask is
+    /// given).
+    fn composite(
+        &self,
+        frame: &Frame<'_>,
+        acc: &mut [Accum],
+        mask: Option<&[bool]>,
+    ) -> Result<RenderStats> {
+        let t = Instant::now();
+        let w = frame.params.width;
+        let probs = frame.params.mode.needs_probs();
+        let order = frame.ordered_bricks();
+        let mut stats = RenderStats {
+            bricks: order.len(),
+            pixels: mask.map_or(acc.len(), |m| m.iter().filter(|&&x| x).count()),
+            ..Default::default()
+        };
+        let samples = AtomicU64::new(0);
+        let ert = frame.params.ert;
+        let mut queue: Vec<([usize; 3], [usize; 4])> = Vec::with_capacity(PREFETCH);
+        let mut pending = order.into_iter().peekable();
+        while pending.peek().is_some() {
+            // The next bricks that need loading: on screen, possibly visible, not occluded.
+            queue.clear();
+            for i in pending.by_ref() {
+                let Some(r) = frame.footprint(i, 0.0) else {
+                    stats.skipped_unloaded += 1;
+                    continue;
+                };
+                if let Some(range) = self.source.coarse_range(i) {
+                    if !frame.coarse_visible(range) {
+                        stats.skipped_unloaded += 1;
+                        continue;
+                    }
+                }
+                let open = (r[2]..r[3]).any(|j| {
+                    (r[0]..r[1]).any(|x| {
+                        let p = j * w + x;
+                        acc[p][3] < ert && mask.is_none_or(|m| m[p])
+                    })
+                });
+                if !open {
+                    stats.skipped_unloaded += 1;
+                    continue;
+                }
+                queue.push((i, r));
+                if queue.len() == PREFETCH {
+                    break;
+                }
+            }
+            let loaded: Vec<Result<Arc<RenderBrick>>> = queue
+                .par_iter()
+                .map(|(i, _)| self.load(*i, probs))
+                .collect();
+            for ((_, r), b) in queue.iter().zip(loaded) {
+                let b = b?;
+                if !frame.visible(&b) {
+                    stats.skipped_empty += 1;
+                    continue;
+                }
+                stats.marched += 1;
+                let rows = &mut acc[r[2] * w..r[3] * w];
+                rows.par_chunks_mut(w)
+                    .enumerate()
+                    .with_min_len(4)
+                    .for_each(|(n, row)| {
+                        let j = r[2] + n;
+                        let m = mask.map(|m| &m[j * w..(j + 1) * w]);
+                        let s = frame.march_row(&b, j, r[0], r[1], row, m);
+                        samples.fetch_add(s, Ordering::Relaxed);
+                    });
+            }
+        }
+        stats.samples = samples.into_inner();
+        stats.seconds = t.elapsed().as_secs_f64();
+        tracing::debug!(?stats, "frame");
+        Ok(stats)
+    }
+}
+
+/// Composites the background under the accumulated colour.
+fn finish(frame: &Frame<'_>, acc: &[Accum]) -> Image {
+    let bg = frame.params.background;
+    Image {
+        width: frame.params.width,
+        height: frame.params.height,
+        rgb: acc
+            .iter()
+            .map(|a| {
+                [
+                    a[0] + (1.0 - a[3]) * bg[0],
+                    a[1] + (1.0 - a[3]) * bg[1],
+                    a[2] + (1.0 - a[3]) * bg[2],
+                ]
+            })
+            .collect(),
+        alpha: acc.iter().map(|a| a[3]).collect(),
+    }
+}
