@@ -416,3 +416,79 @@ fn classify_and_eval_on_the_phantom() {
         "unknown dataset",
     );
 }
+
+#[test]
+fn render_writes_pngs_and_rejects_bad_requests() {
+    let d = tempfile::tempdir().unwrap();
+    let p = |n: &str| d.path().join(n).to_string_lossy().into_owned();
+    ok(&[
+        "synth",
+        "phantom",
+        "--out",
+        &p("ph.zarr"),
+        "--size",
+        "40",
+        "--brick",
+        "16",
+    ]);
+    let out = ok(&[
+        "render",
+        &p("ph.zarr"),
+        "--labels",
+        "ground_truth",
+        "--mode",
+        "prob",
+        "--size",
+        "48x40",
+        "--view",
+        "-30,15",
+        "--out",
+        &p("a.png"),
+    ]);
+    assert!(out.contains("48x40 Probabilistic"), "{out}");
+    let png = std::fs::read(p("a.png")).unwrap();
+    assert_eq!(&png[1..4], b"PNG");
+    ok(&[
+        "render",
+        &p("ph.zarr"),
+        "--tf",
+        "preset:ct-bone",
+        "--size",
+        "32",
+        "--ortho",
+        "--progressive",
+        "--out",
+        &p("b.png"),
+    ]);
+    assert!(Path::new(&p("b-pass0.png")).exists(), "coarse pass written");
+    std::fs::write(p("bad.json"), r#"{"intensity":{"opacity":[[1,0],[0,1]]}}"#).unwrap();
+    let store = p("ph.zarr");
+    let o = p("c.png");
+    for (args, needle) in [
+        (
+            vec!["--tf", &p("bad.json")[..]],
+            "bad.json: intensity.opacity: x values must not decrease",
+        ),
+        (vec!["--tf", "preset:nope"], "no such preset"),
+        (vec!["--size", "0"], "at least 1x1"),
+        (vec!["--size", "100000"], "exceeds 16384"),
+        (vec!["--size", "big"], "expected N or WxH"),
+        (vec!["--view", "10"], "expected AZ,EL"),
+        (vec!["--view", "0,95"], "elevation 95"),
+        (vec!["--step", "0"], "step 0"),
+        (vec!["--mode", "prob"], "needs --probs"),
+        (
+            vec!["--mode", "fancy"],
+            "must be intensity, prob or prob-intensity",
+        ),
+        (vec!["--labels", "nope"], "no label image 'nope'"),
+        (vec!["--probs"], "classes_proba"),
+    ] {
+        let mut a = vec!["render", &store[..], "--out", &o[..]];
+        a.extend(args);
+        fails(&a, needle);
+    }
+    fails(&["render", &store, "--out", &p("c.jpg")], "must be a .png");
+    fails(&["render", &p("missing.zarr"), "--out", &o], "missing.zarr");
+    assert!(!Path::new(&o).exists(), "no partial output");
+}

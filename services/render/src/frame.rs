@@ -269,6 +269,7 @@ impl<S: BrickSource> Renderer<S> {
                     continue;
                 }
                 stats.marched += 1;
+                let cells = frame.cell_visibility(&b);
                 let rows = &mut acc[r[2] * w..r[3] * w];
                 rows.par_chunks_mut(w)
                     .enumerate()
@@ -276,7 +277,7 @@ impl<S: BrickSource> Renderer<S> {
                     .for_each(|(n, row)| {
                         let j = r[2] + n;
                         let m = mask.map(|m| &m[j * w..(j + 1) * w]);
-                        let s = frame.march_row(&b, j, r[0], r[1], row, m);
+                        let s = frame.march_row(&b, j, r[0]..r[1], row, m, &cells);
                         samples.fetch_add(s, Ordering::Relaxed);
                     });
             }

@@ -6,7 +6,7 @@
 //! visited; a brick takes the samples inside its box (half-open), so each sample is taken once.
 
 use crate::camera::{dot, Camera, View};
-use crate::source::{RenderBrick, VolumeGeom, APRON};
+use crate::source::{RenderBrick, VolumeGeom, APRON, CELL};
 use crate::tf::Luts;
 use crate::{RenderError, Result};
 use serde::{Deserialize, Serialize};
@@ -333,18 +333,35 @@ impl<'a> Frame<'a> {
 
     /// False when nothing in a loaded brick can be visible (empty-space skipping).
     pub fn visible(&self, b: &RenderBrick) -> bool {
+        self.range_visible(b.range, &b.prob_max)
+    }
+
+    /// Per cell of a brick: whether a sample inside it can be visible.
+    pub fn cell_visibility(&self, b: &RenderBrick) -> Vec<bool> {
+        let ch = b.channels;
+        b.cell_range
+            .iter()
+            .enumerate()
+            .map(|(i, &r)| self.range_visible(r, &b.cell_prob_max[i * ch..(i + 1) * ch]))
+            .collect()
+    }
+
+    /// False when no sample whose voxels span intensity `range` and probabilities at most
+    /// `prob_max` can be visible.
+    pub fn range_visible(&self, range: (f32, f32), prob_max: &[u8]) -> bool {
         let l = self.luts;
+        let b = (range, prob_max);
         match self.params.mode {
-            Mode::Intensity => l.intensity.max_alpha(b.range.0, b.range.1) > 0.0,
-            Mode::Probabilistic => l.classes.iter().zip(&b.prob_max).any(|(c, &m)| {
+            Mode::Intensity => l.intensity.max_alpha(b.0 .0, b.0 .1) > 0.0,
+            Mode::Probabilistic => l.classes.iter().zip(b.1).any(|(c, &m)| {
                 c.as_ref()
                     .is_some_and(|c| m > 0 && c.probability.max_alpha(0.0, m as f32 / 255.0) > 0.0)
             }),
-            Mode::ProbIntensity => l.classes.iter().zip(&b.prob_max).any(|(c, &m)| {
+            Mode::ProbIntensity => l.classes.iter().zip(b.1).any(|(c, &m)| {
                 c.as_ref().is_some_and(|c| {
                     m > 0
                         && m as f32 / 255.0 >= c.tau
-                        && c.intensity.max_alpha(b.range.0, b.range.1) > 0.0
+                        && c.intensity.max_alpha(b.0 .0, b.0 .1) > 0.0
                 })
             }),
         }
@@ -363,22 +380,34 @@ impl<'a> Frame<'a> {
         (t0 < b).then_some((ov, dv, t0, b))
     }
 
-    /// Composites brick `b` into pixels `x0..x1` of image row `j` (`row` is the whole row;
-    /// `mask`, if given, picks the pixels to march). Returns the samples taken.
+    /// Composites brick `b` into pixels `xs` of image row `j` (`row` is the whole row; `mask`,
+    /// if given, picks the pixels to march; `cells` is [`Self::cell_visibility`] of `b`).
+    /// Returns the samples taken.
     pub fn march_row(
         &self,
         b: &RenderBrick,
         j: usize,
-        x0: usize,
-        x1: usize,
+        xs: std::ops::Range<usize>,
         row: &mut [Accum],
         mask: Option<&[bool]>,
+        cells: &[bool],
     ) -> u64 {
         let (lo, hi) = self.brick_bounds(b.index);
+        let (cx, cxy) = (b.cells[0], b.cells[0] * b.cells[1]);
+        let cell_of = |p: [f32; 3]| {
+            // Core coordinates of the sample, rounded to the voxel whose cell owns it.
+            let c = p.map(|v| (v - APRON as f32 + 0.5).max(0.0) as usize / CELL);
+            let c = [
+                c[0].min(b.cells[0] - 1),
+                c[1].min(b.cells[1] - 1),
+                c[2].min(b.cells[2] - 1),
+            ];
+            c[2] * cxy + c[1] * cx + c[0]
+        };
         let base = b.origin.map(|o| o as f32 - APRON as f32);
         let mut samples = 0;
         {
-            for (i, px) in row.iter_mut().enumerate().take(x1).skip(x0) {
+            for (i, px) in row.iter_mut().enumerate().take(xs.end).skip(xs.start) {
                 if px[3] >= self.params.ert || mask.is_some_and(|m| !m[i]) {
                     continue;
                 }
@@ -404,6 +433,9 @@ impl<'a> Frame<'a> {
                         o[2] + d[2] * t - base[2],
                     ];
                     samples += 1;
+                    if !cells[cell_of(p)] {
+                        continue;
+                    }
                     let [cr, cg, cb, a] = self.sample(b, p, light);
                     if a <= 0.0 {
                         continue;

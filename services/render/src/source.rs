@@ -97,7 +97,16 @@ pub struct RenderBrick {
     pub range: (f32, f32),
     /// Largest probability of each channel over the padded voxels, in 1/255.
     pub prob_max: Vec<u8>,
+    /// Cells of `CELL`^3 core voxels per axis.
+    pub cells: [usize; 3],
+    /// Per cell: intensity range over every voxel a sample inside the cell reads.
+    pub cell_range: Vec<(f32, f32)>,
+    /// Per cell and channel: the largest probability a sample inside the cell reads.
+    pub cell_prob_max: Vec<u8>,
 }
+
+/// Edge of the cells inside a brick used for fine empty-space skipping.
+pub const CELL: usize = 8;
 
 impl RenderBrick {
     /// Builds a brick from padded arrays, computing its ranges.
@@ -120,6 +129,40 @@ impl RenderBrick {
                 *m = (*m).max(p);
             }
         }
+        // Per cell, the voxels its samples read: one beyond it on each side (trilinear).
+        let cells = size.map(|s| s.div_ceil(CELL));
+        let ncell = cells.iter().product();
+        let mut cell_range = vec![(f32::MAX, f32::MIN); ncell];
+        let mut cell_prob_max = vec![0u8; ncell * channels];
+        let span = |c: usize, k: usize| {
+            let lo = (c * CELL + APRON).saturating_sub(1);
+            let hi = ((c + 1) * CELL + APRON + 1).min(padded[k] - 1);
+            lo..=hi
+        };
+        for cz in 0..cells[2] {
+            for cy in 0..cells[1] {
+                for cx in 0..cells[0] {
+                    let ci = (cz * cells[1] + cy) * cells[0] + cx;
+                    let (mut a, mut b) = (f32::MAX, f32::MIN);
+                    let pm = &mut cell_prob_max[ci * channels..(ci + 1) * channels];
+                    for z in span(cz, 2) {
+                        for y in span(cy, 1) {
+                            let row = (z * padded[1] + y) * padded[0];
+                            for x in span(cx, 0) {
+                                let v = intensity[row + x];
+                                a = a.min(v);
+                                b = b.max(v);
+                                let q = &probs[(row + x) * channels..(row + x + 1) * channels];
+                                for (m, &p) in pm.iter_mut().zip(q) {
+                                    *m = (*m).max(p);
+                                }
+                            }
+                        }
+                    }
+                    cell_range[ci] = (a, b);
+                }
+            }
+        }
         RenderBrick {
             index,
             origin,
@@ -130,6 +173,9 @@ impl RenderBrick {
             probs,
             range,
             prob_max,
+            cells,
+            cell_range,
+            cell_prob_max,
         }
     }
 
