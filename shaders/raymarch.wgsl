@@ -35,6 +35,8 @@ struct Entry {
     // nominal box lo (xyz) and hi (xyz) in voxel coordinates, clipped to the volume
     lo: vec4<f32>,
     hi: vec4<f32>,
+    // offset of its cell-visibility flags, cells per axis xyz
+    cells: vec4<u32>,
 };
 
 @group(0) @binding(0) var<uniform> P: Params;
@@ -44,6 +46,9 @@ struct Entry {
 @group(0) @binding(4) var<storage, read> luts: array<vec4<f32>>;
 @group(0) @binding(5) var<storage, read> classinfo: array<vec4<f32>>;
 @group(0) @binding(6) var<storage, read_write> acc: array<vec4<f32>>;
+@group(0) @binding(7) var<storage, read> cellvis: array<u32>;
+
+const CELL: u32 = 8u;
 
 fn lut(base: u32, lo: f32, scale: f32, x: f32) -> vec4<f32> {
     let n = P.cfg.w;
@@ -271,9 +276,30 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
         let k0 = u32(max(ceil((ta - t0) / dt - 0.5), 0.0));
         let k1 = u32(max(ceil((te - t0) / dt - 0.5), 0.0));
         let base = vec3<f32>(e.index.xyz * P.geom.x) - vec3<f32>(apron);
-        for (var k = k0; k < k1; k++) {
+        let ol = ov - base;
+        var k = k0;
+        while (k < k1) {
             let t = t0 + (f32(k) + 0.5) * dt;
             let p = ov + dv * t - base;
+            k += 1u;
+            // The sample's 8^3 cell; an invisible one is leapt over, as on the CPU.
+            var cc: vec3<u32>;
+            for (var a = 0u; a < 3u; a++) {
+                cc[a] = min(u32(max(p[a] - apron + 0.5, 0.0)) / CELL, e.cells[a + 1u] - 1u);
+            }
+            let ci = (cc.z * e.cells.z + cc.y) * e.cells.y + cc.x;
+            if (cellvis[e.cells.x + ci] == 0u) {
+                let clo = vec3<f32>(cc * CELL + vec3<u32>(P.geom.y)) - vec3<f32>(0.5);
+                let chi = vec3<f32>((cc + vec3<u32>(1u)) * CELL + vec3<u32>(P.geom.y)) - vec3<f32>(0.5);
+                let tc = slab(ol, dv, clo, chi);
+                if (tc.x < tc.y) {
+                    let next = ceil((tc.y - t0) / dt - 0.5);
+                    if (next > f32(k)) {
+                        k = min(u32(next), k1);
+                    }
+                }
+                continue;
+            }
             let s = sample(e, p, light);
             if (s.w <= 0.0) {
                 continue;

@@ -44,6 +44,7 @@ struct Entry {
     rect: [u32; 4],
     lo: [f32; 4],
     hi: [f32; 4],
+    cells: [u32; 4],
 }
 
 fn v4(v: [f32; 3]) -> [f32; 4] {
@@ -89,7 +90,7 @@ impl<S: BrickSource> GpuRenderer<S> {
         let required = wgpu::Limits {
             max_storage_buffer_binding_size: limits.max_storage_buffer_binding_size,
             max_buffer_size: limits.max_buffer_size,
-            max_storage_buffers_per_shader_stage: 6,
+            max_storage_buffers_per_shader_stage: 7,
             ..wgpu::Limits::downlevel_defaults()
         };
         let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
@@ -132,6 +133,7 @@ impl<S: BrickSource> GpuRenderer<S> {
                 storage(4, true),
                 storage(5, true),
                 storage(6, false),
+                storage(7, true),
             ],
         });
         let pl = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
@@ -369,7 +371,10 @@ impl<S: BrickSource> GpuRenderer<S> {
         let mut ints: Vec<f32> = Vec::new();
         let mut probs: Vec<u8> = Vec::new();
         let mut entries = Vec::with_capacity(batch.len().max(1));
+        let mut cellvis: Vec<u32> = Vec::new();
         for (b, r) in batch {
+            let off = cellvis.len() as u32;
+            cellvis.extend(frame.cell_visibility(b).iter().map(|&v| v as u32));
             let (lo, hi) = frame.brick_bounds(b.index);
             entries.push(Entry {
                 index: [
@@ -387,6 +392,7 @@ impl<S: BrickSource> GpuRenderer<S> {
                 rect: r.map(|v| v as u32),
                 lo: v4(lo),
                 hi: v4(hi),
+                cells: [off, b.cells[0] as u32, b.cells[1] as u32, b.cells[2] as u32],
             });
             ints.extend_from_slice(&b.intensity);
             if ch > 0 {
@@ -401,6 +407,9 @@ impl<S: BrickSource> GpuRenderer<S> {
         }
         if ints.is_empty() {
             ints.push(0.0);
+        }
+        if cellvis.is_empty() {
+            cellvis.push(0);
         }
         probs.resize(probs.len().max(4).div_ceil(4) * 4, 0);
         let dev = &self.device;
@@ -427,6 +436,11 @@ impl<S: BrickSource> GpuRenderer<S> {
             wgpu::BufferUsages::STORAGE,
         );
         let pb = buf("probs", &probs, wgpu::BufferUsages::STORAGE);
+        let cb = buf(
+            "cells",
+            bytemuck::cast_slice(&cellvis),
+            wgpu::BufferUsages::STORAGE,
+        );
         let bg = dev.create_bind_group(&wgpu::BindGroupDescriptor {
             label: Some("raymarch"),
             layout: &self.layout,
@@ -458,6 +472,10 @@ impl<S: BrickSource> GpuRenderer<S> {
                 wgpu::BindGroupEntry {
                     binding: 6,
                     resource: acc_buf.as_entire_binding(),
+                },
+                wgpu::BindGroupEntry {
+                    binding: 7,
+                    resource: cb.as_entire_binding(),
                 },
             ],
         });

@@ -181,16 +181,16 @@ pub fn slab(o: [f32; 3], d: [f32; 3], lo: [f32; 3], hi: [f32; 3]) -> Option<(f32
     (t0 < t1).then_some((t0, t1))
 }
 
-/// Trilinear interpolation in a padded brick at local continuous voxel coordinates.
-#[inline]
+/// The 8 voxels and weights of a trilinear sample at local continuous voxel coordinates.
+#[inline(always)]
 fn corners(p: [f32; 3], dims: [usize; 3]) -> ([usize; 8], [f32; 8]) {
     let mut f = [0.0f32; 3];
     let mut i = [0usize; 3];
     for k in 0..3 {
+        // Non-negative after the clamp, so truncation is floor (and needs no libm call).
         let x = p[k].clamp(0.0, dims[k] as f32 - 1.0001);
-        let fl = x.floor();
-        i[k] = fl as usize;
-        f[k] = x - fl;
+        i[k] = x as usize;
+        f[k] = x - i[k] as f32;
     }
     let (sx, sy) = (1, dims[0]);
     let sz = dims[0] * dims[1];
@@ -219,7 +219,7 @@ fn corners(p: [f32; 3], dims: [usize; 3]) -> ([usize; 8], [f32; 8]) {
     (idx, w)
 }
 
-#[inline]
+#[inline(always)]
 fn trilinear(v: &[f32], p: [f32; 3], dims: [usize; 3]) -> f32 {
     let (idx, w) = corners(p, dims);
     let mut s = 0.0;
@@ -402,7 +402,7 @@ impl<'a> Frame<'a> {
                 c[1].min(b.cells[1] - 1),
                 c[2].min(b.cells[2] - 1),
             ];
-            c[2] * cxy + c[1] * cx + c[0]
+            (c[2] * cxy + c[1] * cx + c[0], c)
         };
         let base = b.origin.map(|o| o as f32 - APRON as f32);
         let mut samples = 0;
@@ -425,7 +425,9 @@ impl<'a> Frame<'a> {
                 let k0 = ((ta - t0) / self.dt - 0.5).ceil().max(0.0) as u64;
                 let k1 = ((tb - t0) / self.dt - 0.5).ceil().max(0.0) as u64;
                 let light = self.view.forward_of(d, self.inv_spacing);
-                for k in k0..k1 {
+                let ol = [o[0] - base[0], o[1] - base[1], o[2] - base[2]];
+                let mut k = k0;
+                while k < k1 {
                     let t = t0 + (k as f32 + 0.5) * self.dt;
                     let p = [
                         o[0] + d[0] * t - base[0],
@@ -433,7 +435,18 @@ impl<'a> Frame<'a> {
                         o[2] + d[2] * t - base[2],
                     ];
                     samples += 1;
-                    if !cells[cell_of(p)] {
+                    k += 1;
+                    let (ci, cc) = cell_of(p);
+                    if !cells[ci] {
+                        // Leap to the first sample past this cell's box.
+                        let lo = cc.map(|c| (c * CELL + APRON) as f32 - 0.5);
+                        let hi = cc.map(|c| ((c + 1) * CELL + APRON) as f32 - 0.5);
+                        if let Some((_, te)) = slab(ol, d, lo, hi) {
+                            let next = ((te - t0) / self.dt - 0.5).ceil();
+                            if next.is_finite() && next > k as f32 {
+                                k = (next as u64).min(k1);
+                            }
+                        }
                         continue;
                     }
                     let [cr, cg, cb, a] = self.sample(b, p, light);
