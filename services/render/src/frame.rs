@@ -150,20 +150,7 @@ impl<S: BrickSource> Renderer<S> {
                 )));
             }
             // Its voxels sit in the aprons of its neighbours too.
-            for dz in 0..3 {
-                for dy in 0..3 {
-                    for dx in 0..3 {
-                        let n = [
-                            (c[0] + dx).wrapping_sub(1),
-                            (c[1] + dy).wrapping_sub(1),
-                            (c[2] + dz).wrapping_sub(1),
-                        ];
-                        if (0..3).all(|k| n[k] < g[k]) {
-                            stale.push(n);
-                        }
-                    }
-                }
-            }
+            stale.extend(crate::source::neighbourhood(*c, g));
         }
         self.source.invalidate(changed);
         for n in &stale {

@@ -219,6 +219,16 @@ fn corners(p: [f32; 3], dims: [usize; 3]) -> ([usize; 8], [f32; 8]) {
     (idx, w)
 }
 
+/// Trilinear probability of channel `n` (of `ch`) from the corners of a sample.
+#[inline(always)]
+fn prob_at(probs: &[u8], idx: &[usize; 8], w: &[f32; 8], ch: usize, n: usize) -> f32 {
+    let mut s = 0.0;
+    for c in 0..8 {
+        s += probs[idx[c] * ch + n] as f32 * w[c];
+    }
+    s * (1.0 / 255.0)
+}
+
 #[inline(always)]
 fn trilinear(v: &[f32], p: [f32; 3], dims: [usize; 3]) -> f32 {
     let (idx, w) = corners(p, dims);
@@ -484,11 +494,7 @@ impl<'a> Frame<'a> {
                 let (mut rgb, mut a) = ([0.0f32; 3], 0.0f32);
                 for (n, l) in luts.classes.iter().enumerate().take(ch) {
                     let Some(l) = l else { continue };
-                    let mut pn = 0.0;
-                    for c in 0..8 {
-                        pn += b.probs[idx[c] * ch + n] as f32 * w[c];
-                    }
-                    let pn = pn * (1.0 / 255.0);
+                    let pn = prob_at(&b.probs, &idx, &w, ch, n);
                     if pn <= 0.0 {
                         continue;
                     }
@@ -510,11 +516,7 @@ impl<'a> Frame<'a> {
                 let (mut rgb, mut a, mut wsum) = ([0.0f32; 3], 0.0f32, 0.0f32);
                 for (n, l) in luts.classes.iter().enumerate().take(ch) {
                     let Some(l) = l else { continue };
-                    let mut pn = 0.0;
-                    for c in 0..8 {
-                        pn += b.probs[idx[c] * ch + n] as f32 * w[c];
-                    }
-                    let pn = pn * (1.0 / 255.0);
+                    let pn = prob_at(&b.probs, &idx, &w, ch, n);
                     if pn <= 0.0 || pn < l.tau {
                         continue;
                     }

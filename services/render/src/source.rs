@@ -247,6 +247,18 @@ pub fn render_normaliser(norm: Normaliser, min: f64) -> Normaliser {
     }
 }
 
+/// Brick `index` and its face, edge and corner neighbours inside a grid of `grid` bricks.
+pub fn neighbourhood(index: [usize; 3], grid: [usize; 3]) -> impl Iterator<Item = [usize; 3]> {
+    (0..27).filter_map(move |i| {
+        let n = [
+            (index[0] + i % 3).wrapping_sub(1),
+            (index[1] + i / 3 % 3).wrapping_sub(1),
+            (index[2] + i / 9).wrapping_sub(1),
+        ];
+        (0..3).all(|k| n[k] < grid[k]).then_some(n)
+    })
+}
+
 /// A neighbour's core and its size.
 type Core<T> = (Arc<Vec<T>>, [usize; 3]);
 
@@ -522,24 +534,11 @@ impl BrickSource for StoreSource {
     }
 
     fn coarse_range(&self, index: [usize; 3]) -> Option<(f32, f32)> {
-        let g = self.geom().grid();
         let (mut lo, mut hi) = (f64::MAX, f64::MIN);
-        for dz in 0..3 {
-            for dy in 0..3 {
-                for dx in 0..3 {
-                    let n = [
-                        (index[0] + dx).wrapping_sub(1),
-                        (index[1] + dy).wrapping_sub(1),
-                        (index[2] + dz).wrapping_sub(1),
-                    ];
-                    if (0..3).any(|k| n[k] >= g[k]) {
-                        continue;
-                    }
-                    let (a, b) = self.store.brick_range(&self.brick(n).ok()?);
-                    lo = lo.min(a);
-                    hi = hi.max(b);
-                }
-            }
+        for n in neighbourhood(index, self.geom().grid()) {
+            let (a, b) = self.store.brick_range(&self.brick(n).ok()?);
+            lo = lo.min(a);
+            hi = hi.max(b);
         }
         Some((self.norm.apply(lo as f32), self.norm.apply(hi as f32)))
     }
@@ -688,22 +687,10 @@ impl BrickSource for MemSource {
     fn coarse_range(&self, index: [usize; 3]) -> Option<(f32, f32)> {
         let g = self.geom.grid();
         let (mut lo, mut hi) = (f32::MAX, f32::MIN);
-        for dz in 0..3 {
-            for dy in 0..3 {
-                for dx in 0..3 {
-                    let n = [
-                        (index[0] + dx).wrapping_sub(1),
-                        (index[1] + dy).wrapping_sub(1),
-                        (index[2] + dz).wrapping_sub(1),
-                    ];
-                    if (0..3).any(|k| n[k] >= g[k]) {
-                        continue;
-                    }
-                    let (a, b) = self.ranges[(n[2] * g[1] + n[1]) * g[0] + n[0]];
-                    lo = lo.min(a);
-                    hi = hi.max(b);
-                }
-            }
+        for n in neighbourhood(index, g) {
+            let (a, b) = self.ranges[(n[2] * g[1] + n[1]) * g[0] + n[0]];
+            lo = lo.min(a);
+            hi = hi.max(b);
         }
         Some((self.norm.apply(lo), self.norm.apply(hi)))
     }
