@@ -431,11 +431,29 @@ impl StoreSource {
             .map(|c| c.id)
             .filter(|&i| i != 0)
             .collect();
+        if ids.is_empty() {
+            // No class table: the distinct non-zero values of the image are its classes.
+            let mut seen = std::collections::BTreeSet::new();
+            for b in self.store.bricks() {
+                for v in self.store.read_labels_box(name, b.origin, b.size)? {
+                    if v != 0 {
+                        seen.insert(v);
+                    }
+                }
+                if seen.len() > 255 {
+                    return Err(RenderError::Input(format!(
+                        "{}: label image '{name}' has over 255 distinct values; too many classes to draw",
+                        self.store.root().display()
+                    )));
+                }
+            }
+            ids = seen.into_iter().collect();
+        }
         ids.sort_unstable();
         ids.dedup();
         if ids.is_empty() {
             return Err(RenderError::Input(format!(
-                "{}: label image '{name}' lists no classes",
+                "{}: label image '{name}' holds no labelled voxel",
                 self.store.root().display()
             )));
         }
