@@ -347,3 +347,169 @@ mod tests {
         );
     }
 }
+
+/// Velocity magnitude of Crawfis' analytic tornado at time `t` on a `size`^3 grid over [0, 1]^3
+/// (x fastest). Per z-slice the vortex centre is `(0.5 + 0.1 sin(0.04 t + 10 z), 0.5 + 0.1
+/// cos(0.03 t + 3 z))` and its radius `0.1 + 0.4 z^2 + 0.1 z sin 8z`, as in the original
+/// `gen_tornado`.
+pub fn tornado(size: usize, t: f64) -> Vec<f32> {
+    let n = size.max(1);
+    let step = 1.0 / (n.max(2) - 1) as f64;
+    let mut out = Vec::with_capacity(n * n * n);
+    for k in 0..n {
+        let z = k as f64 * step;
+        let xc = 0.5 + 0.1 * (0.04 * t + 10.0 * z).sin();
+        let yc = 0.5 + 0.1 * (0.03 * t + 3.0 * z).cos();
+        let r = 0.1 + 0.4 * z * z + 0.1 * z * (8.0 * z).sin();
+        let r2 = 0.2 + 0.1 * z;
+        for j in 0..n {
+            let y = j as f64 * step;
+            for i in 0..n {
+                let x = i as f64 * step;
+                let mut temp = ((y - yc).powi(2) + (x - xc).powi(2)).sqrt();
+                let mut scale = (r - temp).abs();
+                scale = if scale > r2 { 0.8 - scale } else { 1.0 };
+                let z0 = (0.1 * (0.1 - temp * z)).max(0.0);
+                temp = (temp * temp + z0 * z0).sqrt();
+                scale = (r + r2 - temp) * scale / (temp + 1e-8);
+                scale /= 1.0 + z0;
+                let vx = scale * (y - yc) + 0.1 * (x - xc);
+                let vy = scale * -(x - xc) + 0.1 * (y - yc);
+                let vz = scale * z0;
+                out.push((vx * vx + vy * vy + vz * vz).sqrt() as f32);
+            }
+        }
+    }
+    out
+}
+
+/// 5x7 glyphs of the letters the cube's engraving uses, one row per string, `#` set.
+const GLYPHS: &[(char, [&str; 7])] = &[
+    (
+        'N',
+        [
+            "#...#", "##..#", "#.#.#", "#..##", "#...#", "#...#", "#...#",
+        ],
+    ),
+    (
+        'V',
+        [
+            "#...#", "#...#", "#...#", "#...#", ".#.#.", ".#.#.", "..#..",
+        ],
+    ),
+    (
+        'X',
+        [
+            "#...#", ".#.#.", "..#..", "..#..", "..#..", ".#.#.", "#...#",
+        ],
+    ),
+];
+
+/// The face of [`cube`] that carries the engraving: its outward normal.
+pub const CUBE_ENGRAVED_NORMAL: [f64; 3] = [0.0, -1.0, 0.0];
+
+/// A solid cube (value 1 in the middle 60% of a `size`^3 grid, 0 outside) with the text "NVX"
+/// engraved into its -y face (the face an azimuth-0, elevation-0 camera looks at), grooves a
+/// tenth of the cube deep. Also returns labels: 1 cube, 2 the engraving's walls and floor.
+pub fn cube(size: usize) -> (Vec<f32>, Vec<u8>) {
+    let n = size.max(8);
+    let lo = (n as f64 * 0.2).round() as usize;
+    let hi = n - lo;
+    let side = hi - lo;
+    let depth = (side / 10).max(2);
+    // The text spans the face: 3 glyphs of 5 columns with 1-column gaps, 7 rows.
+    let cols = 3 * 5 + 2;
+    let cell = ((side as f64 * 0.8) / cols as f64).floor().max(1.0) as usize;
+    let x0 = lo + (side - cols * cell) / 2;
+    let z0 = lo + (side - 7 * cell) / 2;
+    let engraved = |x: usize, z: usize| -> bool {
+        if x < x0 || z < z0 {
+            return false;
+        }
+        let (cx, row) = ((x - x0) / cell, (z - z0) / cell);
+        if cx >= cols || row >= 7 {
+            return false;
+        }
+        let (g, col) = (cx / 6, cx % 6);
+        if col == 5 {
+            return false;
+        }
+        let glyph = GLYPHS[g].1;
+        // Row 0 is the top of the letter: highest z.
+        glyph[6 - row].as_bytes()[col] == b'#'
+    };
+    let mut v = vec![0.0f32; n * n * n];
+    let mut l = vec![0u8; n * n * n];
+    for z in lo..hi {
+        for y in lo..hi {
+            for x in lo..hi {
+                let i = (z * n + y) * n + x;
+                if y < lo + depth && engraved(x, z) {
+                    l[i] = 0;
+                    continue;
+                }
+                v[i] = 1.0;
+                l[i] = 1;
+            }
+        }
+    }
+    // Mark the engraving's walls and floor: cube voxels next to a groove voxel.
+    for z in lo..hi {
+        for y in lo..(lo + depth + 1).min(hi) {
+            for x in lo..hi {
+                let i = (z * n + y) * n + x;
+                if l[i] != 1 {
+                    continue;
+                }
+                let groove = |xx: usize, yy: usize, zz: usize| {
+                    (lo..hi).contains(&xx)
+                        && (lo..lo + depth).contains(&yy)
+                        && (lo..hi).contains(&zz)
+                        && engraved(xx, zz)
+                };
+                if groove(x + 1, y, z)
+                    || groove(x.wrapping_sub(1), y, z)
+                    || groove(x, y.wrapping_sub(1), z)
+                    || groove(x, y, z + 1)
+                    || groove(x, y, z.wrapping_sub(1))
+                {
+                    l[i] = 2;
+                }
+            }
+        }
+    }
+    (v, l)
+}
+
+#[cfg(test)]
+mod scene_tests {
+    use super::*;
+
+    #[test]
+    fn tornado_is_finite_and_swirls() {
+        let v = tornado(32, 0.0);
+        assert_eq!(v.len(), 32 * 32 * 32);
+        assert!(v.iter().all(|x| x.is_finite() && *x >= 0.0));
+        let max = v.iter().cloned().fold(0.0, f32::max);
+        assert!(max > 0.1, "{max}");
+    }
+
+    #[test]
+    fn cube_is_engraved_on_one_face_only() {
+        let n = 40;
+        let (v, l) = cube(n);
+        let at = |x: usize, y: usize, z: usize| v[(z * n + y) * n + x];
+        // Some surface voxels of the -y face are engraved (0), none of the +y face.
+        let (lo, hi) = (8, 32);
+        let front = (lo..hi)
+            .flat_map(|z| (lo..hi).map(move |x| (x, z)))
+            .filter(|&(x, z)| at(x, lo, z) == 0.0)
+            .count();
+        let back = (lo..hi)
+            .flat_map(|z| (lo..hi).map(move |x| (x, z)))
+            .filter(|&(x, z)| at(x, hi - 1, z) == 0.0)
+            .count();
+        assert!(front > 30 && back == 0, "front {front}, back {back}");
+        assert!(l.contains(&2));
+    }
+}

@@ -89,7 +89,7 @@ pub(crate) fn styled_bar(quiet: bool, len: u64, template: &str) -> ProgressBar {
 }
 
 /// A progress bar over bricks.
-fn bar(quiet: bool, len: u64, what: &str) -> ProgressBar {
+pub(crate) fn bar(quiet: bool, len: u64, what: &str) -> ProgressBar {
     styled_bar(
         quiet,
         len,
@@ -97,7 +97,7 @@ fn bar(quiet: bool, len: u64, what: &str) -> ProgressBar {
     )
 }
 
-fn load_model(store: &BrickStore) -> Result<Option<Arc<InrModel>>> {
+pub(crate) fn load_model(store: &BrickStore) -> Result<Option<Arc<InrModel>>> {
     let mp = neuvolex_features::train::model_path(store);
     if !mp.exists() {
         return Ok(None);

@@ -4,6 +4,7 @@
 
 mod classify;
 mod render;
+mod viewpoints;
 
 use anyhow::{bail, Context, Result};
 use clap::{Parser, Subcommand, ValueEnum};
@@ -34,6 +35,10 @@ struct Cli {
 enum Scene {
     /// A labelled CT-like abdomen phantom (the embedded default).
     Phantom,
+    /// Crawfis' analytic tornado, velocity magnitude (the paper's Tornado scene).
+    Tornado,
+    /// A solid cube with "NVX" engraved on its -y face, labelled (the paper's Cube scene).
+    Cube,
 }
 
 #[derive(clap::Args, Clone, Default)]
@@ -230,6 +235,8 @@ enum Cmd {
     },
     /// Render a store to PNG: intensity, class probabilities, or labels as probabilities.
     Render(render::RenderArgs),
+    /// Recommend viewpoints: k-means on features, view entropy, greedy complementary views.
+    Viewpoints(viewpoints::ViewpointArgs),
     /// Convert any readable volume (including a store or store/labels/NAME) to NIfTI.
     Convert {
         /// Input volume.
@@ -645,6 +652,14 @@ fn main() -> Result<()> {
     let quiet = cli.quiet;
     match cli.cmd {
         Cmd::Synth {
+            scene: scene @ (Scene::Tornado | Scene::Cube),
+            out,
+            size,
+            brick,
+            force,
+            ..
+        } => synth_scene(scene, &out, size, brick, force, quiet)?,
+        Cmd::Synth {
             scene: Scene::Phantom,
             out,
             size,
@@ -763,6 +778,7 @@ fn main() -> Result<()> {
         Cmd::Classify(a) => classify::run_classify(&a, quiet)?,
         Cmd::Eval(a) => classify::run_eval(&a, quiet)?,
         Cmd::Render(a) => render::run_render(&a, quiet)?,
+        Cmd::Viewpoints(a) => viewpoints::run_viewpoints(&a, quiet)?,
         Cmd::ScribbleSim {
             labels,
             level,
@@ -904,5 +920,67 @@ fn gpu_render(
         p.height,
         r.adapter()
     );
+    Ok(())
+}
+
+/// Writes the Tornado or Cube scene as a store (with the cube's labels) or NIfTI.
+fn synth_scene(
+    scene: Scene,
+    out: &Path,
+    size: usize,
+    brick: usize,
+    force: bool,
+    quiet: bool,
+) -> Result<()> {
+    if !(8..=1024).contains(&size) {
+        bail!("--size {size} must be 8..=1024");
+    }
+    let dims = [size; 3];
+    let (values, labels) = match scene {
+        Scene::Tornado => (neuvolex_bricks::synth::tornado(size, 0.0), None),
+        Scene::Cube => {
+            let (v, l) = neuvolex_bricks::synth::cube(size);
+            (v, Some(l))
+        }
+        Scene::Phantom => unreachable!("the phantom has its own writer"),
+    };
+    let mut vol = neuvolex_bricks::MemVolume::from_f32(dims, &values);
+    let name = out.to_string_lossy().to_ascii_lowercase();
+    if name.ends_with(".nii") || name.ends_with(".nii.gz") {
+        if out.exists() && !force {
+            bail!(
+                "{}: already exists (pass --force to replace it)",
+                out.display()
+            );
+        }
+        neuvolex_bricks::nifti::write_nifti(out, &mut vol, 16)?;
+        return Ok(());
+    }
+    let opts = IngestOptions {
+        brick,
+        overwrite: force,
+        ..IngestOptions::default()
+    };
+    let mut sink = progress_sink(quiet);
+    ingest(&mut vol, out, &opts, &mut sink)?;
+    if let Some(l) = labels {
+        let mut store = BrickStore::open(out)?;
+        let lv: Vec<f64> = l.iter().map(|&v| v as f64).collect();
+        let mut lab = neuvolex_bricks::MemVolume::from_f64(dims, DType::U8, &lv);
+        let classes = vec![
+            ClassInfo {
+                id: 1,
+                name: "cube".into(),
+                color: [200, 200, 200],
+            },
+            ClassInfo {
+                id: 2,
+                name: "engraving".into(),
+                color: [230, 60, 40],
+            },
+        ];
+        store.add_labels("ground_truth", &mut lab, &classes, &mut sink)?;
+    }
+    tracing::info!(store = %out.display(), ?dims, "scene written");
     Ok(())
 }

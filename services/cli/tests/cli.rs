@@ -492,3 +492,59 @@ fn render_writes_pngs_and_rejects_bad_requests() {
     fails(&["render", &p("missing.zarr"), "--out", &o], "missing.zarr");
     assert!(!Path::new(&o).exists(), "no partial output");
 }
+
+#[test]
+fn scenes_and_viewpoints_end_to_end() {
+    let d = tempfile::tempdir().unwrap();
+    let p = |n: &str| d.path().join(n).to_string_lossy().into_owned();
+    ok(&[
+        "synth",
+        "cube",
+        "--size",
+        "40",
+        "--brick",
+        "16",
+        "--out",
+        &p("cube.zarr"),
+    ]);
+    ok(&["synth", "tornado", "--size", "24", "--out", &p("t.nii.gz")]);
+    assert!(Path::new(&p("t.nii.gz")).exists());
+    let out = ok(&[
+        "viewpoints",
+        &p("cube.zarr"),
+        "--features",
+        "local",
+        "--k",
+        "12",
+        "--views",
+        "300",
+        "--size",
+        "48",
+        "--out",
+        &p("vp"),
+    ]);
+    assert!(out.contains("views selected of 300"), "{out}");
+    let r: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(p("vp/views.json")).unwrap()).unwrap();
+    let n = r["selected"].as_array().unwrap().len();
+    assert!(n >= 1, "{r}");
+    assert!(Path::new(&p("vp/entropy_map.png")).exists());
+    assert!(Path::new(&p("vp/view_00.png")).exists());
+    let store = p("cube.zarr");
+    let vp2 = p("vp2");
+    for (args, needle) in [
+        (vec!["--views", "0"], "--views 0"),
+        (vec!["--k", "0"], "--k 0 must be"),
+        (vec!["--algorithm", "fast"], "lloyd or minibatch"),
+        (vec!["--features", "nonsense"], "nonsense"),
+        (vec!["--features", "paper"], "neuvolex train"),
+    ] {
+        let mut a = vec!["viewpoints", &store[..], "--out", &vp2[..]];
+        a.extend(args);
+        fails(&a, needle);
+    }
+    fails(
+        &["synth", "cube", "--size", "2", "--out", &p("x.zarr")],
+        "--size 2",
+    );
+}
