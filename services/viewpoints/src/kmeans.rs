@@ -8,6 +8,9 @@ use neuvolex_bricks::rng::Rng;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
+/// Rows per matrix-product block.
+const BLOCK: usize = 2048;
+
 /// How centroids are updated.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub enum Algorithm {
@@ -141,10 +144,57 @@ impl KMeans {
         best
     }
 
+    /// Nearest centroid and squared distance of every row, through one matrix product per
+    /// block (`|x|^2 - 2 x.c + |c|^2`, as scikit-learn computes it).
+    fn nearest_rows(&self, rows: &[f32]) -> Vec<(usize, f32)> {
+        let (k, d) = (self.k(), self.dim);
+        let cn: Vec<f32> = self
+            .centroids
+            .chunks_exact(d)
+            .map(|c| c.iter().map(|v| v * v).sum())
+            .collect();
+        let mut out = Vec::with_capacity(rows.len() / d);
+        let mut dots = vec![0.0f32; BLOCK * k];
+        for blk in rows.chunks(BLOCK * d) {
+            let n = blk.len() / d;
+            // SAFETY: `blk` holds n x d values, the centroids k x d, `dots` at least n x k.
+            unsafe {
+                matrixmultiply::sgemm(
+                    n,
+                    d,
+                    k,
+                    1.0,
+                    blk.as_ptr(),
+                    d as isize,
+                    1,
+                    self.centroids.as_ptr(),
+                    1,
+                    d as isize,
+                    0.0,
+                    dots.as_mut_ptr(),
+                    k as isize,
+                    1,
+                );
+            }
+            for (x, row) in blk.chunks_exact(d).zip(dots.chunks_exact(k)) {
+                let mut best = (0, f32::INFINITY);
+                for (c, (&dot, &n2)) in row.iter().zip(&cn).enumerate() {
+                    let v = n2 - 2.0 * dot;
+                    if v < best.1 {
+                        best = (c, v);
+                    }
+                }
+                let xn: f32 = x.iter().map(|v| v * v).sum();
+                out.push((best.0, (best.1 + xn).max(0.0)));
+            }
+        }
+        out
+    }
+
     /// The nearest cluster of every row.
     pub fn assign(&self, rows: &[f32]) -> Vec<u16> {
-        rows.par_chunks(self.dim * 256)
-            .flat_map_iter(|ch| ch.chunks_exact(self.dim).map(|x| self.nearest(x).0 as u16))
+        rows.par_chunks(self.dim * BLOCK)
+            .flat_map_iter(|ch| self.nearest_rows(ch).into_iter().map(|(c, _)| c as u16))
             .collect()
     }
 
@@ -152,8 +202,7 @@ impl KMeans {
     pub fn partial(&self, rows: &[f32]) -> Partial {
         let (k, d) = (self.k(), self.dim);
         let mut p = Partial::new(k, d);
-        for x in rows.chunks_exact(d) {
-            let (c, dist) = self.nearest(x);
+        for (x, (c, dist)) in rows.chunks_exact(d).zip(self.nearest_rows(rows)) {
             p.counts[c] += 1;
             p.inertia += dist as f64;
             for (s, &v) in p.sums[c * d..(c + 1) * d].iter_mut().zip(x) {
@@ -313,14 +362,17 @@ impl KMeans {
     }
 }
 
-/// k-means++ (D^2 sampling) on `sample`. Where the sample has fewer than `k` distinct rows, the
-/// extra centroids repeat existing ones (they stay empty and the caller sees zero counts).
+/// Greedy k-means++ on `sample` (as scikit-learn: each step draws `2 + ln k` candidates by D^2
+/// sampling and keeps the one that lowers the potential most). Where the sample has fewer than
+/// `k` distinct rows, the extra centroids repeat existing ones (they stay empty and the caller
+/// sees zero counts).
 pub fn kmeanspp(sample: &[f32], dim: usize, k: usize, rng: &mut Rng) -> Vec<f32> {
     let n = sample.len() / dim;
     let mut cent = Vec::with_capacity(k * dim);
     if n == 0 {
         return vec![0.0; k * dim];
     }
+    let trials = 2 + (k as f64).ln().floor() as usize;
     let first = rng.below(n);
     cent.extend_from_slice(&sample[first * dim..(first + 1) * dim]);
     let dist =
@@ -331,23 +383,45 @@ pub fn kmeanspp(sample: &[f32], dim: usize, k: usize, rng: &mut Rng) -> Vec<f32>
         .collect();
     for _ in 1..k {
         let total: f64 = d2.iter().map(|&v| v as f64).sum();
-        let pick = if total <= 0.0 {
-            rng.below(n)
-        } else {
+        let draw = |rng: &mut Rng| -> usize {
+            if total <= 0.0 {
+                return rng.below(n);
+            }
             let mut t = rng.f32() as f64 * total;
-            let mut pick = n - 1;
             for (i, &v) in d2.iter().enumerate() {
                 t -= v as f64;
                 if t < 0.0 {
-                    pick = i;
-                    break;
+                    return i;
                 }
             }
-            pick
+            n - 1
         };
-        let c0 = cent.len();
-        cent.extend_from_slice(&sample[pick * dim..(pick + 1) * dim]);
-        let c = cent[c0..].to_vec();
+        let cands: Vec<usize> = (0..trials).map(|_| draw(rng)).collect();
+        // The candidate whose addition leaves the smallest potential.
+        let best = cands
+            .par_iter()
+            .map(|&c| {
+                let cr = &sample[c * dim..(c + 1) * dim];
+                let pot: f64 = d2
+                    .iter()
+                    .zip(sample.chunks_exact(dim))
+                    .map(|(&v, x)| v.min(dist(x, cr)) as f64)
+                    .sum();
+                (c, pot)
+            })
+            .reduce(
+                || (usize::MAX, f64::INFINITY),
+                |a, b| {
+                    if b.1 < a.1 || (b.1 == a.1 && b.0 < a.0) {
+                        b
+                    } else {
+                        a
+                    }
+                },
+            )
+            .0;
+        let c = sample[best * dim..(best + 1) * dim].to_vec();
+        cent.extend_from_slice(&c);
         d2.par_iter_mut()
             .zip(sample.par_chunks_exact(dim))
             .for_each(|(v, x)| *v = v.min(dist(x, &c)));

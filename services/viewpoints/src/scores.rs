@@ -19,7 +19,8 @@
 //! many clusters evenly.
 //!
 //! **Greedy selection.** Coverage `cov_c` starts at 0. Each step scores every candidate by its
-//! uncovered visible mass `M(d) = sum_c weight_c max(0, v_c(d) - cov_c)` (weights sum to 1)
+//! uncovered visible mass `M(d) = sum_c weight_c max(0, v_c(d) - cov_c)` over the clusters still
+//! below their coverage target (weights sum to 1)
 //! times `(1 + H) / 2`, with `H` the normalised entropy of that remainder (so even views win, and
 //! a view that alone shows the last uncovered cluster still counts), takes the best, and sets
 //! `cov_c = max(cov_c, v_c(d))`.
@@ -308,10 +309,17 @@ pub fn select(
             .enumerate()
             .filter(|(i, _)| !sel.views.contains(i))
             .map(|(i, &d)| {
+                // Only clusters still below their coverage target count.
                 let w: Vec<f64> = summ
                     .iter()
                     .zip(&cov)
-                    .map(|(s, &c)| s.weight * (visibility(s, d) - c).max(0.0) as f64)
+                    .map(|(s, &c)| {
+                        if c >= cfg.cover * best_visibility(s) {
+                            0.0
+                        } else {
+                            s.weight * (visibility(s, d) - c).max(0.0) as f64
+                        }
+                    })
                     .collect();
                 let m: f64 = w.iter().sum();
                 (i, (m * 0.5 * (1.0 + entropy(&w, kw))) as f32)
