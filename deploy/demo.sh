@@ -24,6 +24,8 @@ rm -f "$OUT/phantom_scribbles.nii.gz" "$OUT/phantom_scribbles.strokes.json"
 "$NV" render "$OUT/phantom.zarr" --probs --mode prob --view 30,20 --size 512 --out "$OUT/phantom_prob.png"
 "$NV" render "$OUT/phantom.zarr" --probs --mode prob-intensity --view 30,20 --size 512 --out "$OUT/phantom_prob_intensity.png"
 "$NV" render "$OUT/phantom.zarr" --tf preset:ct-bone --view 30,20 --size 512 --out "$OUT/phantom_bone.png"
+# Recommend viewpoints from the stored INR features (mini-batch k-means, 50 clusters, 1800 views).
+"$NV" viewpoints "$OUT/phantom.zarr" --stored-features --algorithm minibatch --size 256 --out "$OUT/phantom_views"
 
 DATA=../shared/data
 if [ -d "$DATA" ]; then
