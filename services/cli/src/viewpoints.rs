@@ -8,6 +8,7 @@ use neuvolex_render::{BrickSource, Camera, Image, RenderParams, Renderer, StoreS
 use neuvolex_viewpoints::kmeans::Algorithm;
 use neuvolex_viewpoints::scores::{entropy_map, score_views, select, Aggregator, SelectConfig};
 use neuvolex_viewpoints::{direction_to_view, fibonacci_sphere, KMeans, KMeansConfig};
+use std::borrow::Cow;
 use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::Instant;
@@ -48,6 +49,9 @@ pub struct ViewpointArgs {
     /// Transfer function of the renderings (file or preset:NAME; default as `render`).
     #[arg(long)]
     tf: Option<String>,
+    /// Memory for holding features between k-means passes (MiB); beyond it they stream.
+    #[arg(long, default_value_t = 2048)]
+    memory_mib: usize,
     /// Output folder.
     #[arg(long)]
     out: PathBuf,
@@ -109,12 +113,32 @@ pub fn run_viewpoints(a: &ViewpointArgs, quiet: bool) -> Result<()> {
     };
     let spin = crate::classify::styled_bar(quiet, 1, "{spinner} k-means {elapsed}");
     spin.enable_steady_tick(std::time::Duration::from_millis(120));
+    // Every pass reads each brick's features; hold them in memory where they fit the budget
+    // (otherwise they stream from the store or the model on every pass).
+    let bytes: usize = bricks.iter().map(|b| b.voxels() * dim * 4).sum();
+    let cached: Option<Vec<Vec<f32>>> = if bytes <= a.memory_mib << 20 {
+        Some(
+            bricks
+                .iter()
+                .map(|b| fx.brick(b))
+                .collect::<Result<_, _>>()?,
+        )
+    } else {
+        tracing::info!(
+            mib = bytes >> 20,
+            "features exceed --memory-mib: streaming them per pass"
+        );
+        None
+    };
     let km = KMeans::fit(
         bricks.len(),
         dim,
-        |i| {
-            fx.brick(&bricks[i])
-                .map_err(|e| neuvolex_viewpoints::ViewpointError::Input(e.to_string()))
+        |i| match &cached {
+            Some(c) => Ok(Cow::Borrowed(&c[i][..])),
+            None => fx
+                .brick(&bricks[i])
+                .map(Cow::Owned)
+                .map_err(|e| neuvolex_viewpoints::ViewpointError::Input(e.to_string())),
         },
         &cfg,
     )?;
@@ -128,7 +152,10 @@ pub fn run_viewpoints(a: &ViewpointArgs, quiet: bool) -> Result<()> {
     let views = fibonacci_sphere(a.views);
     let mut agg = Aggregator::new(km.k());
     for (n, b) in bricks.iter().enumerate() {
-        let rows = fx.brick(b)?;
+        let rows = match &cached {
+            Some(c) => Cow::Borrowed(&c[n][..]),
+            None => Cow::Owned(fx.brick(b)?),
+        };
         let labels = km.assign(&rows);
         let g = store.derived(b)?.gradient;
         agg.add(&neuvolex_viewpoints::ClusterPartial::from_brick(

@@ -214,9 +214,10 @@ impl KMeans {
 
     /// Fits on `chunks` chunks of rows (`load(i)` gives chunk `i`, `dim` values per row); chunks
     /// are loaded again for every pass, so only one chunk per thread is in memory.
-    pub fn fit<F>(chunks: usize, dim: usize, load: F, cfg: &KMeansConfig) -> Result<KMeans>
+    pub fn fit<F, R>(chunks: usize, dim: usize, load: F, cfg: &KMeansConfig) -> Result<KMeans>
     where
-        F: Fn(usize) -> Result<Vec<f32>> + Sync,
+        F: Fn(usize) -> Result<R> + Sync,
+        R: AsRef<[f32]>,
     {
         if cfg.k == 0 || cfg.k > u16::MAX as usize {
             return Err(ViewpointError::Param(format!(
@@ -236,7 +237,8 @@ impl KMeans {
         let mut sample = Vec::new();
         for &c in order.iter().take(64) {
             let rows = load(c)?;
-            check_rows(&rows, dim)?;
+            let rows = rows.as_ref();
+            check_rows(rows, dim)?;
             let n = rows.len() / dim;
             let want = (cfg.init_sample / order.len().min(64)).max(1);
             for _ in 0..want.min(n) {
@@ -271,8 +273,8 @@ impl KMeans {
                 .into_par_iter()
                 .map(|c| {
                     let rows = load(c)?;
-                    check_rows(&rows, dim)?;
-                    Ok(km.partial(&rows))
+                    check_rows(rows.as_ref(), dim)?;
+                    Ok(km.partial(rows.as_ref()))
                 })
                 .collect();
             let mut total = Partial::new(km.k(), dim);
@@ -298,8 +300,8 @@ impl KMeans {
                     rng.shuffle(&mut order);
                     for &c in &order {
                         let rows = load(c)?;
-                        check_rows(&rows, dim)?;
-                        let p = km.partial(&rows);
+                        check_rows(rows.as_ref(), dim)?;
+                        let p = km.partial(rows.as_ref());
                         for (j, &n) in p.counts.iter().enumerate() {
                             if n == 0 {
                                 continue;
