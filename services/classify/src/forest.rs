@@ -1,6 +1,6 @@
 //! A random forest for dense per-voxel features, with scikit-learn's semantics for the settings
-//! the paper uses: exact CART splits on Gini impurity, `sqrt(d)` candidate features drawn per
-//! split (more are drawn if none of them can split the node), no bootstrap, `min_samples_split`,
+//! the paper uses: exact CART splits on Gini impurity, `sqrt(d)` candidate features per split
+//! counting only features that vary in the node (as scikit-learn), no bootstrap, `min_samples_split`,
 //! and `predict_proba` as the mean of the trees' leaf class fractions.
 //!
 //! Trees are trained in parallel from per-tree seeds, so a forest is deterministic for any
@@ -230,16 +230,18 @@ impl Builder<'_> {
                 && self.cfg.max_depth.is_none_or(|m| depth < m);
             let mut split: Option<(f64, usize, f32)> = None;
             if can_split {
-                // Draw features without replacement; keep drawing past mtry until a split exists.
+                // Draw features without replacement until `mtry` of them vary in this node (as
+                // scikit-learn: features constant here, such as dead units, do not use up the
+                // draw), or the features run out.
                 let mut tried = 0;
                 let mut k = 0;
-                while k < d && (tried < self.mtry || split.is_none()) {
+                while k < d && tried < self.mtry {
                     let j = k + rng.below(d - k);
                     feats.swap(k, j);
                     let f = feats[k];
                     k += 1;
-                    tried += 1;
                     if let Some((proxy, thr)) = self.best_on(part, f, &total, &mut buf, &mut left) {
+                        tried += 1;
                         if split.is_none_or(|s| proxy > s.0) {
                             split = Some((proxy, f, thr));
                         }
@@ -521,6 +523,36 @@ mod tests {
         ForestConfig {
             trees,
             ..Default::default()
+        }
+    }
+
+    #[test]
+    fn constant_features_do_not_use_up_the_draw() {
+        // 100 dead (constant) features, one perfect and one weak feature: sqrt(102) = 10 draws of
+        // features that vary always see both, so every root splits on the perfect one.
+        let (d, n) = (102, 400);
+        let mut x = vec![0.5f32; n * d];
+        let mut y = vec![0u16; n];
+        for i in 0..n {
+            y[i] = (i % 2) as u16;
+            x[i * d + 37] = y[i] as f32 * 2.0 - 1.0 + (i % 7) as f32 * 0.01;
+            x[i * d + 80] = y[i] as f32 * 0.2 + (i % 5) as f32 * 0.1;
+        }
+        let f = Forest::fit(
+            Dataset {
+                x: &x,
+                y: &y,
+                d,
+                classes: 2,
+            },
+            &cfg(30),
+        )
+        .unwrap();
+        for t in &f.trees {
+            assert_eq!(
+                t.nodes[0].feature, 37,
+                "the root splits on the perfect feature"
+            );
         }
     }
 
