@@ -4,6 +4,7 @@
 
 mod classify;
 mod render;
+mod serve;
 mod viewpoints;
 
 use anyhow::{bail, Context, Result};
@@ -235,6 +236,8 @@ enum Cmd {
     },
     /// Render a store to PNG: intensity, class probabilities, or labels as probabilities.
     Render(render::RenderArgs),
+    /// Serve the browser UI and HTTP API (prints the URL).
+    Serve(serve::ServeArgs),
     /// Recommend viewpoints: k-means on features, view entropy, greedy complementary views.
     Viewpoints(viewpoints::ViewpointArgs),
     /// Convert any readable volume (including a store or store/labels/NAME) to NIfTI.
@@ -779,6 +782,7 @@ fn main() -> Result<()> {
         Cmd::Eval(a) => classify::run_eval(&a, quiet)?,
         Cmd::Render(a) => render::run_render(&a, quiet)?,
         Cmd::Viewpoints(a) => viewpoints::run_viewpoints(&a, quiet)?,
+        Cmd::Serve(a) => serve::run_serve(&a)?,
         Cmd::ScribbleSim {
             labels,
             level,

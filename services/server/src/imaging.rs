@@ -1,0 +1,92 @@
+//! Slices and overlays as PNG bytes.
+
+use crate::error::{ApiError, ApiResult};
+
+/// Encodes 8-bit pixels (`channels` 1, 3 or 4) as PNG.
+pub fn png(width: usize, height: usize, channels: usize, data: &[u8]) -> ApiResult<Vec<u8>> {
+    let mut out = Vec::new();
+    {
+        let mut enc = png::Encoder::new(&mut out, width as u32, height as u32);
+        enc.set_color(match channels {
+            1 => png::ColorType::Grayscale,
+            3 => png::ColorType::Rgb,
+            _ => png::ColorType::Rgba,
+        });
+        enc.set_depth(png::BitDepth::Eight);
+        let mut w = enc
+            .write_header()
+            .map_err(|e| ApiError::Internal(e.to_string()))?;
+        w.write_image_data(data)
+            .map_err(|e| ApiError::Internal(e.to_string()))?;
+    }
+    Ok(out)
+}
+
+/// Slice geometry: which axis is fixed, and the image's (column, row) volume axes. Rows run
+/// from high to low on the vertical axis for coronal and sagittal slices (superior up).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct SliceAxes {
+    /// Fixed axis (0 x, 1 y, 2 z).
+    pub fixed: usize,
+    /// Volume axis along image columns.
+    pub u: usize,
+    /// Volume axis along image rows.
+    pub v: usize,
+    /// Rows count down the volume axis.
+    pub flip_v: bool,
+}
+
+impl SliceAxes {
+    /// Parses `x`, `y` or `z`.
+    pub fn parse(axis: &str) -> ApiResult<SliceAxes> {
+        Ok(match axis {
+            "z" => SliceAxes {
+                fixed: 2,
+                u: 0,
+                v: 1,
+                flip_v: false,
+            },
+            "y" => SliceAxes {
+                fixed: 1,
+                u: 0,
+                v: 2,
+                flip_v: true,
+            },
+            "x" => SliceAxes {
+                fixed: 0,
+                u: 1,
+                v: 2,
+                flip_v: true,
+            },
+            o => {
+                return Err(ApiError::BadRequest(format!(
+                    "axis '{}' must be x, y or z",
+                    o.escape_debug()
+                )))
+            }
+        })
+    }
+
+    /// Volume voxel of image pixel `(i, j)` on slice `s`.
+    pub fn voxel(&self, dims: [usize; 3], s: usize, i: usize, j: usize) -> [usize; 3] {
+        let mut p = [0; 3];
+        p[self.fixed] = s;
+        p[self.u] = i;
+        p[self.v] = if self.flip_v { dims[self.v] - 1 - j } else { j };
+        p
+    }
+}
+
+/// Maps raw values through a window (width) and level (centre) to 8-bit grey.
+pub fn window(values: &[f32], level: f64, width: f64) -> Vec<u8> {
+    let w = if width.is_finite() && width > 0.0 {
+        width
+    } else {
+        1.0
+    };
+    let lo = level - w / 2.0;
+    values
+        .iter()
+        .map(|&v| (((v as f64 - lo) / w).clamp(0.0, 1.0) * 255.0).round() as u8)
+        .collect()
+}

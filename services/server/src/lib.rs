@@ -1,0 +1,25 @@
+//! # neuvolex-server
+//!
+//! The pipeline as a service: sessions over brick stores, driven by actors (tokio tasks with
+//! bounded mailboxes) that only schedule the pure per-brick functions of the library crates,
+//! and an actix-web HTTP API with Server-Sent Events and the browser UI.
+//!
+//! - [`session`]: one opened volume: its store, classes, strokes, the probabilities streamed in
+//!   brick by brick, and a render source over them.
+//! - [`actors`]: the classifier (sharded, cancelled by newer scribbles), the trainer (start,
+//!   stop, resume), the renderer (incremental), the event hub, and the supervisor that restarts a
+//!   failed actor and reports it.
+//! - [`http`]: the routes; every malformed request gets a 4xx with a message.
+//! - [`paths`]: volumes only from the configured data root.
+
+#![warn(missing_docs)]
+
+pub mod actors;
+pub mod error;
+pub mod http;
+pub mod imaging;
+pub mod paths;
+pub mod session;
+
+pub use error::ApiError;
+pub use http::{configure, AppState, ServerConfig};

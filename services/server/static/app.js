@@ -1,0 +1,189 @@
+// neuvolex browser UI: plain JavaScript, no build step.
+"use strict";
+const $ = (id) => document.getElementById(id);
+const api = async (method, url, body) => {
+  const r = await fetch(url, { method, headers: body ? { "Content-Type": "application/json" } : {}, body: body ? JSON.stringify(body) : undefined });
+  if (!r.ok) { let m = r.statusText; try { m = (await r.json()).error; } catch (_) {} throw new Error(m); }
+  return r.status === 204 ? null : r.json();
+};
+const S = { id: null, info: null, strokes: [], redo: [], cls: 1, radius: 3, hover: "z", idx: { x: 0, y: 0, z: 0 }, events: null, renderPending: false, ovlPending: false };
+const AX = { z: { u: 0, v: 1, flip: false }, y: { u: 0, v: 2, flip: true }, x: { u: 1, v: 2, flip: true } };
+const status = (t) => { $("status").textContent = t; };
+const hex = (c) => "#" + c.map((v) => v.toString(16).padStart(2, "0")).join("");
+const rgb = (h) => [1, 3, 5].map((i) => parseInt(h.slice(i, i + 2), 16));
+
+async function loadVolumes() {
+  const v = await api("GET", "/api/volumes");
+  $("volume").innerHTML = v.map((p) => `<option>${p}</option>`).join("");
+}
+
+async function open() {
+  status("opening " + $("volume").value + " ...");
+  try {
+    S.info = await api("POST", "/api/sessions", { volume: $("volume").value });
+  } catch (e) { status("error: " + e.message); return; }
+  S.id = S.info.id; S.strokes = []; S.redo = [];
+  const d = S.info.dims;
+  for (const a of ["x", "y", "z"]) {
+    const n = d[{ x: 0, y: 1, z: 2 }[a]];
+    $("i" + a).max = n - 1; $("i" + a).value = S.idx[a] = Math.floor(n / 2);
+  }
+  $("export").href = `/api/sessions/${S.id}/export/labels.nii.gz`;
+  renderClasses(); drawHistogram(); subscribe(); refreshAll();
+  status(`${S.info.volume}: ${d.join(" x ")}`);
+}
+
+function renderClasses() {
+  const box = $("classes"); box.innerHTML = "";
+  S.info.classes.forEach((c, i) => {
+    const row = document.createElement("div");
+    row.className = "cls" + (S.cls === c.id ? " sel" : ""); row.dataset.id = c.id;
+    row.innerHTML = `<input type="color" value="${hex(c.color)}"> <input type="text" value="${c.name}"> <small>${i + 1}</small>`;
+    row.onclick = (e) => { if (e.target.tagName !== "INPUT") pick(c.id); };
+    row.querySelector("input[type=color]").onchange = (e) => { c.color = rgb(e.target.value); pushClasses(); };
+    row.querySelector("input[type=text]").onchange = (e) => { c.name = e.target.value; pushClasses(); };
+    box.appendChild(row);
+  });
+  for (const el of [$("bgcls"), $("erase")]) el.classList.toggle("sel", +el.dataset.id === S.cls);
+}
+async function pushClasses() {
+  try { S.info = await api("PUT", `/api/sessions/${S.id}/classes`, S.info.classes); renderClasses(); refreshAll(); }
+  catch (e) { status("error: " + e.message); }
+}
+function pick(id) { S.cls = id; renderClasses(); }
+$("addcls").onclick = () => {
+  if (!S.info) return;
+  const id = Math.max(0, ...S.info.classes.map((c) => c.id)) + 1;
+  const hue = (id * 0.618) % 1, c = [0, 1, 2].map((k) => Math.round(127 + 120 * Math.cos(6.283 * (hue + k / 3))));
+  S.info.classes.push({ id, name: "class " + id, color: c }); pushClasses(); pick(id);
+};
+$("bgcls").onclick = () => pick(255);
+$("erase").onclick = () => pick(0);
+$("brush").oninput = (e) => { S.radius = +e.target.value; $("brushv").textContent = S.radius; };
+
+function wl() {
+  const [lo, hi] = S.info.percentiles; const w = (hi - lo) * $("win").value / 100;
+  const l = lo + (hi - lo) * $("lev").value / 100; return `window=${w}&level=${l}`;
+}
+const imgCache = {};
+function loadImg(url) { return new Promise((res) => { const i = new Image(); i.onload = () => res(i); i.onerror = () => res(null); i.src = url; }); }
+async function drawSlice(a) {
+  if (!S.id) return;
+  const c = $("c" + a), idx = S.idx[a];
+  const base = await loadImg(`/api/sessions/${S.id}/slice/${a}/${idx}?${wl()}`);
+  if (!base) return;
+  c.width = base.width; c.height = base.height;
+  const g = c.getContext("2d"); g.drawImage(base, 0, 0);
+  const kind = $("ovl").value;
+  if (kind) { const o = await loadImg(`/api/sessions/${S.id}/overlay/${a}/${idx}?kind=${kind}&t=${Date.now()}`); if (o) g.drawImage(o, 0, 0); }
+  drawStrokes(a, g);
+}
+function drawStrokes(a, g) {
+  const d = S.info.dims, ax = AX[a];
+  for (const s of S.strokes) {
+    if (s.axis !== a || s.slice !== S.idx[a]) continue;
+    const c = s.class === 255 ? [120, 120, 120] : s.class === 0 ? [0, 0, 0] : (S.info.classes.find((k) => k.id === s.class) || { color: [255, 255, 255] }).color;
+    g.strokeStyle = s.class === 0 ? "#000" : hex(c); g.lineWidth = Math.max(1, s.radius * 2); g.lineCap = g.lineJoin = "round";
+    g.beginPath();
+    s.points.forEach((p, i) => { const x = p[0] + 0.5, y = ax.flip ? d[ax.v] - 1 - p[1] + 0.5 : p[1] + 0.5; i ? g.lineTo(x, y) : g.moveTo(x, y); });
+    g.stroke();
+  }
+}
+function refreshAll() { for (const a of ["x", "y", "z"]) drawSlice(a); render(); fractions(); }
+async function render() {
+  if (!S.id || S.renderPending) return; S.renderPending = true;
+  const q = new URLSearchParams({ az: $("az").value, el: $("el").value, size: 400 });
+  if ($("mode").value) q.set("mode", $("mode").value);
+  if ($("tf").value) q.set("tf", $("tf").value);
+  const i = await loadImg(`/api/sessions/${S.id}/render?${q}&t=${Date.now()}`);
+  if (i) $("render").src = i.src;
+  S.renderPending = false;
+}
+async function fractions() {
+  if (!S.id) return;
+  const f = await api("GET", `/api/sessions/${S.id}/fractions`);
+  $("fractions").innerHTML = f.classes.map((c) => {
+    const k = S.info.classes.find((x) => x.id === c.id); const name = c.id === 255 ? "background" : k ? k.name : c.id;
+    return `<tr><td>${name}</td><td>${(100 * c.fraction).toFixed(2)}%</td></tr>`;
+  }).join("");
+}
+function drawHistogram() {
+  const c = $("hist"), g = c.getContext("2d"), h = S.info.histogram || [];
+  c.width = 256; g.fillStyle = "#000"; g.fillRect(0, 0, 256, 120);
+  const m = Math.max(1, ...h.map((v) => Math.log(1 + v)));
+  g.fillStyle = "#7af"; h.forEach((v, i) => { const y = 120 * Math.log(1 + v) / m; g.fillRect(i * 256 / h.length, 120 - y, Math.max(1, 256 / h.length), y); });
+}
+
+// Drawing strokes.
+let drawing = null;
+for (const a of ["x", "y", "z"]) {
+  const c = $("c" + a), ax = AX[a];
+  const pos = (e) => { const r = c.getBoundingClientRect(), d = S.info.dims;
+    const px = (e.clientX - r.left) * c.width / r.width, py = (e.clientY - r.top) * c.height / r.height;
+    const u = Math.max(0, Math.min(d[ax.u] - 1, Math.floor(px))), row = Math.max(0, Math.min(d[ax.v] - 1, Math.floor(py)));
+    return [u, ax.flip ? d[ax.v] - 1 - row : row]; };
+  c.onmouseenter = () => { S.hover = a; };
+  c.onmousedown = (e) => { if (!S.id || e.button !== 0) return; drawing = { class: S.cls, axis: a, slice: S.idx[a], points: [pos(e)], radius: S.radius }; };
+  c.onmousemove = (e) => { if (!drawing || drawing.axis !== a) return; drawing.points.push(pos(e)); const g = c.getContext("2d"); drawStrokes(a, g); S.strokes.push(drawing); drawStrokes(a, g); S.strokes.pop(); };
+  c.onmouseup = c.onmouseleave = () => { if (!drawing || drawing.axis !== a) return; S.strokes.push(drawing); S.redo = []; drawing = null; sendStrokes(); };
+  $("i" + a).oninput = (e) => { S.idx[a] = +e.target.value; drawSlice(a); };
+}
+async function sendStrokes() {
+  try { const r = await api("PUT", `/api/sessions/${S.id}/strokes`, S.strokes); status(`classifying (generation ${r.generation}) ...`); }
+  catch (e) { status("error: " + e.message); }
+  for (const a of ["x", "y", "z"]) drawSlice(a);
+}
+$("undo").onclick = () => { if (S.strokes.length) { S.redo.push(S.strokes.pop()); sendStrokes(); } };
+$("redo").onclick = () => { if (S.redo.length) { S.strokes.push(S.redo.pop()); sendStrokes(); } };
+for (const id of ["win", "lev", "ovl"]) $(id).oninput = () => { for (const a of ["x", "y", "z"]) drawSlice(a); };
+for (const id of ["az", "el", "mode", "tf"]) $(id).oninput = render;
+$("open").onclick = open;
+$("train").onclick = async () => { try { await api("POST", `/api/sessions/${S.id}/train`, { action: "start", epochs: 1 }); status("training ..."); } catch (e) { status("error: " + e.message); } };
+$("stop").onclick = async () => { try { await api("POST", `/api/sessions/${S.id}/train`, { action: "stop" }); } catch (e) { status("error: " + e.message); } };
+$("save").onclick = () => {
+  const blob = new Blob([JSON.stringify({ volume: S.info.volume, classes: S.info.classes, strokes: S.strokes, view: { az: $("az").value, el: $("el").value, mode: $("mode").value, tf: $("tf").value } }, null, 1)], { type: "application/json" });
+  const a = document.createElement("a"); a.href = URL.createObjectURL(blob); a.download = "neuvolex-session.json"; a.click();
+};
+$("load").onchange = async (e) => {
+  const f = e.target.files[0]; if (!f) return;
+  const j = JSON.parse(await f.text());
+  if (!S.id || S.info.volume !== j.volume) { $("volume").value = j.volume; await open(); }
+  S.info.classes = j.classes; await pushClasses();
+  S.strokes = j.strokes || []; S.redo = [];
+  if (j.view) { $("az").value = j.view.az; $("el").value = j.view.el; $("mode").value = j.view.mode || ""; $("tf").value = j.view.tf || ""; }
+  sendStrokes();
+};
+
+// Live updates: classification streams in brick by brick.
+let tick = null;
+function subscribe() {
+  if (S.events) S.events.close();
+  S.events = new EventSource(`/api/events?session=${S.id}`);
+  S.events.addEventListener("classified", (e) => {
+    const d = JSON.parse(e.data).data; status(`classified ${d.done}/${d.total} bricks`);
+    if (!tick) tick = setTimeout(() => { tick = null; refreshAll(); }, 400);
+  });
+  S.events.addEventListener("classification", (e) => { const d = JSON.parse(e.data).data; status(d.error ? "error: " + d.error : `classification ${d.status.state}${d.status.message ? ": " + d.status.message : ""} (${d.status.features})`); refreshAll(); });
+  S.events.addEventListener("training", (e) => { const d = JSON.parse(e.data).data; status(d.error ? "training error: " + d.error : `training ${d.state} ${d.epoch ? "epoch " + d.epoch.toFixed(2) : ""} ${d.psnr ? "PSNR " + d.psnr.toFixed(1) + " dB" : ""}`); });
+  S.events.addEventListener("actor_failed", (e) => { status("a worker failed and was restarted: " + JSON.parse(e.data).data.error); });
+}
+
+// Keyboard shortcuts (Slicer / napari style).
+function toggleHelp() { const h = $("help"); h.style.display = h.style.display === "block" ? "none" : "block"; }
+document.addEventListener("keydown", (e) => {
+  if (e.target.tagName === "INPUT" && e.target.type === "text") return;
+  const k = e.key;
+  if ((e.ctrlKey || e.metaKey) && k.toLowerCase() === "z") { e.preventDefault(); (e.shiftKey ? $("redo") : $("undo")).click(); return; }
+  if ((e.ctrlKey || e.metaKey) && k.toLowerCase() === "y") { e.preventDefault(); $("redo").click(); return; }
+  if (/^[1-9]$/.test(k) && S.info && S.info.classes[+k - 1]) pick(S.info.classes[+k - 1].id);
+  else if (k === "b" || k === "B") pick(255);
+  else if (k === "e" || k === "E") pick(0);
+  else if (k === "[") { $("brush").value = S.radius = Math.max(1, S.radius - 1); $("brushv").textContent = S.radius; }
+  else if (k === "]") { $("brush").value = S.radius = Math.min(20, S.radius + 1); $("brushv").textContent = S.radius; }
+  else if (k === "h" || k === "H" || k === "?") toggleHelp();
+  else if (k === "o" || k === "O") { const o = $("ovl"); o.selectedIndex = (o.selectedIndex + 1) % o.options.length; o.oninput(); }
+  else if (["ArrowUp", "ArrowDown", "PageUp", "PageDown"].includes(k) && S.id) {
+    e.preventDefault(); const a = S.hover, s = $("i" + a); s.value = S.idx[a] = Math.max(0, Math.min(+s.max, S.idx[a] + (k === "ArrowUp" || k === "PageUp" ? 1 : -1))); drawSlice(a);
+  }
+});
+loadVolumes().then(() => { if ($("volume").options.length) open(); });
