@@ -1,5 +1,6 @@
 #!/usr/bin/env bash
-# The tests: every crate, release mode, with the wgpu renderer compared against the CPU one.
+# The tests: every crate, release mode, with the wgpu renderer compared against the CPU one and
+# the browser UI driven in headless Chromium.
 # The GPU test needs a Vulkan driver; on a machine without a GPU, Mesa's lavapipe (a software
 # Vulkan) serves, so this installs it where it is missing and apt is usable. Without any adapter
 # the GPU test skips (and fails under CI=true).
@@ -14,5 +15,19 @@ if ! ls /usr/share/vulkan/icd.d/*.json >/dev/null 2>&1; then
       { $SUDO apt-get update -q >/dev/null 2>&1 && $SUDO apt-get install -y -q mesa-vulkan-drivers libvulkan1 >/dev/null 2>&1; } ||
       echo "could not install a Vulkan driver: the GPU renderer test will skip"
   fi
+fi
+# The browser test: Debian's chromium and playwright-core (no browser download).
+if ! [ -x /usr/bin/chromium ] && command -v apt-get >/dev/null 2>&1; then
+  SUDO=""
+  [ "$(id -u)" -ne 0 ] && command -v sudo >/dev/null 2>&1 && SUDO="sudo -n"
+  echo "installing chromium for the browser test"
+  $SUDO apt-get install -y -q chromium >/dev/null 2>&1 ||
+    { $SUDO apt-get update -q >/dev/null 2>&1 && $SUDO apt-get install -y -q chromium >/dev/null 2>&1; } ||
+    echo "could not install chromium: the browser test will skip"
+fi
+if command -v npm >/dev/null 2>&1 && ! [ -d target/e2e/node_modules/playwright-core ]; then
+  mkdir -p target/e2e
+  (cd target/e2e && { [ -f package.json ] || npm init -y >/dev/null 2>&1; } && npm install --silent --no-audit --no-fund playwright-core@1 >/dev/null 2>&1) ||
+    echo "could not install playwright-core: the browser test will skip"
 fi
 exec cargo test --workspace --release --features neuvolex-tests/gpu,neuvolex/gpu "$@"

@@ -184,6 +184,9 @@ struct SliceQuery {
     window: Option<f64>,
     level: Option<f64>,
     kind: Option<String>,
+    /// A client's cache-buster, ignored.
+    #[serde(rename = "t")]
+    _t: Option<String>,
 }
 
 fn slice_index(s: &Session, axis: &str, index: usize) -> ApiResult<(SliceAxes, [usize; 3])> {
@@ -331,6 +334,9 @@ struct RenderQuery {
     size: Option<usize>,
     mode: Option<String>,
     tf: Option<String>,
+    /// A client's cache-buster, ignored.
+    #[serde(rename = "t")]
+    _t: Option<String>,
 }
 
 async fn render(

@@ -150,8 +150,9 @@ async fn scribble_classify_render_export() {
     for uri in [
         format!("/api/sessions/{id}/overlay/z/21?kind=labels"),
         format!("/api/sessions/{id}/overlay/y/20?kind=uncertainty"),
-        format!("/api/sessions/{id}/render?size=64&az=10&el=5"),
+        format!("/api/sessions/{id}/render?size=64&az=10&el=5&t=123"),
         format!("/api/sessions/{id}/render?size=64&mode=prob-intensity&tf=grey"),
+        format!("/api/sessions/{id}/overlay/x/20?kind=labels&t=99"),
     ] {
         let r = test::call_service(&app, test::TestRequest::get().uri(&uri).to_request()).await;
         assert_eq!(r.status(), 200, "{uri}");
