@@ -12,8 +12,7 @@ use neuvolex_bricks::{ingest, open_volume, BrickStore, IngestOptions};
 use neuvolex_classify::{Dataset, Forest, ForestConfig};
 use neuvolex_features::extract::extract_brick;
 use neuvolex_features::rng::Rng;
-use neuvolex_features::{train, Budget, FeatureKind, InrConfig, TrainConfig};
-use std::sync::atomic::AtomicBool;
+use neuvolex_features::FeatureKind;
 use std::time::Instant;
 
 fn f1_mean(pred: &[u16], truth: &[u16], classes: usize) -> (f64, Vec<f64>) {
@@ -65,26 +64,7 @@ fn main() {
     store
         .add_labels("gt", l.as_mut(), &[], &mut |_| {})
         .expect("labels");
-    let c = TrainConfig {
-        budget: Budget {
-            epochs: Some(1.0),
-            ..Default::default()
-        },
-        preview_every: 0,
-        checkpoint_every: 0,
-        ..TrainConfig::default()
-    };
-    let model = train(
-        &store,
-        &InrConfig::default(),
-        &c,
-        None,
-        None,
-        &AtomicBool::new(false),
-        &mut |_| {},
-    )
-    .expect("train")
-    .model;
+    let model = neuvolex_benches::train_one_epoch(&store);
     // Features and labels of every voxel, brick by brick.
     let (mut x, mut y) = (Vec::new(), Vec::new());
     for b in store.bricks() {

@@ -12,11 +12,10 @@ use neuvolex_benches::{machine, shared};
 use neuvolex_bricks::{ingest, open_volume, BrickStore, IngestOptions};
 use neuvolex_classify::features::BrickFeatures;
 use neuvolex_features::extract::extract_brick;
-use neuvolex_features::{train, Budget, FeatureKind, InrConfig, TrainConfig};
+use neuvolex_features::FeatureKind;
 use neuvolex_viewpoints::kmeans::Algorithm;
 use neuvolex_viewpoints::scores::{score_views, select, Aggregator, SelectConfig};
 use neuvolex_viewpoints::{fibonacci_sphere, ClusterPartial, KMeans, KMeansConfig};
-use std::sync::atomic::AtomicBool;
 use std::time::Instant;
 
 fn main() {
@@ -42,26 +41,7 @@ fn main() {
         let store = BrickStore::open(&sp).expect("store");
         let bricks = store.occupied_bricks(None);
         let (chunks, dim, what): (Vec<Vec<f32>>, usize, &str) = if inr {
-            let c = TrainConfig {
-                budget: Budget {
-                    epochs: Some(1.0),
-                    ..Default::default()
-                },
-                preview_every: 0,
-                checkpoint_every: 0,
-                ..TrainConfig::default()
-            };
-            let model = train(
-                &store,
-                &InrConfig::default(),
-                &c,
-                None,
-                None,
-                &AtomicBool::new(false),
-                &mut |_| {},
-            )
-            .expect("train")
-            .model;
+            let model = neuvolex_benches::train_one_epoch(&store);
             let ch = bricks
                 .iter()
                 .map(|b| extract_brick(&model, &store, b, FeatureKind::Hidden).expect("features"))

@@ -54,3 +54,29 @@ pub fn machine() -> String {
             .unwrap_or(1)
     )
 }
+
+/// The INR trained on `store` for one epoch with the default configuration (no previews, no
+/// checkpoints): the feature extractor the classification and viewpoint benchmarks share.
+pub fn train_one_epoch(store: &neuvolex_bricks::BrickStore) -> neuvolex_features::InrModel {
+    use neuvolex_features::{train, Budget, InrConfig, TrainConfig};
+    let c = TrainConfig {
+        budget: Budget {
+            epochs: Some(1.0),
+            ..Default::default()
+        },
+        preview_every: 0,
+        checkpoint_every: 0,
+        ..TrainConfig::default()
+    };
+    train(
+        store,
+        &InrConfig::default(),
+        &c,
+        None,
+        None,
+        &std::sync::atomic::AtomicBool::new(false),
+        &mut |_| {},
+    )
+    .expect("train")
+    .model
+}

@@ -6,12 +6,13 @@ use neuvolex_bricks::BrickStore;
 use neuvolex_classify::features::{BrickFeatures, FeatureSet};
 use neuvolex_render::{BrickSource, Camera, Image, RenderParams, Renderer, StoreSource, TfFile};
 use neuvolex_viewpoints::kmeans::Algorithm;
-use neuvolex_viewpoints::scores::{entropy_map, score_views, select, Aggregator, SelectConfig};
-use neuvolex_viewpoints::{direction_to_view, fibonacci_sphere, KMeans, KMeansConfig};
+use neuvolex_viewpoints::scores::{entropy_map, SelectConfig};
+use neuvolex_viewpoints::{
+    direction_to_view, fibonacci_sphere, recommend, KMeansConfig, RecommendConfig,
+};
 use std::borrow::Cow;
 use std::path::PathBuf;
 use std::sync::Arc;
-use std::time::Instant;
 
 /// Arguments of `neuvolex viewpoints`.
 #[derive(clap::Args)]
@@ -103,18 +104,8 @@ pub fn run_viewpoints(a: &ViewpointArgs, quiet: bool) -> Result<()> {
     let bricks = store.occupied_bricks(None);
     let dim = fx.channels();
     std::fs::create_dir_all(&a.out).with_context(|| format!("{}", a.out.display()))?;
-    // 1. k-means over the occupied bricks' features (empty bricks are excluded).
-    let t = Instant::now();
-    let cfg = KMeansConfig {
-        k: a.k,
-        seed: a.seed,
-        algorithm,
-        ..Default::default()
-    };
-    let spin = crate::classify::styled_bar(quiet, 1, "{spinner} k-means {elapsed}");
-    spin.enable_steady_tick(std::time::Duration::from_millis(120));
-    // Every pass reads each brick's features; hold them in memory where they fit the budget
-    // (otherwise they stream from the store or the model on every pass).
+    // Every k-means pass reads each brick's features; hold them in memory where they fit the
+    // budget (otherwise they stream from the store or the model on every pass).
     let bytes: usize = bricks.iter().map(|b| b.voxels() * dim * 4).sum();
     let cached: Option<Vec<Vec<f32>>> = if bytes <= a.memory_mib << 20 {
         Some(
@@ -130,7 +121,26 @@ pub fn run_viewpoints(a: &ViewpointArgs, quiet: bool) -> Result<()> {
         );
         None
     };
-    let km = KMeans::fit(
+    let cfg = RecommendConfig {
+        kmeans: KMeansConfig {
+            k: a.k,
+            seed: a.seed,
+            algorithm,
+            ..Default::default()
+        },
+        views: a.views,
+        select: SelectConfig {
+            cover: a.cover,
+            max_views: a.max_views,
+            ..Default::default()
+        },
+    };
+    let pb = crate::classify::bar(quiet, bricks.len() as u64, "normals");
+    let views = fibonacci_sphere(a.views);
+    let err = |e: String| neuvolex_viewpoints::ViewpointError::Input(e);
+    // k-means over the occupied bricks (empty ones are excluded), then cluster normals merged
+    // brick by brick: the entropy map refines as bricks arrive.
+    let rec = recommend(
         bricks.len(),
         dim,
         |i| match &cached {
@@ -138,55 +148,33 @@ pub fn run_viewpoints(a: &ViewpointArgs, quiet: bool) -> Result<()> {
             None => fx
                 .brick(&bricks[i])
                 .map(Cow::Owned)
-                .map_err(|e| neuvolex_viewpoints::ViewpointError::Input(e.to_string())),
+                .map_err(|e| err(e.to_string())),
         },
+        |i| {
+            Ok(store
+                .derived(&bricks[i])
+                .map_err(|e| err(e.to_string()))?
+                .gradient)
+        },
+        store.info().spacing,
         &cfg,
-    )?;
-    spin.finish_and_clear();
-    let t_kmeans = t.elapsed().as_secs_f64();
-    let used = km.counts.iter().filter(|&&c| c > 0).count();
-    // 2. Progressive aggregation of cluster normals, brick by brick.
-    let t = Instant::now();
-    let pb = crate::classify::bar(quiet, bricks.len() as u64, "normals");
-    let spacing = store.info().spacing;
-    let views = fibonacci_sphere(a.views);
-    let mut agg = Aggregator::new(km.k());
-    for (n, b) in bricks.iter().enumerate() {
-        let rows = match &cached {
-            Some(c) => Cow::Borrowed(&c[n][..]),
-            None => Cow::Owned(fx.brick(b)?),
-        };
-        let labels = km.assign(&rows);
-        let g = store.derived(b)?.gradient;
-        agg.add(&neuvolex_viewpoints::ClusterPartial::from_brick(
-            km.k(),
-            &labels,
-            &g,
-            spacing,
-        )?);
-        pb.set_position(n as u64 + 1);
-        if (n + 1) % 16 == 0 {
-            let s = agg.snapshot(&views)?;
-            let best = s.entropy.iter().cloned().fold(0.0f32, f32::max);
-            tracing::debug!(bricks = n + 1, best_entropy = best, "entropy map refined");
-        }
-    }
-    pb.finish_and_clear();
-    let summ = agg.partial().summary();
-    let scores = score_views(&summ, &views)?;
-    let sel = select(
-        &summ,
-        &scores,
-        &SelectConfig {
-            cover: a.cover,
-            max_views: a.max_views,
-            ..Default::default()
+        &mut |n, agg| {
+            pb.set_position(n as u64);
+            if n % 16 == 0 {
+                if let Ok(s) = agg.snapshot(&views) {
+                    let best = s.entropy.iter().cloned().fold(0.0f32, f32::max);
+                    tracing::debug!(bricks = n, best_entropy = best, "entropy map refined");
+                }
+            }
         },
     )?;
-    let t_views = t.elapsed().as_secs_f64();
+    pb.finish_and_clear();
+    let (summ, scores, sel, km) = (&rec.summary, &rec.scores, &rec.selection, &rec.kmeans);
+    let (t_kmeans, t_views) = (rec.kmeans_seconds, rec.scoring_seconds);
+    let used = km.counts.iter().filter(|&&c| c > 0).count();
     // 3. Outputs: entropy map, JSON, renderings.
     let (w, h) = (360, 180);
-    let map = entropy_map(&summ, w, h);
+    let map = entropy_map(summ, w, h);
     let hi = map.iter().cloned().fold(0.0f32, f32::max).max(1e-6);
     let img = Image {
         width: w,

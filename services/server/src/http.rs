@@ -553,6 +553,82 @@ async fn export_labels(st: web::Data<AppState>, id: web::Path<String>) -> ApiRes
         .body(bytes))
 }
 
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct ViewReq {
+    k: Option<usize>,
+    views: Option<usize>,
+}
+
+async fn viewpoints(
+    st: web::Data<AppState>,
+    id: web::Path<String>,
+    req: web::Json<ViewReq>,
+) -> ApiResult<HttpResponse> {
+    let s = st.session(&id)?;
+    let req = req.into_inner();
+    let (k, views) = (req.k.unwrap_or(50), req.views.unwrap_or(1800));
+    if !(1..=256).contains(&k) || !(1..=20_000).contains(&views) {
+        return Err(ApiError::BadRequest(format!(
+            "k {k} must be 1..=256 and views {views} 1..=20000"
+        )));
+    }
+    let hub = st.actors.hub.clone();
+    let out = web::block(move || -> ApiResult<serde_json::Value> {
+        use neuvolex_classify::features::{BrickFeatures, FeatureSet};
+        use neuvolex_viewpoints::{direction_to_view, recommend, KMeansConfig, RecommendConfig};
+        let model = neuvolex_features::checkpoint::load(&neuvolex_features::train::model_path(&s.store))
+            .ok()
+            .map(|l| Arc::new(l.model));
+        let set: FeatureSet = if model.is_some() { "paper" } else { "local" }
+            .parse()
+            .map_err(ApiError::Internal)?;
+        let fx = BrickFeatures::new(&s.store, set.clone(), model, false)?;
+        let bricks = s.store.occupied_bricks(None);
+        let rows: Vec<Vec<f32>> = bricks.iter().map(|b| fx.brick(b)).collect::<Result<_, _>>()?;
+        let err = |e: String| neuvolex_viewpoints::ViewpointError::Input(e);
+        let cfg = RecommendConfig {
+            kmeans: KMeansConfig {
+                k,
+                algorithm: neuvolex_viewpoints::kmeans::Algorithm::MiniBatch { epochs: 3 },
+                ..Default::default()
+            },
+            views,
+            ..Default::default()
+        };
+        let rec = recommend(
+            bricks.len(),
+            fx.channels(),
+            |i| Ok(&rows[i][..]),
+            |i| Ok(s.store.derived(&bricks[i]).map_err(|e| err(e.to_string()))?.gradient),
+            s.store.info().spacing,
+            &cfg,
+            &mut |_, _| {},
+        )
+        .map_err(|e| ApiError::BadRequest(e.to_string()))?;
+        let picked: Vec<serde_json::Value> = rec
+            .selection
+            .views
+            .iter()
+            .map(|&i| {
+                let (az, el) = direction_to_view(rec.scores.views[i]);
+                serde_json::json!({"azimuth": az, "elevation": el, "entropy": rec.scores.entropy[i]})
+            })
+            .collect();
+        let out = serde_json::json!({
+            "features": set.to_string(), "views": picked,
+            "clusters_used": rec.kmeans.counts.iter().filter(|&&c| c > 0).count(),
+            "uncovered": rec.selection.uncovered.len(),
+            "seconds": rec.kmeans_seconds + rec.scoring_seconds,
+        });
+        hub.publish(Some(&s.id), "viewpoints", out.clone());
+        Ok(out)
+    })
+    .await
+    .map_err(|e| ApiError::Internal(e.to_string()))??;
+    Ok(HttpResponse::Ok().json(out))
+}
+
 fn json_error(err: impl std::fmt::Display) -> actix_web::Error {
     ApiError::BadRequest(format!("malformed request: {err}")).into()
 }
@@ -585,6 +661,7 @@ pub fn configure(cfg: &mut web::ServiceConfig) {
             .route("/sessions/{id}/render", web::get().to(render))
             .route("/sessions/{id}/train", web::post().to(train))
             .route("/sessions/{id}/fractions", web::get().to(fractions))
+            .route("/sessions/{id}/viewpoints", web::post().to(viewpoints))
             .route(
                 "/sessions/{id}/export/labels.nii.gz",
                 web::get().to(export_labels),

@@ -154,6 +154,24 @@ $("load").onchange = async (e) => {
   sendStrokes();
 };
 
+// Viewpoint recommendation: thumbnails that move the 3-D view.
+$("recommend").onclick = async () => {
+  if (!S.id) return;
+  $("vpinfo").textContent = "computing ...";
+  try {
+    const r = await api("POST", `/api/sessions/${S.id}/viewpoints`, { k: 50, views: 1800 });
+    $("vpinfo").textContent = `${r.views.length} views (${r.features}, ${r.seconds.toFixed(1)} s)`;
+    $("thumbs").innerHTML = "";
+    for (const v of r.views) {
+      const img = document.createElement("img");
+      img.src = `/api/sessions/${S.id}/render?az=${v.azimuth.toFixed(1)}&el=${v.elevation.toFixed(1)}&size=96`;
+      img.title = `azimuth ${v.azimuth.toFixed(0)}, elevation ${v.elevation.toFixed(0)}, entropy ${v.entropy.toFixed(2)}`;
+      img.onclick = () => { $("az").value = Math.round(v.azimuth); $("el").value = Math.round(v.elevation); render(); };
+      $("thumbs").appendChild(img);
+    }
+  } catch (e) { $("vpinfo").textContent = "error: " + e.message; }
+};
+
 // Live updates: classification streams in brick by brick.
 let tick = null;
 function subscribe() {

@@ -173,6 +173,18 @@ async fn scribble_classify_render_export() {
     )
     .await;
     assert_eq!(r.status(), 200);
+    // Viewpoints of the session's volume.
+    let req = test::TestRequest::post()
+        .uri(&format!("/api/sessions/{id}/viewpoints"))
+        .set_json(json!({"k": 12, "views": 300}))
+        .to_request();
+    let v: Value = test::call_and_read_body_json(&app, req).await;
+    assert!(!v["views"].as_array().unwrap().is_empty(), "{v}");
+    let req = test::TestRequest::post()
+        .uri(&format!("/api/sessions/{id}/viewpoints"))
+        .set_json(json!({"k": 0}))
+        .to_request();
+    assert_eq!(test::call_service(&app, req).await.status(), 400);
     // Export as NIfTI.
     let r = test::call_service(
         &app,

@@ -12,10 +12,12 @@
 #![warn(missing_docs)]
 
 pub mod kmeans;
+pub mod pipeline;
 pub mod scores;
 pub mod sphere;
 
 pub use kmeans::{KMeans, KMeansConfig};
+pub use pipeline::{recommend, RecommendConfig, Recommendation};
 pub use scores::{ClusterPartial, ClusterSummary, Selection, ViewScores};
 pub use sphere::{direction_to_view, fibonacci_sphere, view_to_direction};
 
