@@ -13,6 +13,7 @@ struct Entry<V> {
 
 struct State<K, V> {
     map: HashMap<K, Entry<V>>,
+    budget: usize,
     used: usize,
     tick: u64,
     hits: u64,
@@ -23,7 +24,6 @@ struct State<K, V> {
 /// used entries once the summed cost of its entries exceeds the budget. One entry is always
 /// kept, however costly.
 pub struct Lru<K, V> {
-    budget: usize,
     state: Mutex<State<K, V>>,
 }
 
@@ -31,9 +31,9 @@ impl<K: Eq + Hash + Clone, V: Clone> Lru<K, V> {
     /// An empty cache holding entries whose costs sum to at most `budget`.
     pub fn new(budget: usize) -> Self {
         Lru {
-            budget: budget.max(1),
             state: Mutex::new(State {
                 map: HashMap::new(),
+                budget: budget.max(1),
                 used: 0,
                 tick: 0,
                 hits: 0,
@@ -74,7 +74,7 @@ impl<K: Eq + Hash + Clone, V: Clone> Lru<K, V> {
             s.used -= old.cost;
         }
         s.used += cost;
-        while s.used > self.budget && s.map.len() > 1 {
+        while s.used > s.budget && s.map.len() > 1 {
             let Some(k) = s
                 .map
                 .iter()
@@ -103,6 +103,14 @@ impl<K: Eq + Hash + Clone, V: Clone> Lru<K, V> {
         let (v, cost) = load()?;
         self.insert(key.clone(), v.clone(), cost);
         Ok(v)
+    }
+
+    /// Changes the budget and drops every entry.
+    pub fn set_budget(&self, budget: usize) {
+        let mut s = self.lock();
+        s.budget = budget.max(1);
+        s.map.clear();
+        s.used = 0;
     }
 
     /// Drops `key` if cached.

@@ -14,6 +14,7 @@
 use crate::derived::{HaloBrick, Normaliser};
 use crate::dtype::DType;
 use crate::error::{BrickError, Result};
+use crate::lru::Lru;
 use crate::meta::{VolumeMeta, VolumeSource};
 use crate::omezarr::{
     check_chunks_exist, fs_store, multiscales, read_bytes, read_node_json, write_bytes,
@@ -22,10 +23,9 @@ use crate::omezarr::{
 use crate::stats::{FineHistogram, StatsAccumulator, VolumeStats};
 use serde::{Deserialize, Serialize};
 use serde_json::{json, Value};
-use std::collections::HashMap;
 use std::ops::Range;
 use std::path::{Path, PathBuf};
-use std::sync::{Arc, Mutex};
+use std::sync::Arc;
 use zarrs::array::{Array, ArrayBuilder};
 use zarrs::group::GroupBuilder;
 use zarrs::storage::ReadableWritableListableStorage;
@@ -883,15 +883,6 @@ pub struct VectorInfo {
     pub extra: Value,
 }
 
-/// A decoded brick and the tick it was last used.
-type CacheEntry = (Arc<Vec<f32>>, u64);
-
-struct Cache {
-    map: HashMap<(usize, [usize; 3]), CacheEntry>,
-    tick: u64,
-    cap: usize,
-}
-
 /// An opened, complete brick store.
 pub struct BrickStore {
     root: PathBuf,
@@ -900,7 +891,8 @@ pub struct BrickStore {
     levels: Vec<ZArray>,
     brick_min: Vec<f64>,
     brick_max: Vec<f64>,
-    cache: Mutex<Cache>,
+    /// Decoded bricks by (level, index); each costs 1, so the budget counts bricks.
+    cache: Lru<(usize, [usize; 3]), Arc<Vec<f32>>>,
 }
 
 impl std::fmt::Debug for BrickStore {
@@ -986,11 +978,7 @@ impl BrickStore {
             levels,
             brick_min,
             brick_max,
-            cache: Mutex::new(Cache {
-                map: HashMap::new(),
-                tick: 0,
-                cap,
-            }),
+            cache: Lru::new(cap),
         })
     }
 
@@ -1022,9 +1010,7 @@ impl BrickStore {
 
     /// Sets how many decoded bricks the read cache keeps (default 128).
     pub fn set_cache_capacity(&self, bricks: usize) {
-        let mut c = self.cache.lock().unwrap_or_else(|p| p.into_inner());
-        c.cap = bricks.max(1);
-        c.map.clear();
+        self.cache.set_budget(bricks);
     }
 
     /// Bricks per axis (x, y, z).
@@ -1086,44 +1072,28 @@ impl BrickStore {
     }
 
     fn load_brick(&self, level: usize, idx: [usize; 3]) -> Result<Arc<Vec<f32>>> {
-        {
-            let mut c = self.cache.lock().unwrap_or_else(|p| p.into_inner());
-            c.tick += 1;
-            let t = c.tick;
-            if let Some(e) = c.map.get_mut(&(level, idx)) {
-                e.1 = t;
-                return Ok(e.0.clone());
-            }
-        }
-        let d = self.info.levels[level];
-        let c = level_chunk(self.info.brick, level);
-        let origin = [idx[0] * c[0], idx[1] * c[1], idx[2] * c[2]];
-        let size = [
-            c[0].min(d[0] - origin[0]),
-            c[1].min(d[1] - origin[1]),
-            c[2].min(d[2] - origin[2]),
-        ];
-        let sub = zyx(origin, size);
-        let a = &self.levels[level];
-        check_chunks_exist(a, &self.root, &format!("/{level}"), &sub)?;
-        let bytes = read_bytes(a, &sub).map_err(|e| BrickError::corrupt(&self.root, e))?;
-        let dt = if level == 0 {
-            self.info.dtype
-        } else {
-            DType::F32
-        };
-        let mut v = vec![0.0f32; bytes.len() / dt.size()];
-        crate::dtype::bytes_to_f32(&bytes, dt, &mut v);
-        let v = Arc::new(v);
-        let mut c = self.cache.lock().unwrap_or_else(|p| p.into_inner());
-        if c.map.len() >= c.cap {
-            if let Some(old) = c.map.iter().min_by_key(|(_, (_, t))| *t).map(|(k, _)| *k) {
-                c.map.remove(&old);
-            }
-        }
-        let t = c.tick;
-        c.map.insert((level, idx), (v.clone(), t));
-        Ok(v)
+        self.cache.get_or_try_insert(&(level, idx), || {
+            let d = self.info.levels[level];
+            let c = level_chunk(self.info.brick, level);
+            let origin = [idx[0] * c[0], idx[1] * c[1], idx[2] * c[2]];
+            let size = [
+                c[0].min(d[0] - origin[0]),
+                c[1].min(d[1] - origin[1]),
+                c[2].min(d[2] - origin[2]),
+            ];
+            let sub = zyx(origin, size);
+            let a = &self.levels[level];
+            check_chunks_exist(a, &self.root, &format!("/{level}"), &sub)?;
+            let bytes = read_bytes(a, &sub).map_err(|e| BrickError::corrupt(&self.root, e))?;
+            let dt = if level == 0 {
+                self.info.dtype
+            } else {
+                DType::F32
+            };
+            let mut v = vec![0.0f32; bytes.len() / dt.size()];
+            crate::dtype::bytes_to_f32(&bytes, dt, &mut v);
+            Ok((Arc::new(v), 1))
+        })
     }
 
     /// Reads the sub-box `origin..origin+size` (x, y, z) of pyramid `level` as f32, x fastest.

@@ -9,10 +9,10 @@ use crate::error::{FeatureError, Result};
 use crate::model::{FeatureKind, InrModel, CHUNK};
 use crate::tile::Tile;
 use crate::train::training_bricks;
+use neuvolex_bricks::lru::Lru;
 use neuvolex_bricks::{Brick, BrickStore, Progress, VectorArray, VectorEncoding};
 use rayon::prelude::*;
-use std::collections::HashMap;
-use std::sync::{Arc, Mutex};
+use std::sync::Arc;
 use std::time::Instant;
 
 /// Name of the store's vector array for a feature kind.
@@ -127,21 +127,11 @@ pub enum FeatureSource {
     },
 }
 
-/// Cached bricks (with the tick of their last use), the clock, hits and misses.
-#[derive(Default)]
-struct CacheState {
-    map: HashMap<[usize; 3], (Arc<Vec<f32>>, u64)>,
-    tick: u64,
-    hits: u64,
-    misses: u64,
-}
-
 /// An LRU of recently used feature bricks over either source.
 pub struct FeatureCache<'s> {
     store: &'s BrickStore,
     source: FeatureSource,
-    cap: usize,
-    map: Mutex<CacheState>,
+    cache: Lru<[usize; 3], Arc<Vec<f32>>>,
 }
 
 impl<'s> FeatureCache<'s> {
@@ -150,8 +140,7 @@ impl<'s> FeatureCache<'s> {
         FeatureCache {
             store,
             source,
-            cap: cap_bricks.max(1),
-            map: Mutex::new(CacheState::default()),
+            cache: Lru::new(cap_bricks),
         }
     }
 
@@ -165,36 +154,19 @@ impl<'s> FeatureCache<'s> {
 
     /// The features of brick `b` (`voxels x channels`).
     pub fn get(&self, b: &Brick) -> Result<Arc<Vec<f32>>> {
-        {
-            let mut g = self.map.lock().unwrap_or_else(|p| p.into_inner());
-            g.tick += 1;
-            let tick = g.tick;
-            if let Some(e) = g.map.get_mut(&b.index) {
-                e.1 = tick;
-                let v = e.0.clone();
-                g.hits += 1;
-                return Ok(v);
-            }
-            g.misses += 1;
-        }
-        let v = Arc::new(match &self.source {
-            FeatureSource::Stored(va) => va.read_brick(b)?,
-            FeatureSource::OnDemand { model, kind } => extract_brick(model, self.store, b, *kind)?,
-        });
-        let mut g = self.map.lock().unwrap_or_else(|p| p.into_inner());
-        if g.map.len() >= self.cap {
-            if let Some(k) = g.map.iter().min_by_key(|(_, (_, t))| *t).map(|(k, _)| *k) {
-                g.map.remove(&k);
-            }
-        }
-        let tick = g.tick;
-        g.map.insert(b.index, (v.clone(), tick));
-        Ok(v)
+        self.cache.get_or_try_insert(&b.index, || {
+            let v = match &self.source {
+                FeatureSource::Stored(va) => va.read_brick(b)?,
+                FeatureSource::OnDemand { model, kind } => {
+                    extract_brick(model, self.store, b, *kind)?
+                }
+            };
+            Ok((Arc::new(v), 1))
+        })
     }
 
     /// (hits, misses) so far.
     pub fn stats(&self) -> (u64, u64) {
-        let g = self.map.lock().unwrap_or_else(|p| p.into_inner());
-        (g.hits, g.misses)
+        self.cache.hit_stats()
     }
 }

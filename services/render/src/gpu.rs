@@ -11,7 +11,6 @@ use crate::tf::{Luts, LUT_SIZE};
 use crate::{Mode, Projection, RenderError, Result};
 use bytemuck::{Pod, Zeroable};
 use rayon::prelude::*;
-use std::sync::Arc;
 use std::time::Instant;
 use wgpu::util::DeviceExt;
 
@@ -493,9 +492,4 @@ impl<S: BrickSource> GpuRenderer<S> {
         self.queue.submit([enc.finish()]);
         Ok(())
     }
-}
-
-/// Shares a source between a CPU and a GPU renderer.
-pub fn shared<S: BrickSource>(s: S) -> Arc<S> {
-    Arc::new(s)
 }

@@ -1,7 +1,6 @@
 //! Rendered images: linear RGB plus opacity in f32, PNG out and in, comparisons.
 
 use crate::{RenderError, Result};
-use std::io::BufWriter;
 use std::path::Path;
 
 /// An RGB image with per-pixel opacity, row 0 at the top.
@@ -24,6 +23,31 @@ fn io_err(path: &Path, e: impl std::fmt::Display) -> RenderError {
     }
 }
 
+/// Encodes 8-bit pixels (`channels`: 1 grey, 3 RGB, 4 RGBA; rows top to bottom) as PNG bytes.
+pub fn encode_png(width: usize, height: usize, channels: usize, data: &[u8]) -> Result<Vec<u8>> {
+    let err = |e: png::EncodingError| RenderError::Input(format!("PNG encoding: {e}"));
+    let color = match channels {
+        1 => png::ColorType::Grayscale,
+        3 => png::ColorType::Rgb,
+        4 => png::ColorType::Rgba,
+        c => {
+            return Err(RenderError::Input(format!(
+                "{c} channels: PNG needs 1, 3 or 4"
+            )))
+        }
+    };
+    let mut out = Vec::new();
+    {
+        let mut enc = png::Encoder::new(&mut out, width as u32, height as u32);
+        enc.set_color(color);
+        enc.set_depth(png::BitDepth::Eight);
+        let mut w = enc.write_header().map_err(err)?;
+        w.write_image_data(data).map_err(err)?;
+        w.finish().map_err(err)?;
+    }
+    Ok(out)
+}
+
 impl Image {
     /// 8-bit RGB bytes.
     pub fn to_rgb8(&self) -> Vec<u8> {
@@ -36,20 +60,11 @@ impl Image {
     /// Writes an 8-bit RGB PNG: to a temporary file renamed into place, so a failed write
     /// leaves any existing file intact.
     pub fn save_png(&self, path: &Path) -> Result<()> {
+        let bytes = encode_png(self.width, self.height, 3, &self.to_rgb8())?;
         let tmp = path.with_extension("png.partial");
-        let write = || -> Result<()> {
-            let f = std::fs::File::create(&tmp).map_err(|e| io_err(&tmp, e))?;
-            let mut enc =
-                png::Encoder::new(BufWriter::new(f), self.width as u32, self.height as u32);
-            enc.set_color(png::ColorType::Rgb);
-            enc.set_depth(png::BitDepth::Eight);
-            let mut w = enc.write_header().map_err(|e| io_err(path, e))?;
-            w.write_image_data(&self.to_rgb8())
-                .map_err(|e| io_err(path, e))?;
-            w.finish().map_err(|e| io_err(path, e))?;
-            std::fs::rename(&tmp, path).map_err(|e| io_err(path, e))
-        };
-        let r = write();
+        let r = std::fs::write(&tmp, bytes)
+            .and_then(|()| std::fs::rename(&tmp, path))
+            .map_err(|e| io_err(path, e));
         if r.is_err() {
             let _ = std::fs::remove_file(&tmp);
         }

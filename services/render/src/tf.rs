@@ -46,7 +46,8 @@ pub struct Tf1d {
     pub opacity: Vec<(f64, f32)>,
 }
 
-fn interp<const N: usize>(pts: &[(f64, [f32; N])], x: f64) -> [f32; N] {
+/// Piecewise-linear interpolation through sorted control points, holding the end values.
+fn interp<T: Copy>(pts: &[(f64, T)], x: f64, lerp: impl Fn(T, T, f32) -> T) -> T {
     let first = pts[0];
     if x <= first.0 {
         return first.1;
@@ -59,7 +60,7 @@ fn interp<const N: usize>(pts: &[(f64, [f32; N])], x: f64) -> [f32; N] {
             } else {
                 1.0
             };
-            return std::array::from_fn(|k| a.1[k] + (b.1[k] - a.1[k]) * t);
+            return lerp(a.1, b.1, t);
         }
     }
     pts[pts.len() - 1].1
@@ -76,9 +77,10 @@ impl Tf1d {
 
     /// Colour and opacity at `x`.
     pub fn eval(&self, x: f64) -> [f32; 4] {
-        let c = interp(&self.color, x);
-        let op: Vec<(f64, [f32; 1])> = self.opacity.iter().map(|&(x, a)| (x, [a])).collect();
-        let a = interp(&op, x)[0];
+        let c = interp(&self.color, x, |a, b, t| {
+            std::array::from_fn(|k| a[k] + (b[k] - a[k]) * t)
+        });
+        let a = interp(&self.opacity, x, |a, b, t| a + (b - a) * t);
         [c[0], c[1], c[2], a]
     }
 

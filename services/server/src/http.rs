@@ -117,6 +117,15 @@ impl AppState {
     }
 }
 
+/// Runs blocking work (store reads, classification, encoding) off the async workers.
+async fn blocking<T: Send + 'static>(
+    f: impl FnOnce() -> ApiResult<T> + Send + 'static,
+) -> ApiResult<T> {
+    web::block(f)
+        .await
+        .map_err(|e| ApiError::Internal(e.to_string()))?
+}
+
 fn info(s: &Session) -> serde_json::Value {
     let i = s.store.info();
     serde_json::json!({
@@ -157,9 +166,7 @@ struct OpenReq {
 async fn open(st: web::Data<AppState>, req: web::Json<OpenReq>) -> ApiResult<HttpResponse> {
     let st2 = st.clone();
     let rel = req.into_inner().volume;
-    let s = web::block(move || st2.open(&rel))
-        .await
-        .map_err(|e| ApiError::Internal(e.to_string()))??;
+    let s = blocking(move || st2.open(&rel)).await?;
     Ok(HttpResponse::Created().json(info(&s)))
 }
 
@@ -210,7 +217,7 @@ async fn slice(
     let s = st.session(&id)?;
     let (a, d) = slice_index(&s, &axis, index)?;
     let q = q.into_inner();
-    let bytes = web::block(move || -> ApiResult<Vec<u8>> {
+    let bytes = blocking(move || -> ApiResult<Vec<u8>> {
         let mut origin = [0; 3];
         let mut size = d;
         origin[a.fixed] = index;
@@ -230,8 +237,7 @@ async fn slice(
         }
         png(w, h, 1, &window(&img, level, width))
     })
-    .await
-    .map_err(|e| ApiError::Internal(e.to_string()))??;
+    .await?;
     Ok(HttpResponse::Ok().content_type("image/png").body(bytes))
 }
 
@@ -250,13 +256,15 @@ async fn overlay(
             kind.escape_debug()
         )));
     }
-    let bytes = web::block(move || -> ApiResult<Vec<u8>> {
+    let bytes = blocking(move || -> ApiResult<Vec<u8>> {
         let (w, h) = (d[a.u], d[a.v]);
         let classes = s.classes.read().unwrap_or_else(|p| p.into_inner()).clone();
+        let probs = s.probs.read().unwrap_or_else(|p| p.into_inner());
+        let ids = &probs.ids;
         let mut rgba = vec![0u8; w * h * 4];
         for j in 0..h {
             for i in 0..w {
-                let Some((ids, p)) = s.voxel_probs(a.voxel(d, index, i, j)) else {
+                let Some(p) = probs.at(&s.store, a.voxel(d, index, i, j)) else {
                     continue;
                 };
                 let mut order: Vec<usize> = (0..p.len()).collect();
@@ -281,10 +289,10 @@ async fn overlay(
                 }
             }
         }
+        drop(probs);
         png(w, h, 4, &rgba)
     })
-    .await
-    .map_err(|e| ApiError::Internal(e.to_string()))??;
+    .await?;
     Ok(HttpResponse::Ok().content_type("image/png").body(bytes))
 }
 
@@ -505,7 +513,7 @@ async fn fractions(st: web::Data<AppState>, id: web::Path<String>) -> ApiResult<
 async fn export_labels(st: web::Data<AppState>, id: web::Path<String>) -> ApiResult<HttpResponse> {
     let s = st.session(&id)?;
     let work = st.cfg.work_dir.clone();
-    let bytes = web::block(move || -> ApiResult<Vec<u8>> {
+    let bytes = blocking(move || -> ApiResult<Vec<u8>> {
         let d = s.store.info().dims;
         let mut lab = vec![0f64; d.iter().product()];
         let p = s.probs.read().unwrap_or_else(|p| p.into_inner());
@@ -542,8 +550,7 @@ async fn export_labels(st: web::Data<AppState>, id: web::Path<String>) -> ApiRes
         let _ = std::fs::remove_file(&tmp);
         Ok(bytes)
     })
-    .await
-    .map_err(|e| ApiError::Internal(e.to_string()))??;
+    .await?;
     Ok(HttpResponse::Ok()
         .content_type("application/gzip")
         .insert_header((
@@ -574,7 +581,7 @@ async fn viewpoints(
         )));
     }
     let hub = st.actors.hub.clone();
-    let out = web::block(move || -> ApiResult<serde_json::Value> {
+    let out = blocking(move || -> ApiResult<serde_json::Value> {
         use neuvolex_classify::features::{BrickFeatures, FeatureSet};
         use neuvolex_viewpoints::{direction_to_view, recommend, KMeansConfig, RecommendConfig};
         let model = neuvolex_features::checkpoint::load(&neuvolex_features::train::model_path(&s.store))
@@ -624,8 +631,7 @@ async fn viewpoints(
         hub.publish(Some(&s.id), "viewpoints", out.clone());
         Ok(out)
     })
-    .await
-    .map_err(|e| ApiError::Internal(e.to_string()))??;
+    .await?;
     Ok(HttpResponse::Ok().json(out))
 }
 

@@ -4,22 +4,8 @@ use crate::error::{ApiError, ApiResult};
 
 /// Encodes 8-bit pixels (`channels` 1, 3 or 4) as PNG.
 pub fn png(width: usize, height: usize, channels: usize, data: &[u8]) -> ApiResult<Vec<u8>> {
-    let mut out = Vec::new();
-    {
-        let mut enc = png::Encoder::new(&mut out, width as u32, height as u32);
-        enc.set_color(match channels {
-            1 => png::ColorType::Grayscale,
-            3 => png::ColorType::Rgb,
-            _ => png::ColorType::Rgba,
-        });
-        enc.set_depth(png::BitDepth::Eight);
-        let mut w = enc
-            .write_header()
-            .map_err(|e| ApiError::Internal(e.to_string()))?;
-        w.write_image_data(data)
-            .map_err(|e| ApiError::Internal(e.to_string()))?;
-    }
-    Ok(out)
+    neuvolex_render::image::encode_png(width, height, channels, data)
+        .map_err(|e| ApiError::Internal(e.to_string()))
 }
 
 /// Slice geometry: which axis is fixed, and the image's (column, row) volume axes. Rows run

@@ -29,6 +29,19 @@ pub struct Probs {
     pub bricks: HashMap<[usize; 3], Arc<Vec<u8>>>,
 }
 
+impl Probs {
+    /// Class probabilities of voxel `p` (None before classification reached its brick).
+    pub fn at(&self, store: &BrickStore, p: [usize; 3]) -> Option<&[u8]> {
+        let b = store.info().brick;
+        let br = store.brick(p.map(|v| v / b)).ok()?;
+        let data = self.bricks.get(&br.index)?;
+        let l = [0, 1, 2].map(|k| p[k] - br.origin[k]);
+        let i = (l[2] * br.size[1] + l[1]) * br.size[0] + l[0];
+        let c = self.ids.len();
+        data.get(i * c..(i + 1) * c)
+    }
+}
+
 /// Classification progress.
 #[derive(Debug, Clone, Default, Serialize)]
 pub struct Status {
@@ -285,19 +298,6 @@ impl Session {
         let cancelled = cancelled.load(Ordering::SeqCst);
         self.set_status(|s| s.state = if cancelled { "cancelled" } else { "done" }.into());
         Ok(n)
-    }
-
-    /// Class probabilities of one voxel (None before classification reached its brick).
-    pub fn voxel_probs(&self, p: [usize; 3]) -> Option<(Vec<u32>, Vec<u8>)> {
-        let b = self.store.info().brick;
-        let idx = p.map(|v| v / b);
-        let pr = self.probs.read().unwrap_or_else(|p| p.into_inner());
-        let data = pr.bricks.get(&idx)?;
-        let br = self.store.brick(idx).ok()?;
-        let l = [0, 1, 2].map(|k| p[k] - br.origin[k]);
-        let i = (l[2] * br.size[1] + l[1]) * br.size[0] + l[0];
-        let c = pr.ids.len();
-        Some((pr.ids.clone(), data[i * c..(i + 1) * c].to_vec()))
     }
 
     /// The render source over this session's store and streamed probabilities.

@@ -331,7 +331,6 @@ impl KMeans {
     fn update(&mut self, p: &Partial, sample: &[f32]) -> f64 {
         let d = self.dim;
         let mut shift = 0.0f64;
-        let old = self.centroids.clone();
         for c in 0..self.k() {
             if p.counts[c] == 0 {
                 continue;
@@ -359,7 +358,6 @@ impl KMeans {
                 }
             }
         }
-        let _ = old;
         shift
     }
 }
