@@ -513,3 +513,27 @@ mod scene_tests {
         assert!(l.contains(&2));
     }
 }
+
+/// Writes the labelled phantom as a brick store at `path`: the image, plus its ground truth
+/// under `labels/ground_truth` with the class table.
+pub fn phantom_store(
+    path: &std::path::Path,
+    params: PhantomParams,
+    opts: &crate::IngestOptions,
+    progress: &mut dyn FnMut(crate::Progress),
+) -> crate::Result<crate::BrickStore> {
+    crate::ingest(
+        &mut Phantom::new(params, PhantomChannel::Image),
+        path,
+        opts,
+        progress,
+    )?;
+    let mut store = crate::BrickStore::open(path)?;
+    store.add_labels(
+        "ground_truth",
+        &mut Phantom::new(params, PhantomChannel::Labels),
+        &phantom_classes(),
+        progress,
+    )?;
+    Ok(store)
+}

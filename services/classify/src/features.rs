@@ -107,6 +107,12 @@ impl std::str::FromStr for FeatureSet {
     }
 }
 
+/// `v` in half precision, saturating at the largest finite half instead of overflowing to
+/// infinity.
+pub fn f16_saturating(v: f32) -> half::f16 {
+    half::f16::from_f32(v.clamp(-half::f16::MAX.to_f32(), half::f16::MAX.to_f32()))
+}
+
 /// Precision in which features reach the forest (to measure what stored f16/u8 features cost).
 #[derive(Debug, Clone, PartialEq)]
 pub enum Quantise {
@@ -153,7 +159,7 @@ impl Quantise {
             Quantise::F32 => {}
             Quantise::F16 => values
                 .iter_mut()
-                .for_each(|v| *v = half::f16::from_f32(*v).to_f32()),
+                .for_each(|v| *v = f16_saturating(*v).to_f32()),
             Quantise::U8 { lo, hi } => {
                 for r in values.chunks_mut(d) {
                     for (k, v) in r.iter_mut().enumerate() {

@@ -713,19 +713,7 @@ fn main() -> Result<()> {
                     ..IngestOptions::default()
                 };
                 let mut sink = progress_sink(quiet);
-                ingest(
-                    &mut Phantom::new(params, PhantomChannel::Image),
-                    &out,
-                    &opts,
-                    &mut sink,
-                )?;
-                let mut store = BrickStore::open(&out)?;
-                store.add_labels(
-                    "ground_truth",
-                    &mut Phantom::new(params, PhantomChannel::Labels),
-                    &phantom_classes(),
-                    &mut sink,
-                )?;
+                neuvolex_bricks::synth::phantom_store(&out, params, &opts, &mut sink)?;
                 tracing::info!(store = %out.display(), dims = ?params.dims, "phantom store written with labels/ground_truth");
             }
         }

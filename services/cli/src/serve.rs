@@ -10,7 +10,7 @@ pub struct ServeArgs {
     /// A volume to offer (its folder becomes the data root).
     volume: Option<PathBuf>,
     /// Only volumes under this folder can be opened (default: ../shared/data where present,
-    /// else a folder with the generated phantom).
+    /// else the work folder's data). The generated phantom is offered as well.
     #[arg(long)]
     data_root: Option<PathBuf>,
     /// Where stores ingested from plain files are kept.
@@ -22,12 +22,44 @@ pub struct ServeArgs {
     /// Port (0 picks a free one).
     #[arg(long, default_value_t = 8080)]
     port: u16,
+    /// Feature-cache budget per session, MiB (features are kept in half precision).
+    #[arg(long, default_value_t = 512)]
+    cache_mib: usize,
 }
 
 /// Runs the server until interrupted.
 pub fn run_serve(a: &ServeArgs) -> Result<()> {
     std::fs::create_dir_all(&a.work).with_context(|| format!("{}", a.work.display()))?;
     let shared = PathBuf::from("../shared/data");
+    let mut default_volume = a
+        .volume
+        .as_ref()
+        .and_then(|v| v.file_name())
+        .map(|n| n.to_string_lossy().into_owned());
+    // The embedded default: the labelled phantom, generated once into the work folder and
+    // offered as `generated/phantom.zarr` beside the data root's volumes.
+    let mut generated = None;
+    if a.volume.is_none() {
+        let d = a.work.join("data");
+        let p = d.join("phantom.zarr");
+        if neuvolex_bricks::BrickStore::open(&p).is_err() {
+            std::fs::create_dir_all(&d)?;
+            let opts = neuvolex_bricks::IngestOptions {
+                brick: 32,
+                overwrite: true,
+                ..Default::default()
+            };
+            neuvolex_bricks::synth::phantom_store(
+                &p,
+                neuvolex_bricks::synth::PhantomParams::with_size(128, 0),
+                &opts,
+                &mut |_| {},
+            )
+            .with_context(|| format!("generating the phantom in {}", p.display()))?;
+        }
+        generated = Some(d.canonicalize()?);
+        default_volume = Some("generated/phantom.zarr".into());
+    }
     let root = match (&a.volume, &a.data_root) {
         (Some(v), _) => v
             .parent()
@@ -36,29 +68,24 @@ pub fn run_serve(a: &ServeArgs) -> Result<()> {
             .unwrap_or_else(|| PathBuf::from(".")),
         (None, Some(r)) => r.clone(),
         (None, None) if shared.is_dir() => shared,
-        (None, None) => {
-            // The embedded default: the labelled phantom.
-            let d = a.work.join("data");
-            std::fs::create_dir_all(&d)?;
-            let p = d.join("phantom.nii.gz");
-            if !p.exists() {
-                use neuvolex_bricks::synth::{Phantom, PhantomChannel, PhantomParams};
-                let params = PhantomParams::with_size(128, 0);
-                neuvolex_bricks::nifti::write_nifti(
-                    &p,
-                    &mut Phantom::new(params, PhantomChannel::Image),
-                    6,
-                )?;
-            }
-            d
-        }
+        (None, None) => a.work.join("data"),
     };
-    let cfg = ServerConfig {
-        data_root: root
-            .canonicalize()
+    if let Some(v) = &a.volume {
+        anyhow::ensure!(v.exists(), "{}: no such volume", v.display());
+    }
+    let mut cfg = ServerConfig::new(
+        root.canonicalize()
             .with_context(|| format!("{}", root.display()))?,
-        work_dir: a.work.canonicalize()?,
-    };
+        a.work.canonicalize()?,
+    );
+    if generated.as_ref() == Some(&cfg.data_root) {
+        // The phantom's folder is the data root itself.
+        default_volume = Some("phantom.zarr".into());
+        generated = None;
+    }
+    cfg.default_volume = default_volume;
+    cfg.generated_root = generated;
+    cfg.feature_cache_bytes = a.cache_mib.max(1) << 20;
     actix_web::rt::System::new().block_on(async move {
         let state = AppState::new(cfg.clone());
         let server = actix_web::HttpServer::new(move || {

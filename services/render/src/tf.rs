@@ -77,9 +77,14 @@ impl Tf1d {
 
     /// Colour and opacity at `x`.
     pub fn eval(&self, x: f64) -> [f32; 4] {
-        let c = interp(&self.color, x, |a, b, t| {
-            std::array::from_fn(|k| a[k] + (b[k] - a[k]) * t)
-        });
+        // An empty colour list (a class map awaiting its class's colour) reads as white.
+        let c = if self.color.is_empty() {
+            [1.0; 3]
+        } else {
+            interp(&self.color, x, |a, b, t| {
+                std::array::from_fn(|k| a[k] + (b[k] - a[k]) * t)
+            })
+        };
         let a = interp(&self.opacity, x, |a, b, t| a + (b - a) * t);
         [c[0], c[1], c[2], a]
     }
@@ -220,6 +225,19 @@ impl Ctx<'_> {
             ));
         }
         Ok(())
+    }
+
+    /// A class's map: without its own colour it gets `color`, or an empty colour list that
+    /// compiling fills with the class's colour.
+    fn class_tf1d(&self, v: &Value, what: &str, color: Option<[f32; 3]>) -> Result<Tf1d> {
+        let mut t = self.tf1d(v, what, color.unwrap_or([1.0; 3]))?;
+        let has_color = v
+            .as_object()
+            .is_some_and(|o| o.contains_key("color") || o.contains_key("RGBPoints"));
+        if color.is_none() && !has_color {
+            t.color.clear();
+        }
+        Ok(t)
     }
 
     /// Parses a map object; `None` when it has neither colour nor opacity.
@@ -395,13 +413,14 @@ impl TfFile {
                         _ => return cx.err(format!("{w}.color must be [r, g, b]")),
                     },
                 };
-                let base = color.unwrap_or([1.0; 3]);
+                // Maps without their own colour take the class's (from `color`, else the
+                // class list's at compile time: an empty colour list marks it).
                 let tau = match co.get("tau") {
                     None => 0.5,
                     Some(t) => cx.unit(t, &format!("{w}.tau"))?,
                 };
                 let probability = match co.get("probability") {
-                    Some(t) => Some(cx.tf1d(t, &format!("{w}.probability"), base)?),
+                    Some(t) => Some(cx.class_tf1d(t, &format!("{w}.probability"), color)?),
                     None => None,
                 };
                 if let Some(p) = &probability {
@@ -413,7 +432,7 @@ impl TfFile {
                     }
                 }
                 let intensity = match co.get("intensity") {
-                    Some(t) => Some(cx.tf1d(t, &format!("{w}.intensity"), base)?),
+                    Some(t) => Some(cx.class_tf1d(t, &format!("{w}.intensity"), color)?),
                     None => None,
                 };
                 classes.push(ClassTf {
@@ -466,13 +485,18 @@ impl TfFile {
                     return None;
                 }
                 let color = entry.and_then(|c| c.color).unwrap_or(rgb);
-                let prob = entry
-                    .and_then(|c| c.probability.clone())
-                    .unwrap_or_else(|| {
-                        Tf1d::constant_color(color, vec![(0.0, 0.0), (0.2, 0.0), (1.0, 0.6)])
-                    });
+                let with_color = |mut t: Tf1d| {
+                    if t.color.is_empty() {
+                        t.color = vec![(0.0, color)];
+                    }
+                    t
+                };
+                let prob = entry.and_then(|c| c.probability.clone()).map_or_else(
+                    || Tf1d::constant_color(color, vec![(0.0, 0.0), (0.2, 0.0), (1.0, 0.6)]),
+                    with_color,
+                );
                 let int = match entry.and_then(|c| c.intensity.as_ref()) {
-                    Some(t) => to_norm(t),
+                    Some(t) => with_color(to_norm(t)),
                     None => match &self.intensity {
                         Some(t) => Tf1d::constant_color(color, to_norm(t).opacity),
                         None => Tf1d::constant_color(color, vec![(0.0, 0.35)]),
@@ -666,5 +690,31 @@ mod tests {
         assert!(l.classes[0].is_some() && l.classes[1].is_none());
         let c = l.classes[0].as_ref().unwrap();
         assert_eq!(&c.probability.get(1.0)[..3], &[1.0, 0.0, 0.0]);
+    }
+
+    #[test]
+    fn class_maps_without_colour_take_the_class_colour() {
+        let t = TfFile::parse(
+            r#"{"classes": [{"id": 3, "probability": {"opacity": [[0, 0], [1, 1]]}},
+                            {"id": 4, "color": [0, 0, 1], "probability": {"opacity": [[0, 1]]}}]}"#,
+            Path::new("t.json"),
+        )
+        .unwrap();
+        let norm = Normaliser { lo: 0.0, hi: 1.0 };
+        let l = t.compile(
+            &norm,
+            &[(3, [0.0, 1.0, 0.0], false), (4, [1.0, 0.0, 0.0], false)],
+        );
+        let top = |k: usize| {
+            *l.classes[k]
+                .as_ref()
+                .unwrap()
+                .probability
+                .table
+                .last()
+                .unwrap()
+        };
+        assert_eq!(top(0), [0.0, 1.0, 0.0, 1.0]);
+        assert_eq!(top(1), [0.0, 0.0, 1.0, 1.0]);
     }
 }

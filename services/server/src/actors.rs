@@ -4,7 +4,9 @@
 
 use crate::error::{ApiError, ApiResult};
 use crate::session::Session;
+use neuvolex_bricks::BrickStore;
 use serde::Serialize;
+use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use tokio::sync::{broadcast, mpsc, oneshot, Mutex as AsyncMutex};
@@ -82,6 +84,15 @@ where
     });
 }
 
+/// What an actor's mailbox carries: work, or (fault injection, for tests of the supervisor)
+/// an order to fail.
+pub enum Mail<T> {
+    /// A unit of work.
+    Work(T),
+    /// Panic: the supervisor must report it and restart the actor on the same mailbox.
+    Crash,
+}
+
 /// A request to classify a session at a stroke generation.
 pub struct ClassifyJob {
     /// The session.
@@ -115,64 +126,129 @@ pub struct RenderJob {
     pub reply: oneshot::Sender<ApiResult<Vec<u8>>>,
 }
 
+/// A volume file to ingest into a brick store (once: an existing store is reused).
+pub struct IngestJob {
+    /// The file.
+    pub source: PathBuf,
+    /// The store to create.
+    pub dest: PathBuf,
+    /// Name shown in progress events.
+    pub name: String,
+    /// The opened store or an error.
+    pub reply: oneshot::Sender<ApiResult<BrickStore>>,
+}
+
+/// A viewpoint recommendation with its reply slot.
+pub struct ViewJob {
+    /// The session.
+    pub session: Arc<Session>,
+    /// Clusters.
+    pub k: usize,
+    /// Candidate views.
+    pub views: usize,
+    /// The result as JSON, or an error.
+    pub reply: oneshot::Sender<ApiResult<serde_json::Value>>,
+}
+
 /// Handles to the actors' mailboxes.
 #[derive(Clone)]
 pub struct Actors {
     /// Events.
     pub hub: Hub,
-    classify: mpsc::Sender<ClassifyJob>,
-    train: mpsc::Sender<TrainCommand>,
-    render: mpsc::Sender<RenderJob>,
+    ingest: mpsc::Sender<Mail<IngestJob>>,
+    classify: mpsc::Sender<Mail<ClassifyJob>>,
+    train: mpsc::Sender<Mail<TrainCommand>>,
+    render: mpsc::Sender<Mail<RenderJob>>,
+    views: mpsc::Sender<Mail<ViewJob>>,
 }
 
 /// Forest size of interactive classification.
 pub const TREES: usize = 50;
 
+/// The actors' names, as [`Actors::crash`] and `actor_failed` events use them.
+pub const ACTORS: [&str; 5] = ["ingest", "classifier", "trainer", "renderer", "viewpoints"];
+
+type Inbox<T> = Arc<AsyncMutex<mpsc::Receiver<Mail<T>>>>;
+
+fn mailbox<T>() -> (mpsc::Sender<Mail<T>>, Inbox<T>) {
+    let (tx, rx) = mpsc::channel(MAILBOX);
+    (tx, Arc::new(AsyncMutex::new(rx)))
+}
+
+fn busy<T>(what: &str) -> impl FnOnce(mpsc::error::TrySendError<T>) -> ApiError + '_ {
+    move |_| ApiError::Busy(format!("the {what} is busy; try again"))
+}
+
 impl Actors {
-    /// Starts the classifier, trainer and renderer actors under supervision.
+    /// Starts the ingest, classifier, trainer, renderer and viewpoint actors under supervision.
     pub fn start(hub: Hub) -> Actors {
-        let (ctx, crx) = mpsc::channel::<ClassifyJob>(MAILBOX);
-        let (ttx, trx) = mpsc::channel::<TrainCommand>(MAILBOX);
-        let (rtx, rrx) = mpsc::channel::<RenderJob>(MAILBOX);
-        let crx = Arc::new(AsyncMutex::new(crx));
-        let trx = Arc::new(AsyncMutex::new(trx));
-        let rrx = Arc::new(AsyncMutex::new(rrx));
-        {
-            let hub2 = hub.clone();
-            supervise("classifier", hub.clone(), move || {
-                classifier(crx.clone(), hub2.clone())
-            });
-        }
-        {
-            let hub2 = hub.clone();
-            supervise("trainer", hub.clone(), move || {
-                trainer(trx.clone(), hub2.clone())
-            });
-        }
+        let (itx, irx) = mailbox::<IngestJob>();
+        let (ctx, crx) = mailbox::<ClassifyJob>();
+        let (ttx, trx) = mailbox::<TrainCommand>();
+        let (rtx, rrx) = mailbox::<RenderJob>();
+        let (vtx, vrx) = mailbox::<ViewJob>();
+        let h = hub.clone();
+        supervise("ingest", hub.clone(), move || {
+            ingester(irx.clone(), h.clone())
+        });
+        let h = hub.clone();
+        supervise("classifier", hub.clone(), move || {
+            classifier(crx.clone(), h.clone())
+        });
+        let (h, c) = (hub.clone(), ctx.clone());
+        supervise("trainer", hub.clone(), move || {
+            trainer(trx.clone(), h.clone(), c.clone())
+        });
         supervise("renderer", hub.clone(), move || renderer(rrx.clone()));
+        let h = hub.clone();
+        supervise("viewpoints", hub.clone(), move || {
+            recommender(vrx.clone(), h.clone())
+        });
         Actors {
             hub,
+            ingest: itx,
             classify: ctx,
             train: ttx,
             render: rtx,
+            views: vtx,
         }
+    }
+
+    /// Ingests `source` into the store `dest` (reused when it exists), publishing progress.
+    pub async fn ingest(
+        &self,
+        source: PathBuf,
+        dest: PathBuf,
+        name: String,
+    ) -> ApiResult<BrickStore> {
+        let (reply, rx) = oneshot::channel();
+        self.ingest
+            .try_send(Mail::Work(IngestJob {
+                source,
+                dest,
+                name,
+                reply,
+            }))
+            .map_err(busy("ingester"))?;
+        rx.await
+            .map_err(|_| ApiError::Internal("the ingester failed (restarted)".into()))?
     }
 
     /// Queues classification of `session` at `generation` (503 when the mailbox is full).
     pub fn classify(&self, session: Arc<Session>, generation: u64) -> ApiResult<()> {
         self.classify
-            .try_send(ClassifyJob {
+            .try_send(Mail::Work(ClassifyJob {
                 session,
                 generation,
-            })
-            .map_err(|_| ApiError::Busy("the classifier is busy; try again".into()))
+            }))
+            .map_err(busy("classifier"))
     }
 
     /// Queues a training command.
     pub fn train(&self, cmd: TrainCommand) -> ApiResult<()> {
         self.train
-            .try_send(cmd)
-            .map_err(|_| ApiError::Busy("the trainer is busy; try again".into()))
+            .try_send(Mail::Work(cmd))
+            .map_err(busy("trainer"))
     }
 
     /// Renders a frame.
@@ -184,30 +260,140 @@ impl Actors {
     ) -> ApiResult<Vec<u8>> {
         let (reply, rx) = oneshot::channel();
         self.render
-            .try_send(RenderJob {
+            .try_send(Mail::Work(RenderJob {
                 session,
                 params,
                 tf,
                 reply,
-            })
-            .map_err(|_| ApiError::Busy("the renderer is busy; try again".into()))?;
+            }))
+            .map_err(busy("renderer"))?;
         rx.await
             .map_err(|_| ApiError::Internal("the renderer failed (restarted)".into()))?
     }
+
+    /// Recommends viewpoints, publishing progressive snapshots while bricks aggregate.
+    pub async fn viewpoints(
+        &self,
+        session: Arc<Session>,
+        k: usize,
+        views: usize,
+    ) -> ApiResult<serde_json::Value> {
+        let (reply, rx) = oneshot::channel();
+        self.views
+            .try_send(Mail::Work(ViewJob {
+                session,
+                k,
+                views,
+                reply,
+            }))
+            .map_err(busy("viewpoint recommender"))?;
+        rx.await.map_err(|_| {
+            ApiError::Internal("the viewpoint recommender failed (restarted)".into())
+        })?
+    }
+
+    /// Makes `actor` panic (fault injection for supervisor tests; the HTTP route exists only
+    /// when [`crate::ServerConfig::fault_injection`] is set).
+    pub fn crash(&self, actor: &str) -> ApiResult<()> {
+        let r = match actor {
+            "ingest" => self.ingest.try_send(Mail::Crash).is_ok(),
+            "classifier" => self.classify.try_send(Mail::Crash).is_ok(),
+            "trainer" => self.train.try_send(Mail::Crash).is_ok(),
+            "renderer" => self.render.try_send(Mail::Crash).is_ok(),
+            "viewpoints" => self.views.try_send(Mail::Crash).is_ok(),
+            o => {
+                return Err(ApiError::NotFound(format!(
+                    "no actor '{}' (have {})",
+                    o.escape_debug(),
+                    ACTORS.join(", ")
+                )))
+            }
+        };
+        if r {
+            Ok(())
+        } else {
+            Err(ApiError::Busy(format!("the {actor} mailbox is full")))
+        }
+    }
 }
 
-async fn classifier(rx: Arc<AsyncMutex<mpsc::Receiver<ClassifyJob>>>, hub: Hub) {
+fn crash(actor: &str) -> ! {
+    panic!("fault injection: {actor} ordered to fail")
+}
+
+async fn ingester(rx: Inbox<IngestJob>, hub: Hub) {
+    let mut rx = rx.lock().await;
+    while let Some(m) = rx.recv().await {
+        let job = match m {
+            Mail::Work(j) => j,
+            Mail::Crash => crash("ingest"),
+        };
+        let IngestJob {
+            source,
+            dest,
+            name,
+            reply,
+        } = job;
+        let h = hub.clone();
+        let r = tokio::task::spawn_blocking(move || ingest_one(&source, &dest, &name, &h)).await;
+        let _ = reply.send(r.unwrap_or_else(|_| Err(ApiError::Internal("ingest panicked".into()))));
+    }
+}
+
+/// Ingests one file (the pure work is `neuvolex_bricks::ingest`), publishing progress.
+fn ingest_one(source: &Path, dest: &Path, name: &str, hub: &Hub) -> ApiResult<BrickStore> {
+    if let Ok(s) = BrickStore::open(dest) {
+        return Ok(s);
+    }
+    let mut src = neuvolex_bricks::open_volume(source, None)
+        .map_err(|e| ApiError::BadRequest(format!("{name}: {e}")))?;
+    let (mut stage, mut total) = ("", 0u64);
+    let mut last = std::time::Instant::now();
+    neuvolex_bricks::ingest(
+        src.as_mut(),
+        dest,
+        &neuvolex_bricks::IngestOptions {
+            brick: 32,
+            overwrite: true,
+            ..Default::default()
+        },
+        &mut |p| match p {
+            neuvolex_bricks::Progress::Stage { name: n, total: t } => {
+                (stage, total) = (n, t);
+                hub.publish(None, "ingest", serde_json::json!({"volume": name, "stage": n, "done": 0, "total": t}));
+            }
+            neuvolex_bricks::Progress::Advance { done } if last.elapsed().as_millis() > 250 => {
+                last = std::time::Instant::now();
+                hub.publish(None, "ingest", serde_json::json!({"volume": name, "stage": stage, "done": done, "total": total}));
+            }
+            _ => {}
+        },
+    )
+    .map_err(|e| ApiError::BadRequest(format!("{name}: {e}")))?;
+    hub.publish(
+        None,
+        "ingest",
+        serde_json::json!({"volume": name, "stage": "done"}),
+    );
+    Ok(BrickStore::open(dest)?)
+}
+
+async fn classifier(rx: Inbox<ClassifyJob>, hub: Hub) {
     let mut rx = rx.lock().await;
     let mut pending: Vec<ClassifyJob> = Vec::new();
     loop {
         if pending.is_empty() {
             match rx.recv().await {
-                Some(j) => pending.push(j),
+                Some(Mail::Work(j)) => pending.push(j),
+                Some(Mail::Crash) => crash("classifier"),
                 None => break,
             }
         }
-        while let Ok(j) = rx.try_recv() {
-            pending.push(j);
+        while let Ok(m) = rx.try_recv() {
+            match m {
+                Mail::Work(j) => pending.push(j),
+                Mail::Crash => crash("classifier"),
+            }
         }
         // Coalesce: only the newest generation of each session matters; sessions take turns
         // in the order their first pending job arrived.
@@ -265,34 +451,78 @@ fn spawn_classify(job: ClassifyJob, hub: Hub) -> tokio::task::JoinHandle<()> {
     })
 }
 
-async fn trainer(rx: Arc<AsyncMutex<mpsc::Receiver<TrainCommand>>>, hub: Hub) {
+async fn trainer(rx: Inbox<TrainCommand>, hub: Hub, classify: mpsc::Sender<Mail<ClassifyJob>>) {
     let mut rx = rx.lock().await;
-    while let Some(cmd) = rx.recv().await {
+    while let Some(m) = rx.recv().await {
         let TrainCommand::Start {
             session,
             epochs,
             resume,
-        } = cmd;
+        } = match m {
+            Mail::Work(c) => c,
+            Mail::Crash => crash("trainer"),
+        };
         let cancel = Arc::new(AtomicBool::new(false));
         *session
             .train_cancel
             .lock()
             .unwrap_or_else(|p| p.into_inner()) = Some(cancel.clone());
-        let hub2 = hub.clone();
+        let (h, c, s) = (hub.clone(), classify.clone(), session.clone());
         let r =
-            tokio::task::spawn_blocking(move || train(&session, epochs, resume, &cancel, &hub2))
-                .await;
-        if let Ok(Err(e)) = r {
-            hub.publish(
-                None,
-                "training",
-                serde_json::json!({"error": e.to_string()}),
-            );
-        }
+            tokio::task::spawn_blocking(move || train(&s, epochs, resume, &cancel, &h, &c)).await;
+        *session
+            .train_cancel
+            .lock()
+            .unwrap_or_else(|p| p.into_inner()) = None;
+        let err = match r {
+            Ok(Ok(())) => continue,
+            Ok(Err(e)) => e.to_string(),
+            Err(_) => "training panicked".to_string(),
+        };
+        hub.publish(
+            Some(&session.id),
+            "training",
+            serde_json::json!({"state": "failed", "error": err}),
+        );
     }
 }
 
-fn train(s: &Session, epochs: f64, resume: bool, cancel: &AtomicBool, hub: &Hub) -> ApiResult<()> {
+/// Re-classifies `s` with its newest model when it has strokes and the classifier is not
+/// busy with it (a snapshot arriving mid-run waits for the next one, so a run always ends).
+fn reclassify(s: &Arc<Session>, classify: &mpsc::Sender<Mail<ClassifyJob>>, force: bool) {
+    let has_strokes = !s
+        .strokes
+        .read()
+        .unwrap_or_else(|p| p.into_inner())
+        .is_empty();
+    let state = s
+        .status
+        .read()
+        .unwrap_or_else(|p| p.into_inner())
+        .state
+        .clone();
+    if !has_strokes || (!force && (state == "training" || state == "classifying")) {
+        return;
+    }
+    let generation = s.bump_generation();
+    let _ = classify.try_send(Mail::Work(ClassifyJob {
+        session: s.clone(),
+        generation,
+    }));
+}
+
+/// Steps between model snapshots while training in the service (each one refreshes the
+/// classification and the 3-D view).
+pub const SNAPSHOT_EVERY: u64 = 40;
+
+fn train(
+    s: &Arc<Session>,
+    epochs: f64,
+    resume: bool,
+    cancel: &AtomicBool,
+    hub: &Hub,
+    classify: &mpsc::Sender<Mail<ClassifyJob>>,
+) -> ApiResult<()> {
     use neuvolex_features::{checkpoint, train, Budget, InrConfig, TrainConfig, TrainEvent};
     let ckpt = neuvolex_features::train::checkpoint_path(&s.store);
     let loaded = if resume && ckpt.exists() {
@@ -305,21 +535,57 @@ fn train(s: &Session, epochs: f64, resume: bool, cancel: &AtomicBool, hub: &Hub)
             epochs: Some(epochs),
             ..Default::default()
         },
+        checkpoint_every: SNAPSHOT_EVERY,
+        preview_every: SNAPSHOT_EVERY / 2,
         ..TrainConfig::default()
     };
     let id = s.id.clone();
     let mut last = std::time::Instant::now();
     let mut on = |e: TrainEvent| match e {
         TrainEvent::Step {
-            epoch, psnr, loss, ..
+            epoch,
+            psnr,
+            loss,
+            samples_per_sec,
+            ..
         } if last.elapsed().as_millis() > 250 => {
             last = std::time::Instant::now();
             hub.publish(
                 Some(&id),
                 "training",
-                serde_json::json!({"state": "running", "epoch": epoch, "psnr": psnr, "loss": loss}),
+                serde_json::json!({"state": "running", "epoch": epoch, "psnr": psnr, "loss": loss, "samples_per_sec": samples_per_sec}),
             );
         }
+        TrainEvent::Preview {
+            step,
+            width,
+            height,
+            recon,
+            truth,
+            psnr,
+            ..
+        } => {
+            if let Ok(png) = crate::imaging::preview_png(width, height, &recon, &truth) {
+                *s.preview.write().unwrap_or_else(|p| p.into_inner()) = Some((png, psnr));
+                hub.publish(
+                    Some(&id),
+                    "preview",
+                    serde_json::json!({"step": step, "psnr": psnr}),
+                );
+            }
+        }
+        TrainEvent::Checkpoint { step, path } => match checkpoint::load(&path) {
+            Ok(l) => {
+                let version = s.set_model(l.model);
+                hub.publish(
+                    Some(&id),
+                    "training",
+                    serde_json::json!({"state": "snapshot", "step": step, "model_version": version}),
+                );
+                reclassify(s, classify, false);
+            }
+            Err(e) => tracing::warn!("snapshot {}: {e}", path.display()),
+        },
         TrainEvent::Finished {
             psnr, stopped_by, ..
         } => hub.publish(
@@ -339,6 +605,8 @@ fn train(s: &Session, epochs: f64, resume: bool, cancel: &AtomicBool, hub: &Hub)
         &mut on,
     )
     .map_err(|e| ApiError::Internal(e.to_string()))?;
+    // The model file is what `neuvolex classify` and later sessions use; a stopped run keeps
+    // its checkpoint for `resume`, and its last snapshot serves this session.
     if !cancel.load(Ordering::SeqCst) {
         checkpoint::save(
             &neuvolex_features::train::model_path(&s.store),
@@ -346,18 +614,24 @@ fn train(s: &Session, epochs: f64, resume: bool, cancel: &AtomicBool, hub: &Hub)
             None,
         )
         .map_err(|e| ApiError::Internal(e.to_string()))?;
+        let version = s.set_model(t.model);
         hub.publish(
             Some(&id),
             "training",
-            serde_json::json!({"state": "model_saved", "psnr": t.psnr}),
+            serde_json::json!({"state": "model_saved", "psnr": t.psnr, "model_version": version}),
         );
+        reclassify(s, classify, true);
     }
     Ok(())
 }
 
-async fn renderer(rx: Arc<AsyncMutex<mpsc::Receiver<RenderJob>>>) {
+async fn renderer(rx: Inbox<RenderJob>) {
     let mut rx = rx.lock().await;
-    while let Some(job) = rx.recv().await {
+    while let Some(m) = rx.recv().await {
+        let job = match m {
+            Mail::Work(j) => j,
+            Mail::Crash => crash("renderer"),
+        };
         let RenderJob {
             session,
             params,
@@ -399,4 +673,116 @@ fn render(
     };
     st.key = key;
     crate::imaging::png(img.width, img.height, 3, &img.to_rgb8())
+}
+
+async fn recommender(rx: Inbox<ViewJob>, hub: Hub) {
+    let mut rx = rx.lock().await;
+    while let Some(m) = rx.recv().await {
+        let job = match m {
+            Mail::Work(j) => j,
+            Mail::Crash => crash("viewpoints"),
+        };
+        let ViewJob {
+            session,
+            k,
+            views,
+            reply,
+        } = job;
+        let h = hub.clone();
+        let r = tokio::task::spawn_blocking(move || recommend(&session, k, views, &h)).await;
+        let _ = reply.send(r.unwrap_or_else(|_| {
+            Err(ApiError::Internal(
+                "viewpoint recommendation panicked".into(),
+            ))
+        }));
+    }
+}
+
+/// The view-entropy aggregation over a session's feature bricks (the pure pipeline is
+/// `neuvolex_viewpoints::recommend`): mini-batch k-means, then per-brick cluster partials
+/// merged progressively, with a snapshot of the best view published as bricks arrive.
+fn recommend(s: &Arc<Session>, k: usize, views: usize, hub: &Hub) -> ApiResult<serde_json::Value> {
+    use neuvolex_classify::features::{BrickFeatures, FeatureSet};
+    use neuvolex_viewpoints::{
+        direction_to_view, fibonacci_sphere, recommend, KMeansConfig, RecommendConfig,
+        ViewpointError,
+    };
+    let model = s.current_model();
+    let set: FeatureSet = if model.is_some() { "paper" } else { "local" }
+        .parse()
+        .map_err(ApiError::Internal)?;
+    let version = model.as_ref().map_or(0, |m| m.0);
+    let mut fx = BrickFeatures::new(&s.store, set.clone(), model.map(|m| m.1), false)?;
+    fx.set_quantise(neuvolex_classify::features::Quantise::F16);
+    let name = set.to_string();
+    let bricks = s.store.occupied_bricks(None);
+    let err = |e: String| ViewpointError::Input(e);
+    let cfg = RecommendConfig {
+        kmeans: KMeansConfig {
+            k,
+            algorithm: neuvolex_viewpoints::kmeans::Algorithm::MiniBatch { epochs: 3 },
+            ..Default::default()
+        },
+        views,
+        ..Default::default()
+    };
+    let dirs = fibonacci_sphere(views);
+    let step = (bricks.len() / 10).max(1);
+    let id = s.id.clone();
+    let rec = recommend(
+        bricks.len(),
+        fx.channels(),
+        |i| {
+            s.features
+                .get(&name, version, &fx, &bricks[i])
+                .map_err(|e| err(e.to_string()))
+        },
+        |i| {
+            Ok(s.store
+                .derived(&bricks[i])
+                .map_err(|e| err(e.to_string()))?
+                .gradient)
+        },
+        s.store.info().spacing,
+        &cfg,
+        &mut |done, agg| {
+            if done % step != 0 && done != bricks.len() {
+                return;
+            }
+            if let Ok(sc) = agg.snapshot(&dirs) {
+                if let Some((best, h)) = sc
+                    .entropy
+                    .iter()
+                    .enumerate()
+                    .max_by(|a, b| a.1.total_cmp(b.1))
+                {
+                    let (az, el) = direction_to_view(dirs[best]);
+                    hub.publish(
+                        Some(&id),
+                        "viewpoints_progress",
+                        serde_json::json!({"bricks": done, "total": bricks.len(),
+                            "best": {"azimuth": az, "elevation": el, "entropy": h}}),
+                    );
+                }
+            }
+        },
+    )
+    .map_err(|e| ApiError::BadRequest(e.to_string()))?;
+    let picked: Vec<serde_json::Value> = rec
+        .selection
+        .views
+        .iter()
+        .map(|&i| {
+            let (az, el) = direction_to_view(rec.scores.views[i]);
+            serde_json::json!({"azimuth": az, "elevation": el, "entropy": rec.scores.entropy[i]})
+        })
+        .collect();
+    let out = serde_json::json!({
+        "features": name, "views": picked,
+        "clusters_used": rec.kmeans.counts.iter().filter(|&&c| c > 0).count(),
+        "uncovered": rec.selection.uncovered.len(),
+        "seconds": rec.kmeans_seconds + rec.scoring_seconds,
+    });
+    hub.publish(Some(&s.id), "viewpoints", out.clone());
+    Ok(out)
 }

@@ -6,7 +6,7 @@ use crate::imaging::{png, window, SliceAxes};
 use crate::session::{Session, BACKGROUND};
 use actix_web::{web, HttpResponse};
 use neuvolex_bricks::synth::ClassInfo;
-use neuvolex_bricks::{ingest, open_volume, BrickStore, IngestOptions};
+use neuvolex_bricks::BrickStore;
 use neuvolex_classify::scribble::Stroke;
 use serde::Deserialize;
 use std::collections::HashMap;
@@ -26,6 +26,30 @@ pub struct ServerConfig {
     pub data_root: PathBuf,
     /// Stores ingested from plain files are kept here.
     pub work_dir: PathBuf,
+    /// The volume the UI opens first (relative to the data root).
+    pub default_volume: Option<String>,
+    /// A second folder of volumes the server made (the generated phantom), addressed as
+    /// `generated/NAME`.
+    pub generated_root: Option<PathBuf>,
+    /// Feature-cache budget of each session, bytes.
+    pub feature_cache_bytes: usize,
+    /// Exposes `POST /api/debug/crash/{actor}` (supervisor tests only).
+    pub fault_injection: bool,
+}
+
+impl ServerConfig {
+    /// A configuration with the default cache budget (512 MiB per session) and no fault
+    /// injection.
+    pub fn new(data_root: PathBuf, work_dir: PathBuf) -> Self {
+        ServerConfig {
+            data_root,
+            work_dir,
+            default_volume: None,
+            generated_root: None,
+            feature_cache_bytes: 512 << 20,
+            fault_injection: false,
+        }
+    }
 }
 
 /// Shared state of the server.
@@ -59,8 +83,9 @@ impl AppState {
             .ok_or_else(|| ApiError::NotFound(format!("no session '{}'", id.escape_debug())))
     }
 
-    /// Opens `rel` (a store, or a file ingested into the work folder) as a new session.
-    pub fn open(&self, rel: &str) -> ApiResult<Arc<Session>> {
+    /// Opens `rel` (a store, or a file the ingest actor turns into a store in the work
+    /// folder) as a new session.
+    pub async fn open(&self, rel: &str) -> ApiResult<Arc<Session>> {
         if self
             .sessions
             .read()
@@ -72,43 +97,35 @@ impl AppState {
                 "{MAX_SESSIONS} sessions are open; close one first"
             )));
         }
-        let path = crate::paths::resolve(&self.cfg.data_root, rel)?;
-        let store = match BrickStore::open(&path) {
-            Ok(s) => s,
-            Err(_) if path.is_dir() => {
+        let path = match (rel.strip_prefix("generated/"), &self.cfg.generated_root) {
+            (Some(r), Some(g)) => crate::paths::resolve(g, r)?,
+            _ => crate::paths::resolve(&self.cfg.data_root, rel)?,
+        };
+        let p2 = path.clone();
+        let opened = blocking(move || Ok(BrickStore::open(&p2).ok())).await?;
+        let store = match opened {
+            Some(s) => s,
+            None if path.is_dir() => {
                 return Err(ApiError::BadRequest(format!(
                     "'{rel}' is a folder, not a volume or brick store"
                 )))
             }
-            Err(_) => {
+            None => {
                 let name: String = rel
                     .chars()
                     .map(|c| if c.is_ascii_alphanumeric() { c } else { '_' })
                     .collect();
                 let dest = self.cfg.work_dir.join(format!("{name}.zarr"));
-                match BrickStore::open(&dest) {
-                    Ok(s) => s,
-                    Err(_) => {
-                        let mut src = open_volume(&path, None)
-                            .map_err(|e| ApiError::BadRequest(format!("{rel}: {e}")))?;
-                        ingest(
-                            src.as_mut(),
-                            &dest,
-                            &IngestOptions {
-                                brick: 32,
-                                overwrite: true,
-                                ..Default::default()
-                            },
-                            &mut |_| {},
-                        )
-                        .map_err(|e| ApiError::BadRequest(format!("{rel}: {e}")))?;
-                        BrickStore::open(&dest)?
-                    }
-                }
+                self.actors.ingest(path, dest, rel.to_string()).await?
             }
         };
         let id = format!("s{}", self.next.fetch_add(1, Ordering::SeqCst));
-        let s = Session::new(id.clone(), rel.to_string(), Arc::new(store));
+        let s = Session::new(
+            id.clone(),
+            rel.to_string(),
+            Arc::new(store),
+            self.cfg.feature_cache_bytes,
+        );
         self.sessions
             .write()
             .unwrap_or_else(|p| p.into_inner())
@@ -137,7 +154,9 @@ fn info(s: &Session) -> serde_json::Value {
         "strokes": s.strokes.read().unwrap_or_else(|p| p.into_inner()).len(),
         "generation": s.generation.load(Ordering::SeqCst),
         "status": *s.status.read().unwrap_or_else(|p| p.into_inner()),
-        "trained": neuvolex_features::train::model_path(&s.store).exists(),
+        "trained": s.current_model().is_some(),
+        "model_version": s.current_model().map_or(0, |m| m.0),
+        "tf": s.tf.read().unwrap_or_else(|p| p.into_inner()).as_ref().map(|t| t.0.clone()),
     })
 }
 
@@ -154,7 +173,20 @@ async fn app_js() -> HttpResponse {
 }
 
 async fn volumes(st: web::Data<AppState>) -> HttpResponse {
-    HttpResponse::Ok().json(crate::paths::list(&st.cfg.data_root, 3))
+    let mut v = crate::paths::list(&st.cfg.data_root, 3);
+    if let Some(g) = &st.cfg.generated_root {
+        v.extend(
+            crate::paths::list(g, 1)
+                .into_iter()
+                .map(|n| format!("generated/{n}")),
+        );
+    }
+    // The configured default first: the UI opens the first entry.
+    if let Some(d) = &st.cfg.default_volume {
+        v.retain(|x| x != d);
+        v.insert(0, d.clone());
+    }
+    HttpResponse::Ok().json(v)
 }
 
 #[derive(Deserialize)]
@@ -164,9 +196,8 @@ struct OpenReq {
 }
 
 async fn open(st: web::Data<AppState>, req: web::Json<OpenReq>) -> ApiResult<HttpResponse> {
-    let st2 = st.clone();
     let rel = req.into_inner().volume;
-    let s = blocking(move || st2.open(&rel)).await?;
+    let s = st.open(&rel).await?;
     Ok(HttpResponse::Created().json(info(&s)))
 }
 
@@ -380,11 +411,7 @@ async fn render(
     };
     let tf = match q.tf.as_deref() {
         Some(t) => neuvolex_render::TfFile::preset(t)?,
-        None => neuvolex_render::TfFile::preset(if s.store.info().stats.min < -500.0 {
-            "ct-bone"
-        } else {
-            "grey"
-        })?,
+        None => session_tf(&s)?,
     };
     let params = neuvolex_render::RenderParams {
         width: size,
@@ -510,54 +537,224 @@ async fn fractions(st: web::Data<AppState>, id: web::Path<String>) -> ApiResult<
     Ok(HttpResponse::Ok().json(serde_json::json!({"classified_voxels": total, "classes": out})))
 }
 
-async fn export_labels(st: web::Data<AppState>, id: web::Path<String>) -> ApiResult<HttpResponse> {
-    let s = st.session(&id)?;
-    let work = st.cfg.work_dir.clone();
-    let bytes = blocking(move || -> ApiResult<Vec<u8>> {
-        let d = s.store.info().dims;
-        let mut lab = vec![0f64; d.iter().product()];
-        let p = s.probs.read().unwrap_or_else(|p| p.into_inner());
-        let c = p.ids.len();
-        for (idx, v) in &p.bricks {
-            let b = s.store.brick(*idx)?;
-            for z in 0..b.size[2] {
-                for y in 0..b.size[1] {
-                    for x in 0..b.size[0] {
-                        let i = (z * b.size[1] + y) * b.size[0] + x;
-                        let px = &v[i * c..(i + 1) * c];
-                        let (k, &m) = px
-                            .iter()
-                            .enumerate()
-                            .max_by_key(|(_, &v)| v)
-                            .unwrap_or((0, &0));
-                        let id = p.ids.get(k).copied().unwrap_or(0);
-                        if m >= 128 && id != BACKGROUND {
-                            let g = ((b.origin[2] + z) * d[1] + b.origin[1] + y) * d[0]
-                                + b.origin[0]
-                                + x;
-                            lab[g] = id as f64;
-                        }
+/// Every brick's probabilities, or a conflict while classification has not reached them all.
+fn complete_probs(s: &Session) -> ApiResult<std::sync::RwLockReadGuard<'_, crate::session::Probs>> {
+    let p = s.probs.read().unwrap_or_else(|p| p.into_inner());
+    let total = s.store.bricks().count();
+    if p.ids.is_empty() || p.bricks.len() < total {
+        return Err(ApiError::Conflict(format!(
+            "classification has reached {} of {total} bricks: scribble two classes and wait \
+             for it to finish",
+            p.bricks.len()
+        )));
+    }
+    Ok(p)
+}
+
+/// The arg-max label of every voxel (0 where the background wins or no class reaches 0.5),
+/// as u8 voxels, x fastest.
+fn label_voxels(s: &Session) -> ApiResult<Vec<u8>> {
+    let d = s.store.info().dims;
+    let p = complete_probs(s)?;
+    let c = p.ids.len();
+    let mut lab = vec![0u8; d.iter().product()];
+    for (idx, v) in &p.bricks {
+        let b = s.store.brick(*idx)?;
+        for z in 0..b.size[2] {
+            for y in 0..b.size[1] {
+                let row = ((b.origin[2] + z) * d[1] + b.origin[1] + y) * d[0] + b.origin[0];
+                for x in 0..b.size[0] {
+                    let i = (z * b.size[1] + y) * b.size[0] + x;
+                    let px = &v[i * c..(i + 1) * c];
+                    let (k, &m) = px
+                        .iter()
+                        .enumerate()
+                        .max_by_key(|(_, &v)| v)
+                        .unwrap_or((0, &0));
+                    let id = p.ids.get(k).copied().unwrap_or(0);
+                    if m >= 128 && id != BACKGROUND {
+                        lab[row + x] = id as u8;
                     }
                 }
             }
         }
-        drop(p);
-        let mut vol = neuvolex_bricks::MemVolume::from_f64(d, neuvolex_bricks::DType::U8, &lab);
-        vol.meta.spacing = s.store.info().spacing;
-        let tmp = work.join(format!("{}-labels-{}.nii.gz", s.id, std::process::id()));
-        neuvolex_bricks::nifti::write_nifti(&tmp, &mut vol, 6)?;
-        let bytes = std::fs::read(&tmp).map_err(|e| ApiError::Internal(e.to_string()))?;
-        let _ = std::fs::remove_file(&tmp);
-        Ok(bytes)
-    })
-    .await?;
-    Ok(HttpResponse::Ok()
+    }
+    Ok(lab)
+}
+
+/// One class's probability (0..255 for 0..1) of every voxel, x fastest.
+fn class_voxels(s: &Session, class: u32) -> ApiResult<Vec<u8>> {
+    let d = s.store.info().dims;
+    let p = complete_probs(s)?;
+    let c = p.ids.len();
+    let Some(k) = p.ids.iter().position(|&i| i == class) else {
+        return Err(ApiError::NotFound(format!(
+            "class {class} is not classified (have {:?})",
+            p.ids
+        )));
+    };
+    let mut out = vec![0u8; d.iter().product()];
+    for (idx, v) in &p.bricks {
+        let b = s.store.brick(*idx)?;
+        for z in 0..b.size[2] {
+            for y in 0..b.size[1] {
+                let row = ((b.origin[2] + z) * d[1] + b.origin[1] + y) * d[0] + b.origin[0];
+                for x in 0..b.size[0] {
+                    let i = (z * b.size[1] + y) * b.size[0] + x;
+                    out[row + x] = v[i * c + k];
+                }
+            }
+        }
+    }
+    Ok(out)
+}
+
+/// A u8 volume on the session's grid.
+fn u8_volume(s: &Session, voxels: Vec<u8>, name: &str) -> neuvolex_bricks::MemVolume {
+    let mut meta =
+        neuvolex_bricks::VolumeMeta::new(s.store.info().dims, neuvolex_bricks::DType::U8);
+    meta.spacing = s.store.info().spacing;
+    neuvolex_bricks::MemVolume {
+        meta,
+        bytes: voxels,
+        name: PathBuf::from(name),
+    }
+}
+
+/// Writes `vol` as NIfTI into the work folder (under a unique name), returning its bytes.
+fn nifti_bytes(
+    work: &std::path::Path,
+    tag: &str,
+    vol: &mut neuvolex_bricks::MemVolume,
+) -> ApiResult<Vec<u8>> {
+    static SEQ: AtomicU64 = AtomicU64::new(0);
+    let tmp = work.join(format!(
+        ".{tag}-{}-{}.nii.gz",
+        std::process::id(),
+        SEQ.fetch_add(1, Ordering::SeqCst)
+    ));
+    let r = neuvolex_bricks::nifti::write_nifti(&tmp, vol, 16)
+        .map_err(ApiError::from)
+        .and_then(|()| std::fs::read(&tmp).map_err(|e| ApiError::Internal(e.to_string())));
+    let _ = std::fs::remove_file(&tmp);
+    r
+}
+
+fn gzip_attachment(bytes: Vec<u8>, name: &str) -> HttpResponse {
+    HttpResponse::Ok()
         .content_type("application/gzip")
         .insert_header((
             "Content-Disposition",
-            "attachment; filename=\"labels.nii.gz\"",
+            format!("attachment; filename=\"{name}\""),
         ))
-        .body(bytes))
+        .body(bytes)
+}
+
+async fn export_labels(st: web::Data<AppState>, id: web::Path<String>) -> ApiResult<HttpResponse> {
+    let s = st.session(&id)?;
+    let work = st.cfg.work_dir.clone();
+    let bytes = blocking(move || {
+        let mut vol = u8_volume(&s, label_voxels(&s)?, "labels");
+        nifti_bytes(&work, &format!("{}-labels", s.id), &mut vol)
+    })
+    .await?;
+    Ok(gzip_attachment(bytes, "labels.nii.gz"))
+}
+
+async fn export_probability(
+    st: web::Data<AppState>,
+    path: web::Path<(String, String)>,
+) -> ApiResult<HttpResponse> {
+    let (id, file) = path.into_inner();
+    let s = st.session(&id)?;
+    let class: u32 = file
+        .strip_suffix(".nii.gz")
+        .and_then(|c| c.parse().ok())
+        .ok_or_else(|| {
+            ApiError::BadRequest(format!(
+                "'{}' must be CLASS.nii.gz with an integer class id",
+                file.escape_debug()
+            ))
+        })?;
+    let work = st.cfg.work_dir.clone();
+    let bytes = blocking(move || {
+        let mut vol = u8_volume(&s, class_voxels(&s, class)?, "probability");
+        nifti_bytes(&work, &format!("{}-p{class}", s.id), &mut vol)
+    })
+    .await?;
+    Ok(gzip_attachment(
+        bytes,
+        &format!("probability_{class}.nii.gz"),
+    ))
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct ZarrExportReq {
+    name: Option<String>,
+}
+
+/// Writes the labels as an OME-Zarr labels group (`labels/NAME`, with the class table) and the
+/// probabilities as the u8 vector array `NAME_proba` into the session's store, where napari,
+/// `neuvolex render --labels NAME` and `--probs NAME_proba` read them.
+async fn export_zarr(
+    st: web::Data<AppState>,
+    id: web::Path<String>,
+    req: web::Json<ZarrExportReq>,
+) -> ApiResult<HttpResponse> {
+    let s = st.session(&id)?;
+    let name = req.into_inner().name.unwrap_or_else(|| "neuvolex".into());
+    if name.is_empty()
+        || name.len() > 64
+        || !name
+            .chars()
+            .all(|c| c.is_ascii_alphanumeric() || c == '_' || c == '-')
+    {
+        return Err(ApiError::BadRequest(format!(
+            "name '{}' must be 1-64 characters of letters, digits, '_' or '-'",
+            name.escape_debug()
+        )));
+    }
+    let out = blocking(move || -> ApiResult<serde_json::Value> {
+        let mut vol = u8_volume(&s, label_voxels(&s)?, "labels");
+        let classes = s.classes.read().unwrap_or_else(|p| p.into_inner()).clone();
+        let mut w = BrickStore::open(s.store.root())?;
+        w.add_labels(&name, &mut vol, &classes, &mut |_| {})?;
+        drop(vol);
+        let p = complete_probs(&s)?;
+        let c = p.ids.len();
+        let arr = format!("{name}_proba");
+        let mut va = s.store.create_vectors(
+            &arr,
+            c,
+            neuvolex_bricks::VectorEncoding::U8 {
+                lo: vec![0.0; c],
+                hi: vec![1.0; c],
+            },
+        )?;
+        va.set_extra(serde_json::json!({
+            "kind": "class_probabilities",
+            "labels": p.ids,
+            "background": BACKGROUND,
+            "features": s.status.read().unwrap_or_else(|p| p.into_inner()).features,
+        }));
+        for b in s.store.bricks() {
+            let v = p.bricks.get(&b.index).ok_or_else(|| {
+                ApiError::Conflict(format!("brick {:?} is not classified", b.index))
+            })?;
+            let f: Vec<f32> = v.iter().map(|&u| u as f32 / 255.0).collect();
+            va.write_brick(&b, &f)?;
+        }
+        va.finish()?;
+        Ok(serde_json::json!({
+            "store": s.store.root(),
+            "labels": format!("labels/{name}"),
+            "probabilities": arr,
+            "classes": p.ids,
+        }))
+    })
+    .await?;
+    Ok(HttpResponse::Ok().json(out))
 }
 
 #[derive(Deserialize)]
@@ -580,59 +777,90 @@ async fn viewpoints(
             "k {k} must be 1..=256 and views {views} 1..=20000"
         )));
     }
-    let hub = st.actors.hub.clone();
-    let out = blocking(move || -> ApiResult<serde_json::Value> {
-        use neuvolex_classify::features::{BrickFeatures, FeatureSet};
-        use neuvolex_viewpoints::{direction_to_view, recommend, KMeansConfig, RecommendConfig};
-        let model = neuvolex_features::checkpoint::load(&neuvolex_features::train::model_path(&s.store))
-            .ok()
-            .map(|l| Arc::new(l.model));
-        let set: FeatureSet = if model.is_some() { "paper" } else { "local" }
-            .parse()
-            .map_err(ApiError::Internal)?;
-        let fx = BrickFeatures::new(&s.store, set.clone(), model, false)?;
-        let bricks = s.store.occupied_bricks(None);
-        let rows: Vec<Vec<f32>> = bricks.iter().map(|b| fx.brick(b)).collect::<Result<_, _>>()?;
-        let err = |e: String| neuvolex_viewpoints::ViewpointError::Input(e);
-        let cfg = RecommendConfig {
-            kmeans: KMeansConfig {
-                k,
-                algorithm: neuvolex_viewpoints::kmeans::Algorithm::MiniBatch { epochs: 3 },
-                ..Default::default()
-            },
-            views,
-            ..Default::default()
-        };
-        let rec = recommend(
-            bricks.len(),
-            fx.channels(),
-            |i| Ok(&rows[i][..]),
-            |i| Ok(s.store.derived(&bricks[i]).map_err(|e| err(e.to_string()))?.gradient),
-            s.store.info().spacing,
-            &cfg,
-            &mut |_, _| {},
-        )
-        .map_err(|e| ApiError::BadRequest(e.to_string()))?;
-        let picked: Vec<serde_json::Value> = rec
-            .selection
-            .views
-            .iter()
-            .map(|&i| {
-                let (az, el) = direction_to_view(rec.scores.views[i]);
-                serde_json::json!({"azimuth": az, "elevation": el, "entropy": rec.scores.entropy[i]})
-            })
-            .collect();
-        let out = serde_json::json!({
-            "features": set.to_string(), "views": picked,
-            "clusters_used": rec.kmeans.counts.iter().filter(|&&c| c > 0).count(),
-            "uncovered": rec.selection.uncovered.len(),
-            "seconds": rec.kmeans_seconds + rec.scoring_seconds,
-        });
-        hub.publish(Some(&s.id), "viewpoints", out.clone());
-        Ok(out)
-    })
-    .await?;
+    let out = st.actors.viewpoints(s, k, views).await?;
     Ok(HttpResponse::Ok().json(out))
+}
+
+/// The session's transfer function, else a preset suited to the data (CT bone or grey).
+fn session_tf(s: &Session) -> ApiResult<neuvolex_render::TfFile> {
+    if let Some((_, t)) = s.tf.read().unwrap_or_else(|p| p.into_inner()).as_ref() {
+        return Ok(t.clone());
+    }
+    Ok(neuvolex_render::TfFile::preset(default_preset(s))?)
+}
+
+fn default_preset(s: &Session) -> &'static str {
+    if s.store.info().stats.min < -500.0 {
+        "ct-bone"
+    } else {
+        "grey"
+    }
+}
+
+async fn get_tf(st: web::Data<AppState>, id: web::Path<String>) -> ApiResult<HttpResponse> {
+    let s = st.session(&id)?;
+    let tf = s.tf.read().unwrap_or_else(|p| p.into_inner()).clone();
+    let json = match tf {
+        Some((v, _)) => v,
+        None => preset_json(default_preset(&s))?,
+    };
+    Ok(HttpResponse::Ok().json(json))
+}
+
+fn preset_json(name: &str) -> ApiResult<serde_json::Value> {
+    let (_, text) = neuvolex_render::tf::PRESETS
+        .iter()
+        .find(|(n, _)| *n == name)
+        .ok_or_else(|| ApiError::NotFound(format!("no preset '{}'", name.escape_debug())))?;
+    serde_json::from_str(text).map_err(|e| ApiError::Internal(e.to_string()))
+}
+
+async fn get_preset(name: web::Path<String>) -> ApiResult<HttpResponse> {
+    Ok(HttpResponse::Ok().json(preset_json(&name)?))
+}
+
+/// Sets the session's transfer function (the JSON format of `neuvolex render --tf`); `null`
+/// returns to the default preset.
+async fn put_tf(
+    st: web::Data<AppState>,
+    id: web::Path<String>,
+    body: web::Json<serde_json::Value>,
+) -> ApiResult<HttpResponse> {
+    let s = st.session(&id)?;
+    let v = body.into_inner();
+    let parsed = if v.is_null() {
+        None
+    } else {
+        let tf = neuvolex_render::TfFile::parse(
+            &v.to_string(),
+            std::path::Path::new(&format!("session {} transfer function", s.id)),
+        )?;
+        Some((v, tf))
+    };
+    *s.tf.write().unwrap_or_else(|p| p.into_inner()) = parsed;
+    Ok(HttpResponse::Ok().json(info(&s)))
+}
+
+async fn preview(st: web::Data<AppState>, id: web::Path<String>) -> ApiResult<HttpResponse> {
+    let s = st.session(&id)?;
+    let p = s.preview.read().unwrap_or_else(|p| p.into_inner()).clone();
+    match p {
+        Some((png, psnr)) => Ok(HttpResponse::Ok()
+            .content_type("image/png")
+            .insert_header(("X-Psnr", format!("{psnr:.2}")))
+            .body(png)),
+        None => Err(ApiError::NotFound(
+            "no training preview yet: start training first".into(),
+        )),
+    }
+}
+
+async fn crash(st: web::Data<AppState>, actor: web::Path<String>) -> ApiResult<HttpResponse> {
+    if !st.cfg.fault_injection {
+        return Err(ApiError::NotFound("no such route".into()));
+    }
+    st.actors.crash(&actor)?;
+    Ok(HttpResponse::Accepted().json(serde_json::json!({"crashing": actor.into_inner()})))
 }
 
 fn json_error(err: impl std::fmt::Display) -> actix_web::Error {
@@ -668,10 +896,20 @@ pub fn configure(cfg: &mut web::ServiceConfig) {
             .route("/sessions/{id}/train", web::post().to(train))
             .route("/sessions/{id}/fractions", web::get().to(fractions))
             .route("/sessions/{id}/viewpoints", web::post().to(viewpoints))
+            .route("/sessions/{id}/tf", web::get().to(get_tf))
+            .route("/sessions/{id}/tf", web::put().to(put_tf))
+            .route("/sessions/{id}/preview.png", web::get().to(preview))
+            .route("/presets/{name}", web::get().to(get_preset))
+            .route("/debug/crash/{actor}", web::post().to(crash))
             .route(
                 "/sessions/{id}/export/labels.nii.gz",
                 web::get().to(export_labels),
-            ),
+            )
+            .route(
+                "/sessions/{id}/export/probability/{file}",
+                web::get().to(export_probability),
+            )
+            .route("/sessions/{id}/export/zarr", web::post().to(export_zarr)),
     )
     .default_service(web::to(|| async {
         ApiError::NotFound("no such route".into()).error_response_owned()

@@ -76,3 +76,30 @@ pub fn window(values: &[f32], level: f64, width: f64) -> Vec<u8> {
         .map(|&v| (((v as f64 - lo) / w).clamp(0.0, 1.0) * 255.0).round() as u8)
         .collect()
 }
+
+/// A training preview as a grey PNG: the reconstruction (left) beside the input (right), both
+/// normalised to [0, 1] (values outside are clamped).
+pub fn preview_png(
+    width: usize,
+    height: usize,
+    recon: &[f32],
+    truth: &[f32],
+) -> ApiResult<Vec<u8>> {
+    let n = width * height;
+    if recon.len() != n || truth.len() != n || n == 0 {
+        return Err(ApiError::Internal(format!(
+            "preview of {width}x{height} has {} and {} values",
+            recon.len(),
+            truth.len()
+        )));
+    }
+    let to_u8 = |v: f32| (v.clamp(0.0, 1.0) * 255.0).round() as u8;
+    let mut px = vec![0u8; 2 * n];
+    for y in 0..height {
+        for x in 0..width {
+            px[y * 2 * width + x] = to_u8(recon[y * width + x]);
+            px[y * 2 * width + width + x] = to_u8(truth[y * width + x]);
+        }
+    }
+    png(2 * width, height, 1, &px)
+}

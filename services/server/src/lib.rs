@@ -15,6 +15,7 @@
 #![warn(missing_docs)]
 
 pub mod actors;
+pub mod cache;
 pub mod error;
 pub mod http;
 pub mod imaging;

@@ -15,6 +15,12 @@ use std::collections::{BTreeSet, HashMap};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, RwLock};
 
+use crate::cache::FeatureCache;
+use neuvolex_features::InrModel;
+
+/// A model and its version in a session (bumped by every snapshot).
+pub type VersionedModel = (u64, Arc<InrModel>);
+
 /// The label strokes use for background/other.
 pub const BACKGROUND: u32 = 255;
 
@@ -83,6 +89,15 @@ pub struct Session {
     pub train_cancel: Mutex<Option<Arc<AtomicBool>>>,
     /// Render state (the renderer keeps the last frame for incremental updates).
     pub renderer: Mutex<Option<RenderState>>,
+    /// The INR the features come from, with a version bumped by every snapshot the trainer
+    /// publishes (`None` until one is trained).
+    pub model: RwLock<Option<VersionedModel>>,
+    /// Feature bricks shared by every classification and recommendation of this session.
+    pub features: FeatureCache,
+    /// The session's transfer function (JSON as sent, and parsed); `None` uses a preset.
+    pub tf: RwLock<Option<(serde_json::Value, neuvolex_render::TfFile)>>,
+    /// The newest training preview: reconstruction beside the input, as PNG, and its PSNR.
+    pub preview: RwLock<Option<(Vec<u8>, f64)>>,
 }
 
 /// A session's renderer and what its last frame was.
@@ -94,8 +109,13 @@ pub struct RenderState {
 }
 
 impl Session {
-    /// A session over an opened store.
-    pub fn new(id: String, name: String, store: Arc<BrickStore>) -> Arc<Session> {
+    /// A session over an opened store, caching at most `cache_bytes` of feature bricks.
+    pub fn new(
+        id: String,
+        name: String,
+        store: Arc<BrickStore>,
+        cache_bytes: usize,
+    ) -> Arc<Session> {
         // Classes from the store's first label image with a class table, else two defaults.
         let mut classes = Vec::new();
         for l in &store.info().labels {
@@ -118,6 +138,12 @@ impl Session {
                 })
                 .collect();
         }
+        // A model trained earlier (by `neuvolex train` or a previous session) on this grid.
+        let model =
+            neuvolex_features::checkpoint::load(&neuvolex_features::train::model_path(&store))
+                .ok()
+                .filter(|l| l.model.dims == store.info().dims)
+                .map(|l| (1, Arc::new(l.model)));
         Arc::new(Session {
             id,
             name,
@@ -133,6 +159,10 @@ impl Session {
             dirty: Mutex::new(BTreeSet::new()),
             train_cancel: Mutex::new(None),
             renderer: Mutex::new(None),
+            model: RwLock::new(model),
+            features: FeatureCache::new(cache_bytes),
+            tf: RwLock::new(None),
+            preview: RwLock::new(None),
         })
     }
 
@@ -151,6 +181,35 @@ impl Session {
         }
         *self.strokes.write().unwrap_or_else(|p| p.into_inner()) = strokes;
         Ok(self.generation.fetch_add(1, Ordering::SeqCst) + 1)
+    }
+
+    /// Starts a new generation without new strokes (e.g. a newer model): work for the current
+    /// one becomes stale. Returns the new generation.
+    pub fn bump_generation(&self) -> u64 {
+        self.generation.fetch_add(1, Ordering::SeqCst) + 1
+    }
+
+    /// Installs a newer model snapshot; returns its version.
+    pub fn set_model(&self, model: InrModel) -> u64 {
+        let mut m = self.model.write().unwrap_or_else(|p| p.into_inner());
+        let v = m.as_ref().map_or(0, |(v, _)| *v) + 1;
+        *m = Some((v, Arc::new(model)));
+        v
+    }
+
+    /// The current model and its version.
+    pub fn current_model(&self) -> Option<VersionedModel> {
+        self.model.read().unwrap_or_else(|p| p.into_inner()).clone()
+    }
+
+    /// The feature set interactive work uses: `inr` (learned + local) once a model exists,
+    /// else `local`; with the model version it is computed from.
+    pub fn feature_source(&self) -> ApiResult<(FeatureSet, Option<VersionedModel>)> {
+        let model = self.current_model();
+        let set: FeatureSet = if model.is_some() { "inr" } else { "local" }
+            .parse()
+            .map_err(ApiError::Internal)?;
+        Ok((set, model))
     }
 
     /// The scribbled voxels of the current strokes (class 0 strokes erase).
@@ -197,20 +256,12 @@ impl Session {
             });
             return Ok(0);
         }
-        let model = {
-            let mp = neuvolex_features::train::model_path(&self.store);
-            if mp.exists() {
-                neuvolex_features::checkpoint::load(&mp)
-                    .ok()
-                    .map(|l| Arc::new(l.model))
-            } else {
-                None
-            }
-        };
-        let set: FeatureSet = if model.is_some() { "inr" } else { "local" }
-            .parse()
-            .map_err(ApiError::Internal)?;
-        let fx = BrickFeatures::new(&self.store, set.clone(), model, false)?;
+        let (set, model) = self.feature_source()?;
+        let version = model.as_ref().map_or(0, |m| m.0);
+        let mut fx = BrickFeatures::new(&self.store, set.clone(), model.map(|m| m.1), false)?;
+        // Features round through f16 (shown to cost no F1) so the cache holds half as much
+        // and training and prediction see the same values.
+        fx.set_quantise(neuvolex_classify::features::Quantise::F16);
         self.set_status(|s| {
             s.generation = generation;
             s.state = "training".into();
@@ -260,7 +311,7 @@ impl Session {
                     return Ok(());
                 }
                 let u8s: Vec<u8> = if self.store.is_occupied(b, None) {
-                    let f = fx.brick(b)?;
+                    let f = self.features.get(&set.to_string(), version, &fx, b)?;
                     let (p, _) = predict_brick(&forest, &f, &out_labels, 0.5)?;
                     p.iter()
                         .map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8)

@@ -35,10 +35,8 @@ fn data() -> (tempfile::TempDir, ServerConfig) {
         &mut |_| {},
     )
     .unwrap();
-    let cfg = ServerConfig {
-        data_root: root.canonicalize().unwrap(),
-        work_dir: work.canonicalize().unwrap(),
-    };
+    let mut cfg = ServerConfig::new(root.canonicalize().unwrap(), work.canonicalize().unwrap());
+    cfg.fault_injection = true;
     (d, cfg)
 }
 
@@ -399,4 +397,430 @@ async fn twenty_concurrent_clients_lose_no_scribbles() {
     let grown = rss_mib() - before;
     eprintln!("RSS grew {grown:.0} MiB for 20 sessions");
     assert!(grown < 1500.0, "memory stays bounded: +{grown} MiB");
+}
+
+/// A Server-Sent Events client over the in-process service.
+struct Sse {
+    body: actix_web::body::BoxBody,
+    buf: String,
+}
+
+impl Sse {
+    async fn open<S>(app: &S, query: &str) -> Sse
+    where
+        S: actix_web::dev::Service<
+            actix_http::Request,
+            Response = actix_web::dev::ServiceResponse,
+            Error = actix_web::Error,
+        >,
+    {
+        let r = test::call_service(
+            app,
+            test::TestRequest::get()
+                .uri(&format!("/api/events{query}"))
+                .to_request(),
+        )
+        .await;
+        assert_eq!(r.status(), 200);
+        Sse {
+            body: r.into_body(),
+            buf: String::new(),
+        }
+    }
+
+    /// The next event of `kind` whose JSON satisfies `want`.
+    async fn next(&mut self, kind: &str, want: impl Fn(&Value) -> bool) -> Value {
+        use actix_web::body::MessageBody;
+        let deadline = tokio::time::Instant::now() + Duration::from_secs(180);
+        loop {
+            while let Some(i) = self.buf.find("\n\n") {
+                let ev: String = self.buf.drain(..i + 2).collect();
+                let Some(rest) = ev.strip_prefix(&format!("event: {kind}\ndata: ")) else {
+                    continue;
+                };
+                let v: Value = serde_json::from_str(rest.trim()).unwrap();
+                if want(&v) {
+                    return v;
+                }
+            }
+            let chunk = tokio::time::timeout_at(
+                deadline,
+                futures_util::future::poll_fn(|cx| {
+                    std::pin::Pin::new(&mut self.body).poll_next(cx)
+                }),
+            )
+            .await
+            .unwrap_or_else(|_| panic!("no '{kind}' event within 180 s"));
+            match chunk {
+                Some(Ok(b)) => self.buf.push_str(std::str::from_utf8(&b).unwrap()),
+                _ => panic!("the event stream ended"),
+            }
+        }
+    }
+}
+
+async fn open_session<S>(app: &S) -> String
+where
+    S: actix_web::dev::Service<
+        actix_http::Request,
+        Response = actix_web::dev::ServiceResponse,
+        Error = actix_web::Error,
+    >,
+{
+    let req = test::TestRequest::post()
+        .uri("/api/sessions")
+        .set_json(json!({"volume": "ph.zarr"}))
+        .to_request();
+    let s: Value = test::call_and_read_body_json(app, req).await;
+    s["id"].as_str().unwrap().to_string()
+}
+
+async fn put_strokes<S>(app: &S, id: &str, n: usize) -> u64
+where
+    S: actix_web::dev::Service<
+        actix_http::Request,
+        Response = actix_web::dev::ServiceResponse,
+        Error = actix_web::Error,
+    >,
+{
+    let req = test::TestRequest::put()
+        .uri(&format!("/api/sessions/{id}/strokes"))
+        .set_json(strokes(n))
+        .to_request();
+    let r: Value = test::call_and_read_body_json(app, req).await;
+    r["generation"].as_u64().unwrap()
+}
+
+#[actix_web::test]
+async fn a_crashed_actor_is_restarted_and_clients_are_told() {
+    let (_d, cfg) = data();
+    let app = app!(cfg);
+    let mut sse = Sse::open(&app, "").await;
+    let id = open_session(&app).await;
+    for actor in ["classifier", "renderer", "viewpoints", "trainer", "ingest"] {
+        let r = test::call_service(
+            &app,
+            test::TestRequest::post()
+                .uri(&format!("/api/debug/crash/{actor}"))
+                .to_request(),
+        )
+        .await;
+        assert_eq!(r.status(), 202, "{actor}");
+        let e = sse
+            .next("actor_failed", |v| v["data"]["actor"] == actor)
+            .await;
+        assert_eq!(e["data"]["restarted"], true, "{e}");
+        assert!(
+            e["data"]["error"].as_str().unwrap().contains("panicked"),
+            "{e}"
+        );
+    }
+    let r = test::call_service(
+        &app,
+        test::TestRequest::post()
+            .uri("/api/debug/crash/nobody")
+            .to_request(),
+    )
+    .await;
+    assert_eq!(r.status(), 404);
+    // The restarted actors serve the same mailboxes: classify, render, recommend.
+    let g = put_strokes(&app, &id, 0).await;
+    let v = wait_done(&app, &id, g).await;
+    assert_eq!(v["status"]["state"], "done", "{v}");
+    let r = test::call_service(
+        &app,
+        test::TestRequest::get()
+            .uri(&format!("/api/sessions/{id}/render?size=32"))
+            .to_request(),
+    )
+    .await;
+    assert_eq!(r.status(), 200);
+    let req = test::TestRequest::post()
+        .uri(&format!("/api/sessions/{id}/viewpoints"))
+        .set_json(json!({"k": 6, "views": 200}))
+        .to_request();
+    assert_eq!(test::call_service(&app, req).await.status(), 200);
+    // Without fault injection the route does not exist.
+    let mut cfg2 = cfg.clone();
+    cfg2.fault_injection = false;
+    let app2 = app!(cfg2);
+    let r = test::call_service(
+        &app2,
+        test::TestRequest::post()
+            .uri("/api/debug/crash/classifier")
+            .to_request(),
+    )
+    .await;
+    assert_eq!(r.status(), 404);
+}
+
+#[actix_web::test]
+async fn newer_scribbles_cancel_stale_predictions() {
+    let (_d, cfg) = data();
+    let app = app!(cfg);
+    let id = open_session(&app).await;
+    let mut sse = Sse::open(&app, &format!("?session={id}")).await;
+    let mut last = 0;
+    for n in 0..10 {
+        last = put_strokes(&app, &id, n).await;
+    }
+    assert_eq!(last, 10);
+    let v = wait_done(&app, &id, last).await;
+    assert_eq!(v["status"]["state"], "done", "{v}");
+    let total = v["status"]["total"].as_u64().unwrap();
+    // Count the bricks each generation classified, up to the last generation's final event.
+    let mut per_gen = std::collections::BTreeMap::<u64, u64>::new();
+    loop {
+        let e = sse.next("classified", |_| true).await;
+        let g = e["data"]["generation"].as_u64().unwrap();
+        *per_gen.entry(g).or_default() += 1;
+        if g == last && e["data"]["done"] == json!(total) {
+            break;
+        }
+    }
+    assert_eq!(per_gen[&last], total, "{per_gen:?}");
+    let stale: u64 = per_gen
+        .iter()
+        .filter(|(g, _)| **g != last)
+        .map(|(_, n)| n)
+        .sum();
+    // Ten full runs would classify 10 x total bricks; stale ones are coalesced or cancelled.
+    assert!(
+        stale < 9 * total,
+        "stale generations classified {stale} bricks: {per_gen:?}"
+    );
+    // The probabilities are the last generation's.
+    let req = test::TestRequest::get()
+        .uri(&format!("/api/sessions/{id}/fractions"))
+        .to_request();
+    let f: Value = test::call_and_read_body_json(&app, req).await;
+    assert_eq!(
+        f["classified_voxels"].as_u64().unwrap(),
+        48 * 48 * 42,
+        "{f}"
+    );
+}
+
+#[actix_web::test]
+async fn transfer_functions_are_edited_per_session() {
+    let (_d, cfg) = data();
+    let app = app!(cfg);
+    let id = open_session(&app).await;
+    let req = test::TestRequest::get()
+        .uri(&format!("/api/sessions/{id}/tf"))
+        .to_request();
+    let tf: Value = test::call_and_read_body_json(&app, req).await;
+    assert!(tf["intensity"]["opacity"].is_array(), "a preset: {tf}");
+    let r = test::call_service(
+        &app,
+        test::TestRequest::get()
+            .uri("/api/presets/ct-vessels")
+            .to_request(),
+    )
+    .await;
+    assert_eq!(r.status(), 200);
+    let r = test::call_service(
+        &app,
+        test::TestRequest::get()
+            .uri("/api/presets/nope")
+            .to_request(),
+    )
+    .await;
+    assert_eq!(r.status(), 404);
+    for (bad, needle) in [
+        (
+            json!({"classes": [{"id": 1, "probability": {"opacity": [[0, 0], [2, 1]]}}]}),
+            "classes[0].probability",
+        ),
+        (
+            json!({"intensity": {"opacity": [[1, 0], [0, 1]]}}),
+            "intensity.opacity",
+        ),
+        (json!({"bogus": 1}), "unknown key"),
+        (json!([1, 2]), "must be"),
+    ] {
+        let r = test::call_service(
+            &app,
+            test::TestRequest::put()
+                .uri(&format!("/api/sessions/{id}/tf"))
+                .set_json(bad.clone())
+                .to_request(),
+        )
+        .await;
+        assert_eq!(r.status(), 400, "{bad}");
+        let v: Value = test::read_body_json(r).await;
+        assert!(v["error"].as_str().unwrap().contains(needle), "{bad}: {v}");
+    }
+    let g = put_strokes(&app, &id, 0).await;
+    wait_done(&app, &id, g).await;
+    let mut images = Vec::new();
+    for opacity in [0.0, 1.0] {
+        let tf = json!({"space": "normalised", "intensity": {"opacity": [[0, 0], [1, 0.3]]},
+            "classes": [{"id": 1, "probability": {"opacity": [[0, 0], [0.5, opacity], [1, opacity]]}}]});
+        let req = test::TestRequest::put()
+            .uri(&format!("/api/sessions/{id}/tf"))
+            .set_json(tf.clone())
+            .to_request();
+        let info: Value = test::call_and_read_body_json(&app, req).await;
+        assert_eq!(info["tf"], tf);
+        let r = test::call_service(
+            &app,
+            test::TestRequest::get()
+                .uri(&format!("/api/sessions/{id}/render?size=64&mode=prob"))
+                .to_request(),
+        )
+        .await;
+        assert_eq!(r.status(), 200);
+        images.push(test::read_body(r).await);
+    }
+    assert_ne!(images[0], images[1], "class 1's opacity changes the image");
+    let req = test::TestRequest::put()
+        .uri(&format!("/api/sessions/{id}/tf"))
+        .set_json(Value::Null)
+        .to_request();
+    let info: Value = test::call_and_read_body_json(&app, req).await;
+    assert!(info["tf"].is_null());
+}
+
+#[actix_web::test]
+async fn labels_and_probabilities_export_as_nifti_and_ome_zarr() {
+    let (_d, cfg) = data();
+    let app = app!(cfg);
+    let id = open_session(&app).await;
+    let post_zarr = |name: Value| {
+        test::TestRequest::post()
+            .uri(&format!("/api/sessions/{id}/export/zarr"))
+            .set_json(json!({ "name": name }))
+            .to_request()
+    };
+    // Nothing is classified yet.
+    assert_eq!(
+        test::call_service(&app, post_zarr(json!("seg")))
+            .await
+            .status(),
+        409
+    );
+    let g = put_strokes(&app, &id, 0).await;
+    wait_done(&app, &id, g).await;
+    for bad in [json!("../x"), json!(""), json!("a b")] {
+        assert_eq!(
+            test::call_service(&app, post_zarr(bad.clone()))
+                .await
+                .status(),
+            400,
+            "{bad}"
+        );
+    }
+    let r: Value = test::call_and_read_body_json(&app, post_zarr(json!("seg"))).await;
+    assert_eq!(r["labels"], "labels/seg", "{r}");
+    let store = BrickStore::open(&cfg.data_root.join("ph.zarr")).unwrap();
+    assert!(store.info().labels.contains(&"seg".to_string()));
+    assert!(store.label_classes("seg").unwrap().len() >= 4);
+    let va = store.open_vectors("seg_proba").unwrap();
+    assert!(va.info().complete);
+    // The exported label image agrees with the NIfTI export, voxel for voxel.
+    let from_zarr = {
+        let mut src =
+            neuvolex_bricks::open_volume(&cfg.data_root.join("ph.zarr/labels/seg"), None).unwrap();
+        neuvolex_bricks::MemVolume::read_all(src.as_mut())
+            .unwrap()
+            .to_f32()
+    };
+    let tmp = tempfile::tempdir().unwrap();
+    for (uri, file) in [
+        (
+            format!("/api/sessions/{id}/export/labels.nii.gz"),
+            "l.nii.gz",
+        ),
+        (
+            format!("/api/sessions/{id}/export/probability/1.nii.gz"),
+            "p.nii.gz",
+        ),
+    ] {
+        let r = test::call_service(&app, test::TestRequest::get().uri(&uri).to_request()).await;
+        assert_eq!(r.status(), 200, "{uri}");
+        std::fs::write(tmp.path().join(file), test::read_body(r).await).unwrap();
+    }
+    let read = |f: &str| {
+        let mut src = neuvolex_bricks::open_volume(&tmp.path().join(f), None).unwrap();
+        assert_eq!(src.meta().dims, [48, 48, 42]);
+        neuvolex_bricks::MemVolume::read_all(src.as_mut())
+            .unwrap()
+            .to_f32()
+    };
+    let labels = read("l.nii.gz");
+    assert_eq!(labels, from_zarr);
+    let p1 = read("p.nii.gz");
+    // Where class 1 is the label, its probability is the largest: at least half.
+    let n1 = labels.iter().filter(|&&l| l == 1.0).count();
+    assert!(n1 > 0);
+    assert!(labels
+        .iter()
+        .zip(&p1)
+        .all(|(&l, &p)| l != 1.0 || p >= 127.0));
+    for (uri, code) in [
+        (
+            format!("/api/sessions/{id}/export/probability/x.nii.gz"),
+            400,
+        ),
+        (
+            format!("/api/sessions/{id}/export/probability/77.nii.gz"),
+            404,
+        ),
+    ] {
+        let r = test::call_service(&app, test::TestRequest::get().uri(&uri).to_request()).await;
+        assert_eq!(r.status().as_u16(), code, "{uri}");
+    }
+}
+
+#[actix_web::test]
+async fn training_streams_previews_and_refreshes_the_classification() {
+    let (_d, cfg) = data();
+    let app = app!(cfg);
+    let id = open_session(&app).await;
+    let g = put_strokes(&app, &id, 0).await;
+    let v = wait_done(&app, &id, g).await;
+    assert_eq!(v["status"]["features"], "local", "no model yet: {v}");
+    let mut sse = Sse::open(&app, &format!("?session={id}")).await;
+    let req = test::TestRequest::post()
+        .uri(&format!("/api/sessions/{id}/train"))
+        .set_json(json!({"action": "start", "epochs": 10}))
+        .to_request();
+    assert_eq!(test::call_service(&app, req).await.status(), 202);
+    let p = sse.next("preview", |_| true).await;
+    assert!(p["data"]["psnr"].as_f64().unwrap().is_finite(), "{p}");
+    let r = test::call_service(
+        &app,
+        test::TestRequest::get()
+            .uri(&format!("/api/sessions/{id}/preview.png"))
+            .to_request(),
+    )
+    .await;
+    assert_eq!(r.status(), 200);
+    assert_eq!(&test::read_body(r).await[1..4], b"PNG");
+    // A snapshot mid-training refreshes the classification with learned features.
+    sse.next("training", |v| v["data"]["state"] == "snapshot")
+        .await;
+    sse.next("training", |v| v["data"]["state"] == "model_saved")
+        .await;
+    let req = test::TestRequest::get()
+        .uri(&format!("/api/sessions/{id}"))
+        .to_request();
+    let s: Value = test::call_and_read_body_json(&app, req).await;
+    assert_eq!(s["trained"], true);
+    assert!(s["model_version"].as_u64().unwrap() >= 2, "{s}");
+    let g = s["generation"].as_u64().unwrap();
+    assert!(g > 1, "the model snapshots started new generations: {s}");
+    let v = wait_done(&app, &id, g).await;
+    assert_eq!(
+        v["status"]["features"], "concat+local",
+        "learned features: {v}"
+    );
+    assert_eq!(v["status"]["state"], "done", "{v}");
+    // Stopping when nothing runs is a conflict.
+    let req = test::TestRequest::post()
+        .uri(&format!("/api/sessions/{id}/train"))
+        .set_json(json!({"action": "stop"}))
+        .to_request();
+    assert_eq!(test::call_service(&app, req).await.status(), 409);
 }
