@@ -36,10 +36,11 @@ pub fn run_serve(a: &ServeArgs) -> Result<()> {
         .as_ref()
         .and_then(|v| v.file_name())
         .map(|n| n.to_string_lossy().into_owned());
-    // The embedded default: the labelled phantom, generated once into the work folder and
-    // offered as `generated/phantom.zarr` beside the data root's volumes.
+    // The embedded default (no volume or data root given): the labelled phantom, generated
+    // once into the work folder and offered as `generated/phantom.zarr` beside the data root's
+    // volumes (../shared/data where present).
     let mut generated = None;
-    if a.volume.is_none() {
+    if a.volume.is_none() && a.data_root.is_none() {
         let d = a.work.join("data");
         let p = d.join("phantom.zarr");
         if neuvolex_bricks::BrickStore::open(&p).is_err() {

@@ -2,7 +2,8 @@
 // playwright-core). Run by services/cli/tests/e2e.rs:
 //   node ui.js URL SCREENSHOT
 // Loads the page, draws scribbles for two classes, waits for classification, checks that the
-// axial slice overlay and the 3-D image changed, and saves a screenshot.
+// axial slice overlay and the 3-D image changed, edits class 1's transfer function and checks
+// the 3-D image followed, and saves a screenshot.
 const { chromium } = require("playwright-core");
 
 const pixels = (page, sel) => page.evaluate((sel) => {
@@ -50,9 +51,17 @@ const changed = (a, b) => { let n = 0; for (let i = 0; i < Math.min(a.length, b.
   const renderAfter = await pixels(page, "#render");
   const ds = changed(sliceBefore, sliceAfter), dr = changed(renderBefore, renderAfter);
   const fractions = await page.locator("#fractions").textContent();
-  // 5. Screenshot.
+  // 5. The transfer-function editor: class 1 fully opaque from probability 0.3 changes the 3-D view.
+  await page.selectOption("#tftarget", "p:1");
+  const tfBox = await page.locator("#tfc").boundingBox();
+  await page.mouse.click(tfBox.x + tfBox.width * (8 + 0.3 * 496) / 512, tfBox.y + tfBox.height * 10 / 200);
+  await page.waitForFunction(() => (document.getElementById("status").textContent || "").length > 0);
+  await page.waitForTimeout(2500);
+  const renderTf = await pixels(page, "#render");
+  const dt = changed(renderAfter, renderTf);
+  // 6. Screenshot.
   await page.screenshot({ path: shot });
   await browser.close();
-  console.log(JSON.stringify({ slice_pixels_changed: ds, render_pixels_changed: dr, fractions, errors }));
-  if (ds < 50 || dr < 50 || errors.length || !/background/.test(fractions)) process.exit(1);
+  console.log(JSON.stringify({ slice_pixels_changed: ds, render_pixels_changed: dr, tf_edit_pixels_changed: dt, fractions, errors }));
+  if (ds < 50 || dr < 50 || dt < 50 || errors.length || !/background/.test(fractions)) process.exit(1);
 })().catch((e) => { console.error(e); process.exit(1); });

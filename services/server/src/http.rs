@@ -222,6 +222,8 @@ struct SliceQuery {
     window: Option<f64>,
     level: Option<f64>,
     kind: Option<String>,
+    /// Overlays: the class whose probability or uncertainty to show (all classes if absent).
+    class: Option<u32>,
     /// A client's cache-buster, ignored.
     #[serde(rename = "t")]
     _t: Option<String>,
@@ -280,27 +282,59 @@ async fn overlay(
     let (id, axis, index) = path.into_inner();
     let s = st.session(&id)?;
     let (a, d) = slice_index(&s, &axis, index)?;
-    let kind = q.into_inner().kind.unwrap_or_else(|| "labels".into());
-    if !["labels", "uncertainty"].contains(&kind.as_str()) {
+    let q = q.into_inner();
+    let kind = q.kind.unwrap_or_else(|| "labels".into());
+    if !["labels", "uncertainty", "probability"].contains(&kind.as_str()) {
         return Err(ApiError::BadRequest(format!(
-            "overlay kind '{}' must be labels or uncertainty",
+            "overlay kind '{}' must be labels, uncertainty or probability",
             kind.escape_debug()
         )));
     }
+    if kind == "probability" && q.class.is_none() {
+        return Err(ApiError::BadRequest(
+            "the probability overlay needs a class (?class=ID)".into(),
+        ));
+    }
+    let want = q.class;
     let bytes = blocking(move || -> ApiResult<Vec<u8>> {
         let (w, h) = (d[a.u], d[a.v]);
         let classes = s.classes.read().unwrap_or_else(|p| p.into_inner()).clone();
         let probs = s.probs.read().unwrap_or_else(|p| p.into_inner());
         let ids = &probs.ids;
+        let color = |id: u32| {
+            classes
+                .iter()
+                .find(|c| c.id == id)
+                .map_or_else(|| neuvolex_bricks::synth::palette(id), |c| c.color)
+        };
+        // The channel of the requested class (404 once classified without it).
+        let channel = match want {
+            Some(c) if !ids.is_empty() && kind != "labels" => Some(ids.iter().position(|&i| i == c).ok_or_else(
+                || ApiError::NotFound(format!("class {c} is not classified (have {ids:?})")),
+            )?),
+            _ => None,
+        };
         let mut rgba = vec![0u8; w * h * 4];
         for j in 0..h {
             for i in 0..w {
                 let Some(p) = probs.at(&s.store, a.voxel(d, index, i, j)) else {
                     continue;
                 };
+                let o = &mut rgba[(j * w + i) * 4..(j * w + i + 1) * 4];
+                if let Some(k) = channel {
+                    let c = color(ids[k]);
+                    let v = p[k] as i32;
+                    let alpha = if kind == "probability" {
+                        v
+                    } else {
+                        // Per class: bright where its probability is near 0.5, its boundary.
+                        255 - (2 * v - 255).abs()
+                    };
+                    o.copy_from_slice(&[c[0], c[1], c[2], (alpha * 200 / 255) as u8]);
+                    continue;
+                }
                 let mut order: Vec<usize> = (0..p.len()).collect();
                 order.sort_by(|&x, &y| p[y].cmp(&p[x]));
-                let o = &mut rgba[(j * w + i) * 4..(j * w + i + 1) * 4];
                 if kind == "uncertainty" {
                     // 1 - (p1 - p2): bright where the two best classes are close.
                     let m = p[order[0]] as i32 - order.get(1).map_or(0, |&k| p[k] as i32);
@@ -312,10 +346,7 @@ async fn overlay(
                     if id == BACKGROUND || p[best] < 128 {
                         continue;
                     }
-                    let c = classes
-                        .iter()
-                        .find(|c| c.id == id)
-                        .map_or_else(|| neuvolex_bricks::synth::palette(id), |c| c.color);
+                    let c = color(id);
                     o.copy_from_slice(&[c[0], c[1], c[2], 140]);
                 }
             }

@@ -6,7 +6,7 @@ const api = async (method, url, body) => {
   if (!r.ok) { let m = r.statusText; try { m = (await r.json()).error; } catch (_) {} throw new Error(m); }
   return r.status === 204 ? null : r.json();
 };
-const S = { id: null, info: null, strokes: [], redo: [], cls: 1, radius: 3, hover: "z", idx: { x: 0, y: 0, z: 0 }, events: null, renderPending: false, ovlPending: false };
+const S = { id: null, info: null, tf: null, strokes: [], redo: [], cls: 1, radius: 3, hover: "z", idx: { x: 0, y: 0, z: 0 }, events: null, renderPending: false, ovlPending: false };
 const AX = { z: { u: 0, v: 1, flip: false }, y: { u: 0, v: 2, flip: true }, x: { u: 1, v: 2, flip: true } };
 const status = (t) => { $("status").textContent = t; };
 const hex = (c) => "#" + c.map((v) => v.toString(16).padStart(2, "0")).join("");
@@ -29,7 +29,8 @@ async function open() {
     $("i" + a).max = n - 1; $("i" + a).value = S.idx[a] = Math.floor(n / 2);
   }
   $("export").href = `/api/sessions/${S.id}/export/labels.nii.gz`;
-  renderClasses(); drawHistogram(); subscribe(); refreshAll();
+  renderClasses(); await loadTf(); refreshAll();
+  $("trinfo").textContent = S.info.trained ? `model version ${S.info.model_version}` : "not trained"; $("preview").removeAttribute("src");
   status(`${S.info.volume}: ${d.join(" x ")}`);
 }
 
@@ -47,15 +48,19 @@ function renderClasses() {
   for (const el of [$("bgcls"), $("erase")]) el.classList.toggle("sel", +el.dataset.id === S.cls);
 }
 async function pushClasses() {
-  try { S.info = await api("PUT", `/api/sessions/${S.id}/classes`, S.info.classes); renderClasses(); refreshAll(); }
+  try { S.info = await api("PUT", `/api/sessions/${S.id}/classes`, S.info.classes); renderClasses(); drawTf(); refreshAll(); }
   catch (e) { status("error: " + e.message); }
 }
-function pick(id) { S.cls = id; renderClasses(); }
+function pick(id) {
+  S.cls = id; renderClasses();
+  if (S.id) $("exportp").href = `/api/sessions/${S.id}/export/probability/${id || 255}.nii.gz`;
+  if ($("ovl").value.startsWith("cls-")) for (const a of ["x", "y", "z"]) drawSlice(a);
+}
 $("addcls").onclick = () => {
   if (!S.info) return;
   const id = Math.max(0, ...S.info.classes.map((c) => c.id)) + 1;
   const hue = (id * 0.618) % 1, c = [0, 1, 2].map((k) => Math.round(127 + 120 * Math.cos(6.283 * (hue + k / 3))));
-  S.info.classes.push({ id, name: "class " + id, color: c }); pushClasses(); pick(id);
+  S.info.classes.push({ id, name: "class " + id, color: c }); pushClasses().then(fillTfTargets); pick(id);
 };
 $("bgcls").onclick = () => pick(255);
 $("erase").onclick = () => pick(0);
@@ -74,8 +79,9 @@ async function drawSlice(a) {
   if (!base) return;
   c.width = base.width; c.height = base.height;
   const g = c.getContext("2d"); g.drawImage(base, 0, 0);
-  const kind = $("ovl").value;
-  if (kind) { const o = await loadImg(`/api/sessions/${S.id}/overlay/${a}/${idx}?kind=${kind}&t=${Date.now()}`); if (o) g.drawImage(o, 0, 0); }
+  let kind = $("ovl").value, cls = "";
+  if (kind.startsWith("cls-")) { kind = kind.slice(4); cls = `&class=${S.cls || 255}`; }
+  if (kind) { const o = await loadImg(`/api/sessions/${S.id}/overlay/${a}/${idx}?kind=${kind}${cls}&t=${Date.now()}`); if (o) g.drawImage(o, 0, 0); }
   drawStrokes(a, g);
 }
 function drawStrokes(a, g) {
@@ -94,7 +100,6 @@ async function render() {
   if (!S.id || S.renderPending) return; S.renderPending = true;
   const q = new URLSearchParams({ az: $("az").value, el: $("el").value, size: 400 });
   if ($("mode").value) q.set("mode", $("mode").value);
-  if ($("tf").value) q.set("tf", $("tf").value);
   const i = await loadImg(`/api/sessions/${S.id}/render?${q}&t=${Date.now()}`);
   if (i) $("render").src = i.src;
   S.renderPending = false;
@@ -107,12 +112,91 @@ async function fractions() {
     return `<tr><td>${name}</td><td>${(100 * c.fraction).toFixed(2)}%</td></tr>`;
   }).join("");
 }
-function drawHistogram() {
-  const c = $("hist"), g = c.getContext("2d"), h = S.info.histogram || [];
-  c.width = 256; g.fillStyle = "#000"; g.fillRect(0, 0, 256, 120);
-  const m = Math.max(1, ...h.map((v) => Math.log(1 + v)));
-  g.fillStyle = "#7af"; h.forEach((v, i) => { const y = 120 * Math.log(1 + v) / m; g.fillRect(i * 256 / h.length, 120 - y, Math.max(1, 256 / h.length), y); });
+// Transfer-function editor: opacity control points of the intensity map or of one class's
+// maps (over its probability, or over intensity for the probability-intensity mode), drawn over
+// the volume's histogram. Every edit goes to the session and re-renders the 3-D view.
+const TF = { target: "intensity", drag: null };
+async function loadTf() { S.tf = await api("GET", `/api/sessions/${S.id}/tf`); fillTfTargets(); drawTf(); }
+function fillTfTargets() {
+  const opts = [["intensity", "intensity (all)"]];
+  for (const c of S.info.classes) { opts.push([`p:${c.id}`, `${c.name}: opacity over probability`]); opts.push([`i:${c.id}`, `${c.name}: opacity over intensity`]); }
+  $("tftarget").innerHTML = opts.map(([v, t]) => `<option value="${v}">${t}</option>`).join("");
+  if (!opts.some((o) => o[0] === TF.target)) TF.target = "intensity";
+  $("tftarget").value = TF.target;
 }
+// Intensity axis: the histogram spans the raw [min, max]; maps are in raw or normalised units.
+const ispace = () => S.tf.space === "normalised";
+const rawToMap = (v) => { const [lo, hi] = S.info.percentiles; return ispace() ? (v - lo) / Math.max(1e-12, hi - lo) : v; };
+const mapToRaw = (x) => { const [lo, hi] = S.info.percentiles; return ispace() ? lo + x * (hi - lo) : x; };
+// The edited map: { pts (opacity points), prob (x is a probability), color }; `create` adds
+// a class entry with the renderer's defaults when the TF has none yet.
+function tfMap(create) {
+  const t = TF.target, [lo, hi] = S.info.range;
+  const defInt = () => ({ opacity: S.tf.intensity ? JSON.parse(JSON.stringify(S.tf.intensity.opacity)) : [[rawToMap(lo), 0.35]] });
+  if (t === "intensity") {
+    if (!S.tf.intensity && create) S.tf.intensity = { opacity: [[rawToMap(lo), 0], [rawToMap(hi), 0.5]] };
+    const m = S.tf.intensity || { opacity: [[rawToMap(lo), 0], [rawToMap(hi), 0.5]] };
+    return { pts: m.opacity, prob: false, color: "#ddd" };
+  }
+  const id = +t.slice(2), prob = t[0] === "p", key = prob ? "probability" : "intensity";
+  const k = S.info.classes.find((c) => c.id === id), color = k ? hex(k.color) : "#fff";
+  let c = (S.tf.classes || []).find((e) => e.id === id);
+  if (!c && create) { S.tf.classes = S.tf.classes || []; c = { id }; S.tf.classes.push(c); }
+  if (c && !c[key] && create) c[key] = prob ? { opacity: [[0, 0], [0.2, 0], [1, 0.6]] } : defInt();
+  const m = c && c[key] ? c[key] : prob ? { opacity: [[0, 0], [0.2, 0], [1, 0.6]] } : defInt();
+  return { pts: m.opacity, prob, color };
+}
+const TW = 512, TH = 200, PAD = 8;
+function tfX(x, prob) { const [lo, hi] = S.info.range; const u = prob ? x : (mapToRaw(x) - lo) / Math.max(1e-12, hi - lo); return PAD + u * (TW - 2 * PAD); }
+function tfFromX(px, prob) { const [lo, hi] = S.info.range; const u = Math.max(0, Math.min(1, (px - PAD) / (TW - 2 * PAD))); return prob ? u : rawToMap(lo + u * (hi - lo)); }
+const tfY = (a) => TH - PAD - a * (TH - 2 * PAD), tfFromY = (py) => Math.max(0, Math.min(1, (TH - PAD - py) / (TH - 2 * PAD)));
+function drawTf() {
+  if (!S.tf) return;
+  const c = $("tfc"), g = c.getContext("2d"), m = tfMap(false);
+  g.fillStyle = "#000"; g.fillRect(0, 0, TW, TH);
+  if (!m.prob) {
+    const h = S.info.histogram || [], mx = Math.max(1, ...h.map((v) => Math.log(1 + v)));
+    g.fillStyle = "#345"; h.forEach((v, i) => { const y = (TH - 2 * PAD) * Math.log(1 + v) / mx; g.fillRect(PAD + i * (TW - 2 * PAD) / h.length, TH - PAD - y, Math.max(1, (TW - 2 * PAD) / h.length), y); });
+    if (S.tf.intensity && S.tf.intensity.color && TF.target === "intensity") {
+      for (let px = PAD; px < TW - PAD; px++) { const x = tfFromX(px, false), cs = S.tf.intensity.color; let k = cs.findIndex((p) => p[0] >= x); if (k < 0) k = cs.length - 1; const p = cs[Math.max(0, k)]; g.fillStyle = `rgb(${p[1] * 255},${p[2] * 255},${p[3] * 255})`; g.fillRect(px, TH - PAD + 2, 1, PAD - 2); }
+    }
+  } else { g.fillStyle = "#888"; g.font = "11px sans-serif"; g.fillText("probability 0", PAD, TH - 2); g.fillText("1", TW - PAD - 6, TH - 2); }
+  g.strokeStyle = m.color; g.lineWidth = 2; g.beginPath();
+  m.pts.forEach((p, i) => { const x = tfX(p[0], m.prob), y = tfY(p[1]); i ? g.lineTo(x, y) : g.moveTo(x, y); });
+  g.stroke();
+  g.fillStyle = m.color; for (const p of m.pts) { g.beginPath(); g.arc(tfX(p[0], m.prob), tfY(p[1]), 5, 0, 7); g.fill(); }
+}
+async function pushTf() {
+  try { S.info = await api("PUT", `/api/sessions/${S.id}/tf`, S.tf); render(); }
+  catch (e) { status("error: " + e.message); await loadTf(); }
+}
+{
+  const c = $("tfc");
+  const pos = (e) => { const r = c.getBoundingClientRect(); return [(e.clientX - r.left) * TW / r.width, (e.clientY - r.top) * TH / r.height]; };
+  const near = (m, px, py) => m.pts.findIndex((p) => Math.hypot(tfX(p[0], m.prob) - px, tfY(p[1]) - py) < 8);
+  c.oncontextmenu = (e) => e.preventDefault();
+  c.onmousedown = (e) => {
+    if (!S.tf) return;
+    const [px, py] = pos(e), m = tfMap(true); let k = near(m, px, py);
+    if (e.button === 2) { if (k >= 0 && m.pts.length > 1) { m.pts.splice(k, 1); drawTf(); pushTf(); } return; }
+    if (k < 0) { const p = [+tfFromX(px, m.prob).toPrecision(6), +tfFromY(py).toFixed(3)]; m.pts.push(p); m.pts.sort((a, b) => a[0] - b[0]); k = m.pts.indexOf(p); }
+    TF.drag = { m, k }; drawTf();
+  };
+  c.onmousemove = (e) => {
+    if (!TF.drag) return;
+    const [px, py] = pos(e), { m, k } = TF.drag, pts = m.pts;
+    let x = +tfFromX(px, m.prob).toPrecision(6);
+    if (k > 0) x = Math.max(x, pts[k - 1][0]); if (k < pts.length - 1) x = Math.min(x, pts[k + 1][0]);
+    pts[k] = [x, +tfFromY(py).toFixed(3)]; drawTf();
+  };
+  c.onmouseup = c.onmouseleave = () => { if (TF.drag) { TF.drag = null; pushTf(); } };
+}
+$("tftarget").onchange = (e) => { TF.target = e.target.value; drawTf(); };
+$("tf").onchange = async (e) => {
+  if (!e.target.value || !S.id) return;
+  S.tf = await api("GET", `/api/presets/${e.target.value}`); e.target.value = ""; drawTf(); pushTf();
+};
+$("tfreset").onclick = async () => { if (!S.id) return; S.info = await api("PUT", `/api/sessions/${S.id}/tf`, null); await loadTf(); render(); };
 
 // Drawing strokes.
 let drawing = null;
@@ -136,12 +220,19 @@ async function sendStrokes() {
 $("undo").onclick = () => { if (S.strokes.length) { S.redo.push(S.strokes.pop()); sendStrokes(); } };
 $("redo").onclick = () => { if (S.redo.length) { S.strokes.push(S.redo.pop()); sendStrokes(); } };
 for (const id of ["win", "lev", "ovl"]) $(id).oninput = () => { for (const a of ["x", "y", "z"]) drawSlice(a); };
-for (const id of ["az", "el", "mode", "tf"]) $(id).oninput = render;
+for (const id of ["az", "el", "mode"]) $(id).oninput = render;
 $("open").onclick = open;
-$("train").onclick = async () => { try { await api("POST", `/api/sessions/${S.id}/train`, { action: "start", epochs: 1 }); status("training ..."); } catch (e) { status("error: " + e.message); } };
+const train = async (action) => { try { await api("POST", `/api/sessions/${S.id}/train`, { action, epochs: +$("epochs").value || 1 }); status("training ..."); } catch (e) { status("error: " + e.message); } };
+$("train").onclick = () => train("start");
+$("resume").onclick = () => train("resume");
+$("exportz").onclick = async () => {
+  if (!S.id) return;
+  try { const r = await api("POST", `/api/sessions/${S.id}/export/zarr`, { name: "neuvolex" }); status(`wrote ${r.labels} and ${r.probabilities} into ${r.store}`); }
+  catch (e) { status("error: " + e.message); }
+};
 $("stop").onclick = async () => { try { await api("POST", `/api/sessions/${S.id}/train`, { action: "stop" }); } catch (e) { status("error: " + e.message); } };
 $("save").onclick = () => {
-  const blob = new Blob([JSON.stringify({ volume: S.info.volume, classes: S.info.classes, strokes: S.strokes, view: { az: $("az").value, el: $("el").value, mode: $("mode").value, tf: $("tf").value } }, null, 1)], { type: "application/json" });
+  const blob = new Blob([JSON.stringify({ volume: S.info.volume, classes: S.info.classes, strokes: S.strokes, tf: S.tf, view: { az: $("az").value, el: $("el").value, mode: $("mode").value } }, null, 1)], { type: "application/json" });
   const a = document.createElement("a"); a.href = URL.createObjectURL(blob); a.download = "neuvolex-session.json"; a.click();
 };
 $("load").onchange = async (e) => {
@@ -150,7 +241,8 @@ $("load").onchange = async (e) => {
   if (!S.id || S.info.volume !== j.volume) { $("volume").value = j.volume; await open(); }
   S.info.classes = j.classes; await pushClasses();
   S.strokes = j.strokes || []; S.redo = [];
-  if (j.view) { $("az").value = j.view.az; $("el").value = j.view.el; $("mode").value = j.view.mode || ""; $("tf").value = j.view.tf || ""; }
+  if (j.tf) { S.tf = j.tf; fillTfTargets(); drawTf(); await pushTf(); }
+  if (j.view) { $("az").value = j.view.az; $("el").value = j.view.el; $("mode").value = j.view.mode || ""; }
   sendStrokes();
 };
 
@@ -172,19 +264,28 @@ $("recommend").onclick = async () => {
   } catch (e) { $("vpinfo").textContent = "error: " + e.message; }
 };
 
-// Live updates: classification streams in brick by brick.
+// Live updates over one event stream: ingest progress, classification brick by brick, training
+// (with reconstruction previews and model snapshots), viewpoint aggregation, and failures.
 let tick = null;
 function subscribe() {
-  if (S.events) S.events.close();
-  S.events = new EventSource(`/api/events?session=${S.id}`);
-  S.events.addEventListener("classified", (e) => {
-    const d = JSON.parse(e.data).data; status(`classified ${d.done}/${d.total} bricks`);
+  const ev = new EventSource("/api/events");
+  const on = (kind, f) => ev.addEventListener(kind, (e) => { const m = JSON.parse(e.data); if (m.session && m.session !== S.id) return; f(m.data); });
+  on("ingest", (d) => status(d.stage === "done" ? `ingested ${d.volume}` : `ingesting ${d.volume}: ${d.stage} ${d.done}/${d.total}`));
+  on("classified", (d) => {
+    status(`classified ${d.done}/${d.total} bricks`);
     if (!tick) tick = setTimeout(() => { tick = null; refreshAll(); }, 400);
   });
-  S.events.addEventListener("classification", (e) => { const d = JSON.parse(e.data).data; status(d.error ? "error: " + d.error : `classification ${d.status.state}${d.status.message ? ": " + d.status.message : ""} (${d.status.features})`); refreshAll(); });
-  S.events.addEventListener("training", (e) => { const d = JSON.parse(e.data).data; status(d.error ? "training error: " + d.error : `training ${d.state} ${d.epoch ? "epoch " + d.epoch.toFixed(2) : ""} ${d.psnr ? "PSNR " + d.psnr.toFixed(1) + " dB" : ""}`); });
-  S.events.addEventListener("actor_failed", (e) => { status("a worker failed and was restarted: " + JSON.parse(e.data).data.error); });
+  on("classification", (d) => { status(d.error ? "error: " + d.error : `classification ${d.status.state}${d.status.message ? ": " + d.status.message : ""} (${d.status.features})`); refreshAll(); });
+  on("training", (d) => {
+    const t = d.error ? "training " + d.state + ": " + d.error : `training ${d.state}${d.epoch ? " epoch " + d.epoch.toFixed(2) : ""}${d.psnr ? " PSNR " + d.psnr.toFixed(1) + " dB" : ""}${d.model_version ? " (model " + d.model_version + ")" : ""}`;
+    status(t); $("trinfo").textContent = t;
+  });
+  on("preview", (d) => { $("preview").src = `/api/sessions/${S.id}/preview.png?t=${Date.now()}`; $("preview").title = `reconstruction (left) beside the input (right), PSNR ${d.psnr.toFixed(1)} dB`; });
+  on("viewpoints_progress", (d) => { $("vpinfo").textContent = `aggregating ${d.bricks}/${d.total} bricks; best so far azimuth ${d.best.azimuth.toFixed(0)}, elevation ${d.best.elevation.toFixed(0)}`; });
+  on("actor_failed", (d) => { status("a worker failed and was restarted: " + d.error); });
+  S.events = ev;
 }
+subscribe();
 
 // Keyboard shortcuts (Slicer / napari style).
 function toggleHelp() { const h = $("help"); h.style.display = h.style.display === "block" ? "none" : "block"; }

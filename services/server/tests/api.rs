@@ -151,6 +151,8 @@ async fn scribble_classify_render_export() {
         format!("/api/sessions/{id}/render?size=64&az=10&el=5&t=123"),
         format!("/api/sessions/{id}/render?size=64&mode=prob-intensity&tf=grey"),
         format!("/api/sessions/{id}/overlay/x/20?kind=labels&t=99"),
+        format!("/api/sessions/{id}/overlay/z/21?kind=uncertainty&class=1"),
+        format!("/api/sessions/{id}/overlay/z/21?kind=probability&class=1"),
     ] {
         let r = test::call_service(&app, test::TestRequest::get().uri(&uri).to_request()).await;
         assert_eq!(r.status(), 200, "{uri}");
