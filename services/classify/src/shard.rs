@@ -146,6 +146,16 @@ pub fn training_set(
     s: &Scribbles,
     background: u32,
 ) -> Result<TrainingSet, ClassifyError> {
+    training_set_with(fx, s, background, &|b| fx.brick(b))
+}
+
+/// [`training_set`] with the features of a brick from `fetch` (e.g. a cache in front of `fx`).
+pub fn training_set_with(
+    fx: &BrickFeatures<'_>,
+    s: &Scribbles,
+    background: u32,
+    fetch: &(dyn Fn(&Brick) -> Result<Vec<f32>, ClassifyError> + Sync),
+) -> Result<TrainingSet, ClassifyError> {
     let store = fx.store();
     let dims = store.info().dims;
     if s.dims != dims {
@@ -196,7 +206,7 @@ pub fn training_set(
         .par_iter()
         .map(|(bi, vox)| {
             let b = store.brick(*bi)?;
-            let f = fx.brick(&b)?;
+            let f = fetch(&b)?;
             let mut x = Vec::with_capacity(vox.len() * d);
             let mut y = Vec::with_capacity(vox.len());
             for &(i, c) in vox {

@@ -3,10 +3,10 @@
 //! without recomputing the features. Entries are keyed by feature set, model version and
 //! brick, so a newer model snapshot never serves stale features.
 
-use crate::error::ApiResult;
 use neuvolex_bricks::lru::Lru;
 use neuvolex_bricks::Brick;
 use neuvolex_classify::features::{f16_saturating, BrickFeatures};
+use neuvolex_classify::ClassifyError;
 use std::sync::Arc;
 
 type Key = (String, u64, [usize; 3]);
@@ -31,14 +31,14 @@ impl FeatureCache {
         version: u64,
         fx: &BrickFeatures,
         b: &Brick,
-    ) -> ApiResult<Vec<f32>> {
+    ) -> Result<Vec<f32>, ClassifyError> {
         let v = self
             .lru
             .get_or_try_insert(&(set.to_string(), version, b.index), || {
                 let f = fx.brick(b)?;
                 let h: Vec<half::f16> = f.iter().map(|&v| f16_saturating(v)).collect();
                 let cost = h.len() * 2;
-                Ok::<_, crate::ApiError>((Arc::new(h), cost))
+                Ok::<_, ClassifyError>((Arc::new(h), cost))
             })?;
         Ok(v.iter().map(|h| h.to_f32()).collect())
     }

@@ -309,9 +309,11 @@ async fn overlay(
         };
         // The channel of the requested class (404 once classified without it).
         let channel = match want {
-            Some(c) if !ids.is_empty() && kind != "labels" => Some(ids.iter().position(|&i| i == c).ok_or_else(
-                || ApiError::NotFound(format!("class {c} is not classified (have {ids:?})")),
-            )?),
+            Some(c) if !ids.is_empty() && kind != "labels" => {
+                Some(ids.iter().position(|&i| i == c).ok_or_else(|| {
+                    ApiError::NotFound(format!("class {c} is not classified (have {ids:?})"))
+                })?)
+            }
             _ => None,
         };
         let mut rgba = vec![0u8; w * h * 4];

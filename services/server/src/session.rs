@@ -6,7 +6,7 @@ use neuvolex_bricks::synth::{palette, ClassInfo};
 use neuvolex_bricks::{BrickStore, Normaliser};
 use neuvolex_classify::features::{BrickFeatures, FeatureSet};
 use neuvolex_classify::scribble::{rasterise, Scribbles, Stroke};
-use neuvolex_classify::shard::{fit, predict_brick, training_set};
+use neuvolex_classify::shard::{fit, predict_brick, training_set_with};
 use neuvolex_render::source::{assemble, ChannelClass, RenderBrick};
 use neuvolex_render::{BrickSource, StoreSource, VolumeGeom};
 use rayon::prelude::*;
@@ -268,7 +268,10 @@ impl Session {
             s.features = set.to_string();
             s.message.clear();
         });
-        let ts = training_set(&fx, &scr, BACKGROUND)?;
+        let name = set.to_string();
+        let ts = training_set_with(&fx, &scr, BACKGROUND, &|b| {
+            self.features.get(&name, version, &fx, b)
+        })?;
         let forest = fit(
             &ts,
             &neuvolex_classify::ForestConfig {
@@ -311,7 +314,7 @@ impl Session {
                     return Ok(());
                 }
                 let u8s: Vec<u8> = if self.store.is_occupied(b, None) {
-                    let f = self.features.get(&set.to_string(), version, &fx, b)?;
+                    let f = self.features.get(&name, version, &fx, b)?;
                     let (p, _) = predict_brick(&forest, &f, &out_labels, 0.5)?;
                     p.iter()
                         .map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8)
