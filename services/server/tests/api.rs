@@ -826,3 +826,37 @@ async fn training_streams_previews_and_refreshes_the_classification() {
         .to_request();
     assert_eq!(test::call_service(&app, req).await.status(), 409);
 }
+
+#[actix_web::test]
+async fn full_mailboxes_push_back_instead_of_queueing_without_bound() {
+    let (_d, cfg) = data();
+    let st = AppState::new(cfg);
+    let s = st.open("ph.zarr").await.unwrap();
+    let params = neuvolex_render::RenderParams {
+        width: 16,
+        height: 16,
+        ..Default::default()
+    };
+    let tf = neuvolex_render::TfFile::preset("grey").unwrap();
+    // 200 renders offered at once (all sent before the actor runs): the mailbox takes
+    // MAILBOX of them, the rest are told to retry.
+    use neuvolex_server::actors::MAILBOX;
+    let n = 200;
+    let jobs = (0..n).map(|_| st.actors.render(s.clone(), params, tf.clone()));
+    let results = futures_util::future::join_all(jobs).await;
+    let busy = results
+        .iter()
+        .filter(|r| matches!(r, Err(neuvolex_server::ApiError::Busy(_))))
+        .count();
+    let ok = results.iter().filter(|r| r.is_ok()).count();
+    assert_eq!(ok + busy, n, "every request is answered");
+    assert!((MAILBOX..=MAILBOX + 1).contains(&ok), "{ok} rendered");
+    assert_eq!(busy, n - ok);
+    // The busy error is a 503 with a message.
+    let e = results.into_iter().find_map(|r| r.err()).unwrap();
+    assert_eq!(
+        actix_web::ResponseError::status_code(&e),
+        actix_web::http::StatusCode::SERVICE_UNAVAILABLE
+    );
+    assert!(e.to_string().contains("busy"), "{e}");
+}
