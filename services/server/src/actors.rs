@@ -489,7 +489,12 @@ async fn trainer(rx: Inbox<TrainCommand>, hub: Hub, classify: mpsc::Sender<Mail<
 
 /// Re-classifies `s` with its newest model when it has strokes and the classifier is not
 /// busy with it (a snapshot arriving mid-run waits for the next one, so a run always ends).
-fn reclassify(s: &Arc<Session>, classify: &mpsc::Sender<Mail<ClassifyJob>>, force: bool) {
+/// Returns the generation queued, if any.
+fn reclassify(
+    s: &Arc<Session>,
+    classify: &mpsc::Sender<Mail<ClassifyJob>>,
+    force: bool,
+) -> Option<u64> {
     let has_strokes = !s
         .strokes
         .read()
@@ -502,13 +507,16 @@ fn reclassify(s: &Arc<Session>, classify: &mpsc::Sender<Mail<ClassifyJob>>, forc
         .state
         .clone();
     if !has_strokes || (!force && (state == "training" || state == "classifying")) {
-        return;
+        return None;
     }
     let generation = s.bump_generation();
-    let _ = classify.try_send(Mail::Work(ClassifyJob {
-        session: s.clone(),
-        generation,
-    }));
+    classify
+        .try_send(Mail::Work(ClassifyJob {
+            session: s.clone(),
+            generation,
+        }))
+        .ok()
+        .map(|()| generation)
 }
 
 /// Steps between model snapshots while training in the service (each one refreshes the
@@ -577,12 +585,12 @@ fn train(
         TrainEvent::Checkpoint { step, path } => match checkpoint::load(&path) {
             Ok(l) => {
                 let version = s.set_model(l.model);
+                let generation = reclassify(s, classify, false);
                 hub.publish(
                     Some(&id),
                     "training",
-                    serde_json::json!({"state": "snapshot", "step": step, "model_version": version}),
+                    serde_json::json!({"state": "snapshot", "step": step, "model_version": version, "generation": generation}),
                 );
-                reclassify(s, classify, false);
             }
             Err(e) => tracing::warn!("snapshot {}: {e}", path.display()),
         },
@@ -615,12 +623,12 @@ fn train(
         )
         .map_err(|e| ApiError::Internal(e.to_string()))?;
         let version = s.set_model(t.model);
+        let generation = reclassify(s, classify, true);
         hub.publish(
             Some(&id),
             "training",
-            serde_json::json!({"state": "model_saved", "psnr": t.psnr, "model_version": version}),
+            serde_json::json!({"state": "model_saved", "psnr": t.psnr, "model_version": version, "generation": generation}),
         );
-        reclassify(s, classify, true);
     }
     Ok(())
 }
