@@ -584,48 +584,12 @@ fn complete_probs(s: &Session) -> ApiResult<std::sync::RwLockReadGuard<'_, crate
     Ok(p)
 }
 
-/// The arg-max label of every voxel (0 where the background wins or no class reaches 0.5),
-/// as u8 voxels, x fastest.
-fn label_voxels(s: &Session) -> ApiResult<Vec<u8>> {
+/// One u8 per voxel of the volume (x fastest), computed by `f` from each voxel's class
+/// probabilities once every brick is classified.
+fn per_voxel(s: &Session, f: impl Fn(&crate::session::Probs, &[u8]) -> u8) -> ApiResult<Vec<u8>> {
     let d = s.store.info().dims;
     let p = complete_probs(s)?;
     let c = p.ids.len();
-    let mut lab = vec![0u8; d.iter().product()];
-    for (idx, v) in &p.bricks {
-        let b = s.store.brick(*idx)?;
-        for z in 0..b.size[2] {
-            for y in 0..b.size[1] {
-                let row = ((b.origin[2] + z) * d[1] + b.origin[1] + y) * d[0] + b.origin[0];
-                for x in 0..b.size[0] {
-                    let i = (z * b.size[1] + y) * b.size[0] + x;
-                    let px = &v[i * c..(i + 1) * c];
-                    let (k, &m) = px
-                        .iter()
-                        .enumerate()
-                        .max_by_key(|(_, &v)| v)
-                        .unwrap_or((0, &0));
-                    let id = p.ids.get(k).copied().unwrap_or(0);
-                    if m >= 128 && id != BACKGROUND {
-                        lab[row + x] = id as u8;
-                    }
-                }
-            }
-        }
-    }
-    Ok(lab)
-}
-
-/// One class's probability (0..255 for 0..1) of every voxel, x fastest.
-fn class_voxels(s: &Session, class: u32) -> ApiResult<Vec<u8>> {
-    let d = s.store.info().dims;
-    let p = complete_probs(s)?;
-    let c = p.ids.len();
-    let Some(k) = p.ids.iter().position(|&i| i == class) else {
-        return Err(ApiError::NotFound(format!(
-            "class {class} is not classified (have {:?})",
-            p.ids
-        )));
-    };
     let mut out = vec![0u8; d.iter().product()];
     for (idx, v) in &p.bricks {
         let b = s.store.brick(*idx)?;
@@ -634,12 +598,38 @@ fn class_voxels(s: &Session, class: u32) -> ApiResult<Vec<u8>> {
                 let row = ((b.origin[2] + z) * d[1] + b.origin[1] + y) * d[0] + b.origin[0];
                 for x in 0..b.size[0] {
                     let i = (z * b.size[1] + y) * b.size[0] + x;
-                    out[row + x] = v[i * c + k];
+                    out[row + x] = f(&p, &v[i * c..(i + 1) * c]);
                 }
             }
         }
     }
     Ok(out)
+}
+
+/// The arg-max label of every voxel (0 where the background wins or no class reaches 0.5).
+fn label_voxels(s: &Session) -> ApiResult<Vec<u8>> {
+    per_voxel(s, |p, px| {
+        let (k, &m) = px
+            .iter()
+            .enumerate()
+            .max_by_key(|(_, &v)| v)
+            .unwrap_or((0, &0));
+        match p.ids.get(k) {
+            Some(&id) if m >= 128 && id != BACKGROUND => id as u8,
+            _ => 0,
+        }
+    })
+}
+
+/// One class's probability (0..255 for 0..1) of every voxel.
+fn class_voxels(s: &Session, class: u32) -> ApiResult<Vec<u8>> {
+    let ids = complete_probs(s)?.ids.clone();
+    let Some(k) = ids.iter().position(|&i| i == class) else {
+        return Err(ApiError::NotFound(format!(
+            "class {class} is not classified (have {ids:?})"
+        )));
+    };
+    per_voxel(s, |_, px| px[k])
 }
 
 /// A u8 volume on the session's grid.
