@@ -1208,15 +1208,7 @@ impl BrickStore {
         classes: &[crate::synth::ClassInfo],
         progress: &mut dyn FnMut(Progress),
     ) -> Result<()> {
-        if name.is_empty()
-            || !name
-                .chars()
-                .all(|c| c.is_ascii_alphanumeric() || c == '_' || c == '-')
-        {
-            return Err(BrickError::InvalidArgument(format!(
-                "label name '{name}' must be alphanumeric, '_' or '-'"
-            )));
-        }
+        check_name("label", name)?;
         let lpath = source.path().to_path_buf();
         self.meta().check_same_grid(source.meta(), &lpath)?;
         let sdt = source.meta().dtype;
@@ -1439,15 +1431,7 @@ impl BrickStore {
         channels: usize,
         encoding: VectorEncoding,
     ) -> Result<VectorArray> {
-        if name.is_empty()
-            || !name
-                .chars()
-                .all(|c| c.is_ascii_alphanumeric() || c == '_' || c == '-')
-        {
-            return Err(BrickError::InvalidArgument(format!(
-                "vector name '{name}' must be alphanumeric, '_' or '-'"
-            )));
-        }
+        check_name("vector", name)?;
         if channels == 0 || channels > 4096 {
             return Err(BrickError::InvalidArgument(format!(
                 "{channels} channels: must be 1..=4096"
@@ -1659,4 +1643,19 @@ impl VectorArray {
             .store_metadata()
             .map_err(|e| BrickError::zarr(&self.root, e))
     }
+}
+
+/// Checks the name of a label image or vector array (`what`): non-empty, letters, digits, `_`
+/// or `-` only, so it is one safe path component.
+pub fn check_name(what: &str, name: &str) -> Result<()> {
+    if name.is_empty()
+        || !name
+            .chars()
+            .all(|c| c.is_ascii_alphanumeric() || c == '_' || c == '-')
+    {
+        return Err(BrickError::InvalidArgument(format!(
+            "{what} name '{name}' must be alphanumeric, '_' or '-'"
+        )));
+    }
+    Ok(())
 }

@@ -227,21 +227,9 @@ impl Ctx<'_> {
         Ok(())
     }
 
-    /// A class's map: without its own colour it gets `color`, or an empty colour list that
-    /// compiling fills with the class's colour.
-    fn class_tf1d(&self, v: &Value, what: &str, color: Option<[f32; 3]>) -> Result<Tf1d> {
-        let mut t = self.tf1d(v, what, color.unwrap_or([1.0; 3]))?;
-        let has_color = v
-            .as_object()
-            .is_some_and(|o| o.contains_key("color") || o.contains_key("RGBPoints"));
-        if color.is_none() && !has_color {
-            t.color.clear();
-        }
-        Ok(t)
-    }
-
-    /// Parses a map object; `None` when it has neither colour nor opacity.
-    fn tf1d(&self, v: &Value, what: &str, default_color: [f32; 3]) -> Result<Tf1d> {
+    /// Parses a map object. Without colour points it takes `default_color`, or (`None`, a
+    /// class map awaiting its class's colour) an empty colour list that compiling fills.
+    fn tf1d(&self, v: &Value, what: &str, default_color: Option<[f32; 3]>) -> Result<Tf1d> {
         let Some(o) = v.as_object() else {
             return self.err(format!("{what} must be an object"));
         };
@@ -281,7 +269,7 @@ impl Ctx<'_> {
                 self.sorted(&pts, &format!("{what}.color"))?;
                 pts
             }
-            None => vec![(0.0, default_color)],
+            None => default_color.map(|c| vec![(0.0, c)]).unwrap_or_default(),
         };
         let op_rows = match (o.get("opacity"), o.get("Points")) {
             (Some(p), _) => self.rows(p, &format!("{what}.opacity"), 2, false)?,
@@ -353,7 +341,7 @@ impl TfFile {
                 source: source.to_path_buf(),
                 name,
                 space: Space::Raw,
-                intensity: Some(cx.tf1d(first, "[0]", [1.0; 3])?),
+                intensity: Some(cx.tf1d(first, "[0]", Some([1.0; 3]))?),
                 classes: Vec::new(),
             });
         }
@@ -375,7 +363,7 @@ impl TfFile {
             },
         };
         let intensity = match o.get("intensity") {
-            Some(t) => Some(cx.tf1d(t, "intensity", [1.0; 3])?),
+            Some(t) => Some(cx.tf1d(t, "intensity", Some([1.0; 3]))?),
             None => None,
         };
         let mut classes: Vec<ClassTf> = Vec::new();
@@ -420,7 +408,7 @@ impl TfFile {
                     Some(t) => cx.unit(t, &format!("{w}.tau"))?,
                 };
                 let probability = match co.get("probability") {
-                    Some(t) => Some(cx.class_tf1d(t, &format!("{w}.probability"), color)?),
+                    Some(t) => Some(cx.tf1d(t, &format!("{w}.probability"), color)?),
                     None => None,
                 };
                 if let Some(p) = &probability {
@@ -432,7 +420,7 @@ impl TfFile {
                     }
                 }
                 let intensity = match co.get("intensity") {
-                    Some(t) => Some(cx.class_tf1d(t, &format!("{w}.intensity"), color)?),
+                    Some(t) => Some(cx.tf1d(t, &format!("{w}.intensity"), color)?),
                     None => None,
                 };
                 classes.push(ClassTf {

@@ -720,8 +720,7 @@ fn recommend(s: &Arc<Session>, k: usize, views: usize, hub: &Hub) -> ApiResult<s
         .parse()
         .map_err(ApiError::Internal)?;
     let version = model.as_ref().map_or(0, |m| m.0);
-    let mut fx = BrickFeatures::new(&s.store, set.clone(), model.map(|m| m.1), false)?;
-    fx.set_quantise(neuvolex_classify::features::Quantise::F16);
+    let fx = BrickFeatures::new(&s.store, set.clone(), model.map(|m| m.1), false)?;
     let name = set.to_string();
     let bricks = s.store.occupied_bricks(None);
     let err = |e: String| ViewpointError::Input(e);

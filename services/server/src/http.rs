@@ -145,6 +145,7 @@ async fn blocking<T: Send + 'static>(
 
 fn info(s: &Session) -> serde_json::Value {
     let i = s.store.info();
+    let model = s.current_model();
     serde_json::json!({
         "id": s.id, "volume": s.name, "dims": i.dims, "spacing": i.spacing,
         "range": [i.stats.min, i.stats.max], "percentiles": [i.stats.p0_5, i.stats.p99_5],
@@ -154,8 +155,8 @@ fn info(s: &Session) -> serde_json::Value {
         "strokes": s.strokes.read().unwrap_or_else(|p| p.into_inner()).len(),
         "generation": s.generation.load(Ordering::SeqCst),
         "status": *s.status.read().unwrap_or_else(|p| p.into_inner()),
-        "trained": s.current_model().is_some(),
-        "model_version": s.current_model().map_or(0, |m| m.0),
+        "trained": model.is_some(),
+        "model_version": model.map_or(0, |m| m.0),
         "tf": s.tf.read().unwrap_or_else(|p| p.into_inner()).as_ref().map(|t| t.0.clone()),
     })
 }
@@ -727,15 +728,11 @@ async fn export_zarr(
 ) -> ApiResult<HttpResponse> {
     let s = st.session(&id)?;
     let name = req.into_inner().name.unwrap_or_else(|| "neuvolex".into());
-    if name.is_empty()
-        || name.len() > 64
-        || !name
-            .chars()
-            .all(|c| c.is_ascii_alphanumeric() || c == '_' || c == '-')
-    {
+    // Checked before any work, so a bad name writes nothing.
+    neuvolex_bricks::store::check_name("export", &name)?;
+    if name.len() > 64 {
         return Err(ApiError::BadRequest(format!(
-            "name '{}' must be 1-64 characters of letters, digits, '_' or '-'",
-            name.escape_debug()
+            "export name '{name}' is longer than 64 characters"
         )));
     }
     let out = blocking(move || -> ApiResult<serde_json::Value> {

@@ -258,10 +258,9 @@ impl Session {
         }
         let (set, model) = self.feature_source()?;
         let version = model.as_ref().map_or(0, |m| m.0);
-        let mut fx = BrickFeatures::new(&self.store, set.clone(), model.map(|m| m.1), false)?;
-        // Features round through f16 (shown to cost no F1) so the cache holds half as much
-        // and training and prediction see the same values.
-        fx.set_quantise(neuvolex_classify::features::Quantise::F16);
+        // Training and prediction both read through the feature cache, which holds f16
+        // (shown to cost no F1), so both see the same values.
+        let fx = BrickFeatures::new(&self.store, set.clone(), model.map(|m| m.1), false)?;
         self.set_status(|s| {
             s.generation = generation;
             s.state = "training".into();

@@ -2,8 +2,8 @@
 //! rendering, export, hostile and malformed requests, and 20 concurrent clients.
 
 use actix_web::{test, App};
-use neuvolex_bricks::synth::{phantom_classes, Phantom, PhantomChannel, PhantomParams};
-use neuvolex_bricks::{ingest, BrickStore, IngestOptions};
+use neuvolex_bricks::synth::PhantomParams;
+use neuvolex_bricks::{BrickStore, IngestOptions};
 use neuvolex_server::{configure, AppState, ServerConfig};
 use serde_json::{json, Value};
 use std::time::{Duration, Instant};
@@ -15,23 +15,13 @@ fn data() -> (tempfile::TempDir, ServerConfig) {
     let work = d.path().join("work");
     std::fs::create_dir_all(&root).unwrap();
     std::fs::create_dir_all(&work).unwrap();
-    let params = PhantomParams::with_size(48, 0);
-    let p = root.join("ph.zarr");
-    ingest(
-        &mut Phantom::new(params, PhantomChannel::Image),
-        &p,
+    neuvolex_bricks::synth::phantom_store(
+        &root.join("ph.zarr"),
+        PhantomParams::with_size(48, 0),
         &IngestOptions {
             brick: 16,
             ..Default::default()
         },
-        &mut |_| {},
-    )
-    .unwrap();
-    let mut s = BrickStore::open(&p).unwrap();
-    s.add_labels(
-        "ground_truth",
-        &mut Phantom::new(params, PhantomChannel::Labels),
-        &phantom_classes(),
         &mut |_| {},
     )
     .unwrap();
