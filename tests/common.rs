@@ -99,3 +99,98 @@ pub fn store_of(
     let s = neuvolex_bricks::BrickStore::open(&p).expect("open store");
     (d, s)
 }
+
+/// A real S3-protocol server (s3s-fs, installed by `deploy/s3.sh install`) on a free loopback
+/// port over its own temporary data directory, with one bucket `test`; killed on drop.
+pub struct S3Server {
+    child: std::process::Child,
+    /// `http://127.0.0.1:PORT`.
+    pub endpoint: String,
+    /// The data directory (bucket `test` is `dir/test`).
+    pub dir: tempfile::TempDir,
+}
+
+/// Credentials of the test server.
+pub const S3_KEY: &str = "neuvolex-test";
+/// Secret of the test server.
+pub const S3_SECRET: &str = "neuvolex-test-secret";
+
+impl S3Server {
+    /// Starts the server. Where the binary is absent it prints `SKIP` and returns `None`;
+    /// under `CI=true` that is a failure.
+    pub fn start() -> Option<S3Server> {
+        let bin = std::env::var_os("NEUVOLEX_S3S_FS")
+            .map(PathBuf::from)
+            .unwrap_or_else(|| workspace().join("target/tools/bin/s3s-fs"));
+        if !bin.exists() {
+            if std::env::var("CI").map(|v| v == "true").unwrap_or(false) {
+                panic!(
+                    "{} is required under CI=true (deploy/s3.sh install)",
+                    bin.display()
+                );
+            }
+            eprintln!(
+                "SKIP: {} is absent (run deploy/s3.sh install; S3 test skipped)",
+                bin.display()
+            );
+            return None;
+        }
+        let dir = tmp();
+        std::fs::create_dir_all(dir.path().join("test")).expect("bucket dir");
+        let port = std::net::TcpListener::bind("127.0.0.1:0")
+            .and_then(|l| l.local_addr())
+            .expect("free port")
+            .port();
+        let child = std::process::Command::new(&bin)
+            .args(["--host", "127.0.0.1", "--port", &port.to_string()])
+            .args(["--access-key", S3_KEY, "--secret-key", S3_SECRET])
+            .arg(dir.path())
+            .stdout(std::process::Stdio::null())
+            .stderr(std::process::Stdio::null())
+            .spawn()
+            .expect("start s3s-fs");
+        let s = S3Server {
+            child,
+            endpoint: format!("http://127.0.0.1:{port}"),
+            dir,
+        };
+        let t = std::time::Instant::now();
+        while std::net::TcpStream::connect(("127.0.0.1", port)).is_err() {
+            assert!(
+                t.elapsed().as_secs() < 20,
+                "s3s-fs did not listen on {}",
+                s.endpoint
+            );
+            std::thread::sleep(std::time::Duration::from_millis(50));
+        }
+        Some(s)
+    }
+
+    /// Client settings for this server.
+    pub fn options(&self) -> neuvolex_bricks::S3Options {
+        neuvolex_bricks::S3Options::local(&self.endpoint, S3_KEY, S3_SECRET)
+    }
+
+    /// `s3://test/<prefix>` on this server.
+    pub fn location(&self, prefix: &str) -> neuvolex_bricks::StoreLocation {
+        neuvolex_bricks::StoreLocation::s3("test", prefix, self.options()).expect("location")
+    }
+
+    /// The environment that points the `AWS_*` variables at this server (for subprocesses).
+    pub fn env(&self) -> Vec<(&'static str, String)> {
+        vec![
+            ("AWS_ENDPOINT_URL", self.endpoint.clone()),
+            ("AWS_ACCESS_KEY_ID", S3_KEY.into()),
+            ("AWS_SECRET_ACCESS_KEY", S3_SECRET.into()),
+            ("AWS_REGION", "us-east-1".into()),
+            ("AWS_ALLOW_HTTP", "true".into()),
+        ]
+    }
+}
+
+impl Drop for S3Server {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}

@@ -39,7 +39,7 @@ fn run(
     inr: &InrConfig,
     c: &TrainConfig,
     resume: Option<Loaded>,
-    ckpt: Option<&std::path::Path>,
+    ckpt: Option<&neuvolex_bricks::StoreLocation>,
 ) -> neuvolex_features::Trained {
     train(
         store,
@@ -76,7 +76,7 @@ fn resume_continues_exactly_where_training_stopped() {
     let p = PhantomParams::with_size(40, 3);
     let (d, store) = store_of(&mut Phantom::new(p, PhantomChannel::Image), 16);
     let straight = run(&store, &small_inr(), &cfg(20_000), None, None);
-    let ck = d.path().join("ck.nvx");
+    let ck = neuvolex_bricks::StoreLocation::from(d.path().join("ck.nvx"));
     // Stop half way (as if killed after its last checkpoint), then resume with the full budget.
     let half = run(&store, &small_inr(), &cfg(10_000), None, Some(&ck));
     assert!(half.state.samples >= 10_000 && half.state.samples < 20_000);

@@ -151,7 +151,7 @@ fn pyramid_is_mean_for_images_and_mode_for_labels() {
     let reader =
         neuvolex_bricks::omezarr::OmeZarrSource::open(&store.root().join("labels/gt")).unwrap();
     drop(reader);
-    let l1_dir = store.root().join("labels/gt/1");
+    let l1_dir = store.root().join("labels/gt/v1/1");
     assert!(l1_dir.join("zarr.json").exists());
     let mode = downsample_mode(&want, dims);
     assert_eq!(mode.len(), d1.iter().product::<usize>());

@@ -148,6 +148,39 @@ pub enum BrickError {
     /// The operation was cancelled by the caller.
     #[error("cancelled")]
     Cancelled,
+    /// A storage operation failed (file system or object store).
+    #[error("{path}: storage error: {detail}")]
+    Storage {
+        /// The object, file or store (a URL for object stores).
+        path: PathBuf,
+        /// What failed, with a hint where the cause is clear.
+        detail: String,
+    },
+    /// Another process holds the store's writer lock.
+    #[error("{path}: locked by another writer: {holder}{hint}")]
+    Locked {
+        /// The store.
+        path: PathBuf,
+        /// Who holds it (host, process id, since when).
+        holder: String,
+        /// How to proceed (for a stale lock: how to break it).
+        hint: String,
+    },
+    /// Done markers (or a pending output) written for a different brick layout or stage
+    /// identity (model version, parameters).
+    #[error("{path}: {what} were written for {found}, this run is {expected}; {hint}")]
+    StageMismatch {
+        /// The markers or array.
+        path: PathBuf,
+        /// What does not match ("done markers of stage 'features'").
+        what: String,
+        /// The recorded tag.
+        found: String,
+        /// This run's tag.
+        expected: String,
+        /// How to proceed.
+        hint: String,
+    },
 }
 
 impl BrickError {

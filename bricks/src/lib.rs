@@ -6,11 +6,15 @@
 //! the per-brick derived quantities (normalised intensity, gradient, 5x5x5 mean/std) that the
 //! feature stage trains on.
 //!
+//! A store lives on a local or shared-POSIX path or at an `s3://bucket/prefix.zarr` URL
+//! ([`StoreLocation`]); writes are atomic, stage outputs are published as a whole, a writer
+//! lock keeps two writers apart ([`lock`]) and done markers let a stage resume ([`done`]).
+//!
 //! ```no_run
 //! use neuvolex_bricks::{open_volume, ingest, IngestOptions, BrickStore};
 //! let mut src = open_volume("ct.nii.gz".as_ref(), None)?;
-//! ingest(src.as_mut(), "ct.zarr".as_ref(), &IngestOptions::default(), &mut |_| {})?;
-//! let store = BrickStore::open("ct.zarr".as_ref())?;
+//! ingest(src.as_mut(), "ct.zarr", &IngestOptions::default(), &mut |_| {})?;
+//! let store = BrickStore::open("ct.zarr")?; // or "s3://bucket/ct.zarr"
 //! for b in store.occupied_bricks(None) {
 //!     let d = store.derived(&b)?;
 //!     assert_eq!(d.intensity.len(), b.voxels());
@@ -20,9 +24,13 @@
 
 #![warn(missing_docs)]
 
+pub mod backend;
 pub mod derived;
+pub mod done;
 pub mod dtype;
 pub mod error;
+pub mod location;
+pub mod lock;
 pub mod lru;
 pub mod meta;
 pub mod nifti;
@@ -37,9 +45,13 @@ mod stream;
 pub use stream::FileVolume;
 pub mod synth;
 
+pub use backend::Backend;
 pub use derived::{DerivedBrick, HaloBrick, Normaliser};
+pub use done::{DoneMarkers, StageTag};
 pub use dtype::{DType, Endian};
 pub use error::{BrickError, Result};
+pub use location::{S3Options, StoreLocation};
+pub use lock::WriterLock;
 pub use meta::{MemVolume, Slab, VolumeMeta, VolumeSource};
 pub use open::{detect_format, open_volume, Format};
 pub use raw::RawSpec;

@@ -4,8 +4,10 @@
 //! ending in z, y, x. Leading axes (t, c) must have size 1. A bare Zarr v3 array with three
 //! dimensions is also accepted.
 
+use crate::backend::Backend;
 use crate::dtype::DType;
 use crate::error::{BrickError, Result};
+use crate::location::StoreLocation;
 use crate::meta::{check_slab_range, diag_affine, dims_from_i64, Slab, VolumeMeta, VolumeSource};
 use serde_json::{json, Value};
 use std::ops::Range;
@@ -17,36 +19,56 @@ use zarrs::storage::{ReadableWritableListableStorage, ReadableWritableListableSt
 /// A Zarr array over any storage backend.
 pub type ZArray = Array<dyn ReadableWritableListableStorageTraits>;
 
-/// Opens a filesystem store rooted at `dir`.
+/// Opens a filesystem store rooted at `dir` (with atomic writes: see [`crate::backend`]).
 pub fn fs_store(dir: &Path) -> Result<ReadableWritableListableStorage> {
-    let s = zarrs::filesystem::FilesystemStore::new(dir).map_err(|e| BrickError::zarr(dir, e))?;
-    Ok(Arc::new(s))
+    Ok(Arc::new(crate::backend::AtomicFsStore::new(dir)?))
 }
 
-/// Reads and parses `dir/zarr.json`, with clear errors for missing or malformed metadata.
-pub fn read_node_json(dir: &Path) -> Result<Value> {
-    let p = dir.join("zarr.json");
-    let text = match std::fs::read_to_string(&p) {
-        Ok(t) => t,
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
-            let hint = if dir.join(".zarray").exists() || dir.join(".zgroup").exists() {
-                " (this looks like Zarr v2; convert it to v3)"
-            } else {
-                ""
-            };
-            return Err(BrickError::corrupt(
-                dir,
-                format!("no zarr.json metadata{hint}"),
-            ));
-        }
-        Err(e) => return Err(BrickError::io(&p, e)),
+/// Reads and parses the `zarr.json` of node `node` (a `/`-separated path, "" for the root) of
+/// the store at `backend`, with clear errors for missing or malformed metadata.
+pub fn read_node(backend: &Backend, node: &str) -> Result<Value> {
+    let node = node.trim_matches('/');
+    let key = if node.is_empty() {
+        "zarr.json".to_string()
+    } else {
+        format!("{node}/zarr.json")
     };
-    let v: Value = serde_json::from_str(&text)
+    let dir = backend.key_path(node);
+    let Some(bytes) = backend.get(&key)? else {
+        let v2 = |k: &str| {
+            backend
+                .exists(&if node.is_empty() {
+                    k.to_string()
+                } else {
+                    format!("{node}/{k}")
+                })
+                .unwrap_or(false)
+        };
+        let hint = if v2(".zarray") || v2(".zgroup") {
+            " (this looks like Zarr v2; convert it to v3)"
+        } else if backend.location().is_remote() {
+            " (nothing at this URL: check the bucket and prefix)"
+        } else {
+            ""
+        };
+        return Err(BrickError::corrupt(
+            dir,
+            format!("no zarr.json metadata{hint}"),
+        ));
+    };
+    let p = backend.key_path(&key);
+    let v: Value = serde_json::from_slice(&bytes)
         .map_err(|e| BrickError::corrupt(&p, format!("zarr.json is not valid JSON: {e}")))?;
     if v.get("zarr_format").and_then(Value::as_u64) != Some(3) {
         return Err(BrickError::corrupt(&p, "zarr_format is not 3"));
     }
     Ok(v)
+}
+
+/// Reads and parses `dir/zarr.json` of a local or remote node (see [`read_node`]).
+pub fn read_node_json(dir: impl Into<StoreLocation>) -> Result<Value> {
+    let loc = dir.into();
+    read_node(&*Backend::open(&loc)?, "")
 }
 
 /// The zarrs data type for `d`.
@@ -218,11 +240,14 @@ pub struct OmeZarrSource {
 }
 
 impl OmeZarrSource {
-    /// Opens the image group (or array) at `path`. Labels are opened by pointing at
-    /// `store.zarr/labels/NAME`.
-    pub fn open(path: &Path) -> Result<Self> {
-        let node = read_node_json(path)?;
-        let storage = fs_store(path)?;
+    /// Opens the image group (or array) at `location` (a path or `s3://` URL). Labels are
+    /// opened by pointing at `store.zarr/labels/NAME`.
+    pub fn open(location: impl Into<StoreLocation>) -> Result<Self> {
+        let location = location.into();
+        let backend = Backend::open(&location)?;
+        let path = &location.as_path();
+        let node = read_node(&backend, "")?;
+        let storage = backend.zarr();
         let (array_path, spacing, origin) = match node.get("node_type").and_then(Value::as_str) {
             Some("array") => ("/".to_string(), [1.0; 3], [0.0; 3]),
             Some("group") => {
@@ -293,7 +318,7 @@ impl OmeZarrSource {
             }
         };
         let array_dir = path.join(array_path.trim_start_matches('/'));
-        read_node_json(&array_dir)?;
+        read_node(&backend, &array_path)?;
         let array: ZArray = Array::open(storage, &array_path)
             .map_err(|e| BrickError::corrupt(&array_dir, e.to_string()))?;
         let shape = array.shape().to_vec();

@@ -19,8 +19,11 @@ pub enum Format {
     OmeZarr,
 }
 
-/// Guesses the format of `path` from its name and content.
+/// Guesses the format of `path` from its name and content; an `s3://` URL is an OME-Zarr store.
 pub fn detect_format(path: &Path) -> Result<Format> {
+    if crate::location::StoreLocation::from(path).is_remote() {
+        return Ok(Format::OmeZarr);
+    }
     if !path.exists() {
         return Err(BrickError::io(
             path,

@@ -8,17 +8,34 @@
 //! - `neuvolex/brick_min`, `neuvolex/brick_max`: per-brick value range (f64, z, y, x grid).
 //! - `neuvolex/vectors/NAME`: per-voxel vectors (z, y, x, c) in f16 or u8, one chunk a brick.
 //!
-//! Stores are written under a temporary name and renamed when complete; `neuvolex.complete`
-//! is set last, so an interrupted ingest never leaves a store that opens as complete.
+//! A store is a local or shared-POSIX path or an `s3://bucket/prefix.zarr` URL
+//! ([`StoreLocation`]); every read and write goes through its [`Backend`].
+//!
+//! On a file system, stores are written under a temporary name and renamed when complete; on
+//! S3 the root metadata is written last. Either way `neuvolex.complete` is set last, so an
+//! interrupted ingest never leaves a store that opens as complete.
+//!
+//! Stage outputs (label images, vector arrays) are written as a new *generation* `vN` beside
+//! the current one and published by one atomic write of their node's `zarr.json`, which
+//! points at the generation; older generations are deleted after that. A reader sees the
+//! previous complete output or the new one, never a mix:
+//! - `labels/NAME/zarr.json`: the OME image-label group; its multiscales datasets are
+//!   `vN/0`, `vN/1`, ...
+//! - `neuvolex/vectors/NAME/zarr.json`: a group whose `neuvolex.current` names the array
+//!   `neuvolex/vectors/NAME/vN`.
 
+use crate::backend::Backend;
 use crate::derived::{HaloBrick, Normaliser};
+use crate::done::{layout_of, DoneMarkers, StageTag};
 use crate::dtype::DType;
 use crate::error::{BrickError, Result};
+use crate::location::StoreLocation;
+use crate::lock::WriterLock;
 use crate::lru::Lru;
 use crate::meta::{VolumeMeta, VolumeSource};
 use crate::omezarr::{
-    check_chunks_exist, fs_store, multiscales, read_bytes, read_node_json, write_bytes,
-    write_slab_chunks, zarr_dtype, ZArray,
+    check_chunks_exist, multiscales, read_bytes, read_node, write_bytes, write_slab_chunks,
+    zarr_dtype, ZArray,
 };
 use crate::stats::{FineHistogram, StatsAccumulator, VolumeStats};
 use serde::{Deserialize, Serialize};
@@ -640,26 +657,56 @@ pub fn background_threshold(stats: &VolumeStats) -> f64 {
     stats.p0_5 + 0.05 * (stats.p99_5 - stats.p0_5)
 }
 
-/// Streams `source` into a new brick store at `out`. Peak memory is about one slab of
-/// `brick` z-slices in the source type plus one coarser slab per pyramid level.
+/// Streams `source` into a new brick store at `out` (a path or an `s3://` URL). Peak memory
+/// is about one slab of `brick` z-slices in the source type plus one coarser slab per pyramid
+/// level.
+///
+/// On a file system the store is written under a temporary name and renamed into place, so an
+/// existing store (replaced only with `overwrite`) stays complete until the new one is. On S3
+/// the root metadata is written last; an existing store is first marked incomplete, so a
+/// reader sees the old store, an "incomplete store" error, or the new store, never a mix.
 pub fn ingest(
+    source: &mut dyn VolumeSource,
+    out: impl Into<StoreLocation>,
+    opts: &IngestOptions,
+    progress: &mut dyn FnMut(Progress),
+) -> Result<StoreInfo> {
+    let out = out.into();
+    out.validate()?;
+    validate_options(&out.as_path(), opts)?;
+    match &out {
+        StoreLocation::Local(dir) => ingest_local(source, dir, opts, progress),
+        StoreLocation::S3(_) => ingest_remote(source, &out, opts, progress),
+    }
+}
+
+fn ingest_local(
     source: &mut dyn VolumeSource,
     out: &Path,
     opts: &IngestOptions,
     progress: &mut dyn FnMut(Progress),
 ) -> Result<StoreInfo> {
-    validate_options(out, opts)?;
     if out.exists() && !opts.overwrite {
         return Err(BrickError::Exists {
             path: out.to_path_buf(),
         });
     }
+    // Replacing a store: no other writer may be working in it meanwhile.
+    let _lock = if out.exists() {
+        Some(WriterLock::acquire(
+            &Backend::open(&StoreLocation::Local(out.to_path_buf()))?,
+            "ingest",
+        )?)
+    } else {
+        None
+    };
     let tmp = crate::nifti::tmp_name(out);
     if tmp.exists() {
         std::fs::remove_dir_all(&tmp).map_err(|e| BrickError::io(&tmp, e))?;
     }
     std::fs::create_dir_all(&tmp).map_err(|e| BrickError::io(&tmp, e))?;
-    let res = ingest_into(source, &tmp, opts, progress).and_then(|info| {
+    let backend = Backend::open(&StoreLocation::Local(tmp.clone()))?;
+    let res = ingest_into(source, &backend, None, opts, progress).and_then(|info| {
         commit_dir(&tmp, out, opts.overwrite)?;
         Ok(info)
     });
@@ -669,6 +716,70 @@ pub fn ingest(
     res
 }
 
+fn ingest_remote(
+    source: &mut dyn VolumeSource,
+    out: &StoreLocation,
+    opts: &IngestOptions,
+    progress: &mut dyn FnMut(Progress),
+) -> Result<StoreInfo> {
+    let backend = Backend::open(out)?;
+    if !opts.overwrite {
+        if let Some(bytes) = backend.get("zarr.json")? {
+            // A complete store is kept; leftovers of an interrupted ingest are replaced.
+            let complete = serde_json::from_slice::<Value>(&bytes)
+                .ok()
+                .and_then(|v| {
+                    v.pointer("/attributes/neuvolex/complete")
+                        .and_then(Value::as_bool)
+                })
+                .unwrap_or(false);
+            if complete {
+                return Err(BrickError::Exists {
+                    path: out.as_path(),
+                });
+            }
+        }
+    }
+    let lock = WriterLock::acquire(&backend, "ingest")?;
+    backend.put(
+        "zarr.json",
+        serde_json::to_vec_pretty(&json!({"zarr_format": 3, "node_type": "group",
+            "attributes": {"neuvolex": {"complete": false}}}))
+        .unwrap_or_default(),
+    )?;
+    for name in backend.list_dir("")? {
+        match name.as_str() {
+            "zarr.json" => {}
+            "neuvolex" => {
+                for n in backend.list_dir("neuvolex")? {
+                    if format!("neuvolex/{n}") != crate::lock::LOCK_KEY {
+                        delete_node(&backend, &format!("neuvolex/{n}"))?;
+                    }
+                }
+            }
+            n => delete_node(&backend, n)?,
+        }
+    }
+    ingest_into(source, &backend, Some(&lock), opts, progress)
+}
+
+/// True if `location` (a path or `s3://` URL) holds a neuvolex brick store, complete or not.
+pub fn is_brick_store(location: impl Into<StoreLocation>) -> bool {
+    Backend::open(&location.into())
+        .and_then(|b| b.get("zarr.json"))
+        .ok()
+        .flatten()
+        .is_some_and(|t| String::from_utf8_lossy(&t).contains("\"neuvolex\""))
+}
+
+/// Deletes the object or folder `key`.
+fn delete_node(backend: &Backend, key: &str) -> Result<()> {
+    match key.trim_matches('/').rsplit_once('/') {
+        Some((parent, name)) => backend.delete_child(parent, name),
+        None => backend.delete_child("", key.trim_matches('/')),
+    }
+}
+
 struct LevelWriter {
     array: ZArray,
     dims: [usize; 3],
@@ -676,14 +787,17 @@ struct LevelWriter {
 
 fn ingest_into(
     source: &mut dyn VolumeSource,
-    root: &Path,
+    backend: &Backend,
+    lock: Option<&WriterLock>,
     opts: &IngestOptions,
     progress: &mut dyn FnMut(Progress),
 ) -> Result<StoreInfo> {
     let meta: VolumeMeta = source.meta().clone();
     let src_path = source.path().to_path_buf();
     meta.validate(&src_path)?;
-    let storage = fs_store(root)?;
+    let storage = backend.zarr();
+    let root_path = backend.path();
+    let root = root_path.as_path();
     let b = opts.brick;
     let store_dtype = if meta.scaling.is_some() {
         DType::F32
@@ -828,6 +942,9 @@ fn ingest_into(
         background,
         labels: vec![],
     };
+    if let Some(l) = lock {
+        l.check()?;
+    }
     write_root_attrs(&storage, root, &info)?;
     Ok(info)
 }
@@ -881,11 +998,16 @@ pub struct VectorInfo {
     /// Free-form provenance set by the writer (e.g. which model and feature).
     #[serde(default)]
     pub extra: Value,
+    /// The stage identity of a resumable writer ([`BrickStore::resume_vectors`]).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub identity: Option<String>,
 }
 
 /// An opened, complete brick store.
 pub struct BrickStore {
     root: PathBuf,
+    location: StoreLocation,
+    backend: Arc<Backend>,
     storage: ReadableWritableListableStorage,
     info: StoreInfo,
     levels: Vec<ZArray>,
@@ -905,9 +1027,14 @@ impl std::fmt::Debug for BrickStore {
 }
 
 impl BrickStore {
-    /// Opens a store written by [`ingest`]; errors if it is incomplete or damaged.
-    pub fn open(root: &Path) -> Result<Self> {
-        let node = read_node_json(root)?;
+    /// Opens a store written by [`ingest`] at a path or `s3://` URL; errors if it is
+    /// incomplete or damaged.
+    pub fn open(location: impl Into<StoreLocation>) -> Result<Self> {
+        let location = location.into();
+        let backend = Backend::open(&location)?;
+        let root_path = location.as_path();
+        let root = root_path.as_path();
+        let node = read_node(&backend, "")?;
         let nv = node
             .pointer("/attributes/neuvolex")
             .ok_or_else(|| BrickError::corrupt(root, "not a neuvolex brick store (no neuvolex attributes); run `neuvolex ingest` on it first"))?;
@@ -938,10 +1065,10 @@ impl BrickStore {
                 ),
             ));
         }
-        let storage = fs_store(root)?;
+        let storage = backend.zarr();
         let mut levels = Vec::new();
         for (k, d) in info.levels.iter().enumerate() {
-            read_node_json(&root.join(k.to_string()))?;
+            read_node(&backend, &k.to_string())?;
             let a: ZArray = Array::open(storage.clone(), &format!("/{k}"))
                 .map_err(|e| BrickError::corrupt(root.join(k.to_string()), e.to_string()))?;
             let want = [d[2] as u64, d[1] as u64, d[0] as u64];
@@ -960,7 +1087,7 @@ impl BrickStore {
         let mut ranges = Vec::new();
         for name in ["brick_min", "brick_max"] {
             let p = format!("/neuvolex/{name}");
-            read_node_json(&root.join("neuvolex").join(name))?;
+            read_node(&backend, &p)?;
             let a: ZArray = Array::open(storage.clone(), &p)
                 .map_err(|e| BrickError::corrupt(root, e.to_string()))?;
             let sub = zyx([0; 3], grid);
@@ -973,6 +1100,8 @@ impl BrickStore {
         let cap = 128;
         Ok(BrickStore {
             root: root.to_path_buf(),
+            location,
+            backend,
             storage,
             info,
             levels,
@@ -982,9 +1111,42 @@ impl BrickStore {
         })
     }
 
-    /// The store's path.
+    /// The store's path, or its URL (`s3://bucket/prefix.zarr`) as a path: for messages.
     pub fn root(&self) -> &Path {
         &self.root
+    }
+
+    /// Where the store lives.
+    pub fn location(&self) -> &StoreLocation {
+        &self.location
+    }
+
+    /// The storage under the store, for objects written beside the arrays.
+    pub fn backend(&self) -> &Arc<Backend> {
+        &self.backend
+    }
+
+    /// Takes the store's writer lock for `purpose` (see [`crate::lock`]); fails at once with
+    /// [`BrickError::Locked`] naming the holder if another process writes.
+    pub fn writer_lock(&self, purpose: &str) -> Result<WriterLock> {
+        WriterLock::acquire(&self.backend, purpose)
+    }
+
+    /// The done markers of `stage` for this store's brick layout and the stage's `identity`
+    /// (model version, parameters hash): opened to resume, or started. Markers written for
+    /// another layout or identity are refused with [`BrickError::StageMismatch`].
+    pub fn done_markers(&self, stage: &str, identity: &str) -> Result<DoneMarkers> {
+        check_name("stage", stage)?;
+        DoneMarkers::open_or_create(
+            &self.backend,
+            &format!("neuvolex/done/{stage}"),
+            StageTag {
+                stage: stage.to_string(),
+                layout: layout_of(self.info.dims, self.info.brick),
+                identity: identity.to_string(),
+            },
+            self.grid(),
+        )
     }
 
     /// Store attributes.
@@ -1200,7 +1362,9 @@ impl BrickStore {
     }
 
     /// Adds a label volume under `labels/NAME` (grid must match; values non-negative integers).
-    /// Written under a temporary name and renamed, so an interrupted write leaves no label image.
+    /// Written as a new generation beside the previous image of that name and published by
+    /// one atomic metadata write, so a reader sees the old image or the new one and an
+    /// interrupted write leaves the old one. Takes the writer lock.
     pub fn add_labels(
         &mut self,
         name: &str,
@@ -1217,20 +1381,56 @@ impl BrickStore {
             DType::U16 | DType::I16 | DType::F32 | DType::F64 => DType::U16,
             DType::U32 | DType::I32 => DType::U32,
         };
-        let labels_dir = self.root.join("labels");
-        let tmp_name = format!(".{name}.partial-{}", std::process::id());
-        let tmp_dir = labels_dir.join(&tmp_name);
-        let _ = std::fs::remove_dir_all(&tmp_dir);
-        let res = self.write_labels(&tmp_name, dtype, source, &lpath, classes, progress);
+        let lock = self.writer_lock(&format!("labels {name}"))?;
+        // Another handle (or process) may have added label images since this one opened.
+        if let Ok(node) = read_node(&self.backend, "") {
+            if let Some(l) = node
+                .pointer("/attributes/neuvolex/labels")
+                .and_then(|v| serde_json::from_value::<Vec<String>>(v.clone()).ok())
+            {
+                for n in l {
+                    if !self.info.labels.contains(&n) {
+                        self.info.labels.push(n);
+                    }
+                }
+            }
+        }
+        let node = format!("labels/{name}");
+        let gen = next_generation(&self.backend, &node)?;
+        let res = self.write_labels(name, &gen, dtype, source, &lpath, progress);
         if let Err(e) = res {
-            let _ = std::fs::remove_dir_all(&tmp_dir);
+            let _ = delete_node(&self.backend, &format!("{node}/{gen}"));
             return Err(e);
         }
-        let dst = labels_dir.join(name);
-        if dst.exists() {
-            std::fs::remove_dir_all(&dst).map_err(|e| BrickError::io(&dst, e))?;
+        lock.check()?;
+        // Publish: the image-label group now points at the new generation.
+        let mut ms = multiscales(
+            name,
+            self.info.levels.len(),
+            self.info.spacing,
+            [
+                self.info.affine[0][3],
+                self.info.affine[1][3],
+                self.info.affine[2][3],
+            ],
+        );
+        ms[0]["type"] = json!("mode");
+        for d in ms[0]["datasets"].as_array_mut().into_iter().flatten() {
+            let p = d["path"].as_str().unwrap_or("0").to_string();
+            d["path"] = json!(format!("{gen}/{p}"));
         }
-        std::fs::rename(&tmp_dir, &dst).map_err(|e| BrickError::io(&dst, e))?;
+        let mut g = GroupBuilder::new();
+        g.attributes(json!({"ome": {"version": "0.5", "multiscales": ms, "image-label": {
+            "version": "0.5",
+            "source": {"image": "../../"},
+            "colors": classes.iter().map(|c| json!({"label-value": c.id, "rgba": [c.color[0], c.color[1], c.color[2], 255]})).collect::<Vec<_>>(),
+            "properties": classes.iter().map(|c| json!({"label-value": c.id, "name": c.name})).collect::<Vec<_>>()
+        }}}).as_object().cloned().unwrap_or_default());
+        g.build(self.storage.clone(), &format!("/{node}"))
+            .map_err(|e| BrickError::zarr(&self.root, e))?
+            .store_metadata()
+            .map_err(|e| BrickError::zarr(&self.root, e))?;
+        drop_other_generations(&self.backend, &node, &gen)?;
         if !self.info.labels.iter().any(|l| l == name) {
             self.info.labels.push(name.to_string());
         }
@@ -1248,16 +1448,17 @@ impl BrickStore {
         write_root_attrs(&self.storage, &self.root, &self.info)
     }
 
+    /// Writes the pyramid of a label image as generation `gen` of `labels/NAME`.
     fn write_labels(
         &self,
-        tmp_name: &str,
+        name: &str,
+        gen: &str,
         dtype: DType,
         source: &mut dyn VolumeSource,
         lpath: &Path,
-        classes: &[crate::synth::ClassInfo],
         progress: &mut dyn FnMut(Progress),
     ) -> Result<()> {
-        let base = format!("/labels/{tmp_name}");
+        let base = format!("/labels/{name}/{gen}");
         let opts = IngestOptions {
             brick: self.info.brick,
             shard: self.info.shard,
@@ -1330,25 +1531,8 @@ impl BrickStore {
             z0 += depth;
             progress(Progress::Advance { done: z0 as u64 });
         }
-        let mut ms = multiscales(
-            tmp_name,
-            self.info.levels.len(),
-            self.info.spacing,
-            [
-                self.info.affine[0][3],
-                self.info.affine[1][3],
-                self.info.affine[2][3],
-            ],
-        );
-        ms[0]["type"] = json!("mode");
-        let mut g = GroupBuilder::new();
-        g.attributes(json!({"ome": {"version": "0.5", "multiscales": ms, "image-label": {
-            "version": "0.5",
-            "source": {"image": "../../"},
-            "colors": classes.iter().map(|c| json!({"label-value": c.id, "rgba": [c.color[0], c.color[1], c.color[2], 255]})).collect::<Vec<_>>(),
-            "properties": classes.iter().map(|c| json!({"label-value": c.id, "name": c.name})).collect::<Vec<_>>()
-        }}}).as_object().cloned().unwrap_or_default());
-        g.build(self.storage.clone(), &base)
+        GroupBuilder::new()
+            .build(self.storage.clone(), &base)
             .map_err(|e| BrickError::zarr(&self.root, e))?
             .store_metadata()
             .map_err(|e| BrickError::zarr(&self.root, e))
@@ -1356,8 +1540,8 @@ impl BrickStore {
 
     /// The class table stored with label image `name` (empty if none was given).
     pub fn label_classes(&self, name: &str) -> Result<Vec<crate::synth::ClassInfo>> {
-        let dir = self.root.join("labels").join(name);
-        let node = read_node_json(&dir)?;
+        check_name("label", name)?;
+        let node = read_node(&self.backend, &format!("labels/{name}"))?;
         let il = node
             .pointer("/attributes/ome/image-label")
             .cloned()
@@ -1412,7 +1596,12 @@ impl BrickStore {
                 )));
             }
         }
-        let p = format!("/labels/{name}/0");
+        let node = read_node(&self.backend, &format!("labels/{name}"))?;
+        let level0 = node
+            .pointer("/attributes/ome/multiscales/0/datasets/0/path")
+            .and_then(Value::as_str)
+            .unwrap_or("0");
+        let p = format!("/labels/{name}/{}", level0.trim_matches('/'));
         let a: ZArray = Array::open(self.storage.clone(), &p)
             .map_err(|e| BrickError::corrupt(&self.root, e.to_string()))?;
         let sub = zyx(origin, size);
@@ -1425,6 +1614,10 @@ impl BrickStore {
     }
 
     /// Creates (or replaces) the per-voxel vector array `name` with `channels` channels.
+    ///
+    /// The new array is a pending generation beside the current one: readers keep seeing the
+    /// previous complete array until [`VectorArray::finish`] publishes this one. The returned
+    /// writer holds the store's writer lock until it is finished or dropped.
     pub fn create_vectors(
         &self,
         name: &str,
@@ -1432,6 +1625,150 @@ impl BrickStore {
         encoding: VectorEncoding,
     ) -> Result<VectorArray> {
         check_name("vector", name)?;
+        let lock = self.writer_lock(&format!("vectors {name}"))?;
+        self.new_vectors(name, channels, encoding, None, lock)
+    }
+
+    /// Opens the pending (unpublished) generation of vector array `name` written for stage
+    /// `identity` (model version, parameters hash) to resume it, or starts one. The writer
+    /// carries done markers ([`VectorArray::pending`], [`VectorArray::mark_done`]) and holds
+    /// the writer lock. A pending generation of another identity, channel count or encoding
+    /// is refused with [`BrickError::StageMismatch`]; [`Self::discard_pending_vectors`] drops
+    /// it.
+    pub fn resume_vectors(
+        &self,
+        name: &str,
+        channels: usize,
+        encoding: VectorEncoding,
+        identity: &str,
+    ) -> Result<VectorArray> {
+        check_name("vector", name)?;
+        let lock = self.writer_lock(&format!("vectors {name}"))?;
+        if let Some(mut va) = self.find_pending(name, identity)? {
+            if va.info.channels != channels || va.info.encoding != encoding {
+                return Err(BrickError::StageMismatch {
+                    path: self.backend.key_path(&va.path),
+                    what: format!("the pending vector array '{name}'"),
+                    found: format!("{} channels, {:?}", va.info.channels, va.info.encoding),
+                    expected: format!("{channels} channels, {encoding:?}"),
+                    hint: "discard it to start over".into(),
+                });
+            }
+            va.lock = Some(lock);
+            return Ok(va);
+        }
+        let mut va = self.new_vectors(name, channels, encoding, Some(identity), lock)?;
+        va.done = Some(self.vector_markers(name, &va.generation, identity)?);
+        Ok(va)
+    }
+
+    /// Opens the pending generation of `name` written for `identity`, for a cluster worker
+    /// that writes and marks bricks while the stage's coordinator (which called
+    /// [`Self::resume_vectors`]) holds the lock. It cannot publish.
+    pub fn open_pending_vectors(&self, name: &str, identity: &str) -> Result<VectorArray> {
+        check_name("vector", name)?;
+        self.find_pending(name, identity)?.ok_or_else(|| {
+            BrickError::InvalidArgument(format!(
+                "{}: no pending vector array '{name}' for '{identity}' (the coordinator starts it)",
+                self.root.display()
+            ))
+        })
+    }
+
+    /// Deletes every unpublished generation of vector array `name` (takes the writer lock).
+    pub fn discard_pending_vectors(&self, name: &str) -> Result<()> {
+        check_name("vector", name)?;
+        let _lock = self.writer_lock(&format!("vectors {name}"))?;
+        let node = format!("neuvolex/vectors/{name}");
+        let current = self.current_vectors(name)?.unwrap_or_default();
+        drop_other_generations(&self.backend, &node, &current)
+    }
+
+    fn vector_markers(&self, name: &str, gen: &str, identity: &str) -> Result<DoneMarkers> {
+        DoneMarkers::open_or_create(
+            &self.backend,
+            &format!("neuvolex/vectors/{name}/{gen}.done"),
+            StageTag {
+                stage: format!("vectors/{name}"),
+                layout: layout_of(self.info.dims, self.info.brick),
+                identity: identity.to_string(),
+            },
+            self.grid(),
+        )
+    }
+
+    /// The published generation of vector array `name` ("" for an array written before
+    /// generations), `None` if there is none.
+    fn current_vectors(&self, name: &str) -> Result<Option<String>> {
+        let node = format!("neuvolex/vectors/{name}");
+        let Some(bytes) = self.backend.get(&format!("{node}/zarr.json"))? else {
+            return Ok(None);
+        };
+        let v: Value = serde_json::from_slice(&bytes).map_err(|e| {
+            BrickError::corrupt(self.backend.key_path(&node), format!("zarr.json: {e}"))
+        })?;
+        if v.get("node_type").and_then(Value::as_str) == Some("array") {
+            return Ok(Some(String::new()));
+        }
+        v.pointer("/attributes/neuvolex/current")
+            .and_then(Value::as_str)
+            .map(|s| Some(s.to_string()))
+            .ok_or_else(|| {
+                BrickError::corrupt(
+                    self.backend.key_path(&node),
+                    "vector group names no current generation",
+                )
+            })
+    }
+
+    fn find_pending(&self, name: &str, identity: &str) -> Result<Option<VectorArray>> {
+        let node = format!("neuvolex/vectors/{name}");
+        let current = self.current_vectors(name)?.unwrap_or_default();
+        let mut gens: Vec<(u64, String)> = self
+            .backend
+            .list_dir(&node)?
+            .into_iter()
+            .filter(|g| *g != current)
+            .filter_map(|g| generation_number(&g).map(|n| (n, g)))
+            .collect();
+        gens.sort();
+        for (_, gen) in gens.into_iter().rev() {
+            let Ok(mut va) = self.open_vector_array(name, &gen) else {
+                continue;
+            };
+            if va.info.complete {
+                continue;
+            }
+            match va.info.identity.clone() {
+                Some(id) if id == identity => {
+                    va.done = Some(self.vector_markers(name, &gen, identity)?);
+                    return Ok(Some(va));
+                }
+                Some(id) => {
+                    return Err(BrickError::StageMismatch {
+                        path: self.backend.key_path(&va.path),
+                        what: format!("the pending vector array '{name}'"),
+                        found: format!("stage identity '{id}'"),
+                        expected: format!("'{identity}'"),
+                        hint: "discard it (discard_pending_vectors, or --restart) to start \
+                               over, or resume with the model and parameters it was written for"
+                            .into(),
+                    })
+                }
+                None => {}
+            }
+        }
+        Ok(None)
+    }
+
+    fn new_vectors(
+        &self,
+        name: &str,
+        channels: usize,
+        encoding: VectorEncoding,
+        identity: Option<&str>,
+        lock: WriterLock,
+    ) -> Result<VectorArray> {
         if channels == 0 || channels > 4096 {
             return Err(BrickError::InvalidArgument(format!(
                 "{channels} channels: must be 1..=4096"
@@ -1450,22 +1787,21 @@ impl BrickStore {
                 ));
             }
         }
-        let dir = self.root.join("neuvolex").join("vectors").join(name);
-        if dir.exists() {
-            std::fs::remove_dir_all(&dir).map_err(|e| BrickError::io(&dir, e))?;
-        }
+        let node = format!("neuvolex/vectors/{name}");
+        let gen = next_generation(&self.backend, &node)?;
         let d = self.info.dims;
         let b = self.info.brick as u64;
         let dtype_name = match encoding {
             VectorEncoding::F16 => zarrs::array::data_type::float16(),
             VectorEncoding::U8 { .. } => zarrs::array::data_type::uint8(),
         };
-        let path = format!("/neuvolex/vectors/{name}");
+        let path = format!("/{node}/{gen}");
         let vinfo = VectorInfo {
             channels,
             encoding,
             complete: false,
             extra: Value::Null,
+            identity: identity.map(str::to_string),
         };
         let mut builder = ArrayBuilder::new(
             vec![d[2] as u64, d[1] as u64, d[0] as u64, channels as u64],
@@ -1498,14 +1834,22 @@ impl BrickStore {
             info: vinfo,
             brick: self.info.brick,
             dims: d,
+            backend: self.backend.clone(),
+            name: name.to_string(),
+            generation: gen,
+            lock: Some(lock),
+            done: None,
         })
     }
 
-    /// Opens an existing vector array.
-    pub fn open_vectors(&self, name: &str) -> Result<VectorArray> {
-        let path = format!("/neuvolex/vectors/{name}");
-        let dir = self.root.join("neuvolex").join("vectors").join(name);
-        read_node_json(&dir)?;
+    fn open_vector_array(&self, name: &str, gen: &str) -> Result<VectorArray> {
+        let path = if gen.is_empty() {
+            format!("/neuvolex/vectors/{name}")
+        } else {
+            format!("/neuvolex/vectors/{name}/{gen}")
+        };
+        read_node(&self.backend, &path)?;
+        let dir = self.backend.key_path(&path);
         let array: ZArray = Array::open(self.storage.clone(), &path)
             .map_err(|e| BrickError::corrupt(&dir, e.to_string()))?;
         let info: VectorInfo = array
@@ -1523,11 +1867,63 @@ impl BrickStore {
             info,
             brick: self.info.brick,
             dims: self.info.dims,
+            backend: self.backend.clone(),
+            name: name.to_string(),
+            generation: gen.to_string(),
+            lock: None,
+            done: None,
         })
+    }
+
+    /// Opens the published vector array `name` (its current generation).
+    pub fn open_vectors(&self, name: &str) -> Result<VectorArray> {
+        check_name("vector", name)?;
+        match self.current_vectors(name)? {
+            Some(gen) => self.open_vector_array(name, &gen),
+            None => Err(BrickError::corrupt(
+                self.backend.key_path(&format!("neuvolex/vectors/{name}")),
+                format!(
+                    "no zarr.json metadata: the store has no vector array '{name}' \
+                     (run the stage that writes it)"
+                ),
+            )),
+        }
     }
 }
 
-/// A per-voxel vector array (features, class probabilities) in the store.
+/// The generation number of a child name `vN`.
+fn generation_number(name: &str) -> Option<u64> {
+    name.strip_prefix('v')
+        .filter(|d| !d.is_empty() && d.bytes().all(|c| c.is_ascii_digit()))
+        .and_then(|d| d.parse().ok())
+}
+
+/// The next free generation name (`v1`, `v2`, ...) under node `node`.
+fn next_generation(backend: &Backend, node: &str) -> Result<String> {
+    let n = backend
+        .list_dir(node)?
+        .iter()
+        .filter_map(|c| generation_number(c.strip_suffix(".done").unwrap_or(c)))
+        .max()
+        .unwrap_or(0);
+    Ok(format!("v{}", n + 1))
+}
+
+/// Deletes every child of `node` except its `zarr.json` and generation `keep`: older
+/// generations, abandoned pending ones, their markers, and the arrays of the layout before
+/// generations.
+fn drop_other_generations(backend: &Backend, node: &str, keep: &str) -> Result<()> {
+    for child in backend.list_dir(node)? {
+        if child == "zarr.json" || (!keep.is_empty() && child == keep) || child.starts_with('.') {
+            continue;
+        }
+        delete_node(backend, &format!("{node}/{child}"))?;
+    }
+    Ok(())
+}
+
+/// A per-voxel vector array (features, class probabilities) in the store: a published
+/// generation opened for reading, or a pending one being written.
 pub struct VectorArray {
     root: PathBuf,
     path: String,
@@ -1535,6 +1931,21 @@ pub struct VectorArray {
     info: VectorInfo,
     brick: usize,
     dims: [usize; 3],
+    backend: Arc<Backend>,
+    name: String,
+    generation: String,
+    lock: Option<WriterLock>,
+    done: Option<DoneMarkers>,
+}
+
+impl std::fmt::Debug for VectorArray {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("VectorArray")
+            .field("array", &self.backend.key_path(&self.path))
+            .field("channels", &self.info.channels)
+            .field("complete", &self.info.complete)
+            .finish()
+    }
 }
 
 impl VectorArray {
@@ -1631,8 +2042,55 @@ impl VectorArray {
         self.info.extra = extra;
     }
 
-    /// Marks the array complete.
+    /// The generation this handle reads or writes (`v1`, `v2`, ...).
+    pub fn generation(&self) -> &str {
+        &self.generation
+    }
+
+    /// The done markers of a resumable writer ([`BrickStore::resume_vectors`]).
+    pub fn markers(&self) -> Option<&DoneMarkers> {
+        self.done.as_ref()
+    }
+
+    fn need_markers(&self) -> Result<&DoneMarkers> {
+        self.done.as_ref().ok_or_else(|| {
+            BrickError::InvalidArgument(format!(
+                "{}: vector array '{}' has no done markers (open it with resume_vectors)",
+                self.root.display(),
+                self.name
+            ))
+        })
+    }
+
+    /// True if brick `b` is marked done (resumable writers).
+    pub fn is_done(&self, b: &Brick) -> Result<bool> {
+        self.need_markers()?.is_done(b)
+    }
+
+    /// Marks brick `b` done; call it after [`Self::write_brick`] returned (the chunk is then
+    /// durable).
+    pub fn mark_done(&self, b: &Brick) -> Result<()> {
+        self.need_markers()?.mark_done(b)
+    }
+
+    /// The bricks of `bricks` not yet marked done, in their order (resumable writers).
+    pub fn pending(&self, bricks: impl IntoIterator<Item = Brick>) -> Result<Vec<Brick>> {
+        self.need_markers()?.pending(bricks)
+    }
+
+    /// Marks the array complete and publishes it: one atomic write of the array's node
+    /// metadata makes this generation the current one, then the previous generation and the
+    /// done markers are deleted and the writer lock is released. Only the writer that holds
+    /// the lock (from [`BrickStore::create_vectors`] or [`BrickStore::resume_vectors`]) can
+    /// publish.
     pub fn finish(&mut self) -> Result<()> {
+        let Some(lock) = self.lock.take() else {
+            return Err(BrickError::InvalidArgument(format!(
+                "{}: vector array '{}' was opened for reading or as a worker; only its                  writer publishes it",
+                self.root.display(),
+                self.name
+            )));
+        };
         self.info.complete = true;
         self.array.attributes_mut().insert(
             "neuvolex".into(),
@@ -1641,7 +2099,22 @@ impl VectorArray {
         );
         self.array
             .store_metadata()
-            .map_err(|e| BrickError::zarr(&self.root, e))
+            .map_err(|e| BrickError::zarr(&self.root, e))?;
+        lock.check()?;
+        let node = format!("neuvolex/vectors/{}", self.name);
+        let mut g = GroupBuilder::new();
+        g.attributes(
+            json!({"neuvolex": {"current": self.generation}})
+                .as_object()
+                .cloned()
+                .unwrap_or_default(),
+        );
+        g.build(self.backend.zarr(), &format!("/{node}"))
+            .map_err(|e| BrickError::zarr(&self.root, e))?
+            .store_metadata()
+            .map_err(|e| BrickError::zarr(&self.root, e))?;
+        self.done = None;
+        drop_other_generations(&self.backend, &node, &self.generation)
     }
 }
 

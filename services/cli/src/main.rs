@@ -191,6 +191,12 @@ enum Cmd {
         #[command(flatten)]
         raw: RawArgs,
     },
+    /// Break the writer lock of a store on S3 whose holder is gone (file-system locks end
+    /// with their process); prints the holder it had.
+    Unlock {
+        /// Brick store (path or s3://bucket/prefix.zarr).
+        store: PathBuf,
+    },
     /// Train the INR on a brick store (by tile, checkpointed, resumable).
     Train {
         /// Brick store (.zarr) from `neuvolex ingest`.
@@ -537,9 +543,7 @@ fn print_stats(s: &VolumeStats) {
 }
 
 fn is_store(p: &Path) -> bool {
-    std::fs::read_to_string(p.join("zarr.json"))
-        .map(|t| t.contains("\"neuvolex\""))
-        .unwrap_or(false)
+    neuvolex_bricks::store::is_brick_store(p)
 }
 
 fn info(input: &Path, brick: usize, json: bool, raw: &RawArgs, quiet: bool) -> Result<()> {
@@ -852,6 +856,14 @@ fn main() -> Result<()> {
                 "features: {}/neuvolex/vectors/{} ({} channels, f16): {} bricks, {} voxels in {:.2} s ({:.0} k voxels/s)",
                 store.display(), r.name, r.channels, r.bricks, r.voxels, r.seconds, r.voxels as f64 / r.seconds.max(1e-9) / 1e3
             );
+        }
+        Cmd::Unlock { store } => {
+            let backend =
+                neuvolex_bricks::Backend::open(&neuvolex_bricks::StoreLocation::from(&store))?;
+            match neuvolex_bricks::lock::break_lock(&backend)? {
+                Some(h) => println!("{}: broke the writer lock held by {h}", store.display()),
+                None => println!("{}: not locked", store.display()),
+            }
         }
         Cmd::Info {
             input,

@@ -3,14 +3,19 @@
 //! Layout: the magic `NVXINR01`, a little-endian u64 header length, a JSON header
 //! ([`Header`]), then little-endian f32 arrays: table, dense, and for checkpoints the Adam
 //! moments (table m, table v, dense m, dense v). The header carries a CRC-32 of the arrays, so
-//! truncated or corrupted files are refused with a clear error. Files are written under a
-//! temporary name and renamed, so a crash during a save keeps the previous checkpoint.
+//! truncated or corrupted files are refused with a clear error.
+//!
+//! Files live at a [`StoreLocation`]: a path, or a URL inside an `s3://` store (the model of a
+//! store is `STORE/neuvolex/inr/model.nvx`). They are read and written through the store's
+//! storage ([`neuvolex_bricks::Backend`]): written atomically (a temporary file renamed, or
+//! one PUT), so a crash during a save keeps the previous checkpoint.
 
 use crate::adam::Adam;
 use crate::config::{InrConfig, TrainConfig};
 use crate::error::{FeatureError, Result};
 use crate::hashgrid::HashGrid;
 use crate::model::{DenseLayout, InrModel};
+use neuvolex_bricks::{Backend, StoreLocation};
 use serde::{Deserialize, Serialize};
 use std::io::{Read, Write};
 use std::path::Path;
@@ -73,7 +78,7 @@ fn bad(path: &Path, detail: impl Into<String>) -> FeatureError {
 
 /// Saves a model (and optionally optimiser state) atomically.
 pub fn save(
-    path: &Path,
+    location: impl Into<StoreLocation>,
     model: &InrModel,
     train: Option<(&TrainConfig, &TrainState, &Adam)>,
 ) -> Result<()> {
@@ -86,6 +91,9 @@ pub fn save(
             &a.v_dense[..],
         ]);
     }
+    let location = location.into();
+    let path_buf = location.as_path();
+    let path = path_buf.as_path();
     let mut crc = crc32fast::Hasher::new();
     for a in &arrays {
         crc.update(bytemuck::cast_slice(a));
@@ -107,33 +115,18 @@ pub fn save(
         crc32: crc.finalize(),
     };
     let json = serde_json::to_vec(&header).map_err(|e| bad(path, e.to_string()))?;
-    if let Some(dir) = path.parent() {
-        std::fs::create_dir_all(dir).map_err(io(dir))?;
+    let mut out =
+        Vec::with_capacity(16 + json.len() + arrays.iter().map(|a| a.len() * 4).sum::<usize>());
+    out.write_all(MAGIC).map_err(io(path))?;
+    out.write_all(&(json.len() as u64).to_le_bytes())
+        .map_err(io(path))?;
+    out.write_all(&json).map_err(io(path))?;
+    for a in &arrays {
+        out.extend_from_slice(bytemuck::cast_slice(a));
     }
-    let tmp = path.with_extension(format!("partial-{}", std::process::id()));
-    let res = (|| -> Result<()> {
-        let mut f = std::io::BufWriter::new(std::fs::File::create(&tmp).map_err(io(&tmp))?);
-        f.write_all(MAGIC).map_err(io(&tmp))?;
-        f.write_all(&(json.len() as u64).to_le_bytes())
-            .map_err(io(&tmp))?;
-        f.write_all(&json).map_err(io(&tmp))?;
-        for a in &arrays {
-            f.write_all(bytemuck::cast_slice(a)).map_err(io(&tmp))?;
-        }
-        f.flush().map_err(io(&tmp))?;
-        f.into_inner()
-            .map_err(|e| bad(&tmp, e.to_string()))?
-            .sync_all()
-            .map_err(io(&tmp))?;
-        Ok(())
-    })();
-    match res {
-        Ok(()) => std::fs::rename(&tmp, path).map_err(io(path)),
-        Err(e) => {
-            let _ = std::fs::remove_file(&tmp);
-            Err(e)
-        }
-    }
+    let (backend, key) = Backend::for_file(&location)?;
+    backend.put(&key, out)?;
+    Ok(())
 }
 
 /// The grid a model was built for (stored with it so features are computed on the same grid).
@@ -151,9 +144,18 @@ pub struct Loaded {
     pub adam: Option<Adam>,
 }
 
-/// Loads a model or checkpoint, checking magic, sizes and CRC.
-pub fn load(path: &Path) -> Result<Loaded> {
-    let mut f = std::fs::File::open(path).map_err(io(path))?;
+/// Loads a model or checkpoint (a path or a location in an `s3://` store), checking magic,
+/// sizes and CRC.
+pub fn load(location: impl Into<StoreLocation>) -> Result<Loaded> {
+    let location = location.into();
+    let path_buf = location.as_path();
+    let path = path_buf.as_path();
+    let (backend, key) = Backend::for_file(&location)?;
+    let bytes = backend.get(&key)?.ok_or_else(|| FeatureError::Io {
+        path: path.to_path_buf(),
+        source: std::io::Error::new(std::io::ErrorKind::NotFound, "no such file"),
+    })?;
+    let mut f = bytes.as_slice();
     let mut head = [0u8; 16];
     f.read_exact(&mut head)
         .map_err(|_| bad(path, "truncated: shorter than the 16-byte preamble"))?;

@@ -14,9 +14,8 @@ use crate::error::{FeatureError, Result};
 use crate::model::{InrModel, Work, CHUNK};
 use crate::rng::Rng;
 use crate::tile::Tile;
-use neuvolex_bricks::{Brick, BrickStore};
+use neuvolex_bricks::{Brick, BrickStore, StoreLocation};
 use rayon::prelude::*;
-use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 
@@ -79,8 +78,8 @@ pub enum TrainEvent {
     Checkpoint {
         /// Step.
         step: u64,
-        /// File.
-        path: PathBuf,
+        /// Where the checkpoint was written.
+        path: StoreLocation,
     },
     /// Training ended.
     Finished {
@@ -97,18 +96,14 @@ pub enum TrainEvent {
     },
 }
 
-/// Where the model and checkpoint of a store live.
-pub fn model_path(store: &BrickStore) -> PathBuf {
-    store.root().join("neuvolex").join("inr").join("model.nvx")
+/// Where the model of a store lives (inside the store, local or on S3).
+pub fn model_path(store: &BrickStore) -> StoreLocation {
+    store.location().join("neuvolex/inr/model.nvx")
 }
 
 /// The resumable checkpoint of a store.
-pub fn checkpoint_path(store: &BrickStore) -> PathBuf {
-    store
-        .root()
-        .join("neuvolex")
-        .join("inr")
-        .join("checkpoint.nvx")
+pub fn checkpoint_path(store: &BrickStore) -> StoreLocation {
+    store.location().join("neuvolex/inr/checkpoint.nvx")
 }
 
 /// The bricks training uses: the occupied ones (all if none is occupied or `include_empty`).
@@ -237,7 +232,7 @@ pub fn train(
     inr: &InrConfig,
     cfg: &TrainConfig,
     resume: Option<Loaded>,
-    checkpoint: Option<&Path>,
+    checkpoint: Option<&StoreLocation>,
     cancel: &AtomicBool,
     events: &mut dyn FnMut(TrainEvent),
 ) -> Result<Trained> {
@@ -454,7 +449,7 @@ pub fn train(
                         last_ckpt = Instant::now();
                         events(TrainEvent::Checkpoint {
                             step: state.step,
-                            path: p.to_path_buf(),
+                            path: p.clone(),
                         });
                     }
                     if done_samples {
@@ -483,7 +478,7 @@ pub fn train(
         save(p, &model, Some((&tc, &state, &adam)))?;
         events(TrainEvent::Checkpoint {
             step: state.step,
-            path: p.to_path_buf(),
+            path: p.clone(),
         });
     }
     events(TrainEvent::Finished {
