@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # The tests: every crate, release mode, with the wgpu renderer compared against the CPU one and
-# the browser UI driven in headless Chromium.
+# the browser UI driven in headless Chromium, and the store on a real S3-protocol server.
 # The GPU test needs a Vulkan driver; on a machine without a GPU, Mesa's lavapipe (a software
 # Vulkan) serves, so this installs it where it is missing and apt is usable. Without any adapter
 # the GPU test skips (and fails under CI=true).
@@ -30,4 +30,8 @@ if command -v npm >/dev/null 2>&1 && ! [ -d target/e2e/node_modules/playwright-c
   (cd target/e2e && { [ -f package.json ] || npm init -y >/dev/null 2>&1; } && npm install --silent --no-audit --no-fund playwright-core@1 >/dev/null 2>&1) ||
     echo "could not install playwright-core: the browser test will skip"
 fi
+# The object-store tests: s3s-fs (a real S3 server over a directory, from crates.io), built once
+# into target/tools; each S3 test starts its own on a loopback port. Without it they skip (and
+# fail under CI=true).
+./deploy/s3.sh install >/dev/null || echo "could not build s3s-fs: the S3 tests will skip"
 exec cargo test --workspace --release --features neuvolex-tests/gpu,neuvolex/gpu "$@"
