@@ -175,14 +175,17 @@ fn labels_and_ome_reader_through_a_url() {
     )
     .unwrap();
     let mut store = BrickStore::open(&loc).unwrap();
-    store
-        .add_labels(
-            "gt",
-            &mut Phantom::new(p, PhantomChannel::Labels),
-            &phantom_classes(),
-            &mut |_| {},
-        )
-        .unwrap();
+    let add = |store: &mut BrickStore| {
+        store
+            .add_labels(
+                "gt",
+                &mut Phantom::new(p, PhantomChannel::Labels),
+                &phantom_classes(),
+                &mut |_| {},
+            )
+            .unwrap()
+    };
+    add(&mut store);
     let want = MemVolume::read_all(&mut Phantom::new(p, PhantomChannel::Labels)).unwrap();
     let got = store
         .read_labels_box("gt", [0; 3], store.info().dims)
@@ -194,14 +197,7 @@ fn labels_and_ome_reader_through_a_url() {
     let slab = src.read_slab(0, store.info().dims[2]).unwrap();
     assert_eq!(slab.bytes, want.bytes);
     // Replacing the label image keeps one generation and the other label names.
-    store
-        .add_labels(
-            "gt",
-            &mut Phantom::new(p, PhantomChannel::Labels),
-            &phantom_classes(),
-            &mut |_| {},
-        )
-        .unwrap();
+    add(&mut store);
     let gt = s3.dir.path().join("test/ph.zarr/labels/gt");
     let gen_dirs: Vec<_> = std::fs::read_dir(&gt)
         .unwrap()

@@ -181,19 +181,31 @@ impl Backend {
     pub fn create_new(&self, key: &str, bytes: Vec<u8>) -> Result<bool> {
         match &self.kind {
             Kind::Fs(fs) => fs.create_new(key, &bytes).map_err(|e| self.err(key, e)),
-            Kind::Object(s) => {
-                let p = ObjPath::from(key.trim_start_matches('/'));
-                let opts = PutOptions {
-                    mode: PutMode::Create,
-                    ..Default::default()
-                };
-                match block_on(s.put_opts(&p, PutPayload::from(bytes), opts)) {
-                    Ok(_) => Ok(true),
-                    Err(object_store::Error::AlreadyExists { .. })
-                    | Err(object_store::Error::Precondition { .. }) => Ok(false),
-                    Err(e) => Err(self.err(key, e)),
-                }
-            }
+            Kind::Object(s) => self.conditional_put(s, key, bytes, PutMode::Create),
+        }
+    }
+
+    /// A conditional PUT: true if written, false if the condition failed.
+    fn conditional_put(
+        &self,
+        s: &Arc<dyn ObjectStore>,
+        key: &str,
+        bytes: Vec<u8>,
+        mode: PutMode,
+    ) -> Result<bool> {
+        let p = ObjPath::from(key.trim_start_matches('/'));
+        let update = matches!(mode, PutMode::Update(_));
+        let opts = PutOptions {
+            mode,
+            ..Default::default()
+        };
+        match block_on(s.put_opts(&p, PutPayload::from(bytes), opts)) {
+            Ok(_) => Ok(true),
+            Err(object_store::Error::AlreadyExists { .. })
+            | Err(object_store::Error::Precondition { .. }) => Ok(false),
+            // The object to replace is gone: the condition failed too.
+            Err(object_store::Error::NotFound { .. }) if update => Ok(false),
+            Err(e) => Err(self.err(key, e)),
         }
     }
 
@@ -202,22 +214,15 @@ impl Backend {
     pub fn replace_if(&self, key: &str, bytes: Vec<u8>, version: &Version) -> Result<bool> {
         match &self.kind {
             Kind::Fs(_) => self.put(key, bytes).map(|_| true),
-            Kind::Object(s) => {
-                let p = ObjPath::from(key.trim_start_matches('/'));
-                let opts = PutOptions {
-                    mode: PutMode::Update(object_store::UpdateVersion {
-                        e_tag: version.0.clone(),
-                        version: None,
-                    }),
-                    ..Default::default()
-                };
-                match block_on(s.put_opts(&p, PutPayload::from(bytes), opts)) {
-                    Ok(_) => Ok(true),
-                    Err(object_store::Error::Precondition { .. })
-                    | Err(object_store::Error::NotFound { .. }) => Ok(false),
-                    Err(e) => Err(self.err(key, e)),
-                }
-            }
+            Kind::Object(s) => self.conditional_put(
+                s,
+                key,
+                bytes,
+                PutMode::Update(object_store::UpdateVersion {
+                    e_tag: version.0.clone(),
+                    version: None,
+                }),
+            ),
         }
     }
 
