@@ -149,7 +149,7 @@ fn pyramid_is_mean_for_images_and_mode_for_labels() {
     assert_eq!(store2.info().labels, vec!["gt".to_string()]);
     assert_eq!(store2.label_classes("gt").unwrap().len(), 5);
     let reader =
-        neuvolex_bricks::omezarr::OmeZarrSource::open(&store.root().join("labels/gt")).unwrap();
+        neuvolex_bricks::omezarr::OmeZarrSource::open(store.root().join("labels/gt")).unwrap();
     drop(reader);
     let l1_dir = store.root().join("labels/gt/v1/1");
     assert!(l1_dir.join("zarr.json").exists());

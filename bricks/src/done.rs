@@ -140,13 +140,13 @@ impl DoneMarkers {
         match self.backend.get(&key)? {
             None => Ok(false),
             Some(v) if v == self.hash.as_bytes() => Ok(true),
-            Some(_) => Err(BrickError::StageMismatch {
-                path: self.backend.key_path(&key),
-                what: "the done marker".into(),
-                found: "another stage tag".into(),
-                expected: format!("{:?}", self.tag),
-                hint: "clear the stage's markers and run it again".into(),
-            }),
+            Some(_) => Err(BrickError::stage_mismatch(
+                self.backend.key_path(&key),
+                "the done marker",
+                "another stage tag",
+                &format!("{:?}", self.tag),
+                "clear the stage's markers and run it again",
+            )),
         }
     }
 
@@ -211,15 +211,14 @@ fn mismatch(backend: &Backend, prefix: &str, found: &StageTag, want: &StageTag) 
             format!("'{}'", want.stage),
         )
     };
-    BrickError::StageMismatch {
-        path: backend.key_path(prefix),
-        what: format!("done markers of stage '{}'", want.stage),
-        found: f,
-        expected: e,
-        hint: "clear them to start this stage over (neuvolex ... --restart), or resume with \
-               the model and parameters they were written for"
-            .into(),
-    }
+    BrickError::stage_mismatch(
+        backend.key_path(prefix),
+        &format!("done markers of stage '{}'", want.stage),
+        &f,
+        &e,
+        "clear them to start this stage over (neuvolex ... --restart), or resume with \
+               the model and parameters they were written for",
+    )
 }
 
 #[cfg(test)]

@@ -168,18 +168,12 @@ pub enum BrickError {
     },
     /// Done markers (or a pending output) written for a different brick layout or stage
     /// identity (model version, parameters).
-    #[error("{path}: {what} were written for {found}, this run is {expected}; {hint}")]
+    #[error("{path}: {detail}")]
     StageMismatch {
         /// The markers or array.
         path: PathBuf,
-        /// What does not match ("done markers of stage 'features'").
-        what: String,
-        /// The recorded tag.
-        found: String,
-        /// This run's tag.
-        expected: String,
-        /// How to proceed.
-        hint: String,
+        /// What was recorded, what this run is, and how to proceed.
+        detail: String,
     },
 }
 
@@ -205,6 +199,20 @@ impl BrickError {
         BrickError::Zarr {
             path: path.into(),
             detail: err.to_string(),
+        }
+    }
+
+    /// A [`BrickError::StageMismatch`]: `what` was written for `found`, this run is `expected`.
+    pub fn stage_mismatch(
+        path: impl Into<PathBuf>,
+        what: &str,
+        found: &str,
+        expected: &str,
+        hint: &str,
+    ) -> Self {
+        BrickError::StageMismatch {
+            path: path.into(),
+            detail: format!("{what}: written for {found}, but this run is {expected}; {hint}"),
         }
     }
 

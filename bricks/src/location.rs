@@ -18,7 +18,7 @@ pub enum StoreLocation {
     /// A local or shared-POSIX (NFS, Lustre) path.
     Local(PathBuf),
     /// An object prefix in an S3-protocol bucket.
-    S3(S3Url),
+    S3(Box<S3Url>),
 }
 
 /// `s3://bucket/prefix` with the client settings used to reach it.
@@ -147,7 +147,7 @@ impl StoreLocation {
             options,
         };
         url.validate()?;
-        Ok(StoreLocation::S3(url))
+        Ok(StoreLocation::S3(Box::new(url)))
     }
 
     /// Parses `s3://bucket/prefix` (settings from the environment) or takes any other text as
@@ -344,11 +344,11 @@ impl FromStr for StoreLocation {
 impl From<&Path> for StoreLocation {
     fn from(p: &Path) -> Self {
         match p.to_str().and_then(split_s3) {
-            Some((bucket, prefix)) => StoreLocation::S3(S3Url {
+            Some((bucket, prefix)) => StoreLocation::S3(Box::new(S3Url {
                 bucket: bucket.to_string(),
                 prefix: prefix.trim_matches('/').to_string(),
                 options: S3Options::from_env(),
-            }),
+            })),
             None => StoreLocation::Local(p.to_path_buf()),
         }
     }

@@ -1646,13 +1646,13 @@ impl BrickStore {
         let lock = self.writer_lock(&format!("vectors {name}"))?;
         if let Some(mut va) = self.find_pending(name, identity)? {
             if va.info.channels != channels || va.info.encoding != encoding {
-                return Err(BrickError::StageMismatch {
-                    path: self.backend.key_path(&va.path),
-                    what: format!("the pending vector array '{name}'"),
-                    found: format!("{} channels, {:?}", va.info.channels, va.info.encoding),
-                    expected: format!("{channels} channels, {encoding:?}"),
-                    hint: "discard it to start over".into(),
-                });
+                return Err(BrickError::stage_mismatch(
+                    self.backend.key_path(&va.path),
+                    &format!("the pending vector array '{name}'"),
+                    &format!("{} channels, {:?}", va.info.channels, va.info.encoding),
+                    &format!("{channels} channels, {encoding:?}"),
+                    "discard it to start over",
+                ));
             }
             va.lock = Some(lock);
             return Ok(va);
@@ -1745,15 +1745,14 @@ impl BrickStore {
                     return Ok(Some(va));
                 }
                 Some(id) => {
-                    return Err(BrickError::StageMismatch {
-                        path: self.backend.key_path(&va.path),
-                        what: format!("the pending vector array '{name}'"),
-                        found: format!("stage identity '{id}'"),
-                        expected: format!("'{identity}'"),
-                        hint: "discard it (discard_pending_vectors, or --restart) to start \
-                               over, or resume with the model and parameters it was written for"
-                            .into(),
-                    })
+                    return Err(BrickError::stage_mismatch(
+                        self.backend.key_path(&va.path),
+                        &format!("the pending vector array '{name}'"),
+                        &format!("stage identity '{id}'"),
+                        &format!("'{identity}'"),
+                        "discard it (discard_pending_vectors, or --restart) to start \
+                               over, or resume with the model and parameters it was written for",
+                    ))
                 }
                 None => {}
             }

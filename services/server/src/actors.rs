@@ -617,7 +617,7 @@ fn train(
     // its checkpoint for `resume`, and its last snapshot serves this session.
     if !cancel.load(Ordering::SeqCst) {
         checkpoint::save(
-            &neuvolex_features::train::model_path(&s.store),
+            neuvolex_features::train::model_path(&s.store),
             &t.model,
             None,
         )

@@ -140,7 +140,7 @@ impl Session {
         }
         // A model trained earlier (by `neuvolex train` or a previous session) on this grid.
         let model =
-            neuvolex_features::checkpoint::load(&neuvolex_features::train::model_path(&store))
+            neuvolex_features::checkpoint::load(neuvolex_features::train::model_path(&store))
                 .ok()
                 .filter(|l| l.model.dims == store.info().dims)
                 .map(|l| (1, Arc::new(l.model)));
