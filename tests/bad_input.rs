@@ -538,7 +538,7 @@ fn bad_arguments_to_the_store() {
     for brick in [7usize, 100, 0] {
         let e = ingest(
             &mut MemVolume::from_f32([4, 4, 4], &[0.0; 64]),
-            &d.path().join("b.zarr"),
+            d.path().join("b.zarr"),
             &IngestOptions {
                 brick,
                 ..Default::default()

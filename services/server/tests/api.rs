@@ -705,7 +705,7 @@ async fn labels_and_probabilities_export_as_nifti_and_ome_zarr() {
     }
     let r: Value = test::call_and_read_body_json(&app, post_zarr(json!("seg"))).await;
     assert_eq!(r["labels"], "labels/seg", "{r}");
-    let store = BrickStore::open(&cfg.data_root.join("ph.zarr")).unwrap();
+    let store = BrickStore::open(cfg.data_root.join("ph.zarr")).unwrap();
     assert!(store.info().labels.contains(&"seg".to_string()));
     assert!(store.label_classes("seg").unwrap().len() >= 4);
     let va = store.open_vectors("seg_proba").unwrap();
