@@ -201,3 +201,39 @@ impl TrainConfig {
         }
     }
 }
+
+/// Where training and feature extraction run.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "lowercase")]
+pub enum Backend {
+    /// The fused CPU engine.
+    Cpu,
+    /// The GPU engine on any adapter, software ones (Mesa lavapipe, llvmpipe) included.
+    Gpu,
+    /// The GPU engine when a hardware GPU adapter exists, else the CPU engine.
+    #[default]
+    Auto,
+}
+
+impl Backend {
+    /// The name `FromStr` accepts.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Backend::Cpu => "cpu",
+            Backend::Gpu => "gpu",
+            Backend::Auto => "auto",
+        }
+    }
+}
+
+impl std::str::FromStr for Backend {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "cpu" => Ok(Backend::Cpu),
+            "gpu" => Ok(Backend::Gpu),
+            "auto" => Ok(Backend::Auto),
+            _ => Err(format!("unknown backend '{s}' (cpu, gpu, auto)")),
+        }
+    }
+}

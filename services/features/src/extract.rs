@@ -78,6 +78,24 @@ pub struct ExtractReport {
     pub seconds: f64,
 }
 
+/// The vector array `kind` features of `model` are written to, and the bricks written: the
+/// training bricks, or all with `all_bricks`.
+pub fn feature_output(
+    store: &BrickStore,
+    model: &InrModel,
+    kind: FeatureKind,
+    all_bricks: bool,
+) -> Result<(VectorArray, Vec<Brick>)> {
+    let bricks = training_bricks(store, all_bricks);
+    let mut va = store.create_vectors(
+        &vectors_name(kind),
+        kind.channels(model),
+        VectorEncoding::F16,
+    )?;
+    va.set_extra(serde_json::json!({"kind": kind, "bricks": if all_bricks { "all" } else { "occupied" }, "background": store.info().background, "inr": model.cfg}));
+    Ok((va, bricks))
+}
+
 /// Extracts `kind` features of the training bricks (or all bricks) into the store as f16.
 /// Bricks left out are empty (below the store's background threshold).
 pub fn write_features(
@@ -88,11 +106,8 @@ pub fn write_features(
     progress: &mut dyn FnMut(Progress),
 ) -> Result<ExtractReport> {
     let t = Instant::now();
-    let name = vectors_name(kind);
-    let c = kind.channels(model);
-    let bricks = training_bricks(store, all_bricks);
-    let mut va = store.create_vectors(&name, c, VectorEncoding::F16)?;
-    va.set_extra(serde_json::json!({"kind": kind, "bricks": if all_bricks { "all" } else { "occupied" }, "background": store.info().background, "inr": model.cfg}));
+    let (mut va, bricks) = feature_output(store, model, kind, all_bricks)?;
+    let (name, c) = (vectors_name(kind), kind.channels(model));
     progress(Progress::Stage {
         name: "features",
         total: bricks.len() as u64,

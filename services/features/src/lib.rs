@@ -20,7 +20,7 @@ pub use neuvolex_bricks::rng;
 pub mod tile;
 pub mod train;
 
-pub use config::{Ablation, Budget, InrConfig, Preset, TableAdam, TrainConfig};
+pub use config::{Ablation, Backend, Budget, InrConfig, Preset, TableAdam, TrainConfig};
 pub use error::{FeatureError, Result};
 pub use extract::{write_features, FeatureCache, FeatureSource};
 pub use model::{FeatureKind, InrModel};

@@ -126,116 +126,8 @@ fn mix(a: u64, b: u64, c: u64) -> u64 {
     r.next_u64()
 }
 
-/// A reconstructed slice beside its input.
-#[derive(Debug, Clone, PartialEq)]
-pub struct PreviewSlice {
-    /// Slice index (z).
-    pub z: usize,
-    /// Width in preview pixels.
-    pub width: usize,
-    /// Height in preview pixels.
-    pub height: usize,
-    /// Intensity-head reconstruction, row-major, normalised.
-    pub recon: Vec<f32>,
-    /// Normalised input at the same pixels.
-    pub truth: Vec<f32>,
-}
-
-/// Reconstructs the middle z-slice (at most `max_px` wide) with the intensity head.
-pub fn preview(store: &BrickStore, model: &InrModel, max_px: usize) -> Result<PreviewSlice> {
-    let d = store.info().dims;
-    let z = d[2] / 2;
-    let patch = model.cfg.patch;
-    let r = patch / 2;
-    let z0 = z.saturating_sub(r);
-    let z1 = (z + r + 1).min(d[2]);
-    let raw = store.read_box(0, [0, 0, z0], [d[0], d[1], z1 - z0])?;
-    let norm = store.normaliser();
-    let vals: Vec<f32> = raw.iter().map(|&v| norm.apply(v)).collect();
-    let stride = d[0].max(d[1]).div_ceil(max_px.max(1)).max(1);
-    let (w, h) = (d[0].div_ceil(stride), d[1].div_ceil(stride));
-    let at = |x: isize, y: isize, zz: isize| {
-        let cx = x.clamp(0, d[0] as isize - 1) as usize;
-        let cy = y.clamp(0, d[1] as isize - 1) as usize;
-        let cz = zz.clamp(z0 as isize, z1 as isize - 1) as usize - z0;
-        vals[(cz * d[1] + cy) * d[0] + cx]
-    };
-    let pix: Vec<(usize, usize)> = (0..h)
-        .flat_map(|j| (0..w).map(move |i| (i * stride, j * stride)))
-        .collect();
-    let recon: Vec<f32> = pix
-        .par_chunks(CHUNK)
-        .flat_map_iter(|chunk| {
-            let mut wk = model.work();
-            model.load_with(&mut wk, chunk.len(), |i, x, p, t| {
-                let (px, py) = chunk[i];
-                *x = [
-                    (px as f32 + 0.5) / d[0] as f32,
-                    (py as f32 + 0.5) / d[1] as f32,
-                    (z as f32 + 0.5) / d[2] as f32,
-                ];
-                let mut k = 0;
-                for dz in 0..patch as isize {
-                    for dy in 0..patch as isize {
-                        for dx in 0..patch as isize {
-                            p[k] = at(
-                                px as isize + dx - r as isize,
-                                py as isize + dy - r as isize,
-                                z as isize + dz - r as isize,
-                            );
-                            k += 1;
-                        }
-                    }
-                }
-                t.iter_mut().for_each(|v| *v = 0.0);
-            });
-            model.forward(&mut wk);
-            let outs = model.layout.head.out;
-            model
-                .outputs(&wk)
-                .chunks(outs)
-                .map(|o| o[0])
-                .collect::<Vec<_>>()
-        })
-        .collect();
-    let truth: Vec<f32> = pix
-        .iter()
-        .map(|&(x, y)| at(x as isize, y as isize, z as isize))
-        .collect();
-    Ok(PreviewSlice {
-        z,
-        width: w,
-        height: h,
-        recon,
-        truth,
-    })
-}
-
-fn psnr(mse: f64) -> f64 {
-    10.0 * (1.0 / mse.max(1e-12)).log10()
-}
-
-/// The result of [`train`].
-pub struct Trained {
-    /// The trained model.
-    pub model: InrModel,
-    /// Final position.
-    pub state: TrainState,
-    /// PSNR of the last batch.
-    pub psnr: f64,
-}
-
-/// Trains the INR on `store`. With `resume`, continues from a checkpoint (its configuration
-/// wins over `inr`/`cfg`, except for the budget). Checkpoints go to `checkpoint` when given.
-pub fn train(
-    store: &BrickStore,
-    inr: &InrConfig,
-    cfg: &TrainConfig,
-    resume: Option<Loaded>,
-    checkpoint: Option<&StoreLocation>,
-    cancel: &AtomicBool,
-    events: &mut dyn FnMut(TrainEvent),
-) -> Result<Trained> {
+/// Checks a model and training configuration before anything is allocated.
+pub fn check_configs(inr: &InrConfig, cfg: &TrainConfig) -> Result<()> {
     if cfg.batch == 0 || cfg.tile_bricks == 0 {
         return Err(FeatureError::Config(
             "batch and tile_bricks must be positive".into(),
@@ -263,8 +155,39 @@ pub fn train(
             "levels must be 1..=32 and log2_table at most 24".into(),
         ));
     }
+    Ok(())
+}
+
+/// Where a training run starts: the model and optimiser (fresh or from a checkpoint), the
+/// position, the effective settings, and the bricks and sample budget of an epoch.
+pub struct Start {
+    /// The model to train.
+    pub model: InrModel,
+    /// Its optimiser state.
+    pub adam: Adam,
+    /// The position training starts from.
+    pub state: TrainState,
+    /// Effective settings (a checkpoint's, with the caller's budget).
+    pub tc: TrainConfig,
+    /// The bricks an epoch visits.
+    pub bricks: Vec<Brick>,
+    /// Voxels per epoch.
+    pub voxels: u64,
+    /// Sample budget, if bounded by samples or epochs.
+    pub budget_samples: Option<u64>,
+}
+
+/// Validates the configuration and sets up a run: fresh, or continuing `resume` (whose
+/// configuration wins over `inr`/`cfg`, except for the budget).
+pub fn start(
+    store: &BrickStore,
+    inr: &InrConfig,
+    cfg: &TrainConfig,
+    resume: Option<Loaded>,
+) -> Result<Start> {
+    check_configs(inr, cfg)?;
     let dims = store.info().dims;
-    let (mut model, mut adam, mut state, mut tc) = match resume {
+    let (model, adam, state, mut tc) = match resume {
         Some(l) => {
             if l.model.dims != dims {
                 return Err(FeatureError::Config(format!(
@@ -299,6 +222,224 @@ pub fn train(
             "no budget: give epochs, samples or seconds".into(),
         ));
     }
+    Ok(Start {
+        model,
+        adam,
+        state,
+        tc,
+        bricks,
+        voxels,
+        budget_samples,
+    })
+}
+
+/// The tile groups of an epoch: the bricks in the epoch's seeded order, `tile_bricks` at a time.
+pub fn epoch_groups(
+    bricks: &[Brick],
+    seed: u64,
+    epoch: u64,
+    tile_bricks: usize,
+) -> Vec<Vec<Brick>> {
+    let mut order = bricks.to_vec();
+    Rng::new(mix(seed, epoch, 0)).shuffle(&mut order);
+    order.chunks(tile_bricks).map(|c| c.to_vec()).collect()
+}
+
+/// The samples of a tile group in their seeded order: (tile, voxel) pairs, every voxel once.
+/// Batches are consecutive runs of `batch` of them.
+pub fn group_order(tiles: &[Tile], seed: u64, epoch: u64, group: usize) -> Vec<(u32, u32)> {
+    let mut order: Vec<(u32, u32)> = tiles
+        .iter()
+        .enumerate()
+        .flat_map(|(t, tile)| (0..tile.voxels() as u32).map(move |v| (t as u32, v)))
+        .collect();
+    Rng::new(mix(seed, epoch, group as u64 + 1)).shuffle(&mut order);
+    order
+}
+
+/// A reconstructed slice beside its input.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PreviewSlice {
+    /// Slice index (z).
+    pub z: usize,
+    /// Width in preview pixels.
+    pub width: usize,
+    /// Height in preview pixels.
+    pub height: usize,
+    /// Intensity-head reconstruction, row-major, normalised.
+    pub recon: Vec<f32>,
+    /// Normalised input at the same pixels.
+    pub truth: Vec<f32>,
+}
+
+/// The inputs of a preview: the middle z-slice, at most `max_px` wide, as model samples.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PreviewInputs {
+    /// Slice index (z).
+    pub z: usize,
+    /// Width in preview pixels.
+    pub width: usize,
+    /// Height in preview pixels.
+    pub height: usize,
+    /// Normalised position of every pixel, row-major.
+    pub coords: Vec<[f32; 3]>,
+    /// The normalised `patch^3` neighbourhood of every pixel (edge-clamped), x fastest.
+    pub patches: Vec<f32>,
+    /// Normalised input at the same pixels.
+    pub truth: Vec<f32>,
+}
+
+/// Samples the middle z-slice of `store` (at most `max_px` wide) for a model whose patch edge
+/// is `patch`.
+pub fn preview_inputs(store: &BrickStore, patch: usize, max_px: usize) -> Result<PreviewInputs> {
+    let d = store.info().dims;
+    let z = d[2] / 2;
+    let r = patch / 2;
+    let z0 = z.saturating_sub(r);
+    let z1 = (z + r + 1).min(d[2]);
+    let raw = store.read_box(0, [0, 0, z0], [d[0], d[1], z1 - z0])?;
+    let norm = store.normaliser();
+    let vals: Vec<f32> = raw.iter().map(|&v| norm.apply(v)).collect();
+    let stride = d[0].max(d[1]).div_ceil(max_px.max(1)).max(1);
+    let (w, h) = (d[0].div_ceil(stride), d[1].div_ceil(stride));
+    let at = |x: isize, y: isize, zz: isize| {
+        let cx = x.clamp(0, d[0] as isize - 1) as usize;
+        let cy = y.clamp(0, d[1] as isize - 1) as usize;
+        let cz = zz.clamp(z0 as isize, z1 as isize - 1) as usize - z0;
+        vals[(cz * d[1] + cy) * d[0] + cx]
+    };
+    let pix: Vec<(usize, usize)> = (0..h)
+        .flat_map(|j| (0..w).map(move |i| (i * stride, j * stride)))
+        .collect();
+    let mut patches = Vec::with_capacity(pix.len() * patch.pow(3));
+    for &(px, py) in &pix {
+        for dz in 0..patch as isize {
+            for dy in 0..patch as isize {
+                for dx in 0..patch as isize {
+                    patches.push(at(
+                        px as isize + dx - r as isize,
+                        py as isize + dy - r as isize,
+                        z as isize + dz - r as isize,
+                    ));
+                }
+            }
+        }
+    }
+    let coords = pix
+        .iter()
+        .map(|&(px, py)| {
+            [
+                (px as f32 + 0.5) / d[0] as f32,
+                (py as f32 + 0.5) / d[1] as f32,
+                (z as f32 + 0.5) / d[2] as f32,
+            ]
+        })
+        .collect();
+    let truth: Vec<f32> = pix
+        .iter()
+        .map(|&(x, y)| at(x as isize, y as isize, z as isize))
+        .collect();
+    Ok(PreviewInputs {
+        z,
+        width: w,
+        height: h,
+        coords,
+        patches,
+        truth,
+    })
+}
+
+/// Reconstructs the middle z-slice (at most `max_px` wide) with the intensity head.
+pub fn preview(store: &BrickStore, model: &InrModel, max_px: usize) -> Result<PreviewSlice> {
+    let inp = preview_inputs(store, model.cfg.patch, max_px)?;
+    let p3 = model.cfg.patch.pow(3);
+    let n = inp.coords.len();
+    let recon: Vec<f32> = (0..n)
+        .collect::<Vec<_>>()
+        .par_chunks(CHUNK)
+        .flat_map_iter(|chunk| {
+            let mut wk = model.work();
+            model.load_with(&mut wk, chunk.len(), |i, x, p, t| {
+                let k = chunk[i];
+                *x = inp.coords[k];
+                p.copy_from_slice(&inp.patches[k * p3..(k + 1) * p3]);
+                t.iter_mut().for_each(|v| *v = 0.0);
+            });
+            model.forward(&mut wk);
+            let outs = model.layout.head.out;
+            model
+                .outputs(&wk)
+                .chunks(outs)
+                .map(|o| o[0])
+                .collect::<Vec<_>>()
+        })
+        .collect();
+    Ok(PreviewSlice {
+        z: inp.z,
+        width: inp.width,
+        height: inp.height,
+        recon,
+        truth: inp.truth,
+    })
+}
+
+impl PreviewSlice {
+    /// The training event of this preview at `step` (with the PSNR of the slice).
+    pub fn event(self, step: u64) -> TrainEvent {
+        let mse = self
+            .recon
+            .iter()
+            .zip(&self.truth)
+            .map(|(a, b)| ((a - b) as f64).powi(2))
+            .sum::<f64>()
+            / self.recon.len().max(1) as f64;
+        TrainEvent::Preview {
+            step,
+            z: self.z,
+            width: self.width,
+            height: self.height,
+            recon: self.recon,
+            truth: self.truth,
+            psnr: psnr(mse),
+        }
+    }
+}
+
+/// PSNR in dB of a mean squared error on the normalised range (peak 1).
+pub fn psnr(mse: f64) -> f64 {
+    10.0 * (1.0 / mse.max(1e-12)).log10()
+}
+
+/// The result of [`train`].
+pub struct Trained {
+    /// The trained model.
+    pub model: InrModel,
+    /// Final position.
+    pub state: TrainState,
+    /// PSNR of the last batch.
+    pub psnr: f64,
+}
+
+/// Trains the INR on `store`. With `resume`, continues from a checkpoint (its configuration
+/// wins over `inr`/`cfg`, except for the budget). Checkpoints go to `checkpoint` when given.
+pub fn train(
+    store: &BrickStore,
+    inr: &InrConfig,
+    cfg: &TrainConfig,
+    resume: Option<Loaded>,
+    checkpoint: Option<&StoreLocation>,
+    cancel: &AtomicBool,
+    events: &mut dyn FnMut(TrainEvent),
+) -> Result<Trained> {
+    let Start {
+        mut model,
+        mut adam,
+        mut state,
+        tc,
+        bricks,
+        voxels,
+        budget_samples,
+    } = start(store, inr, cfg, resume)?;
     events(TrainEvent::Started {
         bricks: bricks.len(),
         total_bricks: store.bricks().count(),
@@ -317,11 +458,7 @@ pub fn train(
     let (mut last_psnr, mut win_samples, mut win_start) = (0.0f64, 0u64, Instant::now());
     let tile_bricks = tc.tile_bricks;
     let seed = tc.seed;
-    let groups_of = |epoch: u64| -> Vec<Vec<Brick>> {
-        let mut order = bricks.clone();
-        Rng::new(mix(seed, epoch, 0)).shuffle(&mut order);
-        order.chunks(tile_bricks).map(|c| c.to_vec()).collect()
-    };
+    let groups_of = |epoch: u64| epoch_groups(&bricks, seed, epoch, tile_bricks);
     let load_group = |g: &[Brick]| -> Result<Vec<Tile>> {
         g.iter()
             .map(|b| Tile::load(store, b, patch).map_err(FeatureError::from))
@@ -342,12 +479,7 @@ pub fn train(
                     let g = groups[state.group + 1].clone();
                     next = Some(scope.spawn(move || load_group(&g)));
                 }
-                let mut order: Vec<(u32, u32)> = tiles
-                    .iter()
-                    .enumerate()
-                    .flat_map(|(t, tile)| (0..tile.voxels() as u32).map(move |v| (t as u32, v)))
-                    .collect();
-                Rng::new(mix(seed, state.epoch, state.group as u64 + 1)).shuffle(&mut order);
+                let order = group_order(&tiles, seed, state.epoch, state.group);
                 let batches: Vec<&[(u32, u32)]> = order.chunks(tc.batch).collect();
                 while state.batch < batches.len() {
                     if cancel.load(Ordering::Relaxed) {
@@ -419,28 +551,7 @@ pub fn train(
                         win_start = Instant::now();
                     }
                     if tc.preview_every > 0 && state.step % tc.preview_every == 0 {
-                        let PreviewSlice {
-                            z,
-                            width,
-                            height,
-                            recon,
-                            truth,
-                        } = preview(store, &model, 128)?;
-                        let mse = recon
-                            .iter()
-                            .zip(&truth)
-                            .map(|(a, b)| ((a - b) as f64).powi(2))
-                            .sum::<f64>()
-                            / recon.len().max(1) as f64;
-                        events(TrainEvent::Preview {
-                            step: state.step,
-                            z,
-                            width,
-                            height,
-                            recon,
-                            truth,
-                            psnr: psnr(mse),
-                        });
+                        events(preview(store, &model, 128)?.event(state.step));
                     }
                     let ckpt_due = tc.checkpoint_every > 0 && state.step % tc.checkpoint_every == 0
                         || last_ckpt.elapsed().as_secs_f64() > 120.0;
