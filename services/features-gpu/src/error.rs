@@ -1,0 +1,42 @@
+//! Errors of the GPU engine.
+
+/// Everything that can fail on the GPU path.
+#[derive(Debug, thiserror::Error)]
+pub enum GpuError {
+    /// No adapter of the kind asked for.
+    #[error("no GPU adapter: {0}")]
+    NoAdapter(String),
+    /// The adapter lacks a limit or feature the kernels need.
+    #[error("GPU adapter {adapter}: {detail}")]
+    Unsupported {
+        /// The adapter.
+        adapter: String,
+        /// What is missing.
+        detail: String,
+    },
+    /// wgpu reported an error (validation, out of memory, device lost, mapping).
+    #[error("GPU: {0}")]
+    Device(String),
+    /// The model or the run cannot be placed on this device.
+    #[error("GPU: {0}")]
+    Config(String),
+    /// The feature stage failed (store, checkpoint, configuration, cancellation).
+    #[error(transparent)]
+    Feature(#[from] neuvolex_features::FeatureError),
+    /// The brick store failed.
+    #[error(transparent)]
+    Brick(#[from] neuvolex_bricks::BrickError),
+}
+
+/// Result alias.
+pub type Result<T, E = GpuError> = std::result::Result<T, E>;
+
+impl From<GpuError> for neuvolex_features::FeatureError {
+    fn from(e: GpuError) -> Self {
+        match e {
+            GpuError::Feature(f) => f,
+            GpuError::Brick(b) => neuvolex_features::FeatureError::Brick(b),
+            o => neuvolex_features::FeatureError::Config(o.to_string()),
+        }
+    }
+}
