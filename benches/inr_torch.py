@@ -4,10 +4,12 @@ Same architecture and sizes as neuvolex-features (16 levels x 2 features, 2^19 t
 finest = the volume's largest dimension, dense indexing where the level fits the table, the
 spatial hash otherwise; structural encoder 125-32-32 -> FiLM; 4x64 MLP with a residual
 projection into the third layer; heads for intensity, gradient, mean, std; loss weights
-1, 1, 0.5, 0.5), trained with torch.optim.Adam on CPU.
+1, 1, 0.5, 0.5), trained with torch.optim.Adam on the CPU or, with --device cuda, on an NVIDIA GPU (timed after
+torch.cuda.synchronize, so queued kernels count).
 
 Prints one JSON line: training samples/s and extraction (forward, no grad) voxels/s.
-Usage: python3 inr_torch.py [--threads 2] [--batch 16384] [--finest 161] [--seconds 20]
+Usage: python3 inr_torch.py [--device cpu|cuda] [--threads 2] [--batch 16384] [--finest 161]
+       [--seconds 20] [--sparse] [--compile]
 """
 import argparse
 import json
@@ -84,6 +86,7 @@ def loss_fn(y, t):
 
 def main():
     ap = argparse.ArgumentParser()
+    ap.add_argument("--device", default="cpu", help="cpu or cuda")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--batch", type=int, default=16384)
     ap.add_argument("--finest", type=int, default=161)
@@ -93,7 +96,9 @@ def main():
     a = ap.parse_args()
     torch.set_num_threads(a.threads)
     torch.manual_seed(0)
-    model = Inr(a.finest, a.sparse)
+    dev = torch.device(a.device)
+    sync = torch.cuda.synchronize if dev.type == "cuda" else (lambda: None)
+    model = Inr(a.finest, a.sparse).to(dev)
     rest = [p for n, p in model.named_parameters() if n != "grid.table.weight"]
     fwd = torch.compile(model) if a.compile else model
     if a.sparse:
@@ -112,12 +117,13 @@ def main():
 
     opt = Multi()
     n = a.batch
-    gen = lambda: (torch.rand(n, 3), torch.rand(n, 125), torch.rand(n, 6))
+    gen = lambda: (torch.rand(n, 3, device=dev), torch.rand(n, 125, device=dev), torch.rand(n, 6, device=dev))
     x, p, t = gen()
     for _ in range(2):  # warm-up
         opt.zero_grad()
         loss_fn(fwd(x, p)[0], t).backward()
         opt.step()
+    sync()
     steps, t0 = 0, time.perf_counter()
     while time.perf_counter() - t0 < a.seconds:
         x, p, t = gen()
@@ -125,14 +131,16 @@ def main():
         loss_fn(fwd(x, p)[0], t).backward()
         opt.step()
         steps += 1
+    sync()
     train = steps * n / (time.perf_counter() - t0)
     with torch.no_grad():
         reps, t0 = 0, time.perf_counter()
         while time.perf_counter() - t0 < a.seconds / 2:
             fwd(x, p)
             reps += 1
+        sync()
         extract = reps * n / (time.perf_counter() - t0)
-    print(json.dumps({"torch": torch.__version__, "threads": a.threads, "batch": n, "sparse": a.sparse, "compile": a.compile,
+    print(json.dumps({"torch": torch.__version__, "device": a.device, "threads": a.threads, "batch": n, "sparse": a.sparse, "compile": a.compile,
                       "train_samples_per_s": train, "extract_voxels_per_s": extract}))
 
 

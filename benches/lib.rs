@@ -4,10 +4,13 @@ use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
 /// `../shared/data/<rel>` if present (benchmarks that need it say so and skip otherwise).
+/// `NEUVOLEX_DATA` names another data folder (a bench binary carried to another machine).
 pub fn shared(rel: &str) -> Option<PathBuf> {
-    let p = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-        .join("../../shared/data")
-        .join(rel);
+    let root = std::env::var_os("NEUVOLEX_DATA").map_or_else(
+        || PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../shared/data"),
+        PathBuf::from,
+    );
+    let p = root.join(rel);
     if p.exists() {
         Some(p)
     } else {

@@ -2,6 +2,7 @@
 //!
 //! The binary only parses arguments, draws progress and prints; the work is in the library crates.
 
+mod backend;
 mod classify;
 mod render;
 mod serve;
@@ -214,6 +215,9 @@ enum Cmd {
         /// Also extract empty bricks.
         #[arg(long)]
         all_bricks: bool,
+        /// Engine: cpu, gpu or auto (a hardware GPU where one exists).
+        #[arg(long, default_value = "auto")]
+        backend: String,
     },
     /// Classify every voxel from scribbles: random forest on a feature set, per-class u8
     /// probabilities and a label image in the store, optionally a NIfTI label volume.
@@ -302,8 +306,9 @@ struct TrainArgs {
     /// Continue from the store's checkpoint.
     #[arg(long)]
     resume: bool,
-    /// Compute backend: cpu (fused engine), wgpu or cuda (need a build with those features).
-    #[arg(long, default_value = "cpu")]
+    /// Engine: cpu (the fused CPU engine), gpu (the GPU engine on any adapter, software ones
+    /// included), auto (a hardware GPU where one exists, else cpu). GPU needs `--features gpu`.
+    #[arg(long, default_value = "auto")]
     backend: String,
 }
 
@@ -352,22 +357,13 @@ impl TrainArgs {
             ablation: self.ablation.parse().map_err(anyhow::Error::msg)?,
             ..InrConfig::default()
         };
-        match self.backend.as_str() {
-            "cpu" => {}
-            "wgpu" | "cuda" => bail!(
-                "--backend {}: this build has no GPU backend; the fused CPU engine is the default \
-                 (a GPU build needs the `{}` cargo feature and a burn backend that builds offline)",
-                self.backend,
-                self.backend
-            ),
-            o => bail!("--backend '{o}' must be cpu, wgpu or cuda"),
-        }
+        let _: neuvolex_features::Backend = self.backend.parse().map_err(anyhow::Error::msg)?;
         Ok((inr, t))
     }
 }
 
 fn run_train(store_path: &Path, args: &TrainArgs, quiet: bool) -> Result<()> {
-    use neuvolex_features::{checkpoint, train, TrainEvent};
+    use neuvolex_features::{checkpoint, TrainEvent};
     let store = BrickStore::open(store_path)?;
     let (inr, cfg) = args.configs()?;
     let ckpt = neuvolex_features::train::checkpoint_path(&store);
@@ -382,6 +378,7 @@ fn run_train(store_path: &Path, args: &TrainArgs, quiet: bool) -> Result<()> {
     } else {
         None
     };
+    let engine = backend::Engine::pick(&args.backend)?;
     let cancel = std::sync::atomic::AtomicBool::new(false);
     let bar = if quiet {
         ProgressBar::hidden()
@@ -444,7 +441,7 @@ fn run_train(store_path: &Path, args: &TrainArgs, quiet: bool) -> Result<()> {
             );
         }
     };
-    let t = train(
+    let t = engine.train(
         &store,
         &inr,
         &cfg,
@@ -456,10 +453,11 @@ fn run_train(store_path: &Path, args: &TrainArgs, quiet: bool) -> Result<()> {
     let path = neuvolex_features::train::model_path(&store);
     checkpoint::save(&path, &t.model, None)?;
     println!(
-        "model: {} (PSNR {:.2} dB after {} samples)",
+        "model: {} (PSNR {:.2} dB after {} samples, {})",
         path.display(),
         t.psnr,
-        t.state.samples
+        t.state.samples,
+        engine.describe()
     );
     Ok(())
 }
@@ -833,6 +831,7 @@ fn main() -> Result<()> {
             store,
             kind,
             all_bricks,
+            backend,
         } => {
             let kind: neuvolex_features::FeatureKind = kind.parse().map_err(anyhow::Error::msg)?;
             let s = BrickStore::open(&store)?;
@@ -845,16 +844,11 @@ fn main() -> Result<()> {
                 );
             }
             let model = neuvolex_features::checkpoint::load(&mp)?.model;
-            let r = neuvolex_features::write_features(
-                &s,
-                &model,
-                kind,
-                all_bricks,
-                &mut progress_sink(quiet),
-            )?;
+            let engine = backend::Engine::pick(&backend)?;
+            let r = engine.features(&s, &model, kind, all_bricks, &mut progress_sink(quiet))?;
             println!(
-                "features: {}/neuvolex/vectors/{} ({} channels, f16): {} bricks, {} voxels in {:.2} s ({:.0} k voxels/s)",
-                store.display(), r.name, r.channels, r.bricks, r.voxels, r.seconds, r.voxels as f64 / r.seconds.max(1e-9) / 1e3
+                "features: {}/neuvolex/vectors/{} ({} channels, f16): {} bricks, {} voxels in {:.2} s ({:.0} k voxels/s, {})",
+                store.display(), r.name, r.channels, r.bricks, r.voxels, r.seconds, r.voxels as f64 / r.seconds.max(1e-9) / 1e3, engine.describe()
             );
         }
         Cmd::Unlock { store } => {

@@ -25,6 +25,10 @@ pub struct ServeArgs {
     /// Feature-cache budget per session, MiB (features are kept in half precision).
     #[arg(long, default_value_t = 512)]
     cache_mib: usize,
+    /// Engines of the INR trainer and the renderer: cpu, gpu (any adapter, software ones
+    /// included) or auto (a hardware GPU where one exists). GPU needs `--features gpu`.
+    #[arg(long, default_value = "auto")]
+    backend: String,
 }
 
 /// Runs the server until interrupted.
@@ -87,8 +91,10 @@ pub fn run_serve(a: &ServeArgs) -> Result<()> {
     cfg.default_volume = default_volume;
     cfg.generated_root = generated;
     cfg.feature_cache_bytes = a.cache_mib.max(1) << 20;
+    cfg.backend = a.backend.parse().map_err(anyhow::Error::msg)?;
     actix_web::rt::System::new().block_on(async move {
         let state = AppState::new(cfg.clone());
+        let engines = state.actors.compute().clone();
         let server = actix_web::HttpServer::new(move || {
             actix_web::App::new()
                 .app_data(state.clone())
@@ -98,8 +104,15 @@ pub fn run_serve(a: &ServeArgs) -> Result<()> {
         .with_context(|| format!("cannot listen on {}:{}", a.host, a.port))?;
         for addr in server.addrs() {
             println!(
-                "neuvolex: http://{addr}/  (data root {})",
-                cfg.data_root.display()
+                "neuvolex: http://{addr}/  (data root {}; training on {}, rendering on {}{})",
+                cfg.data_root.display(),
+                engines.train,
+                engines.render,
+                engines
+                    .adapter
+                    .as_ref()
+                    .map(|a| format!(": {a}"))
+                    .unwrap_or_default()
             );
         }
         server.run().await.context("server")

@@ -160,6 +160,7 @@ pub struct Actors {
     train: mpsc::Sender<Mail<TrainCommand>>,
     render: mpsc::Sender<Mail<RenderJob>>,
     views: mpsc::Sender<Mail<ViewJob>>,
+    compute: Arc<crate::compute::Compute>,
 }
 
 /// Forest size of interactive classification.
@@ -180,8 +181,20 @@ fn busy<T>(what: &str) -> impl FnOnce(mpsc::error::TrySendError<T>) -> ApiError 
 }
 
 impl Actors {
-    /// Starts the ingest, classifier, trainer, renderer and viewpoint actors under supervision.
+    /// Starts the ingest, classifier, trainer, renderer and viewpoint actors under supervision,
+    /// on the CPU engines.
     pub fn start(hub: Hub) -> Actors {
+        Actors::start_with(hub, crate::compute::Compute::cpu())
+    }
+
+    /// The engines the trainer and renderer run on.
+    pub fn compute(&self) -> &crate::compute::ComputeInfo {
+        &self.compute.info
+    }
+
+    /// [`Actors::start`] with the trainer and renderer on `compute`'s engines.
+    pub fn start_with(hub: Hub, compute: crate::compute::Compute) -> Actors {
+        let compute = Arc::new(compute);
         let (itx, irx) = mailbox::<IngestJob>();
         let (ctx, crx) = mailbox::<ClassifyJob>();
         let (ttx, trx) = mailbox::<TrainCommand>();
@@ -195,11 +208,14 @@ impl Actors {
         supervise("classifier", hub.clone(), move || {
             classifier(crx.clone(), h.clone())
         });
-        let (h, c) = (hub.clone(), ctx.clone());
+        let (h, c, e) = (hub.clone(), ctx.clone(), compute.clone());
         supervise("trainer", hub.clone(), move || {
-            trainer(trx.clone(), h.clone(), c.clone())
+            trainer(trx.clone(), h.clone(), c.clone(), e.clone())
         });
-        supervise("renderer", hub.clone(), move || renderer(rrx.clone()));
+        let e = compute.clone();
+        supervise("renderer", hub.clone(), move || {
+            renderer(rrx.clone(), e.clone())
+        });
         let h = hub.clone();
         supervise("viewpoints", hub.clone(), move || {
             recommender(vrx.clone(), h.clone())
@@ -210,6 +226,7 @@ impl Actors {
             classify: ctx,
             train: ttx,
             render: rtx,
+            compute,
             views: vtx,
         }
     }
@@ -451,7 +468,12 @@ fn spawn_classify(job: ClassifyJob, hub: Hub) -> tokio::task::JoinHandle<()> {
     })
 }
 
-async fn trainer(rx: Inbox<TrainCommand>, hub: Hub, classify: mpsc::Sender<Mail<ClassifyJob>>) {
+async fn trainer(
+    rx: Inbox<TrainCommand>,
+    hub: Hub,
+    classify: mpsc::Sender<Mail<ClassifyJob>>,
+    compute: Arc<crate::compute::Compute>,
+) {
     let mut rx = rx.lock().await;
     while let Some(m) = rx.recv().await {
         let TrainCommand::Start {
@@ -467,9 +489,14 @@ async fn trainer(rx: Inbox<TrainCommand>, hub: Hub, classify: mpsc::Sender<Mail<
             .train_cancel
             .lock()
             .unwrap_or_else(|p| p.into_inner()) = Some(cancel.clone());
-        let (h, c, s) = (hub.clone(), classify.clone(), session.clone());
-        let r =
-            tokio::task::spawn_blocking(move || train(&s, epochs, resume, &cancel, &h, &c)).await;
+        let (h, c, s, e) = (
+            hub.clone(),
+            classify.clone(),
+            session.clone(),
+            compute.clone(),
+        );
+        let r = tokio::task::spawn_blocking(move || train(&s, epochs, resume, &cancel, &h, &c, &e))
+            .await;
         *session
             .train_cancel
             .lock()
@@ -530,6 +557,7 @@ fn train(
     cancel: &AtomicBool,
     hub: &Hub,
     classify: &mpsc::Sender<Mail<ClassifyJob>>,
+    compute: &crate::compute::Compute,
 ) -> ApiResult<()> {
     use neuvolex_features::{checkpoint, train, Budget, InrConfig, TrainConfig, TrainEvent};
     let ckpt = neuvolex_features::train::checkpoint_path(&s.store);
@@ -561,7 +589,7 @@ fn train(
             hub.publish(
                 Some(&id),
                 "training",
-                serde_json::json!({"state": "running", "epoch": epoch, "psnr": psnr, "loss": loss, "samples_per_sec": samples_per_sec}),
+                serde_json::json!({"state": "running", "epoch": epoch, "psnr": psnr, "loss": loss, "samples_per_sec": samples_per_sec, "backend": compute.info.train}),
             );
         }
         TrainEvent::Preview {
@@ -603,15 +631,23 @@ fn train(
         ),
         _ => {}
     };
-    let t = train(
-        &s.store,
-        &InrConfig::default(),
-        &cfg,
-        loaded,
-        Some(&ckpt),
-        cancel,
-        &mut on,
-    )
+    let inr = InrConfig::default();
+    let t = match compute.gpu() {
+        #[cfg(feature = "gpu")]
+        Some(ctx) => neuvolex_features_gpu::train_gpu(
+            ctx,
+            &s.store,
+            &inr,
+            &cfg,
+            loaded,
+            Some(&ckpt),
+            cancel,
+            &mut on,
+        )
+        .map(|g| g.trained)
+        .map_err(neuvolex_features::FeatureError::from),
+        _ => train(&s.store, &inr, &cfg, loaded, Some(&ckpt), cancel, &mut on),
+    }
     .map_err(|e| ApiError::Internal(e.to_string()))?;
     // The model file is what `neuvolex classify` and later sessions use; a stopped run keeps
     // its checkpoint for `resume`, and its last snapshot serves this session.
@@ -633,7 +669,7 @@ fn train(
     Ok(())
 }
 
-async fn renderer(rx: Inbox<RenderJob>) {
+async fn renderer(rx: Inbox<RenderJob>, compute: Arc<crate::compute::Compute>) {
     let mut rx = rx.lock().await;
     while let Some(m) = rx.recv().await {
         let job = match m {
@@ -646,24 +682,47 @@ async fn renderer(rx: Inbox<RenderJob>) {
             tf,
             reply,
         } = job;
-        let r = tokio::task::spawn_blocking(move || render(&session, &params, &tf)).await;
+        let gpu = compute.render_gpu();
+        let r = tokio::task::spawn_blocking(move || render(&session, &params, &tf, gpu)).await;
         let _ = reply.send(r.unwrap_or_else(|_| Err(ApiError::Internal("render panicked".into()))));
     }
 }
 
-/// Renders a session: incrementally (only the pixels the changed bricks affect) when the
-/// frame, transfer function and classes are those of the last frame, from scratch otherwise.
+/// Renders a session: on the GPU when the service has one (whole frames), else on the CPU,
+/// incrementally (only the pixels the changed bricks affect) when the frame, transfer function
+/// and classes are those of the last frame, from scratch otherwise.
 fn render(
     s: &Arc<Session>,
     params: &neuvolex_render::RenderParams,
     tf: &neuvolex_render::TfFile,
+    gpu: bool,
 ) -> ApiResult<Vec<u8>> {
     use neuvolex_render::BrickSource;
     let mut guard = s.renderer.lock().unwrap_or_else(|p| p.into_inner());
     let st = guard.get_or_insert_with(|| crate::session::RenderState {
         renderer: neuvolex_render::Renderer::new(s.source(), 512 << 20),
         key: String::new(),
+        #[cfg(feature = "gpu")]
+        gpu: None,
     });
+    #[cfg(feature = "gpu")]
+    if gpu {
+        if st.gpu.is_none() {
+            st.gpu = Some(
+                neuvolex_render::gpu::GpuRenderer::new(s.source())
+                    .map_err(|e| ApiError::Internal(e.to_string()))?,
+            );
+        }
+        if let Some(g) = st.gpu.as_mut() {
+            let src = s.source();
+            let luts = tf.compile(&src.normaliser(), &src.classes());
+            s.dirty.lock().unwrap_or_else(|p| p.into_inner()).clear();
+            let img = g.render(params, &luts)?;
+            return crate::imaging::png(img.width, img.height, 3, &img.to_rgb8());
+        }
+    }
+    #[cfg(not(feature = "gpu"))]
+    let _ = gpu;
     let classes = st.renderer.source().classes();
     let luts = tf.compile(&st.renderer.source().normaliser(), &classes);
     let dirty: Vec<[usize; 3]> =

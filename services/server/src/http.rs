@@ -35,6 +35,8 @@ pub struct ServerConfig {
     pub feature_cache_bytes: usize,
     /// Exposes `POST /api/debug/crash/{actor}` (supervisor tests only).
     pub fault_injection: bool,
+    /// Engines of the trainer and renderer: cpu, gpu (any adapter) or auto (a hardware GPU).
+    pub backend: neuvolex_features::Backend,
 }
 
 impl ServerConfig {
@@ -48,6 +50,7 @@ impl ServerConfig {
             generated_root: None,
             feature_cache_bytes: 512 << 20,
             fault_injection: false,
+            backend: neuvolex_features::Backend::Cpu,
         }
     }
 }
@@ -66,10 +69,11 @@ pub struct AppState {
 impl AppState {
     /// State with the actors started (call inside a tokio runtime).
     pub fn new(cfg: ServerConfig) -> web::Data<AppState> {
+        let compute = crate::compute::Compute::resolve(cfg.backend);
         web::Data::new(AppState {
             cfg,
             sessions: RwLock::new(HashMap::new()),
-            actors: Actors::start(Hub::default()),
+            actors: Actors::start_with(Hub::default(), compute),
             next: AtomicU64::new(1),
         })
     }
@@ -171,6 +175,10 @@ async fn app_js() -> HttpResponse {
     HttpResponse::Ok()
         .content_type("text/javascript; charset=utf-8")
         .body(include_str!("../static/app.js"))
+}
+
+async fn backend(st: web::Data<AppState>) -> HttpResponse {
+    HttpResponse::Ok().json(st.actors.compute())
 }
 
 async fn volumes(st: web::Data<AppState>) -> HttpResponse {
@@ -901,6 +909,7 @@ pub fn configure(cfg: &mut web::ServiceConfig) {
     .service(
         web::scope("/api")
             .route("/volumes", web::get().to(volumes))
+            .route("/backend", web::get().to(backend))
             .route("/events", web::get().to(events))
             .route("/sessions", web::post().to(open))
             .route("/sessions/{id}", web::get().to(get_session))

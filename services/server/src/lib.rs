@@ -16,6 +16,7 @@
 
 pub mod actors;
 pub mod cache;
+pub mod compute;
 pub mod error;
 pub mod http;
 pub mod imaging;

@@ -106,6 +106,9 @@ pub struct RenderState {
     pub renderer: neuvolex_render::Renderer<SessionSource>,
     /// Parameters, transfer function and classes of the last frame.
     pub key: String,
+    /// The wgpu renderer, when the service renders on the GPU.
+    #[cfg(feature = "gpu")]
+    pub gpu: Option<neuvolex_render::gpu::GpuRenderer<SessionSource>>,
 }
 
 impl Session {

@@ -17,6 +17,18 @@ async function loadVolumes() {
   $("volume").innerHTML = v.map((p) => `<option>${p}</option>`).join("");
 }
 
+async function loadBackend() {
+  try {
+    const b = await api("GET", "/api/backend");
+    const gpu = b.train === "gpu" || b.render === "gpu";
+    const e = $("engines");
+    e.textContent = gpu ? `GPU${b.software ? " (software)" : ""}: ${b.adapter}` : "CPU";
+    e.title = `INR training: ${b.train}, rendering: ${b.render} (requested: ${b.requested}${b.gpu_build ? "" : "; this build has no GPU engines"})`;
+    e.style.background = gpu ? "#1f4d2b" : "#333";
+    e.style.color = gpu ? "#9e9" : "#aaa";
+  } catch (_) { $("engines").textContent = "engines unknown"; }
+}
+
 async function open() {
   status("opening " + $("volume").value + " ...");
   try {
@@ -305,4 +317,5 @@ document.addEventListener("keydown", (e) => {
     e.preventDefault(); const a = S.hover, s = $("i" + a); s.value = S.idx[a] = Math.max(0, Math.min(+s.max, S.idx[a] + (k === "ArrowUp" || k === "PageUp" ? 1 : -1))); drawSlice(a);
   }
 });
+loadBackend();
 loadVolumes().then(() => { if ($("volume").options.length) open(); });

@@ -854,3 +854,67 @@ async fn full_mailboxes_push_back_instead_of_queueing_without_bound() {
     );
     assert!(e.to_string().contains("busy"), "{e}");
 }
+
+#[actix_web::test]
+async fn the_backend_is_reported_and_cpu_by_default() {
+    let (_d, cfg) = data();
+    let app = app!(cfg);
+    let req = test::TestRequest::get().uri("/api/backend").to_request();
+    let b: Value = test::call_and_read_body_json(&app, req).await;
+    assert_eq!(
+        (b["train"].as_str(), b["render"].as_str()),
+        (Some("cpu"), Some("cpu")),
+        "{b}"
+    );
+    assert_eq!(b["gpu_build"], json!(cfg!(feature = "gpu")));
+}
+
+/// With `backend: gpu` the trainer and renderer run on the GPU (lavapipe in CI): the badge's
+/// route names the adapter, a frame renders, and a short training run finishes and saves its
+/// model. Skips without an adapter, fails under CI=true.
+#[cfg(feature = "gpu")]
+#[actix_web::test]
+async fn the_gpu_backend_trains_and_renders() {
+    let (_d, mut cfg) = data();
+    cfg.backend = neuvolex_features::Backend::Gpu;
+    let app = app!(cfg);
+    let req = test::TestRequest::get().uri("/api/backend").to_request();
+    let b: Value = test::call_and_read_body_json(&app, req).await;
+    if b["train"] != "gpu" {
+        assert!(
+            std::env::var("CI").map_or(true, |v| v != "true"),
+            "no GPU adapter under CI=true: {b}"
+        );
+        eprintln!("SKIP: no GPU adapter ({b})");
+        return;
+    }
+    assert!(b["adapter"].as_str().is_some_and(|a| !a.is_empty()), "{b}");
+    assert_eq!(b["render"], "gpu");
+    let id = open_session(&app).await;
+    let r = test::call_service(
+        &app,
+        test::TestRequest::get()
+            .uri(&format!("/api/sessions/{id}/render?size=64&az=10&el=5"))
+            .to_request(),
+    )
+    .await;
+    assert_eq!(r.status(), 200);
+    assert_eq!(&test::read_body(r).await[1..4], b"PNG");
+    let mut sse = Sse::open(&app, &format!("?session={id}")).await;
+    let req = test::TestRequest::post()
+        .uri(&format!("/api/sessions/{id}/train"))
+        .set_json(json!({"action": "start", "epochs": 0.05}))
+        .to_request();
+    assert_eq!(test::call_service(&app, req).await.status(), 202);
+    let f = sse
+        .next("training", |v| v["data"]["state"] == "finished")
+        .await;
+    assert!(f["data"]["psnr"].as_f64().unwrap().is_finite(), "{f}");
+    sse.next("training", |v| v["data"]["state"] == "model_saved")
+        .await;
+    let req = test::TestRequest::get()
+        .uri(&format!("/api/sessions/{id}"))
+        .to_request();
+    let s: Value = test::call_and_read_body_json(&app, req).await;
+    assert_eq!(s["trained"], true, "{s}");
+}
