@@ -9,7 +9,6 @@ use neuvolex_features::extract::ExtractReport;
 use neuvolex_features::{
     Backend, FeatureKind, InrConfig, InrModel, TrainConfig, TrainEvent, Trained,
 };
-use std::path::Path;
 use std::sync::atomic::AtomicBool;
 
 /// The engine a command runs on.
@@ -62,7 +61,7 @@ impl Engine {
         inr: &InrConfig,
         cfg: &TrainConfig,
         resume: Option<Loaded>,
-        ckpt: Option<&Path>,
+        ckpt: Option<&neuvolex_bricks::StoreLocation>,
         cancel: &AtomicBool,
         events: &mut dyn FnMut(TrainEvent),
     ) -> Result<Trained> {

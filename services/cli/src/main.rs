@@ -452,11 +452,18 @@ fn run_train(store_path: &Path, args: &TrainArgs, quiet: bool) -> Result<()> {
     )?;
     let path = neuvolex_features::train::model_path(&store);
     checkpoint::save(&path, &t.model, None)?;
+    // The middle slice reconstructed by the CPU evaluator: one measure for every engine.
+    let slice_psnr = match neuvolex_features::train::preview(&store, &t.model, 512)?.event(0) {
+        TrainEvent::Preview { psnr, .. } => psnr,
+        _ => f64::NAN,
+    };
     println!(
-        "model: {} (PSNR {:.2} dB after {} samples, {})",
+        "model: {} (PSNR {:.2} dB last batch, {:.2} dB middle slice, after {} samples in {:.1} s, {})",
         path.display(),
         t.psnr,
+        slice_psnr,
         t.state.samples,
+        t.state.seconds,
         engine.describe()
     );
     Ok(())

@@ -13,7 +13,7 @@ use crate::context::{GpuContext, MemoryReport, Tracked};
 use crate::engine::{EngineOptions, GpuInr, StepRates};
 use crate::error::{GpuError, Result};
 use crate::plan::STATS_RING;
-use neuvolex_bricks::{Brick, BrickStore};
+use neuvolex_bricks::{Brick, BrickStore, StoreLocation};
 use neuvolex_features::checkpoint::{save, Loaded};
 use neuvolex_features::tile::Tile;
 use neuvolex_features::train::{
@@ -23,7 +23,6 @@ use neuvolex_features::train::{
 use neuvolex_features::{FeatureError, InrConfig, InrModel, TrainConfig, TrainEvent};
 use rayon::prelude::*;
 use std::collections::VecDeque;
-use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::mpsc;
 use std::sync::Arc;
@@ -232,7 +231,7 @@ fn load_groups(
 }
 
 /// A checkpoint being written on another thread.
-type Saving = std::thread::JoinHandle<(u64, PathBuf, neuvolex_features::Result<()>)>;
+type Saving = std::thread::JoinHandle<(u64, StoreLocation, neuvolex_features::Result<()>)>;
 
 fn finish_save(h: Saving, events: &mut dyn FnMut(TrainEvent)) -> Result<()> {
     let (step, path, r) = h
@@ -252,7 +251,7 @@ pub fn train_gpu(
     inr: &InrConfig,
     cfg: &TrainConfig,
     resume: Option<Loaded>,
-    checkpoint: Option<&Path>,
+    checkpoint: Option<&StoreLocation>,
     cancel: &AtomicBool,
     events: &mut dyn FnMut(TrainEvent),
 ) -> Result<GpuTrained> {
@@ -445,9 +444,9 @@ pub fn train_gpu(
                     if let Some(h) = saving.take() {
                         finish_save(h, events)?;
                     }
-                    let (p, tcc, st) = (p.to_path_buf(), tc.clone(), state);
+                    let (p, tcc, st) = (p.clone(), tc.clone(), state);
                     saving = Some(std::thread::spawn(move || {
-                        let r = save(&p, &m, Some((&tcc, &st, &a)));
+                        let r = save(p.clone(), &m, Some((&tcc, &st, &a)));
                         (st.step, p, r)
                     }));
                     last_ckpt = Instant::now();
@@ -485,10 +484,10 @@ pub fn train_gpu(
     let model: InrModel = engine.download_model()?;
     if let Some(p) = checkpoint {
         let a = engine.download_adam()?;
-        save(p, &model, Some((&tc, &state, &a)))?;
+        save(p.clone(), &model, Some((&tc, &state, &a)))?;
         events(TrainEvent::Checkpoint {
             step: state.step,
-            path: p.to_path_buf(),
+            path: p.clone(),
         });
     }
     let seconds = seconds0 + start_t.elapsed().as_secs_f64();

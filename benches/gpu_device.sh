@@ -1,0 +1,69 @@
+#!/usr/bin/env bash
+# Packages the GPU benchmark for a machine with an NVIDIA GPU but no Rust toolchain and no
+# network (the device machine of /work/.library/device/README.md): the `inr_gpu` bench binary
+# (built here, with the wgpu renderer), benches/inr_torch.py, the volumes it reads, and the
+# Vulkan loader .deb packages. Everything goes into two git-ignored folders of the repository
+# root, `.gpubench/` and `.gl/`, which the device call carries; nothing here is committed.
+#
+#   benches/gpu_device.sh            # build and package (prints the device command)
+#   benches/gpu_device.sh --command  # only print the device command
+#
+# On the device machine (carry [".gpubench", ".gl"]), the printed command unpacks the loader,
+# points Vulkan at NVIDIA's ICD and runs the bench with PyTorch on CUDA in the same run,
+# writing the JSON report and the log under $OUT.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+root=$(pwd)
+
+device_command() {
+  cat <<'EOF'
+for f in .gl/*.deb; do dpkg -x $f /; done; ldconfig; export VK_DRIVER_FILES=/usr/local/nvidia/share/vulkan/icd.d/nvidia_icd.json; export NEUVOLEX_DATA=$PWD/.gpubench/data NEUVOLEX_TORCH_SCRIPT=$PWD/.gpubench/inr_torch.py NEUVOLEX_TORCH_PYTHON=python3 BENCH_DATE=$(date -u +%F); nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv | tee $OUT/gpu.txt; set -o pipefail; timeout 590 .gpubench/inr_gpu --cap-s 300 --out $OUT/inr_gpu.json 2>&1 | tee $OUT/inr_gpu.log
+EOF
+}
+
+if [ "${1:-}" = "--command" ]; then
+  device_command
+  exit 0
+fi
+
+for d in /.gpubench/ /.gl/; do
+  grep -qxF "$d" .git/info/exclude 2>/dev/null || echo "$d" >>"$(git rev-parse --git-path info/exclude)"
+done
+
+echo "building the inr_gpu bench binary (release, --features gpu)"
+exe=$(cargo bench -p neuvolex-benches --bench inr_gpu --features gpu --no-run --message-format=json 2>/dev/null |
+  python3 -c 'import json,sys
+for l in sys.stdin:
+    m = json.loads(l)
+    if m.get("reason") == "compiler-artifact" and m["target"]["name"] == "inr_gpu" and m.get("executable"):
+        print(m["executable"])' | tail -1)
+[ -x "$exe" ] || { echo "no inr_gpu executable was built" >&2; exit 1; }
+
+rm -rf .gpubench
+mkdir -p .gpubench/data
+cp "$exe" .gpubench/inr_gpu
+cp benches/inr_torch.py .gpubench/
+data="${NEUVOLEX_DATA:-$root/../shared/data}"
+for rel in tooth/tooth.nhdr tooth/tooth.raw abdomen_ct/ct.nii.gz scivis/bonsai.nii.gz; do
+  if [ -f "$data/$rel" ]; then
+    mkdir -p ".gpubench/data/$(dirname "$rel")"
+    cp "$data/$rel" ".gpubench/data/$rel"
+  else
+    echo "note: $data/$rel is missing; the bench skips that volume" >&2
+  fi
+done
+
+if ! ls .gl/libvulkan1_*.deb >/dev/null 2>&1; then
+  echo "downloading the Vulkan loader packages (amd64) into .gl/"
+  mkdir -p .gl /tmp/amd64/partial
+  o='-oAPT::Architecture=amd64 -oAPT::Architectures=amd64 -oDir::State::Lists=/tmp/amd64'
+  # shellcheck disable=SC2086
+  apt-get $o update >/dev/null
+  # shellcheck disable=SC2086
+  (cd .gl && apt-get $o download libvulkan1 libegl1 libglvnd0 libopengl0 libgl1 libglx0 libgles2)
+fi
+
+du -sh .gpubench .gl
+echo
+echo "device run: carry [\".gpubench\", \".gl\"], timeout_s 600, command:"
+device_command
