@@ -250,7 +250,14 @@ fn train_and_features_on_the_gpu_backend() {
     let d = tempfile::tempdir().unwrap();
     let p = |n: &str| d.path().join(n).to_string_lossy().into_owned();
     ok(&[
-        "synth", "phantom", "--out", &p("ph.zarr"), "--size", "24", "--brick", "12",
+        "synth",
+        "phantom",
+        "--out",
+        &p("ph.zarr"),
+        "--size",
+        "24",
+        "--brick",
+        "12",
     ]);
     let o = neuvolex(&[
         "train",
@@ -289,9 +296,17 @@ fn train_and_features_on_the_gpu_backend() {
         "--backend",
         "cpu",
     ]);
-    assert!(out.contains("after 12288 samples") && out.contains(", cpu)"), "{out}");
+    assert!(
+        out.contains("after 12288 samples") && out.contains(", cpu)"),
+        "{out}"
+    );
     let out = ok(&[
-        "features", &p("ph.zarr"), "--kind", "hidden", "--backend", "gpu",
+        "features",
+        &p("ph.zarr"),
+        "--kind",
+        "hidden",
+        "--backend",
+        "gpu",
     ]);
     assert!(out.contains("inr_hidden") && out.contains("gpu ("), "{out}");
 }
