@@ -146,26 +146,6 @@ fn child(src: &str, out_dir: &str, epochs: f64) {
     );
 }
 
-fn write_cta(path: &Path) {
-    use std::io::Write;
-    let d = [512usize, 512, 452];
-    let mut f = std::io::BufWriter::new(std::fs::File::create(path).expect("raw"));
-    // A CT-like phantom at CTA scale, written slice by slice.
-    let p = neuvolex_bricks::synth::PhantomParams {
-        dims: d,
-        seed: 1,
-        noise: 18.0,
-    };
-    let mut src =
-        neuvolex_bricks::synth::Phantom::new(p, neuvolex_bricks::synth::PhantomChannel::Image);
-    for z in (0..d[2]).step_by(4) {
-        let s =
-            neuvolex_bricks::VolumeSource::read_slab(&mut src, z, 4.min(d[2] - z)).expect("slab");
-        f.write_all(&s.bytes).expect("write");
-    }
-    f.flush().expect("flush");
-}
-
 fn main() {
     let args: Vec<String> = std::env::args().collect();
     if let Some(i) = args.iter().position(|a| a == "--child") {
@@ -262,7 +242,7 @@ fn main() {
     }
     if !quick {
         let raw = dir.path().join("cta_512x512x452_int16.raw");
-        write_cta(&raw);
+        neuvolex_benches::write_cta(&raw);
         vols.push(("phantom 512x512x452 i16".into(), raw));
     }
     for (name, p) in vols {

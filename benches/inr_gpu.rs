@@ -363,25 +363,6 @@ fn renderer() -> Vec<Value> {
     Vec::new()
 }
 
-fn write_cta(path: &Path) {
-    use std::io::Write;
-    let d = [512usize, 512, 452];
-    let mut f = std::io::BufWriter::new(std::fs::File::create(path).expect("raw"));
-    let p = neuvolex_bricks::synth::PhantomParams {
-        dims: d,
-        seed: 1,
-        noise: 18.0,
-    };
-    let mut src =
-        neuvolex_bricks::synth::Phantom::new(p, neuvolex_bricks::synth::PhantomChannel::Image);
-    for z in (0..d[2]).step_by(4) {
-        let s =
-            neuvolex_bricks::VolumeSource::read_slab(&mut src, z, 4.min(d[2] - z)).expect("slab");
-        f.write_all(&s.bytes).expect("write");
-    }
-    f.flush().expect("flush");
-}
-
 fn main() {
     let args: Vec<String> = std::env::args().collect();
     let quick = args.iter().any(|a| a == "--quick");
@@ -426,7 +407,7 @@ fn main() {
         ));
     }
     let raw = work.path().join("cta_512x512x452_int16.raw");
-    write_cta(&raw);
+    neuvolex_benches::write_cta(&raw);
     cases.push(("phantom 512x512x452".into(), raw, large_epochs, Some(cap_s)));
     for (name, src, epochs, cap) in &cases {
         let dir = tempfile::tempdir_in(work.path()).expect("tmp");

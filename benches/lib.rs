@@ -83,3 +83,24 @@ pub fn train_one_epoch(store: &neuvolex_bricks::BrickStore) -> neuvolex_features
     .expect("train")
     .model
 }
+
+/// Writes the CT-like phantom at CTA-Cardiac scale (512x512x452, int16 raw, seed 1) to `path`,
+/// slab by slab, for the benchmarks' large-volume runs.
+pub fn write_cta(path: &std::path::Path) {
+    use std::io::Write;
+    let d = [512usize, 512, 452];
+    let mut f = std::io::BufWriter::new(std::fs::File::create(path).expect("raw"));
+    let p = neuvolex_bricks::synth::PhantomParams {
+        dims: d,
+        seed: 1,
+        noise: 18.0,
+    };
+    let mut src =
+        neuvolex_bricks::synth::Phantom::new(p, neuvolex_bricks::synth::PhantomChannel::Image);
+    for z in (0..d[2]).step_by(4) {
+        let s =
+            neuvolex_bricks::VolumeSource::read_slab(&mut src, z, 4.min(d[2] - z)).expect("slab");
+        f.write_all(&s.bytes).expect("write");
+    }
+    f.flush().expect("flush");
+}
