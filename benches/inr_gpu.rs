@@ -305,7 +305,7 @@ fn profile(ctx: &Arc<GpuContext>, store: &BrickStore) -> Value {
 
 #[cfg(feature = "gpu")]
 fn renderer() -> Vec<Value> {
-    use neuvolex_render::{Camera, RenderParams, Renderer, StoreSource, TfFile};
+    use neuvolex_render::{BrickSource, Camera, RenderParams, Renderer, StoreSource, TfFile};
     let mut out = Vec::new();
     println!("\n| volume | size | CPU ms/frame | wgpu ms/frame | ratio |\n|---|---|---|---|---|");
     for (name, rel, preset) in [

@@ -539,6 +539,7 @@ impl GpuInr {
     }
 
     /// Y = act(W X + b) (+ Y when accumulating).
+    #[allow(clippy::too_many_arguments)]
     fn fwd(&self, p: &mut Program, l: &LayerSpec, x: Mat, y: Mat, n: usize, relu: bool, acc: bool) {
         let w = self.plan.params + l.w as u32;
         let mut flags = F_A_KCONTIG | F_B_NCONTIG;

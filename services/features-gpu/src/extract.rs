@@ -103,7 +103,6 @@ pub fn write_features_gpu(
             prev = Some((i, b, sub));
         }
         flush(prev)?;
-        drop(flush);
         drop(out_tx);
         writer
             .join()
