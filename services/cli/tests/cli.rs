@@ -255,9 +255,9 @@ fn train_and_features_on_the_gpu_backend() {
         "--out",
         &p("ph.zarr"),
         "--size",
-        "24",
+        "32",
         "--brick",
-        "12",
+        "16",
     ]);
     let o = neuvolex(&[
         "train",
