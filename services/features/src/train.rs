@@ -287,6 +287,7 @@ pub fn train(
         }
     };
     tc.batch = tc.batch.max(1);
+    model.cfg.check().map_err(FeatureError::Config)?;
     let bricks = training_bricks(store, tc.include_empty);
     let voxels: u64 = bricks.iter().map(|b| b.voxels() as u64).sum();
     let budget_samples = match (tc.budget.epochs, tc.budget.samples) {
@@ -322,9 +323,10 @@ pub fn train(
         Rng::new(mix(seed, epoch, 0)).shuffle(&mut order);
         order.chunks(tile_bricks).map(|c| c.to_vec()).collect()
     };
+    let inr_cfg = model.cfg.clone();
     let load_group = |g: &[Brick]| -> Result<Vec<Tile>> {
         g.iter()
-            .map(|b| Tile::load(store, b, patch).map_err(FeatureError::from))
+            .map(|b| Tile::load_for(store, b, &inr_cfg).map_err(FeatureError::from))
             .collect()
     };
     let stopped_by: String = std::thread::scope(|scope| -> Result<String> {
