@@ -30,7 +30,7 @@ pub struct EvalArgs {
     #[arg(
         long,
         value_delimiter = ',',
-        default_value = "intensity,local,filters,paper,inr"
+        default_value = "local,filters,filters+xyz,filters+xyz@cc,paper,inr"
     )]
     pub methods: Vec<String>,
     /// Forest sizes to score (sub-forests of the largest; one-shot protocol).
