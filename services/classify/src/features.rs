@@ -5,6 +5,7 @@ use crate::ClassifyError;
 use neuvolex_bricks::store::{Brick, BrickStore, VectorArray};
 use neuvolex_features::extract::{extract_brick, vectors_name};
 use neuvolex_features::{FeatureKind, InrModel};
+use neuvolex_filters::context::Offsets;
 use neuvolex_filters::Classic;
 use std::sync::Arc;
 
@@ -17,6 +18,9 @@ pub enum Component {
     Inr(FeatureKind),
     /// Normalised position (x, y, z in `[0, 1]`).
     Xyz,
+    /// Long-range context: smoothed intensity at displaced positions, from the pyramid
+    /// ([`neuvolex_filters::context`]).
+    Context(Offsets),
 }
 
 impl Component {
@@ -29,7 +33,10 @@ impl Component {
             Component::Inr(FeatureKind::Pos) => "pos",
             Component::Inr(FeatureKind::Mod) => "mod",
             Component::Inr(FeatureKind::Concat) => "concat",
+            Component::Inr(FeatureKind::Region) => "region",
             Component::Xyz => "xyz",
+            Component::Context(Offsets::Axes) => "ctx",
+            Component::Context(Offsets::Plane) => "ctxp",
         }
     }
 }
@@ -90,11 +97,14 @@ impl std::str::FromStr for FeatureSet {
             let c = match p {
                 "xyz" => Component::Xyz,
                 "intensity" | "local" | "filters" => Component::Classic(p.parse()?),
-                "hidden" | "pos" | "mod" | "concat" => Component::Inr(p.parse()?),
+                "hidden" | "pos" | "mod" | "concat" | "region" => Component::Inr(p.parse()?),
+                "ctx" => Component::Context(Offsets::Axes),
+                "ctxp" => Component::Context(Offsets::Plane),
                 _ => {
                     return Err(format!(
                         "unknown feature '{p}' in '{s}': use inr, paper, or a '+' list of \
-                         intensity, local, filters, xyz, hidden, pos, mod, concat"
+                         intensity, local, filters, xyz, ctx, ctxp, hidden, pos, mod, concat, \
+                         region"
                     ))
                 }
             };
@@ -232,6 +242,7 @@ impl<'s> BrickFeatures<'s> {
                 (Component::Inr(_), None) => unreachable!("checked above"),
                 (Component::Classic(k), _) => (None, k.channels()),
                 (Component::Xyz, _) => (None, 3),
+                (Component::Context(o), _) => (None, o.channels()),
             };
             stored.push(arr);
             widths.push(w);
@@ -308,6 +319,14 @@ impl<'s> BrickFeatures<'s> {
                         *k,
                     )?,
                 },
+                Component::Context(o) => neuvolex_filters::context::compute(
+                    *o,
+                    &self.store.info().levels,
+                    &norm,
+                    b.origin,
+                    b.size,
+                    |k, org, sz| self.store.read_box(k, org, sz),
+                )?,
                 Component::Xyz => {
                     let p = neuvolex_filters::pos;
                     let mut v = Vec::with_capacity(n * 3);

@@ -8,11 +8,15 @@
 
 #![warn(missing_docs)]
 
+pub mod cache;
+pub mod components;
 pub mod features;
 pub mod forest;
 pub mod scribble;
 pub mod shard;
+pub mod suggest;
 
+pub use components::{Partial, PriorConfig};
 pub use features::{BrickFeatures, Component, FeatureSet, Quantise};
 pub use forest::{ClassWeight, Dataset, Forest, ForestConfig, ForestError, MaxFeatures};
 pub use scribble::{
@@ -23,6 +27,7 @@ pub use shard::{
     classify_volume, f1_scores, fit, predict_brick, training_set, ClassTable, Classified,
     ClassifyConfig, TrainingSet, F1,
 };
+pub use suggest::{SliceMass, Suggestion};
 
 use std::path::PathBuf;
 

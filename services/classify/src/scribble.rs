@@ -276,8 +276,56 @@ impl Default for SimConfig {
     }
 }
 
+/// Length of a stroke in a region of `area` pixels: half its diameter, 3 to 60 pixels.
+pub fn stroke_length(area: usize) -> f32 {
+    (0.5 * (area as f32).sqrt()).clamp(3.0, 60.0)
+}
+
+/// The longest straight stroke through `start` that stays inside `inside` (a `w x h` mask), of
+/// at most `max_len` pixels each way, along the best of `dirs` (unit vectors): its end points
+/// and `start`, rounded to pixel centres.
+pub fn longest_stroke(
+    inside: &[bool],
+    w: usize,
+    h: usize,
+    start: [f32; 2],
+    max_len: f32,
+    dirs: &[[f32; 2]],
+) -> [[f32; 2]; 3] {
+    let [sx, sy] = start;
+    let walk = |sign: f32, dx: f32, dy: f32| {
+        let mut t = 0.0;
+        while t < max_len {
+            let (x, y) = (sx + sign * (t + 1.0) * dx, sy + sign * (t + 1.0) * dy);
+            let (xi, yi) = (x.round(), y.round());
+            if xi < 0.0
+                || yi < 0.0
+                || xi >= w as f32
+                || yi >= h as f32
+                || !inside[yi as usize * w + xi as usize]
+            {
+                break;
+            }
+            t += 1.0;
+        }
+        t
+    };
+    let (mut dx, mut dy, mut a, mut b) = (1.0, 0.0, -1.0, -1.0);
+    for &[cx, cy] in dirs {
+        let (ca, cb) = (walk(-1.0, cx, cy), walk(1.0, cx, cy));
+        if ca + cb > a + b {
+            (dx, dy, a, b) = (cx, cy, ca, cb);
+        }
+    }
+    [
+        [(sx - a * dx).round(), (sy - a * dy).round()],
+        [sx, sy],
+        [(sx + b * dx).round(), (sy + b * dy).round()],
+    ]
+}
+
 /// Erodes a 2-D mask with a (2e+1)^2 square (pixels outside the slice count as outside).
-fn erode(mask: &[bool], w: usize, h: usize, e: usize) -> Vec<bool> {
+pub fn erode(mask: &[bool], w: usize, h: usize, e: usize) -> Vec<bool> {
     if e == 0 {
         return mask.to_vec();
     }
@@ -367,36 +415,15 @@ pub fn simulate(
             for _ in 0..n_strokes {
                 let start = inside[rng.below(inside.len())];
                 let (sx, sy) = ((start % w) as f32, (start / w) as f32);
-                let max_len = (0.5 * (inside.len() as f32).sqrt()).clamp(3.0, 60.0);
-                let walk = |sign: f32, dx: f32, dy: f32| {
-                    let mut t = 0.0;
-                    while t < max_len {
-                        let (x, y) = (sx + sign * (t + 1.0) * dx, sy + sign * (t + 1.0) * dy);
-                        let (xi, yi) = (x.round(), y.round());
-                        if xi < 0.0
-                            || yi < 0.0
-                            || xi >= w as f32
-                            || yi >= h as f32
-                            || !er[yi as usize * w + xi as usize]
-                        {
-                            break;
-                        }
-                        t += 1.0;
-                    }
-                    t
-                };
+                let max_len = stroke_length(inside.len());
                 // A user strokes along the structure: of 8 random directions, the longest.
-                let (mut dx, mut dy, mut a, mut b) = (1.0, 0.0, -1.0, -1.0);
-                for _ in 0..8 {
-                    let ang = rng.f32() * std::f32::consts::TAU;
-                    let (cx, cy) = (ang.cos(), ang.sin());
-                    let (ca, cb) = (walk(-1.0, cx, cy), walk(1.0, cx, cy));
-                    if ca + cb > a + b {
-                        (dx, dy, a, b) = (cx, cy, ca, cb);
-                    }
-                }
-                let p0 = [(sx - a * dx).round(), (sy - a * dy).round()];
-                let p1 = [(sx + b * dx).round(), (sy + b * dy).round()];
+                let dirs: Vec<[f32; 2]> = (0..8)
+                    .map(|_| {
+                        let ang = rng.f32() * std::f32::consts::TAU;
+                        [ang.cos(), ang.sin()]
+                    })
+                    .collect();
+                let [p0, _, p1] = longest_stroke(&er, w, h, [sx, sy], max_len, &dirs);
                 strokes.push(Stroke {
                     class: label,
                     axis: Axis::Z,

@@ -4,6 +4,7 @@
 
 mod backend;
 mod classify;
+mod eval;
 mod render;
 mod serve;
 mod viewpoints;
@@ -223,7 +224,7 @@ enum Cmd {
     /// probabilities and a label image in the store, optionally a NIfTI label volume.
     Classify(classify::ClassifyArgs),
     /// Score feature sets against ground truth: simulated scribbles, F1 per class and level.
-    Eval(classify::EvalArgs),
+    Eval(eval::EvalArgs),
     /// Simulate scribbles (S1–S4) from a ground-truth label volume, deterministically.
     ScribbleSim {
         /// Ground-truth labels (0 = background), any readable format or store/labels/NAME.
@@ -776,7 +777,7 @@ fn main() -> Result<()> {
         }
         Cmd::Train { store, args } => run_train(&store, &args, quiet)?,
         Cmd::Classify(a) => classify::run_classify(&a, quiet)?,
-        Cmd::Eval(a) => classify::run_eval(&a, quiet)?,
+        Cmd::Eval(a) => eval::run_eval(&a, quiet)?,
         Cmd::Render(a) => render::run_render(&a, quiet)?,
         Cmd::Viewpoints(a) => viewpoints::run_viewpoints(&a, quiet)?,
         Cmd::Serve(a) => serve::run_serve(&a)?,

@@ -493,6 +493,66 @@ fn classify_and_eval_on_the_phantom() {
         &["eval", "--datasets", "nowhere", "--work", &p("work")],
         "unknown dataset",
     );
+    // The robot user on the phantom: S1, then two corrective strokes per placement; every
+    // round is scored and every stroke is of a real class on a real slice.
+    let out = ok(&[
+        "eval",
+        "--datasets",
+        &spec,
+        "--interactive",
+        "--rounds",
+        "2",
+        "--seeds",
+        "1",
+        "--methods",
+        "local,local+ctx@cc",
+        "--robot",
+        "largest,suggested,random",
+        "--trees",
+        "10",
+        "--work",
+        &p("work"),
+        "--json",
+        &p("robot.json"),
+    ]);
+    assert!(out.contains("rounds to 0.7"), "{out}");
+    let e: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(p("robot.json")).unwrap()).unwrap();
+    let rounds = e["rounds"].as_array().unwrap();
+    assert!(rounds.len() >= 2 * 3 * 2, "{}", rounds.len());
+    for r in rounds {
+        let f1 = r["mean_f1"].as_f64().unwrap();
+        assert!((0.0..=1.0).contains(&f1));
+        if r["round"] != 0 {
+            let st = &r["stroke"];
+            let class = st["class"].as_u64().unwrap();
+            assert!(class == 255 || (1..=5).contains(&class), "{st}");
+            assert!(
+                st["slice"].as_u64().unwrap() < 48 && st["axis"] == "z",
+                "{st}"
+            );
+        }
+    }
+    // Each round adds scribbled voxels.
+    let first = rounds.iter().find(|r| r["round"] == 0).unwrap()["scribbled"].as_u64();
+    let second = rounds.iter().find(|r| r["round"] == 1).unwrap()["scribbled"].as_u64();
+    assert!(second > first);
+    assert_eq!(e["summary"].as_array().unwrap().len(), 2 * 3);
+    fails(
+        &[
+            "eval",
+            "--datasets",
+            &spec,
+            "--interactive",
+            "--robot",
+            "anywhere",
+        ],
+        "unknown placement",
+    );
+    fails(
+        &["eval", "--datasets", &spec, "--methods", "local@blur"],
+        "unknown prior",
+    );
 }
 
 #[test]

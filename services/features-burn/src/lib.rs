@@ -14,7 +14,7 @@
 
 use burn_tensor::activation::relu;
 use burn_tensor::{Device, Int, Tensor, TensorData};
-use neuvolex_features::model::{InrModel, LayerSpec, TARGETS};
+use neuvolex_features::model::{InrModel, LayerSpec};
 
 /// One dense layer as burn tensors: weights `out x in`, optional bias.
 struct Layer {
@@ -161,30 +161,31 @@ impl<'m> BurnInr<'m> {
         (self.linear(h.clone(), &lay.head), h)
     }
 
-    /// The training loss (the paper's weighted MSEs) for targets `n x 6`.
+    /// The training loss for targets `n x targets` ([`InrConfig::targets`]): each output's
+    /// mean squared error against its target, weighted by [`InrConfig::head_weights`] (the
+    /// paper's weighted MSEs, then the context outputs).
+    ///
+    /// [`InrConfig::targets`]: neuvolex_features::InrConfig::targets
+    /// [`InrConfig::head_weights`]: neuvolex_features::InrConfig::head_weights
     pub fn loss(&self, y: Tensor<2>, targets: &[f32]) -> Tensor<1> {
         let m = self.model;
         let n = y.dims()[0];
+        let tw = m.cfg.targets();
         let t = Tensor::<2>::from_data(
-            TensorData::new(targets[..n * TARGETS].to_vec(), [n, TARGETS]),
+            TensorData::new(targets[..n * tw].to_vec(), [n, tw]),
             &self.device,
         );
-        let outs = m.layout.head.out;
-        let t = t.narrow(1, 0, outs);
-        let err = y - t;
-        let sq = err.clone() * err;
-        let int = sq.clone().narrow(1, 0, 1).mean();
-        if outs == 1 {
-            return int;
+        let weights = m.cfg.head_weights();
+        let mut loss: Option<Tensor<1>> = None;
+        for (o, (&ti, &w)) in m.cfg.head_targets().iter().zip(&weights).enumerate() {
+            let e = y.clone().narrow(1, o, 1) - t.clone().narrow(1, ti, 1);
+            let term = (e.clone() * e).mean().mul_scalar(w);
+            loss = Some(match loss {
+                None => term,
+                Some(l) => l + term,
+            });
         }
-        let grad = sq
-            .clone()
-            .narrow(1, 1, 3)
-            .mean()
-            .mul_scalar(m.cfg.lambda_grad);
-        let stat = (sq.clone().narrow(1, 4, 1).mean() + sq.narrow(1, 5, 1).mean())
-            .mul_scalar(m.cfg.lambda_stat);
-        int + grad + stat
+        loss.expect("the heads have at least one output")
     }
 
     /// Loss and autodiff gradients for a batch, in the fused engine's layouts.
@@ -229,16 +230,19 @@ mod tests {
     use neuvolex_features::rng::Rng;
     use neuvolex_features::{Ablation, InrConfig};
 
-    /// The fused engine's hand-written backward equals burn's autodiff, for every ablation.
+    /// The fused engine's hand-written backward equals burn's autodiff, for every ablation,
+    /// with and without context outputs.
     #[test]
     fn fused_engine_matches_burn_autodiff() {
-        for ab in [
-            Ablation::Base,
-            Ablation::Structural,
-            Ablation::Film,
-            Ablation::Full,
+        for (ab, ctx) in [
+            (Ablation::Base, &[][..]),
+            (Ablation::Structural, &[]),
+            (Ablation::Film, &[]),
+            (Ablation::Full, &[]),
+            (Ablation::Full, &[1.0, 2.0, 8.0]),
         ] {
             let cfg = InrConfig {
+                context_sigmas: ctx.to_vec(),
                 levels: 4,
                 log2_table: 9,
                 base_resolution: 3,
@@ -253,14 +257,15 @@ mod tests {
             let p3 = cfg.patch.pow(3);
             let coords: Vec<[f32; 3]> = (0..n).map(|_| [r.f32(), r.f32(), r.f32()]).collect();
             let patches: Vec<f32> = (0..n * p3).map(|_| r.uniform(-1.0, 1.0)).collect();
-            let targets: Vec<f32> = (0..n * TARGETS).map(|_| r.uniform(-0.3, 1.0)).collect();
+            let tw = cfg.targets();
+            let targets: Vec<f32> = (0..n * tw).map(|_| r.uniform(-0.3, 1.0)).collect();
             // Fused engine.
             let mut w = m.work();
             let samples: Vec<SampleRef> = (0..n)
                 .map(|i| SampleRef {
                     x: coords[i],
                     patch: &patches[i * p3..(i + 1) * p3],
-                    target: targets[i * TARGETS..(i + 1) * TARGETS].try_into().unwrap(),
+                    target: &targets[i * tw..(i + 1) * tw],
                 })
                 .collect();
             m.load(&mut w, &samples);
@@ -274,24 +279,24 @@ mod tests {
             let close = |a: f32, b: f32| (a - b).abs() <= 1e-5 + 1e-3 * a.abs().max(b.abs());
             assert!(
                 close(w.loss as f32, g.loss),
-                "{ab:?}: loss {} vs burn {}",
+                "{ab:?} {ctx:?}: loss {} vs burn {}",
                 w.loss,
                 g.loss
             );
             for (i, (x, y)) in m.outputs(&w).iter().zip(&g.outputs).enumerate() {
-                assert!(close(*x, *y), "{ab:?}: output {i}: {x} vs {y}");
+                assert!(close(*x, *y), "{ab:?} {ctx:?}: output {i}: {x} vs {y}");
             }
             for (i, (x, y)) in w.grad.iter().zip(&g.dense).enumerate() {
                 assert!(
                     close(*x, *y),
-                    "{ab:?}: dense grad {i}: fused {x} vs burn {y}"
+                    "{ab:?} {ctx:?}: dense grad {i}: fused {x} vs burn {y}"
                 );
             }
             assert_eq!(tg.g.len(), g.table.len());
             for (i, (x, y)) in tg.g.iter().zip(&g.table).enumerate() {
                 assert!(
                     close(*x, *y),
-                    "{ab:?}: table grad {i}: fused {x} vs burn {y}"
+                    "{ab:?} {ctx:?}: table grad {i}: fused {x} vs burn {y}"
                 );
             }
         }

@@ -165,6 +165,12 @@ impl GpuInr {
                 "features_per_level must be positive".into(),
             ));
         }
+        if !model.cfg.context_sigmas.is_empty() {
+            return Err(GpuError::Config(format!(
+                "the GPU engine has the paper's six heads only; this model has {} context heads: use --backend cpu",
+                2 * model.cfg.context_sigmas.len()
+            )));
+        }
         let max = ctx.max_binding() as usize / 4;
         let mut mb = opts
             .micro_batch

@@ -258,6 +258,11 @@ pub fn train_gpu(
     if resume.is_none() {
         // Refuse a model the device cannot hold before building it on the host.
         neuvolex_features::train::check_configs(inr, cfg)?;
+        if !inr.context_sigmas.is_empty() {
+            return Err(GpuError::Config(
+                "the GPU engine has the paper's six heads only, not context heads: use --backend cpu".into(),
+            ));
+        }
         let grid = neuvolex_features::hashgrid::HashGrid::new(
             inr,
             *store.info().dims.iter().max().unwrap_or(&1),

@@ -30,6 +30,14 @@ pub struct InrConfig {
     pub lambda_grad: f32,
     /// Loss weight of the local mean and std heads.
     pub lambda_stat: f32,
+    /// Multi-scale context targets (empty = the paper's model): for each sigma (level-0
+    /// voxels), two extra outputs of the heads layer predict the Gaussian-smoothed normalised
+    /// intensity and its scale-normalised gradient magnitude at that scale, read from the
+    /// store's pyramid, so the last hidden layer has to describe the voxel's surroundings.
+    pub context_sigmas: Vec<f32>,
+    /// Loss weight of the context outputs together (each of the `2 x sigmas` outputs weighs
+    /// `lambda_context / (2 x sigmas)`).
+    pub lambda_context: f32,
 }
 
 impl Default for InrConfig {
@@ -47,7 +55,65 @@ impl Default for InrConfig {
             ablation: Ablation::Full,
             lambda_grad: 1.0,
             lambda_stat: 0.5,
+            context_sigmas: Vec::new(),
+            lambda_context: 1.0,
         }
+    }
+}
+
+impl InrConfig {
+    /// Target values per training sample: intensity, gradient (3), local mean, local std, then
+    /// smoothed intensity and gradient magnitude per context sigma.
+    pub fn targets(&self) -> usize {
+        crate::model::TARGETS + 2 * self.context_sigmas.len()
+    }
+
+    /// Loss weight of every output of the heads layer, in output order: the paper's heads
+    /// (intensity 1, gradient `lambda_grad / 3` each, mean and std `lambda_stat`; intensity
+    /// alone without multi-task heads), then the context outputs.
+    pub fn head_weights(&self) -> Vec<f32> {
+        let mut w = if self.ablation.multitask() {
+            let g = self.lambda_grad / 3.0;
+            vec![1.0, g, g, g, self.lambda_stat, self.lambda_stat]
+        } else {
+            vec![1.0]
+        };
+        let nc = 2 * self.context_sigmas.len();
+        w.extend(std::iter::repeat_n(
+            self.lambda_context / nc.max(1) as f32,
+            nc,
+        ));
+        w
+    }
+
+    /// The target index of each output of the heads layer.
+    pub fn head_targets(&self) -> Vec<usize> {
+        let base = if self.ablation.multitask() {
+            crate::model::TARGETS
+        } else {
+            1
+        };
+        (0..base)
+            .chain((0..2 * self.context_sigmas.len()).map(|k| crate::model::TARGETS + k))
+            .collect()
+    }
+
+    /// Checks the context settings.
+    pub fn check(&self) -> Result<(), String> {
+        if let Some(s) = self
+            .context_sigmas
+            .iter()
+            .find(|s| !(s.is_finite() && **s >= 0.5 && **s <= 64.0))
+        {
+            return Err(format!("context sigma {s} must be in 0.5..=64 voxels"));
+        }
+        if !(self.lambda_context.is_finite() && self.lambda_context >= 0.0) {
+            return Err(format!(
+                "lambda_context {} must be finite and non-negative",
+                self.lambda_context
+            ));
+        }
+        Ok(())
     }
 }
 

@@ -22,6 +22,7 @@ pub fn vectors_name(kind: FeatureKind) -> String {
         FeatureKind::Pos => "inr_pos",
         FeatureKind::Mod => "inr_mod",
         FeatureKind::Concat => "inr_concat",
+        FeatureKind::Region => "inr_region",
     }
     .to_string()
 }

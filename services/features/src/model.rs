@@ -14,7 +14,8 @@ use serde::{Deserialize, Serialize};
 /// Samples per chunk of forward/backward work.
 pub const CHUNK: usize = 256;
 
-/// Outputs of the heads: intensity, gradient (3), local mean, local std.
+/// Outputs of the paper's heads: intensity, gradient (3), local mean, local std. Context
+/// outputs ([`InrConfig::context_sigmas`]) follow them.
 pub const TARGETS: usize = 6;
 
 /// One dense layer inside the flat parameter vector: `w` is `out x in` row-major.
@@ -83,7 +84,7 @@ impl DenseLayout {
             main.push(layer(cfg.hidden, cfg.hidden, true));
         }
         let proj = layer(mlp_in, cfg.hidden, false);
-        let head = layer(cfg.hidden, if a.multitask() { TARGETS } else { 1 }, true);
+        let head = layer(cfg.hidden, cfg.head_targets().len(), true);
         DenseLayout {
             structural,
             film,
@@ -113,6 +114,9 @@ pub enum FeatureKind {
     Mod,
     /// Last hidden layer, the MLP input and the normalised position, concatenated.
     Concat,
+    /// The coarse half of the hash-grid levels (the first `levels / 2` levels of F_pos): a
+    /// smooth learned code of the region a voxel lies in, in place of raw position.
+    Region,
 }
 
 impl FeatureKind {
@@ -123,6 +127,7 @@ impl FeatureKind {
             FeatureKind::Pos => m.grid.out_dim(),
             FeatureKind::Mod => m.layout.mlp_in(),
             FeatureKind::Concat => m.cfg.hidden + m.layout.mlp_in() + 3,
+            FeatureKind::Region => m.region_levels() * m.grid.f,
         }
     }
 }
@@ -135,8 +140,9 @@ impl std::str::FromStr for FeatureKind {
             "pos" => Ok(FeatureKind::Pos),
             "mod" => Ok(FeatureKind::Mod),
             "concat" => Ok(FeatureKind::Concat),
+            "region" => Ok(FeatureKind::Region),
             _ => Err(format!(
-                "unknown feature kind '{s}' (hidden, pos, mod, concat)"
+                "unknown feature kind '{s}' (hidden, pos, mod, concat, region)"
             )),
         }
     }
@@ -166,14 +172,17 @@ pub struct SampleRef<'a> {
     pub x: [f32; 3],
     /// `patch^3` normalised intensities around the voxel, x fastest.
     pub patch: &'a [f32],
-    /// Intensity, gradient xyz, local mean, local std.
-    pub target: [f32; TARGETS],
+    /// Intensity, gradient xyz, local mean, local std, then the context targets
+    /// ([`InrConfig::targets`] values).
+    pub target: &'a [f32],
 }
 
 /// Per-chunk buffers, reused between steps.
 #[derive(Debug, Default, Clone)]
 pub struct Work {
     n: usize,
+    /// Targets per sample.
+    tw: usize,
     patch: Vec<f32>,
     target: Vec<f32>,
     coords: Vec<[f32; 3]>,
@@ -401,8 +410,9 @@ impl InrModel {
         let hid = self.cfg.hidden;
         Work {
             n: 0,
+            tw: self.cfg.targets(),
             patch: vec![0.0; n * self.cfg.patch.pow(3)],
-            target: vec![0.0; n * TARGETS],
+            target: vec![0.0; n * self.cfg.targets()],
             coords: vec![[0.0; 3]; n],
             idx: vec![0; n * self.grid.levels.len() * 8],
             wts: vec![0.0; n * self.grid.levels.len() * 8],
@@ -435,7 +445,7 @@ impl InrModel {
         self.load_with(w, samples.len(), |i, x, p, t| {
             *x = samples[i].x;
             p.copy_from_slice(&samples[i].patch[..p.len()]);
-            t.copy_from_slice(&samples[i].target);
+            t.copy_from_slice(&samples[i].target[..t.len()]);
         });
     }
 
@@ -521,33 +531,27 @@ impl InrModel {
         linear(&w.h[lay.main.len() - 1], n, &lay.head, p, &mut w.y);
     }
 
-    /// Loss and output gradient for the loaded chunk; `batch` is the full batch size.
+    /// Loss and output gradient for the loaded chunk; `batch` is the full batch size. The loss
+    /// is the weighted sum of each output's mean squared error ([`InrConfig::head_weights`]).
     fn loss(&self, w: &mut Work, batch: usize) {
         let n = w.n;
         let outs = self.layout.head.out;
+        let tw = w.tw;
         let inv = 1.0 / batch as f32;
-        let (lg, ls) = (self.cfg.lambda_grad, self.cfg.lambda_stat);
+        let weights = self.cfg.head_weights();
+        let tix = self.cfg.head_targets();
         let mut loss = 0.0f64;
         let mut sse = 0.0f64;
         for i in 0..n {
             let y = &w.y[i * outs..(i + 1) * outs];
-            let t = &w.target[i * TARGETS..(i + 1) * TARGETS];
+            let t = &w.target[i * tw..(i + 1) * tw];
             let dy = &mut w.dy[i * outs..(i + 1) * outs];
             let e0 = y[0] - t[0];
             sse += (e0 * e0) as f64;
-            loss += (e0 * e0 * inv) as f64;
-            dy[0] = 2.0 * e0 * inv;
-            if outs == TARGETS {
-                for k in 1..4 {
-                    let e = y[k] - t[k];
-                    loss += (lg * e * e * inv / 3.0) as f64;
-                    dy[k] = lg * 2.0 * e * inv / 3.0;
-                }
-                for k in 4..6 {
-                    let e = y[k] - t[k];
-                    loss += (ls * e * e * inv) as f64;
-                    dy[k] = ls * 2.0 * e * inv;
-                }
+            for k in 0..outs {
+                let e = y[k] - t[tix[k]];
+                loss += (weights[k] * e * e * inv) as f64;
+                dy[k] = weights[k] * 2.0 * e * inv;
             }
         }
         w.loss = loss;
@@ -565,7 +569,8 @@ impl InrModel {
         w.sse_int = 0.0;
     }
 
-    /// Loads `n` samples through `fill(i, position, patch, target)` (at most [`CHUNK`]).
+    /// Loads `n` samples through `fill(i, position, patch, targets)` (at most [`CHUNK`];
+    /// `targets` holds [`InrConfig::targets`] values).
     pub fn load_with(
         &self,
         w: &mut Work,
@@ -574,13 +579,14 @@ impl InrModel {
     ) {
         assert!(n <= CHUNK);
         let p3 = self.cfg.patch.pow(3);
+        let tw = w.tw;
         w.n = n;
         for i in 0..n {
             fill(
                 i,
                 &mut w.coords[i],
                 &mut w.patch[i * p3..(i + 1) * p3],
-                &mut w.target[i * TARGETS..(i + 1) * TARGETS],
+                &mut w.target[i * tw..(i + 1) * tw],
             );
         }
     }
@@ -734,8 +740,14 @@ impl InrModel {
                     o[hid..hid + mi].copy_from_slice(&w.inp[i * mi..(i + 1) * mi]);
                     o[hid + mi..].copy_from_slice(&w.coords[i]);
                 }
+                FeatureKind::Region => o.copy_from_slice(&w.pos[i * e..i * e + c]),
             }
         }
+    }
+
+    /// Hash-grid levels of the [`FeatureKind::Region`] code: the coarse half.
+    pub fn region_levels(&self) -> usize {
+        (self.grid.levels.len() / 2).max(1)
     }
 
     /// Number of samples loaded in `w`.
@@ -749,8 +761,9 @@ mod tests {
     use super::*;
     use crate::config::Ablation;
 
-    fn small(ablation: Ablation) -> InrModel {
+    fn small(ablation: Ablation, context_sigmas: &[f32]) -> InrModel {
         let cfg = InrConfig {
+            context_sigmas: context_sigmas.to_vec(),
             levels: 3,
             log2_table: 8,
             base_resolution: 2,
@@ -769,7 +782,7 @@ mod tests {
         m
     }
 
-    type Batch = (Vec<[f32; 3]>, Vec<Vec<f32>>, Vec<[f32; TARGETS]>);
+    type Batch = (Vec<[f32; 3]>, Vec<Vec<f32>>, Vec<Vec<f32>>);
 
     fn batch(m: &InrModel, n: usize) -> Batch {
         let mut r = Rng::new(9);
@@ -780,26 +793,28 @@ mod tests {
             .collect();
         let ts = (0..n)
             .map(|_| {
-                [
+                let mut t = vec![
                     r.f32(),
                     r.uniform(-0.2, 0.2),
                     r.uniform(-0.2, 0.2),
                     r.uniform(-0.2, 0.2),
                     r.f32(),
                     r.f32() * 0.3,
-                ]
+                ];
+                t.extend((TARGETS..m.cfg.targets()).map(|_| r.f32()));
+                t
             })
             .collect();
         (xs, ps, ts)
     }
 
-    fn loss_of(m: &InrModel, xs: &[[f32; 3]], ps: &[Vec<f32>], ts: &[[f32; TARGETS]]) -> f64 {
+    fn loss_of(m: &InrModel, xs: &[[f32; 3]], ps: &[Vec<f32>], ts: &[Vec<f32>]) -> f64 {
         let mut w = m.work();
         let s: Vec<SampleRef> = (0..xs.len())
             .map(|i| SampleRef {
                 x: xs[i],
                 patch: &ps[i],
-                target: ts[i],
+                target: &ts[i],
             })
             .collect();
         m.load(&mut w, &s);
@@ -808,23 +823,26 @@ mod tests {
         w.loss
     }
 
-    /// Analytic gradients against central finite differences (in f64 loss, f32 model).
+    /// Analytic gradients against central finite differences (in f64 loss, f32 model), for
+    /// every ablation, with and without context outputs.
     #[test]
     fn gradient_check_every_ablation() {
-        for ab in [
-            Ablation::Base,
-            Ablation::Structural,
-            Ablation::Film,
-            Ablation::Full,
+        for (ab, ctx) in [
+            (Ablation::Base, &[][..]),
+            (Ablation::Structural, &[]),
+            (Ablation::Film, &[]),
+            (Ablation::Full, &[]),
+            (Ablation::Full, &[1.0, 4.0]),
+            (Ablation::Base, &[2.0]),
         ] {
-            let m = small(ab);
+            let m = small(ab, ctx);
             let (xs, ps, ts) = batch(&m, 6);
             let mut w = m.work();
             let s: Vec<SampleRef> = (0..xs.len())
                 .map(|i| SampleRef {
                     x: xs[i],
                     patch: &ps[i],
-                    target: ts[i],
+                    target: &ts[i],
                 })
                 .collect();
             m.load(&mut w, &s);
@@ -870,11 +888,44 @@ mod tests {
             for &i in touched.iter().step_by((touched.len() / 20).max(1)) {
                 check(&|mm: &mut InrModel, h| mm.table[i] += h, tgrad[i] as f64);
             }
-            assert!(kinks * 5 < checked, "{ab:?}: {kinks} kinks of {checked}");
+            assert!(
+                kinks * 5 < checked,
+                "{ab:?} {ctx:?}: {kinks} kinks of {checked}"
+            );
             assert!(
                 checked > 50 && worst <= 1.0,
-                "{ab:?}: worst error {worst} x tolerance ({checked} checked, {kinks} kinks)"
+                "{ab:?} {ctx:?}: worst error {worst} x tolerance ({checked} checked, {kinks} kinks)"
             );
         }
+    }
+
+    /// Without context sigmas the model is the paper's: the same layout, heads and loss
+    /// weights; context sigmas only widen the heads layer.
+    #[test]
+    fn context_outputs_only_widen_the_heads() {
+        let paper = small(Ablation::Full, &[]);
+        assert_eq!(paper.layout.head.out, TARGETS);
+        assert_eq!(
+            paper.cfg.head_weights(),
+            vec![1.0, 1.0 / 3.0, 1.0 / 3.0, 1.0 / 3.0, 0.5, 0.5]
+        );
+        let ctx = small(Ablation::Full, &[1.0, 2.0, 4.0]);
+        assert_eq!(ctx.layout.head.out, TARGETS + 6);
+        assert_eq!(ctx.cfg.targets(), TARGETS + 6);
+        let w = ctx.cfg.head_weights();
+        assert!((w[TARGETS..].iter().sum::<f32>() - ctx.cfg.lambda_context).abs() < 1e-6);
+        let (p, c) = (&paper.layout, &ctx.layout);
+        assert_eq!(p.main, c.main);
+        assert_eq!(p.structural, c.structural);
+        assert_eq!(p.head.inp, c.head.inp);
+        let base = small(Ablation::Base, &[2.0]);
+        assert_eq!(base.layout.head.out, 3);
+        assert_eq!(base.cfg.head_targets(), vec![0, TARGETS, TARGETS + 1]);
+        assert!(InrConfig {
+            context_sigmas: vec![0.1],
+            ..Default::default()
+        }
+        .check()
+        .is_err());
     }
 }

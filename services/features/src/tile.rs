@@ -3,9 +3,11 @@
 //! A tile is the unit of residency: training samples voxels of the few tiles in memory, and
 //! extraction runs tile by tile. Everything here is a pure function of a brick and its halo.
 
+use crate::config::InrConfig;
 use crate::model::TARGETS;
 use neuvolex_bricks::derived::{compute, Normaliser, DERIVED_HALO};
 use neuvolex_bricks::{Brick, BrickStore, HaloBrick, Result};
+use neuvolex_filters::scale::ScaleField;
 
 /// One brick ready for sampling.
 #[derive(Debug, Clone)]
@@ -20,6 +22,9 @@ pub struct Tile {
     pub norm: Vec<f32>,
     /// Targets per core voxel: intensity, gradient xyz, local mean, local std.
     pub targets: Vec<[f32; TARGETS]>,
+    /// Context targets per core voxel (`voxels x 2 sigmas`: smoothed intensity and
+    /// scale-normalised gradient magnitude per sigma); empty for the paper's model.
+    pub context: Vec<f32>,
 }
 
 impl Tile {
@@ -49,6 +54,7 @@ impl Tile {
             halo: h.halo,
             norm: n,
             targets,
+            context: Vec::new(),
         }
     }
 
@@ -61,12 +67,50 @@ impl Tile {
         Ok(t)
     }
 
+    /// Loads brick `b` with every target a model of `cfg` trains on (the context targets
+    /// from the store's pyramid, see [`neuvolex_filters::scale`]).
+    pub fn load_for(store: &BrickStore, b: &Brick, cfg: &InrConfig) -> Result<Self> {
+        let mut t = Tile::load(store, b, cfg.patch)?;
+        if cfg.context_sigmas.is_empty() {
+            return Ok(t);
+        }
+        let levels = &store.info().levels;
+        let norm = store.normaliser();
+        let lo = b.origin.map(|o| o as isize);
+        let hi: [isize; 3] = std::array::from_fn(|a| (b.origin[a] + b.size[a]) as isize - 1);
+        let fields = cfg
+            .context_sigmas
+            .iter()
+            .map(|&s| {
+                ScaleField::compute(s, levels, &norm, lo, hi, |k, o, sz| {
+                    store.read_box(k, o, sz)
+                })
+            })
+            .collect::<Result<Vec<_>>>()?;
+        let nc = 2 * fields.len();
+        t.context = Vec::with_capacity(b.voxels() * nc);
+        for z in 0..b.size[2] {
+            for y in 0..b.size[1] {
+                for x in 0..b.size[0] {
+                    let p = [lo[0] + x as isize, lo[1] + y as isize, lo[2] + z as isize];
+                    for f in &fields {
+                        let (v, g) = f.sample(p);
+                        t.context.push(v);
+                        t.context.push(g);
+                    }
+                }
+            }
+        }
+        Ok(t)
+    }
+
     /// Core voxels.
     pub fn voxels(&self) -> usize {
         self.targets.len()
     }
 
-    /// Writes the position, patch and target of core voxel `v` (x fastest within the brick).
+    /// Writes the position, patch and targets of core voxel `v` (x fastest within the brick;
+    /// `t` holds the paper's targets, then as many context targets as the tile was loaded with).
     #[inline]
     pub fn sample(&self, v: usize, patch: usize, x: &mut [f32; 3], p: &mut [f32], t: &mut [f32]) {
         let s = self.brick.size;
@@ -88,6 +132,15 @@ impl Tile {
                 k += patch;
             }
         }
-        t.copy_from_slice(&self.targets[v]);
+        t[..TARGETS].copy_from_slice(&self.targets[v]);
+        let nc = t.len() - TARGETS;
+        if nc > 0 {
+            if self.context.is_empty() {
+                // Loaded for extraction only: no context targets.
+                t[TARGETS..].fill(0.0);
+            } else {
+                t[TARGETS..].copy_from_slice(&self.context[v * nc..(v + 1) * nc]);
+            }
+        }
     }
 }

@@ -210,6 +210,7 @@ pub fn start(
         }
     };
     tc.batch = tc.batch.max(1);
+    model.cfg.check().map_err(FeatureError::Config)?;
     let bricks = training_bricks(store, tc.include_empty);
     let voxels: u64 = bricks.iter().map(|b| b.voxels() as u64).sum();
     let budget_samples = match (tc.budget.epochs, tc.budget.samples) {
@@ -459,9 +460,10 @@ pub fn train(
     let tile_bricks = tc.tile_bricks;
     let seed = tc.seed;
     let groups_of = |epoch: u64| epoch_groups(&bricks, seed, epoch, tile_bricks);
+    let inr_cfg = model.cfg.clone();
     let load_group = |g: &[Brick]| -> Result<Vec<Tile>> {
         g.iter()
-            .map(|b| Tile::load(store, b, patch).map_err(FeatureError::from))
+            .map(|b| Tile::load_for(store, b, &inr_cfg).map_err(FeatureError::from))
             .collect()
     };
     let stopped_by: String = std::thread::scope(|scope| -> Result<String> {

@@ -6,6 +6,9 @@
 
 use neuvolex_bricks::derived::{HaloBrick, Normaliser};
 use rayon::prelude::*;
+
+pub mod context;
+pub mod scale;
 use serde::{Deserialize, Serialize};
 
 /// Scales of the filter bank (ilastik's default set between 0.7 and 5).

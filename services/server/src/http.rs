@@ -162,6 +162,7 @@ fn info(s: &Session) -> serde_json::Value {
         "trained": model.is_some(),
         "model_version": model.map_or(0, |m| m.0),
         "tf": s.tf.read().unwrap_or_else(|p| p.into_inner()).as_ref().map(|t| t.0.clone()),
+        "prior": crate::assist::prior_summary(s),
     })
 }
 
@@ -309,6 +310,7 @@ async fn overlay(
         let (w, h) = (d[a.u], d[a.v]);
         let classes = s.classes.read().unwrap_or_else(|p| p.into_inner()).clone();
         let probs = s.probs.read().unwrap_or_else(|p| p.into_inner());
+        let prior = crate::assist::active_prior(&s, &probs);
         let ids = &probs.ids;
         let color = |id: u32| {
             classes
@@ -328,7 +330,8 @@ async fn overlay(
         let mut rgba = vec![0u8; w * h * 4];
         for j in 0..h {
             for i in 0..w {
-                let Some(p) = probs.at(&s.store, a.voxel(d, index, i, j)) else {
+                let vox = a.voxel(d, index, i, j);
+                let Some(p) = probs.at(&s.store, vox) else {
                     continue;
                 };
                 let o = &mut rgba[(j * w + i) * 4..(j * w + i + 1) * 4];
@@ -354,7 +357,10 @@ async fn overlay(
                 } else {
                     let best = order[0];
                     let id = ids[best];
-                    if id == BACKGROUND || p[best] < 128 {
+                    if id == BACKGROUND
+                        || p[best] < 128
+                        || prior.as_ref().is_some_and(|pr| pr.clears(&s.store, vox))
+                    {
                         continue;
                     }
                     let c = color(id);
@@ -615,19 +621,27 @@ fn per_voxel(s: &Session, f: impl Fn(&crate::session::Probs, &[u8]) -> u8) -> Ap
     Ok(out)
 }
 
-/// The arg-max label of every voxel (0 where the background wins or no class reaches 0.5).
+/// The arg-max label of every voxel (0 where the background wins or no class reaches 0.5, or
+/// where the spatial prior, when on, drops the voxel's component).
 fn label_voxels(s: &Session) -> ApiResult<Vec<u8>> {
-    per_voxel(s, |p, px| {
-        let (k, &m) = px
-            .iter()
-            .enumerate()
-            .max_by_key(|(_, &v)| v)
-            .unwrap_or((0, &0));
-        match p.ids.get(k) {
-            Some(&id) if m >= 128 && id != BACKGROUND => id as u8,
-            _ => 0,
+    let mut out = per_voxel(s, |p, px| crate::assist::label_of(&p.ids, px) as u8)?;
+    let probs = s.probs.read().unwrap_or_else(|p| p.into_inner());
+    if let Some(pr) = crate::assist::active_prior(s, &probs) {
+        let d = s.store.info().dims;
+        for (idx, cleared) in &pr.cleared {
+            let b = s.store.brick(*idx)?;
+            for &i in cleared.iter() {
+                let i = i as usize;
+                let (x, y, z) = (
+                    i % b.size[0],
+                    (i / b.size[0]) % b.size[1],
+                    i / (b.size[0] * b.size[1]),
+                );
+                out[((b.origin[2] + z) * d[1] + b.origin[1] + y) * d[0] + b.origin[0] + x] = 0;
+            }
         }
-    })
+    }
+    Ok(out)
 }
 
 /// One class's probability (0..255 for 0..1) of every voxel.
@@ -869,6 +883,34 @@ async fn put_tf(
     Ok(HttpResponse::Ok().json(info(&s)))
 }
 
+async fn suggest(st: web::Data<AppState>, id: web::Path<String>) -> ApiResult<HttpResponse> {
+    let s = st.session(&id)?;
+    let v = blocking(move || crate::assist::suggest(&s)).await?;
+    Ok(HttpResponse::Ok().json(v))
+}
+
+async fn get_prior(st: web::Data<AppState>, id: web::Path<String>) -> ApiResult<HttpResponse> {
+    let s = st.session(&id)?;
+    Ok(HttpResponse::Ok().json(crate::assist::prior_summary(&s)))
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct PriorReq {
+    enabled: bool,
+}
+
+async fn put_prior(
+    st: web::Data<AppState>,
+    id: web::Path<String>,
+    req: web::Json<PriorReq>,
+) -> ApiResult<HttpResponse> {
+    let s = st.session(&id)?;
+    s.prior_on.store(req.enabled, Ordering::SeqCst);
+    let sum = blocking(move || crate::assist::refresh_prior(&s)).await?;
+    Ok(HttpResponse::Ok().json(sum))
+}
+
 async fn preview(st: web::Data<AppState>, id: web::Path<String>) -> ApiResult<HttpResponse> {
     let s = st.session(&id)?;
     let p = s.preview.read().unwrap_or_else(|p| p.into_inner()).clone();
@@ -928,6 +970,9 @@ pub fn configure(cfg: &mut web::ServiceConfig) {
             .route("/sessions/{id}/tf", web::get().to(get_tf))
             .route("/sessions/{id}/tf", web::put().to(put_tf))
             .route("/sessions/{id}/preview.png", web::get().to(preview))
+            .route("/sessions/{id}/suggest", web::get().to(suggest))
+            .route("/sessions/{id}/prior", web::get().to(get_prior))
+            .route("/sessions/{id}/prior", web::put().to(put_prior))
             .route("/presets/{name}", web::get().to(get_preset))
             .route("/debug/crash/{actor}", web::post().to(crash))
             .route(

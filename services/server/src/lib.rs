@@ -11,11 +11,14 @@
 //!   failed actor and reports it.
 //! - [`http`]: the routes; every malformed request gets a 4xx with a message.
 //! - [`paths`]: volumes only from the configured data root.
+//! - [`assist`]: the spatial prior over the streamed probabilities and the next-slice
+//!   suggestion.
 
 #![warn(missing_docs)]
 
 pub mod actors;
-pub mod cache;
+pub mod assist;
+pub use neuvolex_classify::cache;
 pub mod compute;
 pub mod error;
 pub mod http;

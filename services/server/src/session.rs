@@ -15,7 +15,7 @@ use std::collections::{BTreeSet, HashMap};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, RwLock};
 
-use crate::cache::FeatureCache;
+use neuvolex_classify::cache::FeatureCache;
 use neuvolex_features::InrModel;
 
 /// A model and its version in a session (bumped by every snapshot).
@@ -98,6 +98,11 @@ pub struct Session {
     pub tf: RwLock<Option<(serde_json::Value, neuvolex_render::TfFile)>>,
     /// The newest training preview: reconstruction beside the input, as PNG, and its PSNR.
     pub preview: RwLock<Option<(Vec<u8>, f64)>>,
+    /// Whether the spatial prior filters the labels shown and exported (on by default).
+    pub prior_on: AtomicBool,
+    /// The prior's verdict on the last complete classification (beside the raw
+    /// probabilities, which it never changes).
+    pub prior: RwLock<Option<crate::assist::PriorState>>,
 }
 
 /// A session's renderer and what its last frame was.
@@ -166,7 +171,14 @@ impl Session {
             features: FeatureCache::new(cache_bytes),
             tf: RwLock::new(None),
             preview: RwLock::new(None),
+            prior_on: AtomicBool::new(true),
+            prior: RwLock::new(None),
         })
+    }
+
+    /// Whether the spatial prior is on.
+    pub fn prior_enabled(&self) -> bool {
+        self.prior_on.load(Ordering::SeqCst)
     }
 
     /// Replaces the strokes (validated against the grid); returns the new generation.
@@ -352,6 +364,9 @@ impl Session {
         result?;
         let n = done.load(Ordering::SeqCst) as usize;
         let cancelled = cancelled.load(Ordering::SeqCst);
+        if !cancelled {
+            crate::assist::refresh_prior(self)?;
+        }
         self.set_status(|s| s.state = if cancelled { "cancelled" } else { "done" }.into());
         Ok(n)
     }

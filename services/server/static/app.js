@@ -43,6 +43,7 @@ async function open() {
   $("export").href = `/api/sessions/${S.id}/export/labels.nii.gz`;
   renderClasses(); await loadTf(); refreshAll();
   $("trinfo").textContent = S.info.trained ? `model version ${S.info.model_version}` : "not trained"; $("preview").removeAttribute("src");
+  $("prior").checked = !S.info.prior || S.info.prior.enabled; priorInfo(S.info.prior); $("suggestinfo").textContent = "";
   status(`${S.info.volume}: ${d.join(" x ")}`);
 }
 
@@ -258,6 +259,30 @@ $("load").onchange = async (e) => {
   sendStrokes();
 };
 
+// Assistance: the spatial prior (a toggle) and the next-slice suggestion.
+function priorInfo(r) {
+  $("priorinfo").textContent = r && r.enabled && r.generation ? `${r.kept} of ${r.components} parts kept, ${r.voxels_cleared} voxels cleared` : "";
+}
+async function refreshPrior() { if (S.id) try { priorInfo(await api("GET", `/api/sessions/${S.id}/prior`)); } catch (_) {} }
+$("prior").onchange = async (e) => {
+  if (!S.id) return;
+  try { priorInfo(await api("PUT", `/api/sessions/${S.id}/prior`, { enabled: e.target.checked })); }
+  catch (err) { status("error: " + err.message); }
+  for (const a of ["x", "y", "z"]) drawSlice(a);
+};
+async function suggestSlice(axis) {
+  if (!S.id) return;
+  try {
+    const r = await api("GET", `/api/sessions/${S.id}/suggest`);
+    const sug = r.suggestions.find((s) => "xyz"[s.axis] === axis) || r.axial;
+    if (!sug) { $("suggestinfo").textContent = "no uncertain voxel"; return; }
+    const a = "xyz"[sug.axis];
+    $("i" + a).value = S.idx[a] = sug.slice; drawSlice(a);
+    $("suggestinfo").textContent = `${a} = ${sug.slice}: ${(100 * sug.share).toFixed(1)} % of the uncertainty${r.bricks < r.total_bricks ? " (so far)" : ""}`;
+  } catch (e) { $("suggestinfo").textContent = "error: " + e.message; }
+}
+$("suggest").onclick = () => suggestSlice("z");
+
 // Viewpoint recommendation: thumbnails that move the 3-D view.
 $("recommend").onclick = async () => {
   if (!S.id) return;
@@ -287,7 +312,7 @@ function subscribe() {
     status(`classified ${d.done}/${d.total} bricks`);
     if (!tick) tick = setTimeout(() => { tick = null; refreshAll(); }, 400);
   });
-  on("classification", (d) => { status(d.error ? "error: " + d.error : `classification ${d.status.state}${d.status.message ? ": " + d.status.message : ""} (${d.status.features})`); refreshAll(); });
+  on("classification", (d) => { status(d.error ? "error: " + d.error : `classification ${d.status.state}${d.status.message ? ": " + d.status.message : ""} (${d.status.features})`); refreshAll(); refreshPrior(); });
   on("training", (d) => {
     const t = d.error ? "training " + d.state + ": " + d.error : `training ${d.state}${d.epoch ? " epoch " + d.epoch.toFixed(2) : ""}${d.psnr ? " PSNR " + d.psnr.toFixed(1) + " dB" : ""}${d.model_version ? " (model " + d.model_version + ")" : ""}`;
     status(t); $("trinfo").textContent = t;
@@ -312,6 +337,7 @@ document.addEventListener("keydown", (e) => {
   else if (k === "[") { $("brush").value = S.radius = Math.max(1, S.radius - 1); $("brushv").textContent = S.radius; }
   else if (k === "]") { $("brush").value = S.radius = Math.min(20, S.radius + 1); $("brushv").textContent = S.radius; }
   else if (k === "h" || k === "H" || k === "?") toggleHelp();
+  else if (k === "n" || k === "N") suggestSlice(S.hover);
   else if (k === "o" || k === "O") { const o = $("ovl"); o.selectedIndex = (o.selectedIndex + 1) % o.options.length; o.oninput(); }
   else if (["ArrowUp", "ArrowDown", "PageUp", "PageDown"].includes(k) && S.id) {
     e.preventDefault(); const a = S.hover, s = $("i" + a); s.value = S.idx[a] = Math.max(0, Math.min(+s.max, S.idx[a] + (k === "ArrowUp" || k === "PageUp" ? 1 : -1))); drawSlice(a);

@@ -918,3 +918,99 @@ async fn the_gpu_backend_trains_and_renders() {
     let s: Value = test::call_and_read_body_json(&app, req).await;
     assert_eq!(s["trained"], true, "{s}");
 }
+
+/// Non-zero voxels of an exported label volume.
+fn labelled_voxels(gz: &[u8], dir: &std::path::Path, name: &str) -> usize {
+    let p = dir.join(name);
+    std::fs::write(&p, gz).unwrap();
+    let mut src = neuvolex_bricks::open_volume(&p, None).unwrap();
+    neuvolex_bricks::MemVolume::read_all(&mut *src)
+        .unwrap()
+        .to_f32()
+        .iter()
+        .filter(|&&v| v != 0.0)
+        .count()
+}
+
+#[actix_web::test]
+async fn the_suggested_slice_and_the_prior_toggle() {
+    let (d, cfg) = data();
+    let app = app!(cfg);
+    let id = open_session(&app).await;
+    let get = |uri: String| test::TestRequest::get().uri(&uri).to_request();
+    // Nothing classified yet: no suggestion.
+    let r = test::call_service(&app, get(format!("/api/sessions/{id}/suggest"))).await;
+    assert_eq!(r.status(), 409);
+    let g = put_strokes(&app, &id, 0).await;
+    let v = wait_done(&app, &id, g).await;
+    // The prior is on by default and judged the finished classification.
+    assert_eq!(v["prior"]["enabled"], true, "{v}");
+    let p: Value =
+        test::call_and_read_body_json(&app, get(format!("/api/sessions/{id}/prior"))).await;
+    assert_eq!(p["generation"], json!(g), "{p}");
+    let (comps, kept) = (
+        p["components"].as_u64().unwrap(),
+        p["kept"].as_u64().unwrap(),
+    );
+    assert!(kept >= 1 && kept <= comps, "{p}");
+    // A suggestion per axis, inside the grid, the axial one among them.
+    let s: Value =
+        test::call_and_read_body_json(&app, get(format!("/api/sessions/{id}/suggest"))).await;
+    let dims = [48, 48, 42];
+    let sug = s["suggestions"].as_array().unwrap();
+    assert_eq!(sug.len(), 3, "{s}");
+    for x in sug {
+        let a = x["axis"].as_u64().unwrap() as usize;
+        assert!(x["slice"].as_u64().unwrap() < dims[a] as u64, "{s}");
+        let share = x["share"].as_f64().unwrap();
+        assert!(share > 0.0 && share <= 1.0, "{s}");
+    }
+    assert_eq!(s["axial"], sug[2]);
+    // Exported labels with the prior on lack exactly the voxels it cleared; off, they come back.
+    let export = |app_uri: String| test::TestRequest::get().uri(&app_uri).to_request();
+    let on = test::read_body(
+        test::call_service(
+            &app,
+            export(format!("/api/sessions/{id}/export/labels.nii.gz")),
+        )
+        .await,
+    )
+    .await;
+    let req = test::TestRequest::put()
+        .uri(&format!("/api/sessions/{id}/prior"))
+        .set_json(json!({"enabled": false}))
+        .to_request();
+    let off: Value = test::call_and_read_body_json(&app, req).await;
+    assert_eq!(off["enabled"], false);
+    let all = test::read_body(
+        test::call_service(
+            &app,
+            export(format!("/api/sessions/{id}/export/labels.nii.gz")),
+        )
+        .await,
+    )
+    .await;
+    let n_on = labelled_voxels(&on, d.path(), "on.nii.gz");
+    let n_off = labelled_voxels(&all, d.path(), "off.nii.gz");
+    assert_eq!(
+        (n_off - n_on) as u64,
+        p["voxels_cleared"].as_u64().unwrap(),
+        "{p}"
+    );
+    // Back on; malformed toggles and unknown sessions are refused.
+    let req = test::TestRequest::put()
+        .uri(&format!("/api/sessions/{id}/prior"))
+        .set_json(json!({"enabled": true}))
+        .to_request();
+    let back: Value = test::call_and_read_body_json(&app, req).await;
+    assert_eq!(back["voxels_cleared"], p["voxels_cleared"]);
+    for body in [json!({"enabled": "yes"}), json!({"on": true})] {
+        let req = test::TestRequest::put()
+            .uri(&format!("/api/sessions/{id}/prior"))
+            .set_json(body)
+            .to_request();
+        assert_eq!(test::call_service(&app, req).await.status(), 400);
+    }
+    let r = test::call_service(&app, get("/api/sessions/nope/suggest".into())).await;
+    assert_eq!(r.status(), 404);
+}

@@ -1,12 +1,13 @@
 //! The feature cache: an LRU of feature bricks in half precision, shared by every
-//! classification and recommendation of a session, so a new scribble re-trains the forest
-//! without recomputing the features. Entries are keyed by feature set, model version and
-//! brick, so a newer model snapshot never serves stale features.
+//! classification and recommendation of a session (and every seed and round of an
+//! evaluation), so a new scribble re-trains the forest without recomputing the features.
+//! Entries are keyed by feature set, model version and brick, so a newer model snapshot never
+//! serves stale features.
 
+use crate::features::{f16_saturating, BrickFeatures};
+use crate::ClassifyError;
 use neuvolex_bricks::lru::Lru;
 use neuvolex_bricks::Brick;
-use neuvolex_classify::features::{f16_saturating, BrickFeatures};
-use neuvolex_classify::ClassifyError;
 use std::sync::Arc;
 
 type Key = (String, u64, [usize; 3]);

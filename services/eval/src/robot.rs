@@ -1,0 +1,694 @@
+//! The interactive protocol: a robot user that corrects the prediction one stroke at a time,
+//! as interactive segmentation is evaluated (strokes or clicks to reach a target score).
+//!
+//! It starts from the S1 scribbles. Each round it adds one axial stroke of the true class on
+//! voxels the prediction gets wrong, retrains the forest and predicts the volume again (the
+//! features come from the warm cache, as in the service), and scores the result. Where the
+//! stroke goes is the [`Placement`]:
+//!
+//! - [`Placement::Largest`]: inside the largest 6-connected region of wrong voxels of one true
+//!   class (missed or wrongly claimed), on the axial slice where that region is largest;
+//! - [`Placement::Suggested`]: on the slice the product suggests (the largest uncertainty
+//!   mass, [`neuvolex_classify::suggest`]), inside the largest wrong region of that slice;
+//! - [`Placement::Random`]: the same on a random slice that shows a class.
+//!
+//! A stroke is straight, through the deepest pixel of the region's cross-section, along the
+//! longest of 8 directions, half the region's diameter long each way at most, with the
+//! simulator's brush; it is checked to cover only voxels of its true class.
+
+use crate::data::{Dataset, DatasetSpec, TrainedInr};
+use crate::oneshot::{check, feature_sets, models_for};
+use crate::predict::{predict, score, train, with_prior, Features};
+use crate::{EvalConfig, EvalError, EvalEvent, Events, Method, Prior, Result};
+use neuvolex_bricks::rng::Rng;
+use neuvolex_classify::cache::FeatureCache;
+use neuvolex_classify::components::{label_brick, Partial};
+use neuvolex_classify::scribble::{erode, longest_stroke, stroke_length, Axis};
+use neuvolex_classify::{
+    rasterise, simulate, BrickFeatures, FeatureSet, Level, SimConfig, SliceMass, Stroke, F1,
+};
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+use std::time::Instant;
+
+/// Where the robot draws.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Placement {
+    /// In the largest 3-D error region, on its largest axial slice.
+    Largest,
+    /// On the suggested slice.
+    Suggested,
+    /// On a random slice showing a class.
+    Random,
+}
+
+impl std::fmt::Display for Placement {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Placement::Largest => "largest",
+            Placement::Suggested => "suggested",
+            Placement::Random => "random",
+        })
+    }
+}
+
+impl std::str::FromStr for Placement {
+    type Err = String;
+    fn from_str(s: &str) -> std::result::Result<Self, String> {
+        match s {
+            "largest" => Ok(Placement::Largest),
+            "suggested" => Ok(Placement::Suggested),
+            "random" => Ok(Placement::Random),
+            _ => Err(format!(
+                "unknown placement '{s}' (largest, suggested, random)"
+            )),
+        }
+    }
+}
+
+/// Settings of the robot.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct RobotConfig {
+    /// Rounds after the S1 start.
+    pub rounds: usize,
+    /// Placements to run.
+    pub placements: Vec<Placement>,
+    /// Mean F1 targets whose rounds are reported.
+    pub targets: Vec<f64>,
+}
+
+impl Default for RobotConfig {
+    fn default() -> Self {
+        RobotConfig {
+            rounds: 10,
+            placements: vec![Placement::Largest],
+            targets: vec![0.7, 0.8],
+        }
+    }
+}
+
+/// One scored round.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct RoundRow {
+    /// Dataset.
+    pub dataset: String,
+    /// Method (features and prior).
+    pub method: String,
+    /// INR variant (`-` without one).
+    pub inr: String,
+    /// Where the robot drew.
+    pub placement: Placement,
+    /// Seed of the S1 start (and of random slices).
+    pub seed: u64,
+    /// Round (0 = the S1 start).
+    pub round: usize,
+    /// The stroke added this round (none at round 0, or when nothing is wrong).
+    pub stroke: Option<Stroke>,
+    /// F1 per ROI class.
+    pub f1: Vec<F1>,
+    /// Mean F1 over the ROI classes.
+    pub mean_f1: f64,
+    /// Scribbled voxels.
+    pub scribbled: usize,
+    /// The slice the product suggests next (axial).
+    pub suggested_slice: Option<usize>,
+    /// Seconds of the round's interactive work: training rows, fit, prediction, prior.
+    pub seconds: f64,
+    /// Of which fitting the forest.
+    pub seconds_fit: f64,
+    /// Of which predicting the volume.
+    pub seconds_predict: f64,
+}
+
+/// Error label per voxel: `truth + 1` where the prediction differs from the truth, else 0.
+pub fn error_labels(truth: &[u32], pred: &[u16]) -> Vec<u16> {
+    truth
+        .iter()
+        .zip(pred)
+        .map(|(&t, &p)| {
+            if p as u32 != t {
+                (t + 1).min(u16::MAX as u32) as u16
+            } else {
+                0
+            }
+        })
+        .collect()
+}
+
+/// The largest 6-connected component of `labels` (brick by brick, merged), as its label and
+/// the axial slice where it has the most voxels, with its mask on that slice.
+pub fn largest_region(
+    labels: &[u16],
+    dims: [usize; 3],
+    brick: usize,
+) -> Option<(u16, usize, Vec<bool>)> {
+    let grid = dims.map(|d| d.div_ceil(brick));
+    let idx: Vec<[usize; 3]> = (0..grid[2])
+        .flat_map(|z| (0..grid[1]).flat_map(move |y| (0..grid[0]).map(move |x| [x, y, z])))
+        .collect();
+    let gather = |b: [usize; 3]| -> ([usize; 3], [usize; 3]) {
+        let o = b.map(|v| v * brick);
+        (o, std::array::from_fn(|a| brick.min(dims[a] - o[a])))
+    };
+    let done: Vec<([usize; 3], Vec<u32>, Partial)> = idx
+        .par_iter()
+        .map(|&b| {
+            let (o, s) = gather(b);
+            let mut l = Vec::with_capacity(s.iter().product());
+            for z in 0..s[2] {
+                for y in 0..s[1] {
+                    let row = ((o[2] + z) * dims[1] + o[1] + y) * dims[0] + o[0];
+                    l.extend_from_slice(&labels[row..row + s[0]]);
+                }
+            }
+            let (ids, p) = label_brick(b, s, &l, None, &[]);
+            (b, ids, p)
+        })
+        .collect();
+    let mut ids_of = Vec::new();
+    let mut parts = Vec::new();
+    for (b, ids, p) in done {
+        ids_of.push((b, ids));
+        parts.push(p);
+    }
+    let merged = Partial::merge_all(parts);
+    let (best, c) = merged
+        .components
+        .iter()
+        .enumerate()
+        .max_by_key(|(i, c)| (c.voxels, std::cmp::Reverse(*i)))?;
+    let best = best as u32;
+    let mut per_z = vec![0u64; dims[2]];
+    for (b, ids) in &ids_of {
+        let part = &merged.bricks[b];
+        let (o, s) = gather(*b);
+        for (k, &id) in ids.iter().enumerate() {
+            if id != 0 && part.local[id as usize - 1] == best {
+                per_z[o[2] + k / (s[0] * s[1])] += 1;
+            }
+        }
+    }
+    let z = (0..dims[2]).max_by_key(|&z| (per_z[z], std::cmp::Reverse(z)))?;
+    let mut mask = vec![false; dims[0] * dims[1]];
+    for (b, ids) in &ids_of {
+        let (o, s) = gather(*b);
+        if z < o[2] || z >= o[2] + s[2] {
+            continue;
+        }
+        let part = &merged.bricks[b];
+        let lz = z - o[2];
+        for y in 0..s[1] {
+            for x in 0..s[0] {
+                let id = ids[(lz * s[1] + y) * s[0] + x];
+                if id != 0 && part.local[id as usize - 1] == best {
+                    mask[(o[1] + y) * dims[0] + o[0] + x] = true;
+                }
+            }
+        }
+    }
+    Some((c.label, z, mask))
+}
+
+/// The largest 4-connected region of one label on an axial slice of error labels (`w x h`).
+pub fn largest_on_slice(err: &[u16], w: usize, h: usize) -> Option<(u16, Vec<bool>)> {
+    let mut seen = vec![false; w * h];
+    let mut best: Option<(usize, u16, Vec<usize>)> = None;
+    for s in 0..w * h {
+        if err[s] == 0 || seen[s] {
+            continue;
+        }
+        let l = err[s];
+        let mut region = vec![s];
+        seen[s] = true;
+        let mut k = 0;
+        while k < region.len() {
+            let i = region[k];
+            k += 1;
+            let (x, y) = (i % w, i / w);
+            let mut visit = |j: usize| {
+                if !seen[j] && err[j] == l {
+                    seen[j] = true;
+                    region.push(j);
+                }
+            };
+            if x > 0 {
+                visit(i - 1);
+            }
+            if x + 1 < w {
+                visit(i + 1);
+            }
+            if y > 0 {
+                visit(i - w);
+            }
+            if y + 1 < h {
+                visit(i + w);
+            }
+        }
+        if best.as_ref().is_none_or(|b| region.len() > b.0) {
+            best = Some((region.len(), l, region));
+        }
+    }
+    let (_, l, region) = best?;
+    let mut mask = vec![false; w * h];
+    region.iter().for_each(|&i| mask[i] = true);
+    Some((l, mask))
+}
+
+/// A stroke of `class` on axial slice `z` inside `mask` (`w x h`), through the region's deepest
+/// pixel, with the simulator's brush `radius` where the region is wide enough and a thinner
+/// one where not; every pixel it paints lies in `mask`.
+pub fn stroke_in(
+    mask: &[bool],
+    w: usize,
+    h: usize,
+    z: usize,
+    class: u32,
+    radius: f32,
+) -> Option<Stroke> {
+    let area = mask.iter().filter(|&&m| m).count();
+    if area == 0 {
+        return None;
+    }
+    // The deepest pixels: the last non-empty square erosion.
+    let mut deep = mask.to_vec();
+    let mut depth = 0;
+    loop {
+        let next = erode(&deep, w, h, 1);
+        if !next.iter().any(|&m| m) {
+            break;
+        }
+        deep = next;
+        depth += 1;
+    }
+    // Of the deepest pixels, the one nearest their centroid.
+    let px: Vec<usize> = (0..w * h).filter(|&i| deep[i]).collect();
+    let (cx, cy) = px.iter().fold((0.0, 0.0), |(a, b), &i| {
+        (a + (i % w) as f64, b + (i / w) as f64)
+    });
+    let (cx, cy) = (cx / px.len() as f64, cy / px.len() as f64);
+    let start = *px.iter().min_by(|&&a, &&b| {
+        let d = |i: usize| ((i % w) as f64 - cx).powi(2) + ((i / w) as f64 - cy).powi(2);
+        d(a).total_cmp(&d(b))
+    })?;
+    let s = [(start % w) as f32, (start / w) as f32];
+    let dirs: Vec<[f32; 2]> = (0..8)
+        .map(|k| {
+            let a = k as f32 * std::f32::consts::PI / 8.0;
+            [a.cos(), a.sin()]
+        })
+        .collect();
+    let max_len = stroke_length(area);
+    let r = radius.max(0.0);
+    let tries: Vec<(f32, usize)> = (r.ceil() as usize..=depth)
+        .map(|e| (r, e))
+        .chain(std::iter::once((0.0, 0)))
+        .collect();
+    for (rad, e) in tries {
+        let walkable = erode(mask, w, h, e);
+        if !walkable[start] {
+            continue;
+        }
+        let [p0, _, p1] = longest_stroke(&walkable, w, h, s, max_len, &dirs);
+        let stroke = Stroke {
+            class,
+            axis: Axis::Z,
+            slice: z,
+            points: vec![p0, s, p1],
+            radius: rad,
+        };
+        let painted = rasterise(std::slice::from_ref(&stroke), [w, h, z + 1]).ok()?;
+        let plane = z * w * h;
+        if !painted.voxels.is_empty()
+            && painted
+                .voxels
+                .iter()
+                .all(|&(i, _)| mask[i as usize - plane])
+        {
+            return Some(stroke);
+        }
+    }
+    None
+}
+
+/// The robot's next stroke for a prediction, or `None` when nothing is wrong.
+#[allow(clippy::too_many_arguments)]
+pub fn next_stroke(
+    truth: &[u32],
+    pred: &[u16],
+    dims: [usize; 3],
+    brick: usize,
+    placement: Placement,
+    slices: &SliceMass,
+    fg_slices: &[usize],
+    rng: &mut Rng,
+    background: u32,
+    radius: f32,
+) -> Option<Stroke> {
+    let err = error_labels(truth, pred);
+    let (w, h) = (dims[0], dims[1]);
+    let class_of = |l: u16| {
+        if l == 1 {
+            background
+        } else {
+            l as u32 - 1
+        }
+    };
+    let on_slice = |z: usize| -> Option<Stroke> {
+        let (l, mask) = largest_on_slice(&err[z * w * h..(z + 1) * w * h], w, h)?;
+        stroke_in(&mask, w, h, z, class_of(l), radius)
+    };
+    match placement {
+        Placement::Largest => {
+            let (l, z, mask) = largest_region(&err, dims, brick)?;
+            stroke_in(&mask, w, h, z, class_of(l), radius).or_else(|| on_slice(z))
+        }
+        Placement::Suggested => {
+            let m = &slices.axes[2];
+            let mut order: Vec<usize> = (0..dims[2]).collect();
+            order.sort_by(|&a, &b| m[b].total_cmp(&m[a]).then(a.cmp(&b)));
+            order.into_iter().find_map(on_slice)
+        }
+        Placement::Random => {
+            let mut order = fg_slices.to_vec();
+            rng.shuffle(&mut order);
+            order.into_iter().find_map(on_slice)
+        }
+    }
+}
+
+/// Axial slices showing a class in the truth.
+pub fn foreground_slices(truth: &[u32], dims: [usize; 3]) -> Vec<usize> {
+    let sl = dims[0] * dims[1];
+    (0..dims[2])
+        .filter(|&z| truth[z * sl..(z + 1) * sl].iter().any(|&t| t > 0))
+        .collect()
+}
+
+/// Runs the robot for every dataset, method, placement and seed; rounds are also sent as
+/// events.
+pub fn run(cfg: &EvalConfig, rc: &RobotConfig, events: Events) -> Result<Vec<RoundRow>> {
+    check(cfg)?;
+    if rc.placements.is_empty() {
+        return Err(EvalError::Config("no robot placement".into()));
+    }
+    let radius = SimConfig::default().radius;
+    let mut rows = Vec::new();
+    for spec in &cfg.datasets {
+        let ds = Dataset::prepare(DatasetSpec::parse(spec, &cfg.data)?, &cfg.work)?;
+        events(ds.event());
+        let models = models_for(cfg, &ds, events)?;
+        let dims = ds.store.info().dims;
+        let brick = ds.store.info().brick;
+        let fg = foreground_slices(&ds.truth, dims);
+        let cache = FeatureCache::new(cfg.cache_bytes);
+        for (fname, priors) in feature_sets(&cfg.methods) {
+            let set: FeatureSet = fname.parse().map_err(EvalError::Config)?;
+            let variants: Vec<Option<&TrainedInr>> = if set.needs_model() {
+                models.iter().map(Some).collect()
+            } else {
+                vec![None]
+            };
+            for model in variants {
+                let fx = BrickFeatures::new(
+                    &ds.store,
+                    set.clone(),
+                    model.map(|m| m.model.clone()),
+                    false,
+                )?;
+                let (inr, epochs) =
+                    model.map_or(("-".into(), 0.0), |m| (m.variant.name(), m.variant.epochs));
+                let f = Features::new(fx, Some(&cache), format!("{fname}/{inr}/{epochs}"));
+                for &prior in &priors {
+                    let method = Method {
+                        features: fname.clone(),
+                        prior,
+                    }
+                    .to_string();
+                    for &placement in &rc.placements {
+                        for seed in 0..cfg.seeds {
+                            let mut src = ds.truth_source()?;
+                            let (mut strokes, _) = simulate(
+                                &mut *src,
+                                &SimConfig {
+                                    level: Level::S1,
+                                    seed,
+                                    background: cfg.classify.background,
+                                    ..SimConfig::default()
+                                },
+                            )?;
+                            let mut rng = Rng::new(seed ^ 0x0B07_u64);
+                            let mut added: Option<Stroke> = None;
+                            for round in 0..=rc.rounds {
+                                let scr = rasterise(&strokes, dims)?;
+                                let t0 = Instant::now();
+                                let t = train(&f, &scr, &cfg.classify)?;
+                                let p = predict(&f, &t.forest, &t.ts, &cfg.classify, events)?;
+                                let labels = match prior {
+                                    Prior::None => p.labels.clone(),
+                                    Prior::Components => {
+                                        with_prior(
+                                            &p,
+                                            dims,
+                                            brick,
+                                            &scr,
+                                            cfg.classify.background,
+                                            &cfg.prior,
+                                        )
+                                        .0
+                                    }
+                                };
+                                let seconds = t0.elapsed().as_secs_f64();
+                                let (f1, mean_f1) = score(&labels, &ds.truth, &ds.classes);
+                                let row = RoundRow {
+                                    dataset: ds.spec.name.clone(),
+                                    method: method.clone(),
+                                    inr: inr.clone(),
+                                    placement,
+                                    seed,
+                                    round,
+                                    stroke: added.take(),
+                                    f1,
+                                    mean_f1,
+                                    scribbled: scr.voxels.len(),
+                                    suggested_slice: p.slices.suggest(2).map(|s| s.slice),
+                                    seconds,
+                                    seconds_fit: t.seconds_fit,
+                                    seconds_predict: p.seconds,
+                                };
+                                events(EvalEvent::Round(row.clone()));
+                                rows.push(row);
+                                if round == rc.rounds {
+                                    break;
+                                }
+                                match next_stroke(
+                                    &ds.truth,
+                                    &labels,
+                                    dims,
+                                    brick,
+                                    placement,
+                                    &p.slices,
+                                    &fg,
+                                    &mut rng,
+                                    cfg.classify.background,
+                                    radius,
+                                ) {
+                                    Some(s) => {
+                                        strokes.push(s.clone());
+                                        added = Some(s);
+                                    }
+                                    None => break,
+                                }
+                            }
+                        }
+                    }
+                }
+            }
+        }
+    }
+    Ok(rows)
+}
+
+/// Per (dataset, method, INR, placement): mean F1 per round over seeds, and per seed the first
+/// round reaching each target.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct Summary {
+    /// Dataset.
+    pub dataset: String,
+    /// Method.
+    pub method: String,
+    /// INR variant.
+    pub inr: String,
+    /// Placement.
+    pub placement: Placement,
+    /// Mean F1 over seeds after each round (round 0 = S1).
+    pub f1: Vec<f64>,
+    /// Per target, per seed: the first round at or above it (`None`: not within the rounds).
+    pub rounds_to: Vec<Vec<Option<usize>>>,
+    /// Mean seconds per round (all rounds, all seeds).
+    pub seconds: f64,
+    /// Mean seconds per round predicting.
+    pub seconds_predict: f64,
+}
+
+/// Summarises round rows against `targets`.
+pub fn summarise(rows: &[RoundRow], targets: &[f64]) -> Vec<Summary> {
+    let mut keys: Vec<(String, String, String, Placement)> = Vec::new();
+    for r in rows {
+        let k = (
+            r.dataset.clone(),
+            r.method.clone(),
+            r.inr.clone(),
+            r.placement,
+        );
+        if !keys.contains(&k) {
+            keys.push(k);
+        }
+    }
+    keys.into_iter()
+        .map(|(dataset, method, inr, placement)| {
+            let sel: Vec<&RoundRow> = rows
+                .iter()
+                .filter(|r| {
+                    r.dataset == dataset
+                        && r.method == method
+                        && r.inr == inr
+                        && r.placement == placement
+                })
+                .collect();
+            let mut seeds: Vec<u64> = sel.iter().map(|r| r.seed).collect();
+            seeds.sort_unstable();
+            seeds.dedup();
+            let rounds = sel.iter().map(|r| r.round).max().unwrap_or(0);
+            // A seed that stopped early (nothing wrong) keeps its last score.
+            let at = |seed: u64, round: usize| -> f64 {
+                sel.iter()
+                    .filter(|r| r.seed == seed && r.round <= round)
+                    .max_by_key(|r| r.round)
+                    .map_or(0.0, |r| r.mean_f1)
+            };
+            let f1 = (0..=rounds)
+                .map(|k| seeds.iter().map(|&s| at(s, k)).sum::<f64>() / seeds.len() as f64)
+                .collect();
+            let rounds_to = targets
+                .iter()
+                .map(|&t| {
+                    seeds
+                        .iter()
+                        .map(|&s| (0..=rounds).find(|&k| at(s, k) >= t))
+                        .collect()
+                })
+                .collect();
+            let n = sel.len().max(1) as f64;
+            Summary {
+                dataset,
+                method,
+                inr,
+                placement,
+                f1,
+                rounds_to,
+                seconds: sel.iter().map(|r| r.seconds).sum::<f64>() / n,
+                seconds_predict: sel.iter().map(|r| r.seconds_predict).sum::<f64>() / n,
+            }
+        })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn strokes_stay_inside_their_region() {
+        // An L-shaped region and a thin line: every painted pixel lies inside.
+        let (w, h) = (30, 20);
+        let mut mask = vec![false; w * h];
+        for y in 2..18 {
+            for x in 3..9 {
+                mask[y * w + x] = true;
+            }
+        }
+        for y in 12..18 {
+            for x in 3..25 {
+                mask[y * w + x] = true;
+            }
+        }
+        let s = stroke_in(&mask, w, h, 4, 7, 1.0).unwrap();
+        assert_eq!((s.class, s.slice, s.radius), (7, 4, 1.0));
+        let painted = rasterise(std::slice::from_ref(&s), [w, h, 5]).unwrap();
+        assert!(painted.voxels.len() > 10);
+        assert!(painted
+            .voxels
+            .iter()
+            .all(|&(i, _)| mask[i as usize - 4 * w * h]));
+        let mut line = vec![false; w * h];
+        (5..20).for_each(|x| line[10 * w + x] = true);
+        let s = stroke_in(&line, w, h, 0, 2, 1.0).unwrap();
+        assert_eq!(s.radius, 0.0);
+        let painted = rasterise(std::slice::from_ref(&s), [w, h, 1]).unwrap();
+        assert!(!painted.voxels.is_empty());
+        assert!(painted.voxels.iter().all(|&(i, _)| line[i as usize]));
+        assert!(stroke_in(&vec![false; w * h], w, h, 0, 1, 1.0).is_none());
+    }
+
+    #[test]
+    fn the_largest_error_region_and_its_slice() {
+        // Truth: class 1 in a box; prediction misses part of it and adds a small false blob.
+        let d = [20, 16, 12];
+        let n: usize = d.iter().product();
+        let at = |x: usize, y: usize, z: usize| (z * d[1] + y) * d[0] + x;
+        let mut truth = vec![0u32; n];
+        let mut pred = vec![0u16; n];
+        for z in 2..10 {
+            for y in 2..12 {
+                for x in 2..12 {
+                    truth[at(x, y, z)] = 1;
+                    // Predicted except a slab x >= 8 that widens towards z = 7.
+                    if x < 8 || (z != 7 && x < 10) {
+                        pred[at(x, y, z)] = 1;
+                    }
+                }
+            }
+        }
+        pred[at(16, 14, 3)] = 1;
+        let err = error_labels(&truth, &pred);
+        assert_eq!(err[at(16, 14, 3)], 1, "false positive on background");
+        assert_eq!(err[at(11, 5, 5)], 2, "missed class 1");
+        for bs in [4, 8, 64] {
+            let (l, z, mask) = largest_region(&err, d, bs).unwrap();
+            assert_eq!((l, z), (2, 7), "brick {bs}");
+            assert_eq!(mask.iter().filter(|&&m| m).count(), 4 * 10);
+        }
+        let slices = SliceMass::zeros(d);
+        let mut rng = Rng::new(1);
+        let s = next_stroke(
+            &truth,
+            &pred,
+            d,
+            8,
+            Placement::Largest,
+            &slices,
+            &[],
+            &mut rng,
+            255,
+            1.0,
+        )
+        .unwrap();
+        assert_eq!((s.class, s.slice), (1, 7));
+        // Nothing wrong: no stroke.
+        let t16: Vec<u16> = truth.iter().map(|&t| t as u16).collect();
+        assert!(next_stroke(
+            &truth,
+            &t16,
+            d,
+            8,
+            Placement::Largest,
+            &slices,
+            &[],
+            &mut rng,
+            255,
+            1.0
+        )
+        .is_none());
+    }
+}
