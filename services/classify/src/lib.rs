@@ -10,6 +10,7 @@
 
 pub mod features;
 pub mod forest;
+pub mod pipeline;
 pub mod scribble;
 pub mod shard;
 
@@ -20,8 +21,8 @@ pub use scribble::{
     SimConfig, Stroke,
 };
 pub use shard::{
-    classify_volume, f1_scores, fit, predict_brick, training_set, ClassTable, Classified,
-    ClassifyConfig, TrainingSet, F1,
+    classify_brick, classify_volume, f1_scores, fit, output_labels, predict_brick, training_set,
+    BrickResult, ClassTable, Classified, ClassifyConfig, TrainingSet, F1,
 };
 
 use std::path::PathBuf;

@@ -3,6 +3,7 @@
 //! The binary only parses arguments, draws progress and prints; the work is in the library crates.
 
 mod classify;
+mod cluster;
 mod render;
 mod serve;
 mod viewpoints;
@@ -214,6 +215,8 @@ enum Cmd {
         /// Also extract empty bricks.
         #[arg(long)]
         all_bricks: bool,
+        #[command(flatten)]
+        cluster: cluster::ClusterArgs,
     },
     /// Classify every voxel from scribbles: random forest on a feature set, per-class u8
     /// probabilities and a label image in the store, optionally a NIfTI label volume.
@@ -246,6 +249,8 @@ enum Cmd {
     Serve(serve::ServeArgs),
     /// Recommend viewpoints: k-means on features, view entropy, greedy complementary views.
     Viewpoints(viewpoints::ViewpointArgs),
+    /// Serve brick tasks of a cluster (NATS JetStream) until told to stop.
+    Worker(cluster::WorkerArgs),
     /// Convert any readable volume (including a store or store/labels/NAME) to NIfTI.
     Convert {
         /// Input volume.
@@ -651,7 +656,7 @@ fn info(input: &Path, brick: usize, json: bool, raw: &RawArgs, quiet: bool) -> R
 fn main() -> Result<()> {
     tracing_subscriber::fmt()
         .with_env_filter(
-            tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into()),
+            tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info,async_nats=warn".into()),
         )
         .with_writer(std::io::stderr)
         .init();
@@ -775,6 +780,7 @@ fn main() -> Result<()> {
         Cmd::Render(a) => render::run_render(&a, quiet)?,
         Cmd::Viewpoints(a) => viewpoints::run_viewpoints(&a, quiet)?,
         Cmd::Serve(a) => serve::run_serve(&a)?,
+        Cmd::Worker(a) => cluster::run_worker(&a, quiet)?,
         Cmd::ScribbleSim {
             labels,
             level,
@@ -833,6 +839,7 @@ fn main() -> Result<()> {
             store,
             kind,
             all_bricks,
+            cluster,
         } => {
             let kind: neuvolex_features::FeatureKind = kind.parse().map_err(anyhow::Error::msg)?;
             let s = BrickStore::open(&store)?;
@@ -844,14 +851,20 @@ fn main() -> Result<()> {
                     store.display()
                 );
             }
-            let model = neuvolex_features::checkpoint::load(&mp)?.model;
-            let r = neuvolex_features::write_features(
+            let model = std::sync::Arc::new(neuvolex_features::checkpoint::load(&mp)?.model);
+            let exec = cluster.executor()?;
+            let mut bar = cluster::StageBar::new(quiet);
+            let (r, _) = neuvolex_features::stage::write_features_on(
+                &exec,
                 &s,
-                &model,
+                &neuvolex_classify::pipeline::store_path_string(&store),
+                model,
                 kind,
                 all_bricks,
-                &mut progress_sink(quiet),
+                cluster.bricks_per_task,
+                &mut |e| bar.on(e),
             )?;
+            bar.finish();
             println!(
                 "features: {}/neuvolex/vectors/{} ({} channels, f16): {} bricks, {} voxels in {:.2} s ({:.0} k voxels/s)",
                 store.display(), r.name, r.channels, r.bricks, r.voxels, r.seconds, r.voxels as f64 / r.seconds.max(1e-9) / 1e3

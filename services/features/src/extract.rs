@@ -8,12 +8,10 @@
 use crate::error::{FeatureError, Result};
 use crate::model::{FeatureKind, InrModel, CHUNK};
 use crate::tile::Tile;
-use crate::train::training_bricks;
 use neuvolex_bricks::lru::Lru;
-use neuvolex_bricks::{Brick, BrickStore, Progress, VectorArray, VectorEncoding};
+use neuvolex_bricks::{Brick, BrickStore, Progress, VectorArray};
 use rayon::prelude::*;
 use std::sync::Arc;
-use std::time::Instant;
 
 /// Name of the store's vector array for a feature kind.
 pub fn vectors_name(kind: FeatureKind) -> String {
@@ -78,8 +76,9 @@ pub struct ExtractReport {
     pub seconds: f64,
 }
 
-/// Extracts `kind` features of the training bricks (or all bricks) into the store as f16.
-/// Bricks left out are empty (below the store's background threshold).
+/// Extracts `kind` features of the training bricks (or all bricks) into the store as f16, in
+/// this process (the extraction stage on the in-process executor). Bricks left out are empty
+/// (below the store's background threshold).
 pub fn write_features(
     store: &BrickStore,
     model: &InrModel,
@@ -87,31 +86,24 @@ pub fn write_features(
     all_bricks: bool,
     progress: &mut dyn FnMut(Progress),
 ) -> Result<ExtractReport> {
-    let t = Instant::now();
-    let name = vectors_name(kind);
-    let c = kind.channels(model);
-    let bricks = training_bricks(store, all_bricks);
-    let mut va = store.create_vectors(&name, c, VectorEncoding::F16)?;
-    va.set_extra(serde_json::json!({"kind": kind, "bricks": if all_bricks { "all" } else { "occupied" }, "background": store.info().background, "inr": model.cfg}));
-    progress(Progress::Stage {
-        name: "features",
-        total: bricks.len() as u64,
-    });
-    let mut voxels = 0u64;
-    for (i, b) in bricks.iter().enumerate() {
-        let f = extract_brick(model, store, b, kind)?;
-        va.write_brick(b, &f)?;
-        voxels += b.voxels() as u64;
-        progress(Progress::Advance { done: i as u64 + 1 });
-    }
-    va.finish()?;
-    Ok(ExtractReport {
-        name,
-        channels: c,
-        bricks: bricks.len(),
-        voxels,
-        seconds: t.elapsed().as_secs_f64(),
-    })
+    let (r, _) = crate::stage::write_features_on(
+        &neuvolex_tasks::LocalExecutor::new(),
+        store,
+        &store.root().display().to_string(),
+        Arc::new(model.clone()),
+        kind,
+        all_bricks,
+        1,
+        &mut |e| match e {
+            neuvolex_tasks::RunEvent::Stage { total, .. } => progress(Progress::Stage {
+                name: "features",
+                total,
+            }),
+            neuvolex_tasks::RunEvent::Task { done, .. } => progress(Progress::Advance { done }),
+            neuvolex_tasks::RunEvent::Message(m) => tracing::info!("{m}"),
+        },
+    )?;
+    Ok(r)
 }
 
 /// Where feature bricks come from.

@@ -73,6 +73,13 @@ impl TaskError {
 /// Result with [`TaskError`].
 pub type Result<T, E = TaskError> = std::result::Result<T, E>;
 
+/// A fingerprint of a file's bytes (CRC-32 and length), to check that every worker reads the
+/// file the coordinator read (e.g. a trained model). `None` when the file is absent.
+pub fn file_fingerprint(path: &std::path::Path) -> Option<String> {
+    let b = std::fs::read(path).ok()?;
+    Some(format!("{:08x}-{}", crc32fast::hash(&b), b.len()))
+}
+
 /// A stable 64-bit fingerprint of bytes (FNV-1a), for stage identities and blob keys.
 pub fn fingerprint(bytes: &[u8]) -> u64 {
     let mut h: u64 = 0xcbf2_9ce4_8422_2325;

@@ -121,6 +121,11 @@ impl Markers {
         })
     }
 
+    /// Whether `stage` has markers of this store's layout carrying `identity` (a run to resume).
+    pub fn matches(store: &BrickStore, stage: &str, identity: &str) -> bool {
+        Self::attach(store, stage, identity).is_ok()
+    }
+
     /// The identity the markers carry.
     pub fn identity(&self) -> &str {
         &self.identity
