@@ -690,25 +690,26 @@ pub struct ProbaParams {
 
 /// Features of a brick from somewhere else than the store (the service's feature cache); it
 /// must give what [`BrickFeatures`] gives (rounded to f16 when the params say so).
-pub type FeatureHook = Arc<dyn Fn(&Brick) -> Result<Vec<f32>, ClassifyError> + Send + Sync>;
+pub type FeatureHook<'a> =
+    Box<dyn Fn(&Brick) -> Result<Vec<f32>, ClassifyError> + Send + Sync + 'a>;
 
 /// Predicts a task's bricks and returns their u8 probabilities (occupied bricks through the
 /// forest, empty ones background with certainty): the service's streaming classification.
-pub struct ProbaStage {
+pub struct ProbaStage<'a> {
     params: ProbaParams,
     src: OpenedFeatures,
     forest: Arc<Forest>,
     forest_bytes: Arc<Vec<u8>>,
-    hook: Option<FeatureHook>,
+    hook: Option<FeatureHook<'a>>,
 }
 
-impl ProbaStage {
+impl<'a> ProbaStage<'a> {
     /// The stage; `hook` serves features in this process.
     pub fn new(
         params: ProbaParams,
         src: OpenedFeatures,
         forest: Arc<Forest>,
-        hook: Option<FeatureHook>,
+        hook: Option<FeatureHook<'a>>,
     ) -> Result<Self, ClassifyError> {
         let forest_bytes =
             Arc::new(codec::encode(&*forest).map_err(|e| ClassifyError::Input(e.to_string()))?);
@@ -738,12 +739,13 @@ impl ProbaStage {
         let bytes = blobs.get(&p.forest)?;
         let forest: Forest = codec::decode(&bytes)?;
         Ok(Arc::new(
-            ProbaStage::new(p, src, Arc::new(forest), None).map_err(TaskError::failed)?,
+            ProbaStage::<'static>::new(p, src, Arc::new(forest), None)
+                .map_err(TaskError::failed)?,
         ))
     }
 }
 
-impl Stage for ProbaStage {
+impl Stage for ProbaStage<'_> {
     type Output = Vec<([usize; 3], Vec<u8>)>;
 
     fn name(&self) -> &'static str {

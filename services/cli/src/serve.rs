@@ -25,6 +25,8 @@ pub struct ServeArgs {
     /// Feature-cache budget per session, MiB (features are kept in half precision).
     #[arg(long, default_value_t = 512)]
     cache_mib: usize,
+    #[command(flatten)]
+    cluster: crate::cluster::ClusterArgs,
 }
 
 /// Runs the server until interrupted.
@@ -87,6 +89,14 @@ pub fn run_serve(a: &ServeArgs) -> Result<()> {
     cfg.default_volume = default_volume;
     cfg.generated_root = generated;
     cfg.feature_cache_bytes = a.cache_mib.max(1) << 20;
+    // With --cluster, classification and viewpoints run on the cluster's workers.
+    cfg.cluster = match &a.cluster.cluster {
+        Some(url) => Some(
+            neuvolex_cluster::ClusterExecutor::connect(a.cluster.engine(url)?)
+                .with_context(|| format!("--cluster {url}"))?,
+        ),
+        None => None,
+    };
     actix_web::rt::System::new().block_on(async move {
         let state = AppState::new(cfg.clone());
         let server = actix_web::HttpServer::new(move || {

@@ -80,6 +80,14 @@ fn header<'a>(m: &'a async_nats::Message, k: &str) -> Option<&'a str> {
         .map(|v| v.as_str())
 }
 
+impl std::fmt::Debug for ClusterExecutor {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("ClusterExecutor")
+            .field("url", &self.engine().cfg.url)
+            .finish()
+    }
+}
+
 impl ClusterExecutor {
     /// Connects to the cluster's NATS server (bounded by `cfg.connect_timeout`).
     pub fn connect(cfg: EngineConfig) -> Result<Self, ClusterError> {

@@ -35,6 +35,8 @@ pub struct ServerConfig {
     pub feature_cache_bytes: usize,
     /// Exposes `POST /api/debug/crash/{actor}` (supervisor tests only).
     pub fault_injection: bool,
+    /// Runs classification and viewpoints on this cluster's workers (`serve --cluster`).
+    pub cluster: Option<neuvolex_cluster::ClusterExecutor>,
 }
 
 impl ServerConfig {
@@ -48,6 +50,7 @@ impl ServerConfig {
             generated_root: None,
             feature_cache_bytes: 512 << 20,
             fault_injection: false,
+            cluster: None,
         }
     }
 }
@@ -66,10 +69,11 @@ pub struct AppState {
 impl AppState {
     /// State with the actors started (call inside a tokio runtime).
     pub fn new(cfg: ServerConfig) -> web::Data<AppState> {
+        let actors = Actors::start_with(Hub::default(), cfg.cluster.clone());
         web::Data::new(AppState {
             cfg,
             sessions: RwLock::new(HashMap::new()),
-            actors: Actors::start(Hub::default()),
+            actors,
             next: AtomicU64::new(1),
         })
     }
