@@ -96,6 +96,8 @@ pub struct ExtractParams {
     pub kind: String,
     /// The model version ([`model_identity`]).
     pub model: String,
+    /// Identity of this run (done markers): model version, feature and brick selection.
+    pub identity: String,
 }
 
 /// Extracts and writes the features of a task's bricks.
@@ -116,7 +118,7 @@ impl ExtractStage {
         model: Arc<InrModel>,
     ) -> Result<Self> {
         let kind: FeatureKind = params.kind.parse().map_err(FeatureError::Config)?;
-        let markers = Markers::attach(&store, STAGE, &params.model)
+        let markers = Markers::attach(&store, STAGE, &params.identity)
             .map_err(|e| FeatureError::Config(e.to_string()))?;
         Ok(ExtractStage {
             va: store.open_vectors(&vectors_name(kind))?,
@@ -220,7 +222,8 @@ pub fn write_features_on<E: Executor + ?Sized>(
         ExtractParams {
             store: store_path.to_string(),
             kind: kind_name(kind).into(),
-            model: identity,
+            model: version.clone(),
+            identity,
         },
         Arc::new(BrickStore::open(store.root())?),
         model.clone(),
