@@ -126,21 +126,23 @@ fn stages<E: Executor>(
     store: &Path,
     scribbles: &Path,
     features: bool,
+    big: bool,
     rows: &mut Vec<Row>,
 ) {
     let _ = std::fs::remove_dir_all(store.join("neuvolex/done"));
-    // Classification: the forest (50 trees) on local features, prediction into the store.
+    // Classification: the forest (50 trees) on local features (the large volume: 20 trees on
+    // intensity, to bound the bench's time), prediction into the store.
     let req = ClassifyRequest {
         store: store.to_path_buf(),
         scribbles: scribbles.to_path_buf(),
-        features: "local".parse().unwrap(),
+        features: if big { "intensity" } else { "local" }.parse().unwrap(),
         classes: None,
         out: None,
         force: true,
         stored_features: false,
         config: ClassifyConfig {
             forest: neuvolex_classify::ForestConfig {
-                trees: 50,
+                trees: if big { 20 } else { 50 },
                 class_weight: neuvolex_classify::ClassWeight::Balanced,
                 ..Default::default()
             },
@@ -189,6 +191,9 @@ fn stages<E: Executor>(
             wall,
             dir_bytes(&store.join("neuvolex/vectors/inr_hidden")),
         ));
+    }
+    if big {
+        return;
     }
     // Lloyd k-means (k = 16, 10 iterations) and the view partials, on local features.
     let set: FeatureSet = "local".parse().unwrap();
@@ -269,7 +274,7 @@ fn main() {
         "\n| volume | stage | workers | tasks | wall s | work ms/task | queue ms/task (share) | queue MB | store written MB |"
     );
     println!("|---|---|---|---|---|---|---|---|---|");
-    let mut vols: Vec<(String, PathBuf, PathBuf, bool)> = Vec::new();
+    let mut vols: Vec<(String, PathBuf, PathBuf, bool, bool)> = Vec::new();
     if let (Some(ct), Some(lab)) = (
         neuvolex_benches::shared("abdomen_ct/ct.nii.gz"),
         neuvolex_benches::shared("abdomen_ct/labels.nii.gz"),
@@ -326,7 +331,7 @@ fn main() {
         for w in [1, 2, 4] {
             let _ws = start_workers(&url, w);
             let ex = ClusterExecutor::connect(EngineConfig::new(&url)).expect("connect");
-            stages(&ex, w, name, store, scr, *features, &mut rows);
+            stages(&ex, w, name, store, scr, *features, *big, &mut rows);
         }
     }
     let _ = server.kill();
