@@ -281,6 +281,49 @@ impl Scene {
     }
 }
 
+/// A cluster run's store, NIfTI and report, and the coordinator's arguments.
+struct Run {
+    store: String,
+    out: String,
+    rep: String,
+    args: Vec<String>,
+}
+
+impl Scene {
+    /// A fresh store copy to classify on the cluster at `url` with AckWait `ack` seconds.
+    fn cluster_run(&self, url: &str, ack: &str) -> Run {
+        let store = self.copy("cluster.zarr");
+        let out = self.p("cluster.nii.gz");
+        let rep = self.p("cluster.json");
+        let mut args = self.classify_args(&store, &out, &["--report", &rep, "--cluster", url]);
+        args.extend(engine_args(ack).iter().map(|s| s.to_string()));
+        Run {
+            store,
+            out,
+            rep,
+            args,
+        }
+    }
+}
+
+/// The coordinator as a child process.
+fn coordinator(args: &[String]) -> Child {
+    Command::new(BIN)
+        .args(args)
+        .arg("--quiet")
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("coordinator")
+}
+
+/// `n` workers named w0.. with `extra` arguments.
+fn workers(url: &str, n: usize, extra: &[&str]) -> Vec<Worker> {
+    (0..n)
+        .map(|i| Worker::spawn(&[], url, &format!("w{i}"), extra))
+        .collect()
+}
+
 /// Every file under `rel` of two stores, byte for byte (zarr.json of the probability array
 /// carries the same provenance in both).
 fn same_tree(a: &str, b: &str, rel: &str) {
@@ -402,28 +445,14 @@ fn fault_worker_killed_mid_task_is_redelivered() {
         "victim",
         &[&slow[..], &engine_args("2")].concat(),
     );
-    let _others: Vec<Worker> = (0..2)
-        .map(|i| {
-            Worker::spawn(
-                &[],
-                &nats.url(),
-                &format!("w{i}"),
-                &[&slow[..], &engine_args("2")].concat(),
-            )
-        })
-        .collect();
-    let store = scene.copy("cluster.zarr");
-    let out = scene.p("cluster.nii.gz");
-    let rep = scene.p("cluster.json");
-    let mut a = scene.classify_args(&store, &out, &["--report", &rep, "--cluster", &nats.url()]);
-    a.extend(engine_args("2").iter().map(|s| s.to_string()));
-    let coord = Command::new(BIN)
-        .args(&a)
-        .arg("--quiet")
-        .stdout(Stdio::null())
-        .stderr(Stdio::piped())
-        .spawn()
-        .expect("coordinator");
+    let _others = workers(&nats.url(), 2, &[&slow[..], &engine_args("2")].concat());
+    let Run {
+        store,
+        out,
+        rep,
+        args: a,
+    } = scene.cluster_run(&nats.url(), "2");
+    let coord = coordinator(&a);
     victim.wait_started(2, Duration::from_secs(60));
     victim.kill9();
     let o = coord.wait_with_output().expect("coordinator");
@@ -450,28 +479,14 @@ fn fault_nats_server_restarted_during_a_run() {
     };
     let reference = scene.reference();
     let slow = ["--task-delay-ms", "300"];
-    let w: Vec<Worker> = (0..2)
-        .map(|i| {
-            Worker::spawn(
-                &[],
-                &nats.url(),
-                &format!("w{i}"),
-                &[&slow[..], &engine_args("3")].concat(),
-            )
-        })
-        .collect();
-    let store = scene.copy("cluster.zarr");
-    let out = scene.p("cluster.nii.gz");
-    let rep = scene.p("cluster.json");
-    let mut a = scene.classify_args(&store, &out, &["--report", &rep, "--cluster", &nats.url()]);
-    a.extend(engine_args("3").iter().map(|s| s.to_string()));
-    let coord = Command::new(BIN)
-        .args(&a)
-        .arg("--quiet")
-        .stdout(Stdio::null())
-        .stderr(Stdio::piped())
-        .spawn()
-        .expect("coordinator");
+    let w = workers(&nats.url(), 2, &[&slow[..], &engine_args("3")].concat());
+    let Run {
+        store,
+        out,
+        rep,
+        args: a,
+    } = scene.cluster_run(&nats.url(), "3");
+    let coord = coordinator(&a);
     w[0].wait_started(3, Duration::from_secs(60));
     nats.stop();
     std::thread::sleep(Duration::from_millis(1500));
@@ -489,28 +504,14 @@ fn fault_coordinator_killed_then_rerun_resumes_from_done_markers() {
     };
     let reference = scene.reference();
     let slow = ["--task-delay-ms", "150"];
-    let _w: Vec<Worker> = (0..2)
-        .map(|i| {
-            Worker::spawn(
-                &[],
-                &nats.url(),
-                &format!("w{i}"),
-                &[&slow[..], &engine_args("3")].concat(),
-            )
-        })
-        .collect();
-    let store = scene.copy("cluster.zarr");
-    let out = scene.p("cluster.nii.gz");
-    let rep = scene.p("cluster.json");
-    let mut a = scene.classify_args(&store, &out, &["--report", &rep, "--cluster", &nats.url()]);
-    a.extend(engine_args("3").iter().map(|s| s.to_string()));
-    let mut coord = Command::new(BIN)
-        .args(&a)
-        .arg("--quiet")
-        .stdout(Stdio::null())
-        .stderr(Stdio::null())
-        .spawn()
-        .expect("coordinator");
+    let _w = workers(&nats.url(), 2, &[&slow[..], &engine_args("3")].concat());
+    let Run {
+        store,
+        out,
+        rep,
+        args: a,
+    } = scene.cluster_run(&nats.url(), "3");
+    let mut coord = coordinator(&a);
     let t = Instant::now();
     while markers_done(&store) < 8 {
         assert!(t.elapsed() < Duration::from_secs(60), "no progress");
@@ -778,28 +779,14 @@ fn fault_worker_link_cut_longer_than_ack_wait() {
         "cut",
         &[&slow[..], &engine_args("2")].concat(),
     );
-    let _w: Vec<Worker> = (0..2)
-        .map(|i| {
-            Worker::spawn(
-                &[],
-                &nats.url(),
-                &format!("w{i}"),
-                &[&slow[..], &engine_args("2")].concat(),
-            )
-        })
-        .collect();
-    let store = scene.copy("cluster.zarr");
-    let out = scene.p("cluster.nii.gz");
-    let rep = scene.p("cluster.json");
-    let mut a = scene.classify_args(&store, &out, &["--report", &rep, "--cluster", &nats.url()]);
-    a.extend(engine_args("2").iter().map(|s| s.to_string()));
-    let coord = Command::new(BIN)
-        .args(&a)
-        .arg("--quiet")
-        .stdout(Stdio::null())
-        .stderr(Stdio::piped())
-        .spawn()
-        .expect("coordinator");
+    let _w = workers(&nats.url(), 2, &[&slow[..], &engine_args("2")].concat());
+    let Run {
+        store,
+        out,
+        rep,
+        args: a,
+    } = scene.cluster_run(&nats.url(), "2");
+    let coord = coordinator(&a);
     cut.wait_started(2, Duration::from_secs(60));
     ns.link(false);
     std::thread::sleep(Duration::from_secs(5));
