@@ -129,7 +129,12 @@ fn stages<E: Executor>(
     big: bool,
     rows: &mut Vec<Row>,
 ) {
-    let _ = std::fs::remove_dir_all(store.join("neuvolex/done"));
+    // Every run computes every brick: drop pending generations an interrupted run left.
+    if let Ok(s) = BrickStore::open(store) {
+        for name in ["classes_proba", "classes_labels", "inr_hidden"] {
+            let _ = s.discard_pending_vectors(name);
+        }
+    }
     // Classification: the forest (50 trees) on local features (the large volume: 20 trees on
     // intensity, to bound the bench's time), prediction into the store.
     let req = ClassifyRequest {

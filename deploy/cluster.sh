@@ -9,6 +9,8 @@
 # Then any brick stage runs on the workers, e.g.
 #   target/release/neuvolex classify STORE --scribbles S.nii.gz --cluster nats://127.0.0.1:4222
 #
+# or, on the S3 server: source out/cluster/s3.env, then STORE=s3://neuvolex/NAME.zarr.
+#
 # Settings: NVX_CLUSTER_DIR (default out/cluster: logs, pids, the JetStream store),
 # NVX_NATS_PORT (4222), NVX_WORKER_THREADS (threads per worker; default cores / N, at least 1).
 set -euo pipefail
@@ -56,8 +58,14 @@ CONF
     done
     echo "nats-server: $URL (JetStream store $DIR/nats, log $DIR/nats.log)"
   fi
-  if [ -x deploy/s3.sh ]; then
-    deploy/s3.sh start || echo "the S3 server did not start (stores on shared paths still work)"
+  # The S3 server; its AWS_* environment goes to the workers (and is printed for the
+  # coordinator's shell), so stores given as s3://neuvolex/NAME.zarr work everywhere.
+  if [ -x deploy/s3.sh ] && s3env=$(deploy/s3.sh start); then
+    eval "$s3env"
+    echo "$s3env" > "$DIR/s3.env"
+    echo "S3 server: $AWS_ENDPOINT_URL; for s3:// stores run: source $DIR/s3.env"
+  else
+    echo "the S3 server did not start (stores on shared paths still work)"
   fi
   cores=$(nproc 2>/dev/null || echo 2)
   threads=${NVX_WORKER_THREADS:-$(( cores / n > 0 ? cores / n : 1 ))}

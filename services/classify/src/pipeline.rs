@@ -8,10 +8,7 @@
 use crate::features::{BrickFeatures, FeatureSet};
 use crate::forest::Forest;
 use crate::scribble::load_scribbles;
-use crate::shard::{
-    classify_brick, create_proba_array, fit, output_labels, training_set, ClassTable,
-    ClassifyConfig,
-};
+use crate::shard::{classify_brick, fit, output_labels, training_set, ClassTable, ClassifyConfig};
 use crate::ClassifyError;
 use neuvolex_bricks::meta::MemVolume;
 use neuvolex_bricks::store::{Brick, BrickStore, VectorArray, VectorEncoding};
@@ -19,8 +16,8 @@ use neuvolex_bricks::synth::ClassInfo;
 use neuvolex_bricks::DType;
 use neuvolex_features::InrModel;
 use neuvolex_tasks::{
-    codec, execute_ordered, fingerprint, Blob, Blobs, DeadTask, DynStage, Executor, MarkerMode,
-    Markers, RunEvent, RunReport, Stage, Task, TaskCtx, TaskError,
+    codec, execute_ordered, fingerprint, Blob, Blobs, DeadTask, DynStage, Executor, RunEvent,
+    RunReport, Stage, Task, TaskCtx, TaskError,
 };
 use serde::{Deserialize, Serialize};
 use std::collections::{BTreeMap, BTreeSet};
@@ -214,9 +211,9 @@ pub struct PredictStage {
     cfg: ClassifyConfig,
     out_labels: Vec<u16>,
     roi: BTreeSet<[usize; 3]>,
+    /// The pending generations the pipeline started; a brick is done once both mark it.
     proba: VectorArray,
     labels: VectorArray,
-    markers: Markers,
 }
 
 impl PredictStage {
@@ -236,17 +233,14 @@ impl PredictStage {
             skip_empty: params.skip_empty,
             ..ClassifyConfig::default()
         };
-        let markers = Markers::attach(&store, STAGE, &params.identity)
-            .map_err(|e| ClassifyError::Input(e.to_string()))?;
         Ok(PredictStage {
             out_labels: output_labels(&params.labels, params.background),
             roi: params.roi_bricks.iter().copied().collect(),
-            proba: store.open_vectors(PROBA)?,
-            labels: store.open_vectors(LABELS)?,
+            proba: store.open_pending_vectors(PROBA, &params.identity)?,
+            labels: store.open_pending_vectors(LABELS, &params.identity)?,
             forest: Arc::new(forest),
             forest_bytes,
             cfg,
-            markers,
             src,
             params,
         })
@@ -290,11 +284,11 @@ impl Stage for PredictStage {
         let mut out = PredictOutput::default();
         for &bi in &task.bricks {
             ctx.check()?;
-            if self.markers.is_done(bi) {
+            let b = self.src.store.brick(bi)?;
+            if self.proba.is_done(&b)? && self.labels.is_done(&b)? {
                 ctx.skip(1);
                 continue;
             }
-            let b = self.src.store.brick(bi)?;
             let r = classify_brick(
                 &fx,
                 &self.forest,
@@ -308,7 +302,8 @@ impl Stage for PredictStage {
             self.proba.write_brick(&b, &r.proba)?;
             let lab: Vec<f32> = r.labels.iter().map(|&l| l as f32).collect();
             self.labels.write_brick(&b, &lab)?;
-            self.markers.mark_done(bi)?;
+            self.proba.mark_done(&b)?;
+            self.labels.mark_done(&b)?;
             if r.skipped {
                 out.empty += 1;
             } else {
@@ -514,29 +509,44 @@ pub fn classify<E: Executor + ?Sized>(
         )
     );
     let store_arc = Arc::new(BrickStore::open(&req.store)?);
-    // Resume when the markers carry this identity and both arrays exist; else start over.
-    let resume = Markers::matches(&store_arc, STAGE, &identity)
-        && store_arc.open_vectors(PROBA).is_ok()
-        && store_arc.open_vectors(LABELS).is_ok();
-    let markers = if resume {
-        Markers::open(&store_arc, STAGE, &identity, MarkerMode::Resume)
+    // The pending generations of both arrays for this run: resumed when an interrupted run
+    // with the same forest and settings left them, published together at the end.
+    let c = ts.labels.len();
+    let mut proba_w = store_arc.resume_vectors(
+        PROBA,
+        c,
+        VectorEncoding::U8 {
+            lo: vec![0.0; c],
+            hi: vec![1.0; c],
+        },
+        &identity,
+    )?;
+    let enc = if max_label <= 255 {
+        VectorEncoding::U8 {
+            lo: vec![0.0],
+            hi: vec![255.0],
+        }
     } else {
-        let fx = BrickFeatures::new(&store_arc, set.clone(), model.clone(), req.stored_features)?;
-        create_proba_array(&fx, PROBA, &ts.labels, cfg.background)?;
-        let enc = if max_label <= 255 {
-            VectorEncoding::U8 {
-                lo: vec![0.0],
-                hi: vec![255.0],
-            }
-        } else {
-            VectorEncoding::F16
-        };
-        store_arc.create_vectors(LABELS, 1, enc)?;
-        Markers::open(&store_arc, STAGE, &identity, MarkerMode::Fresh)
-    }
-    .map_err(|e| ClassifyError::Input(e.to_string()))?;
-    let all: Vec<[usize; 3]> = store_arc.bricks().map(|b| b.index).collect();
-    let pending = markers.pending(&all);
+        VectorEncoding::F16
+    };
+    let mut labels_w = store_arc.resume_vectors(LABELS, 1, enc, &identity)?;
+    let every: Vec<Brick> = store_arc.bricks().collect();
+    let undone_p: BTreeSet<[usize; 3]> = proba_w
+        .pending(every.iter().cloned())?
+        .iter()
+        .map(|b| b.index)
+        .collect();
+    let undone_l: BTreeSet<[usize; 3]> = labels_w
+        .pending(every.iter().cloned())?
+        .iter()
+        .map(|b| b.index)
+        .collect();
+    let all: Vec<[usize; 3]> = every.iter().map(|b| b.index).collect();
+    let pending: Vec<[usize; 3]> = all
+        .iter()
+        .copied()
+        .filter(|i| undone_p.contains(i) || undone_l.contains(i))
+        .collect();
     let resumed = (all.len() - pending.len()) as u64;
     if resumed > 0 {
         progress(RunEvent::Message(format!(
@@ -593,15 +603,15 @@ pub fn classify<E: Executor + ?Sized>(
         labels
             .iter()
             .for_each(|&l| *counts.entry(l).or_default() += 1);
-        let mut proba = store_arc.open_vectors(PROBA)?;
-        proba.set_extra(serde_json::json!({
+        proba_w.set_extra(serde_json::json!({
             "kind": "class_probabilities",
             "labels": ts.labels,
             "background": cfg.background,
             "features": set.to_string(),
             "identity": stage.params.identity,
         }));
-        proba.finish()?;
+        proba_w.finish()?;
+        labels_w.finish()?;
         let mut lv = label_volume(&store, &labels);
         store.add_labels("classified", &mut lv, &classes, &mut |_| {})?;
         if let Some(o) = &req.out {

@@ -9,7 +9,7 @@ use crate::features::BrickFeatures;
 use crate::forest::{ClassWeight, Dataset, Forest, ForestConfig};
 use crate::scribble::Scribbles;
 use crate::ClassifyError;
-use neuvolex_bricks::store::{Brick, VectorArray, VectorEncoding};
+use neuvolex_bricks::store::{Brick, VectorArray};
 use neuvolex_bricks::synth::ClassInfo;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
@@ -312,31 +312,6 @@ pub struct Classified {
     pub predict_seconds: f64,
     /// Wall-clock seconds.
     pub seconds: f64,
-}
-
-/// Creates the u8 probability array (`channels` = classes, `[0, 1]` quantised).
-pub fn create_proba_array(
-    fx: &BrickFeatures<'_>,
-    name: &str,
-    labels: &[u32],
-    background: u32,
-) -> Result<VectorArray, ClassifyError> {
-    let c = labels.len();
-    let mut va = fx.store().create_vectors(
-        name,
-        c,
-        VectorEncoding::U8 {
-            lo: vec![0.0; c],
-            hi: vec![1.0; c],
-        },
-    )?;
-    va.set_extra(serde_json::json!({
-        "kind": "class_probabilities",
-        "labels": labels,
-        "background": background,
-        "features": fx.set().to_string(),
-    }));
-    Ok(va)
 }
 
 /// What classifying one brick gives.

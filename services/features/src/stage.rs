@@ -6,10 +6,10 @@ use crate::error::{FeatureError, Result};
 use crate::extract::{extract_brick, vectors_name, ExtractReport};
 use crate::model::{FeatureKind, InrModel};
 use crate::train::{model_path, training_bricks};
-use neuvolex_bricks::{BrickStore, VectorArray, VectorEncoding};
+use neuvolex_bricks::{Brick, BrickStore, VectorArray, VectorEncoding};
 use neuvolex_tasks::{
-    execute_ordered, fingerprint, Blobs, DynStage, Executor, MarkerMode, Markers, RunEvent,
-    RunReport, Stage, Task, TaskCtx, TaskError,
+    execute_ordered, fingerprint, Blobs, DynStage, Executor, RunEvent, RunReport, Stage, Task,
+    TaskCtx, TaskError,
 };
 use serde::{Deserialize, Serialize};
 use std::path::Path;
@@ -106,24 +106,22 @@ pub struct ExtractStage {
     store: Arc<BrickStore>,
     model: Arc<InrModel>,
     kind: FeatureKind,
+    /// The pending generation the coordinator started (bricks and their done markers).
     va: VectorArray,
-    markers: Markers,
 }
 
 impl ExtractStage {
-    /// The stage over an opened store and model; the array and markers must exist.
+    /// The stage over an opened store and model; the pending vector array of this run
+    /// (started by [`write_features_on`] with its done markers) must exist.
     pub fn new(
         params: ExtractParams,
         store: Arc<BrickStore>,
         model: Arc<InrModel>,
     ) -> Result<Self> {
         let kind: FeatureKind = params.kind.parse().map_err(FeatureError::Config)?;
-        let markers = Markers::attach(&store, STAGE, &params.identity)
-            .map_err(|e| FeatureError::Config(e.to_string()))?;
         Ok(ExtractStage {
-            va: store.open_vectors(&vectors_name(kind))?,
+            va: store.open_pending_vectors(&vectors_name(kind), &params.identity)?,
             kind,
-            markers,
             model,
             store,
             params,
@@ -160,15 +158,15 @@ impl Stage for ExtractStage {
         let mut voxels = 0u64;
         for &bi in &task.bricks {
             ctx.check()?;
-            if self.markers.is_done(bi) {
+            let b = self.store.brick(bi)?;
+            if self.va.is_done(&b)? {
                 ctx.skip(1);
                 continue;
             }
-            let b = self.store.brick(bi)?;
             let f = extract_brick(&self.model, &self.store, &b, self.kind)
                 .map_err(|e| TaskError::Failed(format!("brick {bi:?}: {e}")))?;
             self.va.write_brick(&b, &f)?;
-            self.markers.mark_done(bi)?;
+            self.va.mark_done(&b)?;
             voxels += b.voxels() as u64;
         }
         Ok(voxels)
@@ -202,22 +200,14 @@ pub fn write_features_on<E: Executor + ?Sized>(
     );
     let identity = format!("{:016x}-{version}", fingerprint(identity.as_bytes()));
     let cfg_err = |e: TaskError| FeatureError::Config(e.to_string());
-    let resume = Markers::matches(store, STAGE, &identity) && store.open_vectors(&name).is_ok();
-    let markers = if resume {
-        Markers::open(store, STAGE, &identity, MarkerMode::Resume).map_err(cfg_err)?
-    } else {
-        let mut va = store.create_vectors(&name, c, VectorEncoding::F16)?;
-        va.set_extra(serde_json::json!({"kind": kind, "bricks": if all_bricks { "all" } else { "occupied" }, "background": store.info().background, "inr": model.cfg, "model": version}));
-        Markers::open(store, STAGE, &identity, MarkerMode::Fresh).map_err(cfg_err)?
-    };
-    let pending = markers.pending(&bricks);
-    if pending.len() < bricks.len() {
-        progress(RunEvent::Message(format!(
-            "resuming: {} of {} feature bricks already written",
-            bricks.len() - pending.len(),
-            bricks.len()
-        )));
-    }
+    // The pending generation of this run (resumed when an interrupted run of the same model
+    // and selection left one), published as a whole at the end.
+    let mut va = store.resume_vectors(&name, c, VectorEncoding::F16, &identity)?;
+    let all: Vec<Brick> = bricks
+        .iter()
+        .map(|&b| store.brick(b))
+        .collect::<std::result::Result<_, _>>()?;
+    let pending: Vec<[usize; 3]> = va.pending(all)?.iter().map(|b| b.index).collect();
     let stage = ExtractStage::new(
         ExtractParams {
             store: store_path.to_string(),
@@ -225,7 +215,7 @@ pub fn write_features_on<E: Executor + ?Sized>(
             model: version.clone(),
             identity,
         },
-        Arc::new(BrickStore::open(store.root())?),
+        Arc::new(BrickStore::open(store.location().clone())?),
         model.clone(),
     )?;
     let tasks = neuvolex_tasks::plan(&pending, bricks_per_task, 0);
@@ -243,7 +233,6 @@ pub fn write_features_on<E: Executor + ?Sized>(
     if run.cancelled {
         return Err(FeatureError::Cancelled);
     }
-    let mut va = store.open_vectors(&name)?;
     va.set_extra(serde_json::json!({"kind": kind, "bricks": if all_bricks { "all" } else { "occupied" }, "background": store.info().background, "inr": model.cfg, "model": version}));
     va.finish()?;
     Ok((

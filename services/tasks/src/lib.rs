@@ -14,21 +14,20 @@
 //!   merges them ([`execute_ordered`] gives them back in task order). [`LocalExecutor`] is the
 //!   in-process executor (rayon); the service's actors and the NATS cluster implement the same
 //!   trait in their own crates.
-//! - [`markers`] records which bricks of a stage are complete, beside the data, so a re-run
-//!   resumes.
+//! - Which bricks of a stage are complete is recorded by the store's done markers
+//!   (`neuvolex_bricks::done`, through the resumable writers of `BrickStore::resume_vectors`),
+//!   so a re-run resumes.
 
 #![warn(missing_docs)]
 
 pub mod codec;
 pub mod executor;
-pub mod markers;
 pub mod registry;
 pub mod task;
 
 pub use executor::{
     execute_ordered, DeadTask, Done, Event, Executor, LocalExecutor, RunEvent, RunReport,
 };
-pub use markers::{layout_hash, MarkerMode, Markers};
 pub use registry::{Blob, Blobs, Build, NoBlobs, Registry};
 pub use task::{plan, DynStage, Stage, Task, TaskCtx};
 
@@ -53,14 +52,6 @@ pub enum TaskError {
     /// The engine (queue, object store) failed.
     #[error("{0}")]
     Engine(String),
-    /// Done markers from a different brick layout or stage identity.
-    #[error("{path}: {detail}")]
-    Markers {
-        /// Where the markers live.
-        path: String,
-        /// What does not match.
-        detail: String,
-    },
 }
 
 impl TaskError {
