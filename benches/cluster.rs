@@ -301,6 +301,7 @@ fn main() {
             p,
             scribbles(&lab, tmp.path(), "ct"),
             true,
+            false,
         ));
     }
     if std::env::var("NEUVOLEX_BENCH_BIG")
@@ -320,10 +321,11 @@ fn main() {
             p.clone(),
             scribbles(&lab, tmp.path(), "big"),
             false,
+            true,
         ));
     }
     let mut rows = Vec::new();
-    for (name, store, scr, features) in &vols {
+    for (name, store, scr, features, big) in &vols {
         stages(
             &LocalExecutor::new(),
             0,
@@ -331,6 +333,7 @@ fn main() {
             store,
             scr,
             *features,
+            *big,
             &mut rows,
         );
         for w in [1, 2, 4] {
