@@ -119,6 +119,7 @@ fn row(volume: &str, stage: &str, workers: usize, r: &RunReport, wall: f64, writ
     row
 }
 
+#[allow(clippy::too_many_arguments)]
 fn stages<E: Executor>(
     exec: &E,
     workers: usize,
@@ -290,12 +291,8 @@ fn main() {
             .expect("ingest");
         let s = BrickStore::open(&p).expect("store");
         let model = neuvolex_benches::train_one_epoch(&s);
-        neuvolex_features::checkpoint::save(
-            &neuvolex_features::train::model_path(&s),
-            &model,
-            None,
-        )
-        .expect("model");
+        neuvolex_features::checkpoint::save(neuvolex_features::train::model_path(&s), &model, None)
+            .expect("model");
         vols.push((
             "abdomen CT 122x101x112".into(),
             p,

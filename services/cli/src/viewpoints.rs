@@ -115,7 +115,7 @@ pub fn run_viewpoints(a: &ViewpointArgs, quiet: bool) -> Result<()> {
     std::fs::create_dir_all(&a.out).with_context(|| format!("{}", a.out.display()))?;
     let views = fibonacci_sphere(a.views);
     let mut refined = |n: usize, agg: &neuvolex_viewpoints::scores::Aggregator| {
-        if n % 16 == 0 {
+        if n.is_multiple_of(16) {
             if let Ok(s) = agg.snapshot(&views) {
                 let best = s.entropy.iter().cloned().fold(0.0f32, f32::max);
                 tracing::debug!(bricks = n, best_entropy = best, "entropy map refined");

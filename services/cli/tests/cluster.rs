@@ -493,7 +493,7 @@ fn fault_nats_server_restarted_during_a_run() {
     let Run {
         store,
         out,
-        rep,
+        rep: _,
         args: a,
     } = scene.cluster_run(&nats.url(), "3");
     let coord = coordinator(&a);

@@ -122,6 +122,9 @@ fn resolve_store(params: &mut serde_json::Value, root: &Option<PathBuf>) -> Resu
     Ok(())
 }
 
+/// The run of the task this worker executes now and its cancellation flag.
+type Current = Option<(String, Arc<AtomicBool>)>;
+
 fn default_name() -> String {
     let host = std::fs::read_to_string("/etc/hostname")
         .ok()
@@ -160,7 +163,7 @@ async fn serve_async(
     let consumer = engine.consumer().await?;
     let stop = Arc::new(AtomicBool::new(false));
     let cancelled: Arc<Mutex<HashSet<String>>> = Arc::default();
-    let current: Arc<Mutex<Option<(String, Arc<AtomicBool>)>>> = Arc::default();
+    let current: Arc<Mutex<Current>> = Arc::default();
     // Stop and cancel orders.
     {
         let mut sub = engine

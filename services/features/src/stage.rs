@@ -176,6 +176,7 @@ impl Stage for ExtractStage {
 /// Extracts `kind` features of the training bricks (or all bricks) into the store as f16, on
 /// `exec`. `store_path` is how workers open the store. A run with the same model version
 /// resumes where an interrupted one stopped.
+#[allow(clippy::too_many_arguments)]
 pub fn write_features_on<E: Executor + ?Sized>(
     exec: &E,
     store: &BrickStore,

@@ -757,7 +757,7 @@ fn recommend(
     let step = (bricks.len() / 10).max(1);
     let id = s.id.clone();
     let mut on_progress = |done: usize, agg: &neuvolex_viewpoints::scores::Aggregator| {
-        if done % step != 0 && done != bricks.len() {
+        if !done.is_multiple_of(step) && done != bricks.len() {
             return;
         }
         if let Ok(sc) = agg.snapshot(&dirs) {
