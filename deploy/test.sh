@@ -34,4 +34,13 @@ fi
 # into target/tools; each S3 test starts its own on a loopback port. Without it they skip (and
 # fail under CI=true).
 ./deploy/s3.sh install >/dev/null || echo "could not build s3s-fs: the S3 tests will skip"
+# The cluster tests: Debian's nats-server (JetStream) where missing.
+if ! command -v nats-server >/dev/null 2>&1 && ! [ -x /usr/sbin/nats-server ] && command -v apt-get >/dev/null 2>&1; then
+  SUDO=""
+  [ "$(id -u)" -ne 0 ] && command -v sudo >/dev/null 2>&1 && SUDO="sudo -n"
+  echo "installing nats-server for the cluster tests"
+  $SUDO apt-get install -y -q nats-server >/dev/null 2>&1 ||
+    { $SUDO apt-get update -q >/dev/null 2>&1 && $SUDO apt-get install -y -q nats-server >/dev/null 2>&1; } ||
+    echo "could not install nats-server: the cluster tests will skip"
+fi
 exec cargo test --workspace --release --features neuvolex-tests/gpu,neuvolex/gpu "$@"

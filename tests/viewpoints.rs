@@ -180,3 +180,59 @@ fn the_tornado_and_real_ct_get_compact_view_sets() {
     assert!(!sel.views.is_empty() && sel.views.len() <= 12);
     assert!(sel.coverage.iter().all(|c| c.is_finite()));
 }
+
+#[test]
+fn the_viewpoint_stages_equal_the_single_process_pipeline_bit_for_bit() {
+    use neuvolex_classify::pipeline::{FeatureSpec, OpenedFeatures};
+    use neuvolex_viewpoints::distributed::recommend_on;
+    use neuvolex_viewpoints::RecommendConfig;
+    let (_d, store) = cube_store(48);
+    let cfg = RecommendConfig {
+        kmeans: KMeansConfig {
+            k: 12,
+            ..Default::default()
+        },
+        views: 600,
+        ..Default::default()
+    };
+    // The single-process pipeline (k-means fit, then partials brick by brick).
+    let fx = BrickFeatures::new(&store, "local".parse().unwrap(), None, false).unwrap();
+    let bricks = store.occupied_bricks(None);
+    let one = neuvolex_viewpoints::recommend(
+        bricks.len(),
+        fx.channels(),
+        |i| Ok(fx.brick(&bricks[i]).unwrap()),
+        |i| Ok(store.derived(&bricks[i]).unwrap().gradient),
+        store.info().spacing,
+        &cfg,
+        &mut |_, _| {},
+    )
+    .unwrap();
+    // The same as stages (sample, Lloyd passes, view partials) in tasks of 3 bricks.
+    let set = "local".parse().unwrap();
+    let src = OpenedFeatures {
+        store: std::sync::Arc::new(BrickStore::open(store.root()).unwrap()),
+        model: None,
+        spec: FeatureSpec::new(store.root(), &set, false, None),
+        set,
+        model_bytes: None,
+    };
+    let mut events = 0;
+    let (staged, run) = recommend_on(
+        &neuvolex_tasks::LocalExecutor::new(),
+        src,
+        &cfg,
+        3,
+        &mut |_| events += 1,
+        &mut |_, _| {},
+    )
+    .unwrap();
+    assert_eq!(
+        staged.kmeans, one.kmeans,
+        "centroids, inertia, counts, iterations"
+    );
+    assert_eq!(staged.summary, one.summary);
+    assert_eq!(staged.scores, one.scores);
+    assert_eq!(staged.selection, one.selection);
+    assert!(run.tasks > 0 && run.dead.is_empty() && events > 0);
+}

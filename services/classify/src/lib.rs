@@ -12,6 +12,7 @@ pub mod cache;
 pub mod components;
 pub mod features;
 pub mod forest;
+pub mod pipeline;
 pub mod scribble;
 pub mod shard;
 pub mod suggest;
@@ -24,8 +25,8 @@ pub use scribble::{
     SimConfig, Stroke,
 };
 pub use shard::{
-    classify_volume, f1_scores, fit, predict_brick, training_set, ClassTable, Classified,
-    ClassifyConfig, TrainingSet, F1,
+    classify_brick, classify_volume, f1_scores, fit, output_labels, predict_brick, training_set,
+    BrickResult, ClassTable, Classified, ClassifyConfig, TrainingSet, F1,
 };
 pub use suggest::{SliceMass, Suggestion};
 

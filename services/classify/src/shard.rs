@@ -9,7 +9,7 @@ use crate::features::BrickFeatures;
 use crate::forest::{ClassWeight, Dataset, Forest, ForestConfig};
 use crate::scribble::Scribbles;
 use crate::ClassifyError;
-use neuvolex_bricks::store::{Brick, VectorArray, VectorEncoding};
+use neuvolex_bricks::store::{Brick, VectorArray};
 use neuvolex_bricks::synth::ClassInfo;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
@@ -253,7 +253,7 @@ pub fn fit(ts: &TrainingSet, cfg: &ForestConfig) -> Result<Forest, ClassifyError
 }
 
 /// Output label of each class index: its scribble label, or 0 for background.
-fn output_labels(labels: &[u32], background: u32) -> Vec<u16> {
+pub fn output_labels(labels: &[u32], background: u32) -> Vec<u16> {
     labels
         .iter()
         .map(|&l| {
@@ -314,29 +314,63 @@ pub struct Classified {
     pub seconds: f64,
 }
 
-/// Creates the u8 probability array (`channels` = classes, `[0, 1]` quantised).
-pub fn create_proba_array(
+/// What classifying one brick gives.
+#[derive(Debug, Clone, PartialEq)]
+pub struct BrickResult {
+    /// Probabilities, `voxels x classes`.
+    pub proba: Vec<f32>,
+    /// Output label per voxel (all 0 for a skipped brick).
+    pub labels: Vec<u16>,
+    /// True when the brick was empty and taken as background without prediction.
+    pub skipped: bool,
+    /// Seconds computing features.
+    pub feature_seconds: f64,
+    /// Seconds in the forest.
+    pub predict_seconds: f64,
+}
+
+/// Classifies one brick: the pure per-brick step that every executor schedules. A brick below
+/// the store's background threshold is background with certainty, without prediction, when
+/// `cfg.skip_empty`, background is scribbled and no ROI scribble lies in it.
+pub fn classify_brick(
     fx: &BrickFeatures<'_>,
-    name: &str,
+    forest: &Forest,
     labels: &[u32],
-    background: u32,
-) -> Result<VectorArray, ClassifyError> {
-    let c = labels.len();
-    let mut va = fx.store().create_vectors(
-        name,
-        c,
-        VectorEncoding::U8 {
-            lo: vec![0.0; c],
-            hi: vec![1.0; c],
-        },
-    )?;
-    va.set_extra(serde_json::json!({
-        "kind": "class_probabilities",
-        "labels": labels,
-        "background": background,
-        "features": fx.set().to_string(),
-    }));
-    Ok(va)
+    out_labels: &[u16],
+    roi_bricks: &BTreeSet<[usize; 3]>,
+    cfg: &ClassifyConfig,
+    b: &Brick,
+) -> Result<BrickResult, ClassifyError> {
+    let bg = labels.iter().position(|&l| l == cfg.background);
+    let skip = cfg.skip_empty
+        && bg.is_some()
+        && !fx.store().is_occupied(b, None)
+        && !roi_bricks.contains(&b.index);
+    if let (true, Some(k)) = (skip, bg) {
+        let mut p = vec![0.0f32; b.voxels() * labels.len()];
+        p.iter_mut()
+            .skip(k)
+            .step_by(labels.len())
+            .for_each(|v| *v = 1.0);
+        return Ok(BrickResult {
+            proba: p,
+            labels: vec![0; b.voxels()],
+            skipped: true,
+            feature_seconds: 0.0,
+            predict_seconds: 0.0,
+        });
+    }
+    let t = Instant::now();
+    let f = fx.brick(b)?;
+    let t1 = Instant::now();
+    let (proba, lab) = predict_brick(forest, &f, out_labels, cfg.tau)?;
+    Ok(BrickResult {
+        proba,
+        labels: lab,
+        skipped: false,
+        feature_seconds: t1.duration_since(t).as_secs_f64(),
+        predict_seconds: t1.elapsed().as_secs_f64(),
+    })
 }
 
 /// Classifies every brick (empty ones skipped per `cfg`), optionally writing probabilities.
@@ -363,7 +397,6 @@ pub fn classify_volume(
         )));
     }
     let out_labels = output_labels(&ts.labels, cfg.background);
-    let bg = ts.labels.iter().position(|&l| l == cfg.background);
     let bricks: Vec<Brick> = store.bricks().collect();
     let labels = Mutex::new(vec![0u16; dims.iter().product()]);
     let done = AtomicU64::new(0);
@@ -374,42 +407,25 @@ pub fn classify_volume(
     bricks
         .par_iter()
         .try_for_each(|b| -> Result<(), ClassifyError> {
-            let skip = cfg.skip_empty
-                && bg.is_some()
-                && !store.is_occupied(b, None)
-                && !ts.roi_bricks.contains(&b.index);
-            let lab = if skip {
+            let r = classify_brick(fx, forest, &ts.labels, &out_labels, &ts.roi_bricks, cfg, b)?;
+            if r.skipped {
                 skipped.fetch_add(1, Ordering::Relaxed);
-                if let (Some(va), Some(k)) = (proba_ref, bg) {
-                    let mut p = vec![0.0f32; b.voxels() * ts.labels.len()];
-                    p.iter_mut()
-                        .skip(k)
-                        .step_by(ts.labels.len())
-                        .for_each(|v| *v = 1.0);
-                    va.write_brick(b, &p)?;
-                }
-                None
             } else {
                 voxels.fetch_add(b.voxels() as u64, Ordering::Relaxed);
-                let t = Instant::now();
-                let f = fx.brick(b)?;
-                let t1 = Instant::now();
-                let (p, lab) = predict_brick(forest, &f, &out_labels, cfg.tau)?;
-                ns[0].fetch_add(t1.duration_since(t).as_nanos() as u64, Ordering::Relaxed);
-                ns[1].fetch_add(t1.elapsed().as_nanos() as u64, Ordering::Relaxed);
-                if let Some(va) = proba_ref {
-                    va.write_brick(b, &p)?;
-                }
-                Some(lab)
-            };
-            if let Some(lab) = lab {
+                ns[0].fetch_add((r.feature_seconds * 1e9) as u64, Ordering::Relaxed);
+                ns[1].fetch_add((r.predict_seconds * 1e9) as u64, Ordering::Relaxed);
+            }
+            if let Some(va) = proba_ref {
+                va.write_brick(b, &r.proba)?;
+            }
+            if !r.skipped {
                 let mut g = labels.lock().unwrap_or_else(|p| p.into_inner());
                 let mut k = 0;
                 for z in 0..b.size[2] {
                     for y in 0..b.size[1] {
                         let row =
                             ((b.origin[2] + z) * dims[1] + b.origin[1] + y) * dims[0] + b.origin[0];
-                        g[row..row + b.size[0]].copy_from_slice(&lab[k..k + b.size[0]]);
+                        g[row..row + b.size[0]].copy_from_slice(&r.labels[k..k + b.size[0]]);
                         k += b.size[0];
                     }
                 }

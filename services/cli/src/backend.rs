@@ -88,6 +88,11 @@ impl Engine {
         }
     }
 
+    /// Whether this is the CPU engine (the one the task executors, local or cluster, run).
+    pub fn is_cpu(&self) -> bool {
+        matches!(self, Engine::Cpu)
+    }
+
     /// Writes features with this engine.
     pub fn features(
         &self,

@@ -4,16 +4,14 @@ use anyhow::{bail, Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
 use neuvolex_bricks::meta::MemVolume;
 use neuvolex_bricks::store::BrickStore;
-use neuvolex_bricks::synth::ClassInfo;
-use neuvolex_bricks::DType;
-use neuvolex_classify::shard::create_proba_array;
+use neuvolex_classify::pipeline::ClassifyRequest;
 use neuvolex_classify::{
-    classify_volume, fit, load_scribbles, training_set, BrickFeatures, ClassTable, ClassWeight,
-    Classified, ClassifyConfig, FeatureSet,
+    classify_volume, f1_scores, fit, simulate, training_set, BrickFeatures, ClassWeight,
+    ClassifyConfig, FeatureSet, Level, Quantise, SimConfig,
 };
 use neuvolex_features::InrModel;
 use serde::Serialize;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::Instant;
 
@@ -107,19 +105,6 @@ pub(crate) fn load_model(store: &BrickStore) -> Result<Option<Arc<InrModel>>> {
     )))
 }
 
-/// The label volume as a u8 (or u16) volume on the store's grid.
-fn label_volume(store: &BrickStore, c: &Classified) -> MemVolume {
-    let max = c.labels.iter().copied().max().unwrap_or(0);
-    let v: Vec<f64> = c.labels.iter().map(|&l| l as f64).collect();
-    let dtype = if max <= 255 { DType::U8 } else { DType::U16 };
-    let mut m = MemVolume::from_f64(c.dims, dtype, &v);
-    let meta = store.meta();
-    m.meta.spacing = meta.spacing;
-    m.meta.affine = meta.affine;
-    m.name = PathBuf::from("<classified>");
-    m
-}
-
 /// Arguments of `neuvolex classify`.
 #[derive(clap::Args, Clone, Debug)]
 pub struct ClassifyArgs {
@@ -149,142 +134,75 @@ pub struct ClassifyArgs {
     pub report: Option<PathBuf>,
     #[command(flatten)]
     pub forest: ForestArgs,
+    #[command(flatten)]
+    pub cluster: crate::cluster::ClusterArgs,
 }
 
-/// What `classify` did.
-#[derive(Serialize)]
-struct Report {
-    features: String,
-    channels: usize,
-    labels: Vec<u32>,
-    scribbled: Vec<(u32, u64)>,
-    training_bricks: usize,
-    trees: usize,
-    nodes: usize,
-    seconds_training_features: f64,
-    seconds_fit: f64,
-    bricks_predicted: usize,
-    bricks_skipped: usize,
-    voxels_predicted: u64,
-    seconds_classify: f64,
-    voxels_per_second: f64,
-    counts: Vec<(u16, u64)>,
-}
-
-/// `neuvolex classify`.
+/// `neuvolex classify`: parses, chooses the executor, shows progress, prints.
 pub fn run_classify(a: &ClassifyArgs, quiet: bool) -> Result<()> {
-    let cfg = a.forest.config()?;
-    if let Some(o) = &a.out {
-        if o.exists() && !a.force {
-            bail!("{}: exists (use --force to replace it)", o.display());
-        }
+    let req = ClassifyRequest {
+        store: a.store.clone(),
+        scribbles: a.scribbles.clone(),
+        features: a.features.parse().map_err(anyhow::Error::msg)?,
+        classes: a.classes.clone(),
+        out: a.out.clone(),
+        force: a.force,
+        stored_features: a.stored_features,
+        config: a.forest.config()?,
+        bricks_per_task: a.cluster.bricks_per_task,
+    };
+    let exec = a.cluster.executor()?;
+    let mut bar = crate::cluster::StageBar::new(quiet);
+    let o = neuvolex_classify::pipeline::classify(&req, &exec, &mut |e| bar.on(e))?;
+    bar.finish();
+    let r = &o.report;
+    if let Some(p) = &a.report {
+        std::fs::write(p, serde_json::to_string_pretty(r)?)
+            .with_context(|| format!("{}: cannot write the report", p.display()))?;
     }
-    let set: FeatureSet = a.features.parse().map_err(anyhow::Error::msg)?;
-    let mut store = BrickStore::open(&a.store)?;
-    let scr = load_scribbles(&a.scribbles, &store.meta())
-        .with_context(|| format!("{}: cannot use these scribbles", a.scribbles.display()))?;
-    let table = match &a.classes {
-        Some(p) => {
-            let t = ClassTable::load(p)?;
-            if t.background != cfg.background {
-                bail!(
-                    "{}: background {} differs from --background {}",
-                    p.display(),
-                    t.background,
-                    cfg.background
-                );
-            }
-            let labels: Vec<u32> = scr.counts().keys().copied().collect();
-            t.check(&labels)
-                .with_context(|| format!("{}", a.scribbles.display()))?;
-            Some(t)
+    if !o.dead.is_empty() {
+        for d in &o.dead {
+            eprintln!(
+                "  dead: task {} bricks {:?} after {} deliveries: {}",
+                d.task, d.bricks, d.deliveries, d.error
+            );
         }
-        None => None,
-    };
-    let model = if set.needs_model() {
-        load_model(&store)?
-    } else {
-        None
-    };
-    let fx = BrickFeatures::new(&store, set.clone(), model, a.stored_features)?;
-    let t = Instant::now();
-    let ts = training_set(&fx, &scr, cfg.background)
-        .with_context(|| format!("{}", a.scribbles.display()))?;
-    let t_feat = t.elapsed().as_secs_f64();
-    let t = Instant::now();
-    let forest = fit(&ts, &cfg.forest)?;
-    let t_fit = t.elapsed().as_secs_f64();
-    tracing::info!(
-        rows = ts.y.len(),
-        d = ts.d,
-        classes = ts.labels.len(),
-        t_feat,
-        t_fit,
-        "forest trained"
-    );
-    let total = store.info().grid().iter().product::<usize>() as u64;
-    let pb = bar(quiet, total, "classify");
-    let mut proba = create_proba_array(&fx, "classes_proba", &ts.labels, cfg.background)?;
-    let c = classify_volume(&fx, &forest, &ts, &cfg, Some(&mut proba), &|d| {
-        pb.set_position(d)
-    })?;
-    pb.finish_and_clear();
-    drop(fx);
-    let mut counts = std::collections::BTreeMap::<u16, u64>::new();
-    c.labels
-        .iter()
-        .for_each(|&l| *counts.entry(l).or_default() += 1);
-    let classes: Vec<ClassInfo> = match &table {
-        Some(t) => t.classes.clone(),
-        None => ts
-            .labels
-            .iter()
-            .filter(|&&l| l != cfg.background)
-            .map(|&l| ClassInfo {
-                id: l,
-                name: format!("class_{l}"),
-                color: neuvolex_bricks::synth::palette(l),
-            })
-            .collect(),
-    };
-    let mut lv = label_volume(&store, &c);
-    store.add_labels("classified", &mut lv, &classes, &mut |_| {})?;
-    if let Some(o) = &a.out {
-        neuvolex_bricks::nifti::write_nifti(o, &mut lv, 64)?;
+        bail!(
+            "classify: {} task(s) failed on every delivery (bricks listed above); the other {} \
+             completed and stay marked done, so a re-run after fixing the cause finishes only \
+             the rest",
+            o.dead.len(),
+            r.run.completed
+        );
     }
-    let r = Report {
-        features: set.to_string(),
-        channels: ts.d,
-        labels: ts.labels.clone(),
-        scribbled: scr.counts().into_iter().collect(),
-        training_bricks: ts.bricks,
-        trees: forest.trees(),
-        nodes: forest.nodes(),
-        seconds_training_features: t_feat,
-        seconds_fit: t_fit,
-        bricks_predicted: c.bricks_predicted,
-        bricks_skipped: c.bricks_skipped,
-        voxels_predicted: c.voxels_predicted,
-        seconds_classify: c.seconds,
-        voxels_per_second: c.voxels_predicted as f64 / c.seconds.max(1e-9),
-        counts: counts.into_iter().collect(),
-    };
     println!(
         "classify: {} features ({} channels), {} scribbled voxels in {} classes; forest {} trees \
-         in {:.2} s; {} bricks predicted, {} empty skipped, {:.2} s ({:.0} k voxels/s)",
+         in {:.2} s; {} bricks predicted, {} empty skipped, {} resumed, {:.2} s ({:.0} k voxels/s) on {}",
         r.features,
         r.channels,
-        ts.y.len(),
+        o.scribbled_voxels,
         r.labels.len(),
         r.trees,
-        t_fit,
+        r.seconds_fit,
         r.bricks_predicted,
         r.bricks_skipped,
-        c.seconds,
-        r.voxels_per_second / 1e3
+        r.bricks_resumed,
+        r.seconds_classify,
+        r.voxels_per_second / 1e3,
+        r.run.executor
     );
+    if r.run.per_worker.len() > 1 || a.cluster.cluster.is_some() {
+        let w: Vec<String> = r
+            .run
+            .per_worker
+            .iter()
+            .map(|(w, n)| format!("{w} {n}"))
+            .collect();
+        println!("  tasks per worker: {}", w.join(", "));
+    }
     for (l, n) in &r.counts {
-        let name = classes
+        let name = o
+            .classes
             .iter()
             .find(|c| c.id == *l as u32)
             .map_or(if *l == 0 { "background" } else { "?" }, |c| &c.name);
@@ -297,10 +215,6 @@ pub fn run_classify(a: &ClassifyArgs, quiet: bool) -> Result<()> {
     );
     if let Some(o) = &a.out {
         println!("  label volume: {}", o.display());
-    }
-    if let Some(p) = &a.report {
-        std::fs::write(p, serde_json::to_string_pretty(&r)?)
-            .with_context(|| format!("{}: cannot write the report", p.display()))?;
     }
     Ok(())
 }

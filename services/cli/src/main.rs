@@ -5,6 +5,7 @@
 mod backend;
 mod classify;
 mod eval;
+mod cluster;
 mod render;
 mod serve;
 mod viewpoints;
@@ -219,6 +220,8 @@ enum Cmd {
         /// Engine: cpu, gpu or auto (a hardware GPU where one exists).
         #[arg(long, default_value = "auto")]
         backend: String,
+        #[command(flatten)]
+        cluster: cluster::ClusterArgs,
     },
     /// Classify every voxel from scribbles: random forest on a feature set, per-class u8
     /// probabilities and a label image in the store, optionally a NIfTI label volume.
@@ -251,6 +254,8 @@ enum Cmd {
     Serve(serve::ServeArgs),
     /// Recommend viewpoints: k-means on features, view entropy, greedy complementary views.
     Viewpoints(viewpoints::ViewpointArgs),
+    /// Serve brick tasks of a cluster (NATS JetStream) until told to stop.
+    Worker(cluster::WorkerArgs),
     /// Convert any readable volume (including a store or store/labels/NAME) to NIfTI.
     Convert {
         /// Input volume.
@@ -657,7 +662,8 @@ fn info(input: &Path, brick: usize, json: bool, raw: &RawArgs, quiet: bool) -> R
 fn main() -> Result<()> {
     tracing_subscriber::fmt()
         .with_env_filter(
-            tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into()),
+            tracing_subscriber::EnvFilter::try_from_default_env()
+                .unwrap_or_else(|_| "info,async_nats=warn".into()),
         )
         .with_writer(std::io::stderr)
         .init();
@@ -781,6 +787,7 @@ fn main() -> Result<()> {
         Cmd::Render(a) => render::run_render(&a, quiet)?,
         Cmd::Viewpoints(a) => viewpoints::run_viewpoints(&a, quiet)?,
         Cmd::Serve(a) => serve::run_serve(&a)?,
+        Cmd::Worker(a) => cluster::run_worker(&a, quiet)?,
         Cmd::ScribbleSim {
             labels,
             level,
@@ -840,6 +847,7 @@ fn main() -> Result<()> {
             kind,
             all_bricks,
             backend,
+            cluster,
         } => {
             let kind: neuvolex_features::FeatureKind = kind.parse().map_err(anyhow::Error::msg)?;
             let s = BrickStore::open(&store)?;
@@ -851,9 +859,29 @@ fn main() -> Result<()> {
                     store.display()
                 );
             }
-            let model = neuvolex_features::checkpoint::load(&mp)?.model;
+            let model = std::sync::Arc::new(neuvolex_features::checkpoint::load(&mp)?.model);
             let engine = backend::Engine::pick(&backend)?;
-            let r = engine.features(&s, &model, kind, all_bricks, &mut progress_sink(quiet))?;
+            let r = if !engine.is_cpu() {
+                if cluster.cluster.is_some() {
+                    bail!("--backend gpu extracts in this process: drop --cluster, or use --backend cpu");
+                }
+                engine.features(&s, &model, kind, all_bricks, &mut progress_sink(quiet))?
+            } else {
+                let exec = cluster.executor()?;
+                let mut bar = cluster::StageBar::new(quiet);
+                let (r, _) = neuvolex_features::stage::write_features_on(
+                    &exec,
+                    &s,
+                    &neuvolex_classify::pipeline::store_path_string(&store),
+                    model,
+                    kind,
+                    all_bricks,
+                    cluster.bricks_per_task,
+                    &mut |e| bar.on(e),
+                )?;
+                bar.finish();
+                r
+            };
             println!(
                 "features: {}/neuvolex/vectors/{} ({} channels, f16): {} bricks, {} voxels in {:.2} s ({:.0} k voxels/s, {})",
                 store.display(), r.name, r.channels, r.bricks, r.voxels, r.seconds, r.voxels as f64 / r.seconds.max(1e-9) / 1e3, engine.describe()

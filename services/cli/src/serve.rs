@@ -29,6 +29,8 @@ pub struct ServeArgs {
     /// included) or auto (a hardware GPU where one exists). GPU needs `--features gpu`.
     #[arg(long, default_value = "auto")]
     backend: String,
+    #[command(flatten)]
+    cluster: crate::cluster::ClusterArgs,
 }
 
 /// Runs the server until interrupted.
@@ -92,6 +94,14 @@ pub fn run_serve(a: &ServeArgs) -> Result<()> {
     cfg.generated_root = generated;
     cfg.feature_cache_bytes = a.cache_mib.max(1) << 20;
     cfg.backend = a.backend.parse().map_err(anyhow::Error::msg)?;
+    // With --cluster, classification and viewpoints run on the cluster's workers.
+    cfg.cluster = match &a.cluster.cluster {
+        Some(url) => Some(
+            neuvolex_cluster::ClusterExecutor::connect(a.cluster.engine(url)?)
+                .with_context(|| format!("--cluster {url}"))?,
+        ),
+        None => None,
+    };
     actix_web::rt::System::new().block_on(async move {
         let state = AppState::new(cfg.clone());
         let engines = state.actors.compute().clone();

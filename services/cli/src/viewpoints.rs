@@ -4,6 +4,7 @@
 use anyhow::{bail, Context, Result};
 use neuvolex_bricks::BrickStore;
 use neuvolex_classify::features::{BrickFeatures, FeatureSet};
+use neuvolex_classify::pipeline::{FeatureSpec, OpenedFeatures};
 use neuvolex_render::{BrickSource, Camera, Image, RenderParams, Renderer, StoreSource, TfFile};
 use neuvolex_viewpoints::kmeans::Algorithm;
 use neuvolex_viewpoints::scores::{entropy_map, SelectConfig};
@@ -56,6 +57,8 @@ pub struct ViewpointArgs {
     /// Output folder.
     #[arg(long)]
     out: PathBuf,
+    #[command(flatten)]
+    cluster: crate::cluster::ClusterArgs,
 }
 
 /// A blue-to-yellow colour ramp (viridis control points).
@@ -95,32 +98,6 @@ pub fn run_viewpoints(a: &ViewpointArgs, quiet: bool) -> Result<()> {
     };
     let set: FeatureSet = a.features.parse().map_err(anyhow::Error::msg)?;
     let store = Arc::new(BrickStore::open(&a.store)?);
-    let model = if set.needs_model() {
-        crate::classify::load_model(&store)?
-    } else {
-        None
-    };
-    let fx = BrickFeatures::new(&store, set.clone(), model, a.stored_features)?;
-    let bricks = store.occupied_bricks(None);
-    let dim = fx.channels();
-    std::fs::create_dir_all(&a.out).with_context(|| format!("{}", a.out.display()))?;
-    // Every k-means pass reads each brick's features; hold them in memory where they fit the
-    // budget (otherwise they stream from the store or the model on every pass).
-    let bytes: usize = bricks.iter().map(|b| b.voxels() * dim * 4).sum();
-    let cached: Option<Vec<Vec<f32>>> = if bytes <= a.memory_mib << 20 {
-        Some(
-            bricks
-                .iter()
-                .map(|b| fx.brick(b))
-                .collect::<Result<_, _>>()?,
-        )
-    } else {
-        tracing::info!(
-            mib = bytes >> 20,
-            "features exceed --memory-mib: streaming them per pass"
-        );
-        None
-    };
     let cfg = RecommendConfig {
         kmeans: KMeansConfig {
             k: a.k,
@@ -135,40 +112,105 @@ pub fn run_viewpoints(a: &ViewpointArgs, quiet: bool) -> Result<()> {
             ..Default::default()
         },
     };
-    let pb = crate::classify::bar(quiet, bricks.len() as u64, "normals");
+    std::fs::create_dir_all(&a.out).with_context(|| format!("{}", a.out.display()))?;
     let views = fibonacci_sphere(a.views);
-    let err = |e: String| neuvolex_viewpoints::ViewpointError::Input(e);
-    // k-means over the occupied bricks (empty ones are excluded), then cluster normals merged
-    // brick by brick: the entropy map refines as bricks arrive.
-    let rec = recommend(
-        bricks.len(),
-        dim,
-        |i| match &cached {
-            Some(c) => Ok(Cow::Borrowed(&c[i][..])),
-            None => fx
-                .brick(&bricks[i])
-                .map(Cow::Owned)
-                .map_err(|e| err(e.to_string())),
-        },
-        |i| {
-            Ok(store
-                .derived(&bricks[i])
-                .map_err(|e| err(e.to_string()))?
-                .gradient)
-        },
-        store.info().spacing,
-        &cfg,
-        &mut |n, agg| {
-            pb.set_position(n as u64);
-            if n % 16 == 0 {
-                if let Ok(s) = agg.snapshot(&views) {
-                    let best = s.entropy.iter().cloned().fold(0.0f32, f32::max);
-                    tracing::debug!(bricks = n, best_entropy = best, "entropy map refined");
-                }
+    let mut refined = |n: usize, agg: &neuvolex_viewpoints::scores::Aggregator| {
+        if n.is_multiple_of(16) {
+            if let Ok(s) = agg.snapshot(&views) {
+                let best = s.entropy.iter().cloned().fold(0.0f32, f32::max);
+                tracing::debug!(bricks = n, best_entropy = best, "entropy map refined");
             }
-        },
-    )?;
-    pb.finish_and_clear();
+        }
+    };
+    let rec = if algorithm == Algorithm::Lloyd {
+        // Every per-brick step as tasks: in this process, or on the cluster's workers.
+        neuvolex_viewpoints::distributed::set_feature_cache_mib(a.memory_mib);
+        let model = if set.needs_model() {
+            crate::classify::load_model(&store)?
+        } else {
+            None
+        };
+        let spec = FeatureSpec::new(&a.store, &set, a.stored_features, model.as_deref());
+        let src = OpenedFeatures {
+            store: store.clone(),
+            model,
+            set: set.clone(),
+            spec,
+            model_bytes: None,
+        };
+        let exec = a.cluster.executor()?;
+        let mut bar = crate::cluster::StageBar::new(quiet);
+        let (rec, run) = neuvolex_viewpoints::distributed::recommend_on(
+            &exec,
+            src,
+            &cfg,
+            a.cluster.bricks_per_task,
+            &mut |e| bar.on(e),
+            &mut refined,
+        )?;
+        bar.finish();
+        tracing::info!(executor = %run.executor, tasks = run.tasks, work_seconds = run.work_seconds, "viewpoint stages done");
+        rec
+    } else {
+        anyhow::ensure!(
+            a.cluster.cluster.is_none(),
+            "--algorithm minibatch runs in one process (its updates are sequential); use lloyd with --cluster"
+        );
+        let model = if set.needs_model() {
+            crate::classify::load_model(&store)?
+        } else {
+            None
+        };
+        let fx = BrickFeatures::new(&store, set.clone(), model, a.stored_features)?;
+        let bricks = store.occupied_bricks(None);
+        let dim = fx.channels();
+        // Every k-means pass reads each brick's features; hold them in memory where they fit
+        // the budget (otherwise they stream from the store or the model on every pass).
+        let bytes: usize = bricks.iter().map(|b| b.voxels() * dim * 4).sum();
+        let cached: Option<Vec<Vec<f32>>> = if bytes <= a.memory_mib << 20 {
+            Some(
+                bricks
+                    .iter()
+                    .map(|b| fx.brick(b))
+                    .collect::<Result<_, _>>()?,
+            )
+        } else {
+            tracing::info!(
+                mib = bytes >> 20,
+                "features exceed --memory-mib: streaming them per pass"
+            );
+            None
+        };
+        let pb = crate::classify::bar(quiet, bricks.len() as u64, "normals");
+        let err = |e: String| neuvolex_viewpoints::ViewpointError::Input(e);
+        // k-means over the occupied bricks (empty ones are excluded), then cluster normals
+        // merged brick by brick: the entropy map refines as bricks arrive.
+        let rec = recommend(
+            bricks.len(),
+            dim,
+            |i| match &cached {
+                Some(c) => Ok(Cow::Borrowed(&c[i][..])),
+                None => fx
+                    .brick(&bricks[i])
+                    .map(Cow::Owned)
+                    .map_err(|e| err(e.to_string())),
+            },
+            |i| {
+                Ok(store
+                    .derived(&bricks[i])
+                    .map_err(|e| err(e.to_string()))?
+                    .gradient)
+            },
+            store.info().spacing,
+            &cfg,
+            &mut |n, agg| {
+                pb.set_position(n as u64);
+                refined(n, agg);
+            },
+        )?;
+        pb.finish_and_clear();
+        rec
+    };
     let (summ, scores, sel, km) = (&rec.summary, &rec.scores, &rec.selection, &rec.kmeans);
     let (t_kmeans, t_views) = (rec.kmeans_seconds, rec.scoring_seconds);
     let used = km.counts.iter().filter(|&&c| c > 0).count();

@@ -8,12 +8,10 @@
 use crate::error::{FeatureError, Result};
 use crate::model::{FeatureKind, InrModel, CHUNK};
 use crate::tile::Tile;
-use crate::train::training_bricks;
 use neuvolex_bricks::lru::Lru;
-use neuvolex_bricks::{Brick, BrickStore, Progress, VectorArray, VectorEncoding};
+use neuvolex_bricks::{Brick, BrickStore, Progress, VectorArray};
 use rayon::prelude::*;
 use std::sync::Arc;
-use std::time::Instant;
 
 /// Name of the store's vector array for a feature kind.
 pub fn vectors_name(kind: FeatureKind) -> String {
@@ -97,8 +95,9 @@ pub fn feature_output(
     Ok((va, bricks))
 }
 
-/// Extracts `kind` features of the training bricks (or all bricks) into the store as f16.
-/// Bricks left out are empty (below the store's background threshold).
+/// Extracts `kind` features of the training bricks (or all bricks) into the store as f16, in
+/// this process (the extraction stage on the in-process executor). Bricks left out are empty
+/// (below the store's background threshold).
 pub fn write_features(
     store: &BrickStore,
     model: &InrModel,
@@ -106,28 +105,24 @@ pub fn write_features(
     all_bricks: bool,
     progress: &mut dyn FnMut(Progress),
 ) -> Result<ExtractReport> {
-    let t = Instant::now();
-    let (mut va, bricks) = feature_output(store, model, kind, all_bricks)?;
-    let (name, c) = (vectors_name(kind), kind.channels(model));
-    progress(Progress::Stage {
-        name: "features",
-        total: bricks.len() as u64,
-    });
-    let mut voxels = 0u64;
-    for (i, b) in bricks.iter().enumerate() {
-        let f = extract_brick(model, store, b, kind)?;
-        va.write_brick(b, &f)?;
-        voxels += b.voxels() as u64;
-        progress(Progress::Advance { done: i as u64 + 1 });
-    }
-    va.finish()?;
-    Ok(ExtractReport {
-        name,
-        channels: c,
-        bricks: bricks.len(),
-        voxels,
-        seconds: t.elapsed().as_secs_f64(),
-    })
+    let (r, _) = crate::stage::write_features_on(
+        &neuvolex_tasks::LocalExecutor::new(),
+        store,
+        &store.root().display().to_string(),
+        Arc::new(model.clone()),
+        kind,
+        all_bricks,
+        1,
+        &mut |e| match e {
+            neuvolex_tasks::RunEvent::Stage { total, .. } => progress(Progress::Stage {
+                name: "features",
+                total,
+            }),
+            neuvolex_tasks::RunEvent::Task { done, .. } => progress(Progress::Advance { done }),
+            neuvolex_tasks::RunEvent::Message(m) => tracing::info!("{m}"),
+        },
+    )?;
+    Ok(r)
 }
 
 /// Where feature bricks come from.

@@ -15,6 +15,7 @@ pub mod error;
 pub mod extract;
 pub mod hashgrid;
 pub mod model;
+pub mod stage;
 /// The seeded generator, shared with the rest of neuvolex.
 pub use neuvolex_bricks::rng;
 pub mod tile;

@@ -5,6 +5,7 @@
 use crate::error::{ApiError, ApiResult};
 use crate::session::Session;
 use neuvolex_bricks::BrickStore;
+use neuvolex_cluster::ClusterExecutor;
 use serde::Serialize;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -184,7 +185,7 @@ impl Actors {
     /// Starts the ingest, classifier, trainer, renderer and viewpoint actors under supervision,
     /// on the CPU engines.
     pub fn start(hub: Hub) -> Actors {
-        Actors::start_with(hub, crate::compute::Compute::cpu())
+        Actors::start_with(hub, crate::compute::Compute::cpu(), None)
     }
 
     /// The engines the trainer and renderer run on.
@@ -192,8 +193,13 @@ impl Actors {
         &self.compute.info
     }
 
-    /// [`Actors::start`] with the trainer and renderer on `compute`'s engines.
-    pub fn start_with(hub: Hub, compute: crate::compute::Compute) -> Actors {
+    /// [`Actors::start`] with the trainer and renderer on `compute`'s engines, and
+    /// classification and viewpoints on `cluster`'s workers when one is given.
+    pub fn start_with(
+        hub: Hub,
+        compute: crate::compute::Compute,
+        cluster: Option<ClusterExecutor>,
+    ) -> Actors {
         let compute = Arc::new(compute);
         let (itx, irx) = mailbox::<IngestJob>();
         let (ctx, crx) = mailbox::<ClassifyJob>();
@@ -204,9 +210,9 @@ impl Actors {
         supervise("ingest", hub.clone(), move || {
             ingester(irx.clone(), h.clone())
         });
-        let h = hub.clone();
+        let (h, cl) = (hub.clone(), cluster.clone());
         supervise("classifier", hub.clone(), move || {
-            classifier(crx.clone(), h.clone())
+            classifier(crx.clone(), h.clone(), cl.clone())
         });
         let (h, c, e) = (hub.clone(), ctx.clone(), compute.clone());
         supervise("trainer", hub.clone(), move || {
@@ -216,9 +222,9 @@ impl Actors {
         supervise("renderer", hub.clone(), move || {
             renderer(rrx.clone(), e.clone())
         });
-        let h = hub.clone();
+        let (h, cl) = (hub.clone(), cluster);
         supervise("viewpoints", hub.clone(), move || {
-            recommender(vrx.clone(), h.clone())
+            recommender(vrx.clone(), h.clone(), cl.clone())
         });
         Actors {
             hub,
@@ -395,7 +401,7 @@ fn ingest_one(source: &Path, dest: &Path, name: &str, hub: &Hub) -> ApiResult<Br
     Ok(BrickStore::open(dest)?)
 }
 
-async fn classifier(rx: Inbox<ClassifyJob>, hub: Hub) {
+async fn classifier(rx: Inbox<ClassifyJob>, hub: Hub, cluster: Option<ClusterExecutor>) {
     let mut rx = rx.lock().await;
     let mut pending: Vec<ClassifyJob> = Vec::new();
     loop {
@@ -427,7 +433,7 @@ async fn classifier(rx: Inbox<ClassifyJob>, hub: Hub) {
         if !job.session.current(job.generation) {
             continue;
         }
-        if let Err(e) = spawn_classify(job, hub.clone()).await {
+        if let Err(e) = spawn_classify(job, hub.clone(), cluster.clone()).await {
             if e.is_panic() {
                 // Fail this actor: the supervisor reports it and restarts it on the same mailbox.
                 std::panic::resume_unwind(e.into_panic());
@@ -436,7 +442,11 @@ async fn classifier(rx: Inbox<ClassifyJob>, hub: Hub) {
     }
 }
 
-fn spawn_classify(job: ClassifyJob, hub: Hub) -> tokio::task::JoinHandle<()> {
+fn spawn_classify(
+    job: ClassifyJob,
+    hub: Hub,
+    cluster: Option<ClusterExecutor>,
+) -> tokio::task::JoinHandle<()> {
     tokio::task::spawn_blocking(move || {
         let s = job.session.clone();
         let id = s.id.clone();
@@ -448,7 +458,7 @@ fn spawn_classify(job: ClassifyJob, hub: Hub) -> tokio::task::JoinHandle<()> {
                 serde_json::json!({"brick": b, "done": done, "total": total, "generation": job.generation}),
             );
         };
-        let r = s.classify(job.generation, TREES, shards, &on_brick);
+        let r = s.classify_with(job.generation, TREES, shards, &on_brick, cluster.as_ref());
         let status = s.status.read().unwrap_or_else(|p| p.into_inner()).clone();
         match r {
             Ok(n) => hub.publish(
@@ -742,7 +752,7 @@ fn render(
     crate::imaging::png(img.width, img.height, 3, &img.to_rgb8())
 }
 
-async fn recommender(rx: Inbox<ViewJob>, hub: Hub) {
+async fn recommender(rx: Inbox<ViewJob>, hub: Hub, cluster: Option<ClusterExecutor>) {
     let mut rx = rx.lock().await;
     while let Some(m) = rx.recv().await {
         let job = match m {
@@ -755,8 +765,9 @@ async fn recommender(rx: Inbox<ViewJob>, hub: Hub) {
             views,
             reply,
         } = job;
-        let h = hub.clone();
-        let r = tokio::task::spawn_blocking(move || recommend(&session, k, views, &h)).await;
+        let (h, c) = (hub.clone(), cluster.clone());
+        let r = tokio::task::spawn_blocking(move || recommend(&session, k, views, &h, c.as_ref()))
+            .await;
         let _ = reply.send(r.unwrap_or_else(|_| {
             Err(ApiError::Internal(
                 "viewpoint recommendation panicked".into(),
@@ -767,8 +778,16 @@ async fn recommender(rx: Inbox<ViewJob>, hub: Hub) {
 
 /// The view-entropy aggregation over a session's feature bricks (the pure pipeline is
 /// `neuvolex_viewpoints::recommend`): mini-batch k-means, then per-brick cluster partials
-/// merged progressively, with a snapshot of the best view published as bricks arrive.
-fn recommend(s: &Arc<Session>, k: usize, views: usize, hub: &Hub) -> ApiResult<serde_json::Value> {
+/// merged progressively, with a snapshot of the best view published as bricks arrive. With a
+/// cluster, every per-brick step runs as tasks on its workers (Lloyd k-means, whose passes
+/// distribute; mini-batch updates are sequential).
+fn recommend(
+    s: &Arc<Session>,
+    k: usize,
+    views: usize,
+    hub: &Hub,
+    cluster: Option<&ClusterExecutor>,
+) -> ApiResult<serde_json::Value> {
     use neuvolex_classify::features::{BrickFeatures, FeatureSet};
     use neuvolex_viewpoints::{
         direction_to_view, fibonacci_sphere, recommend, KMeansConfig, RecommendConfig,
@@ -779,6 +798,7 @@ fn recommend(s: &Arc<Session>, k: usize, views: usize, hub: &Hub) -> ApiResult<s
         .parse()
         .map_err(ApiError::Internal)?;
     let version = model.as_ref().map_or(0, |m| m.0);
+    let model_for_blob = model.clone();
     let fx = BrickFeatures::new(&s.store, set.clone(), model.map(|m| m.1), false)?;
     let name = set.to_string();
     let bricks = s.store.occupied_bricks(None);
@@ -795,44 +815,85 @@ fn recommend(s: &Arc<Session>, k: usize, views: usize, hub: &Hub) -> ApiResult<s
     let dirs = fibonacci_sphere(views);
     let step = (bricks.len() / 10).max(1);
     let id = s.id.clone();
-    let rec = recommend(
-        bricks.len(),
-        fx.channels(),
-        |i| {
-            s.features
-                .get(&name, version, &fx, &bricks[i])
-                .map_err(|e| err(e.to_string()))
-        },
-        |i| {
-            Ok(s.store
-                .derived(&bricks[i])
-                .map_err(|e| err(e.to_string()))?
-                .gradient)
-        },
-        s.store.info().spacing,
-        &cfg,
-        &mut |done, agg| {
-            if done % step != 0 && done != bricks.len() {
-                return;
+    let mut on_progress = |done: usize, agg: &neuvolex_viewpoints::scores::Aggregator| {
+        if !done.is_multiple_of(step) && done != bricks.len() {
+            return;
+        }
+        if let Ok(sc) = agg.snapshot(&dirs) {
+            if let Some((best, h)) = sc
+                .entropy
+                .iter()
+                .enumerate()
+                .max_by(|a, b| a.1.total_cmp(b.1))
+            {
+                let (az, el) = direction_to_view(dirs[best]);
+                hub.publish(
+                    Some(&id),
+                    "viewpoints_progress",
+                    serde_json::json!({"bricks": done, "total": bricks.len(),
+                        "best": {"azimuth": az, "elevation": el, "entropy": h}}),
+                );
             }
-            if let Ok(sc) = agg.snapshot(&dirs) {
-                if let Some((best, h)) = sc
-                    .entropy
-                    .iter()
-                    .enumerate()
-                    .max_by(|a, b| a.1.total_cmp(b.1))
-                {
-                    let (az, el) = direction_to_view(dirs[best]);
-                    hub.publish(
-                        Some(&id),
-                        "viewpoints_progress",
-                        serde_json::json!({"bricks": done, "total": bricks.len(),
-                            "best": {"azimuth": az, "elevation": el, "entropy": h}}),
-                    );
-                }
+        }
+    };
+    let rec = if let Some(c) = cluster {
+        let (model_id, model_bytes) = match &model_for_blob {
+            Some((v, m)) => {
+                let (id, b) = s.model_blob(*v, m)?;
+                (Some(id), Some(b))
             }
-        },
-    )
+            None => (None, None),
+        };
+        let spec = neuvolex_classify::pipeline::FeatureSpec {
+            store: neuvolex_classify::pipeline::store_path_string(s.store.root()),
+            features: name.clone(),
+            stored_features: false,
+            model_blob: model_id.as_ref().map(|id| format!("model-{id}")),
+            model: model_id,
+        };
+        let src = neuvolex_classify::pipeline::OpenedFeatures {
+            store: s.store.clone(),
+            model: model_for_blob.as_ref().map(|m| m.1.clone()),
+            set: set.clone(),
+            spec,
+            model_bytes,
+        };
+        let cfg = RecommendConfig {
+            kmeans: KMeansConfig {
+                algorithm: neuvolex_viewpoints::kmeans::Algorithm::Lloyd,
+                ..cfg.kmeans
+            },
+            ..cfg
+        };
+        neuvolex_viewpoints::distributed::recommend_on(
+            c,
+            src,
+            &cfg,
+            4,
+            &mut |_| {},
+            &mut on_progress,
+        )
+        .map(|r| r.0)
+    } else {
+        recommend(
+            bricks.len(),
+            fx.channels(),
+            |i| {
+                s.features
+                    .get(&name, version, &fx, &bricks[i])
+                    .map_err(|e| err(e.to_string()))
+            },
+            |i| {
+                Ok(s.store
+                    .derived(&bricks[i])
+                    .map_err(|e| err(e.to_string()))?
+                    .gradient)
+            },
+            s.store.info().spacing,
+            &cfg,
+            &mut on_progress,
+        )
+    }
     .map_err(|e| ApiError::BadRequest(e.to_string()))?;
     let picked: Vec<serde_json::Value> = rec
         .selection

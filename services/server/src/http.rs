@@ -37,6 +37,8 @@ pub struct ServerConfig {
     pub fault_injection: bool,
     /// Engines of the trainer and renderer: cpu, gpu (any adapter) or auto (a hardware GPU).
     pub backend: neuvolex_features::Backend,
+    /// Runs classification and viewpoints on this cluster's workers (`serve --cluster`).
+    pub cluster: Option<neuvolex_cluster::ClusterExecutor>,
 }
 
 impl ServerConfig {
@@ -51,6 +53,7 @@ impl ServerConfig {
             feature_cache_bytes: 512 << 20,
             fault_injection: false,
             backend: neuvolex_features::Backend::Cpu,
+            cluster: None,
         }
     }
 }
@@ -70,10 +73,11 @@ impl AppState {
     /// State with the actors started (call inside a tokio runtime).
     pub fn new(cfg: ServerConfig) -> web::Data<AppState> {
         let compute = crate::compute::Compute::resolve(cfg.backend);
+        let actors = Actors::start_with(Hub::default(), compute, cfg.cluster.clone());
         web::Data::new(AppState {
             cfg,
             sessions: RwLock::new(HashMap::new()),
-            actors: Actors::start_with(Hub::default(), compute),
+            actors,
             next: AtomicU64::new(1),
         })
     }

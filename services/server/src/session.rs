@@ -5,11 +5,15 @@ use crate::error::{ApiError, ApiResult};
 use neuvolex_bricks::synth::{palette, ClassInfo};
 use neuvolex_bricks::{BrickStore, Normaliser};
 use neuvolex_classify::features::{BrickFeatures, FeatureSet};
+use neuvolex_classify::pipeline::{
+    store_path_string, FeatureHook, FeatureSpec, OpenedFeatures, ProbaParams, ProbaStage,
+};
 use neuvolex_classify::scribble::{rasterise, Scribbles, Stroke};
-use neuvolex_classify::shard::{fit, predict_brick, training_set_with};
+use neuvolex_classify::shard::{fit, training_set_with};
 use neuvolex_render::source::{assemble, ChannelClass, RenderBrick};
 use neuvolex_render::{BrickSource, StoreSource, VolumeGeom};
-use rayon::prelude::*;
+use neuvolex_tasks::executor::CancelPoll;
+use neuvolex_tasks::{Event, Executor, LocalExecutor};
 use serde::Serialize;
 use std::collections::{BTreeSet, HashMap};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
@@ -103,7 +107,11 @@ pub struct Session {
     /// The prior's verdict on the last complete classification (beside the raw
     /// probabilities, which it never changes).
     pub prior: RwLock<Option<crate::assist::PriorState>>,
+    /// The current model as a blob for cluster workers (version, identity, bytes).
+    model_bytes: Mutex<Option<ModelBlob>>,
 }
+
+type ModelBlob = (u64, String, Arc<Vec<u8>>);
 
 /// A session's renderer and what its last frame was.
 pub struct RenderState {
@@ -173,6 +181,7 @@ impl Session {
             preview: RwLock::new(None),
             prior_on: AtomicBool::new(true),
             prior: RwLock::new(None),
+            model_bytes: Mutex::new(None),
         })
     }
 
@@ -249,16 +258,49 @@ impl Session {
         self.generation.load(Ordering::SeqCst) == generation
     }
 
-    /// Trains a forest on the current scribbles and classifies every brick in `shards`
-    /// parallel shards (each a contiguous range of bricks), storing probabilities as bricks
-    /// finish and calling `on_brick` for each. Stops early, as `cancelled`, once a newer stroke
-    /// generation exists. Returns the bricks classified.
+    /// Trains a forest on the current scribbles and classifies every brick in this process
+    /// ([`Self::classify_with`] without a cluster).
     pub fn classify(
-        &self,
+        self: &Arc<Self>,
         generation: u64,
         trees: usize,
         shards: usize,
         on_brick: &(dyn Fn([usize; 3], usize, usize) + Sync),
+    ) -> ApiResult<usize> {
+        self.classify_with(generation, trees, shards, on_brick, None)
+    }
+
+    /// The current model as a blob for cluster workers: its identity and the model file's
+    /// bytes, serialised once per snapshot version.
+    pub fn model_blob(&self, version: u64, model: &InrModel) -> ApiResult<(String, Arc<Vec<u8>>)> {
+        let mut c = self.model_bytes.lock().unwrap_or_else(|p| p.into_inner());
+        if let Some((v, id, b)) = &*c {
+            if *v == version {
+                return Ok((id.clone(), b.clone()));
+            }
+        }
+        let id = neuvolex_features::stage::model_identity(model);
+        let b = Arc::new(
+            neuvolex_features::stage::model_to_bytes(model)
+                .map_err(|e| ApiError::Internal(e.to_string()))?,
+        );
+        *c = Some((version, id.clone(), b.clone()));
+        Ok((id, b))
+    }
+
+    /// Trains a forest on the current scribbles and classifies every brick as tasks of the
+    /// prediction stage: in this process (the classifier actor's shards, `shards` contiguous
+    /// runs of bricks, features through the session's cache), or on `cluster`'s workers (the
+    /// forest and the model snapshot published once as blobs). Probabilities are stored as
+    /// bricks arrive and `on_brick` is called for each. Stops early, as `cancelled`, once a
+    /// newer stroke generation exists. Returns the bricks classified.
+    pub fn classify_with(
+        self: &Arc<Self>,
+        generation: u64,
+        trees: usize,
+        shards: usize,
+        on_brick: &(dyn Fn([usize; 3], usize, usize) + Sync),
+        cluster: Option<&neuvolex_cluster::ClusterExecutor>,
     ) -> ApiResult<usize> {
         let scr = self.scribbles()?;
         let counts = scr.counts();
@@ -274,8 +316,14 @@ impl Session {
         let (set, model) = self.feature_source()?;
         let version = model.as_ref().map_or(0, |m| m.0);
         // Training and prediction both read through the feature cache, which holds f16
-        // (shown to cost no F1), so both see the same values.
-        let fx = BrickFeatures::new(&self.store, set.clone(), model.map(|m| m.1), false)?;
+        // (shown to cost no F1), so both see the same values; cluster workers round their
+        // features to f16 the same way.
+        let fx = BrickFeatures::new(
+            &self.store,
+            set.clone(),
+            model.as_ref().map(|m| m.1.clone()),
+            false,
+        )?;
         self.set_status(|s| {
             s.generation = generation;
             s.state = "training".into();
@@ -286,19 +334,14 @@ impl Session {
         let ts = training_set_with(&fx, &scr, BACKGROUND, &|b| {
             self.features.get(&name, version, &fx, b)
         })?;
-        let forest = fit(
+        let forest = Arc::new(fit(
             &ts,
             &neuvolex_classify::ForestConfig {
                 trees,
                 ..Default::default()
             },
-        )?;
-        let out_labels: Vec<u16> = ts
-            .labels
-            .iter()
-            .map(|&l| if l == BACKGROUND { 0 } else { l as u16 })
-            .collect();
-        let bricks: Vec<_> = self.store.bricks().collect();
+        )?);
+        let bricks: Vec<[usize; 3]> = self.store.bricks().map(|b| b.index).collect();
         let total = bricks.len();
         {
             let mut p = self.probs.write().unwrap_or_else(|p| p.into_inner());
@@ -317,58 +360,96 @@ impl Session {
             s.done = 0;
             s.total = total;
         });
-        let done = AtomicU64::new(0);
-        let cancelled = AtomicBool::new(false);
-        let per = total.div_ceil(shards.max(1)).max(1);
-        let c = ts.labels.len();
-        let result: ApiResult<()> = bricks.par_chunks(per).try_for_each(|shard| {
-            for b in shard {
-                if !self.current(generation) {
-                    cancelled.store(true, Ordering::SeqCst);
-                    return Ok(());
-                }
-                let u8s: Vec<u8> = if self.store.is_occupied(b, None) {
-                    let f = self.features.get(&name, version, &fx, b)?;
-                    let (p, _) = predict_brick(&forest, &f, &out_labels, 0.5)?;
-                    p.iter()
-                        .map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8)
-                        .collect()
-                } else {
-                    // Empty brick: background with certainty.
-                    let mut v = vec![0u8; b.voxels() * c];
-                    if let Some(bg) = ts.labels.iter().position(|&l| l == BACKGROUND) {
-                        for px in v.chunks_exact_mut(c) {
-                            px[bg] = 255;
-                        }
-                    }
-                    v
-                };
+        let (model_id, model_bytes) = match (&model, cluster) {
+            (Some((v, m)), Some(_)) => {
+                let (id, b) = self.model_blob(*v, m)?;
+                (Some(id), Some(b))
+            }
+            (Some((_, m)), None) => (Some(neuvolex_features::stage::model_identity(m)), None),
+            (None, _) => (None, None),
+        };
+        let spec = FeatureSpec {
+            store: store_path_string(self.store.root()),
+            features: name.clone(),
+            stored_features: false,
+            model_blob: model_bytes
+                .as_ref()
+                .and(model_id.as_ref())
+                .map(|id| format!("model-{id}")),
+            model: model_id,
+        };
+        let params = ProbaParams {
+            source: spec.clone(),
+            forest: ProbaStage::forest_key(&forest)?,
+            labels: ts.labels.clone(),
+            background: BACKGROUND,
+            f16_features: true,
+        };
+        let src = OpenedFeatures {
+            store: self.store.clone(),
+            model: model.as_ref().map(|m| m.1.clone()),
+            set: set.clone(),
+            spec,
+            model_bytes,
+        };
+        let hook: Option<FeatureHook<'_>> = match cluster {
+            Some(_) => None,
+            None => Some(Box::new(|b: &neuvolex_bricks::Brick| {
+                self.features.get(&name, version, &fx, b)
+            })),
+        };
+        let stage = ProbaStage::new(params, src, forest, hook)?;
+        let per = if cluster.is_some() {
+            4
+        } else {
+            total.div_ceil(shards.max(1)).max(1)
+        };
+        let tasks = neuvolex_tasks::plan(&bricks, per, 0);
+        let me = self.clone();
+        let poll: CancelPoll = Arc::new(move || !me.current(generation));
+        let mut done = 0usize;
+        let mut cancelled = false;
+        let mut on = |e: Event<Vec<([usize; 3], Vec<u8>)>>| {
+            let Event::Done(d) = e else { return };
+            for (bi, u8s) in d.output {
                 {
                     let mut p = self.probs.write().unwrap_or_else(|p| p.into_inner());
                     if p.generation != generation {
-                        cancelled.store(true, Ordering::SeqCst);
-                        return Ok(());
+                        cancelled = true;
+                        return;
                     }
-                    p.bricks.insert(b.index, Arc::new(u8s));
+                    p.bricks.insert(bi, Arc::new(u8s));
                 }
                 self.dirty
                     .lock()
                     .unwrap_or_else(|p| p.into_inner())
-                    .insert(b.index);
-                let n = done.fetch_add(1, Ordering::SeqCst) as usize + 1;
+                    .insert(bi);
+                done += 1;
+                let n = done;
                 self.set_status(|s| s.done = n);
-                on_brick(b.index, n, total);
+                on_brick(bi, n, total);
             }
-            Ok(())
-        });
-        result?;
-        let n = done.load(Ordering::SeqCst) as usize;
-        let cancelled = cancelled.load(Ordering::SeqCst);
+        };
+        let run = match cluster {
+            Some(c) => c.with_cancel(poll).execute(&stage, &tasks, &mut on),
+            None => LocalExecutor::new()
+                .labelled("actors")
+                .with_cancel(poll)
+                .execute(&stage, &tasks, &mut on),
+        }
+        .map_err(|e| ApiError::Internal(e.to_string()))?;
+        if let Some(d) = run.dead.first() {
+            return Err(ApiError::Internal(format!(
+                "classification failed on bricks {:?}: {}",
+                d.bricks, d.error
+            )));
+        }
+        let cancelled = cancelled || run.cancelled;
         if !cancelled {
             crate::assist::refresh_prior(self)?;
         }
         self.set_status(|s| s.state = if cancelled { "cancelled" } else { "done" }.into());
-        Ok(n)
+        Ok(done)
     }
 
     /// The render source over this session's store and streamed probabilities.

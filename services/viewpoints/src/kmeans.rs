@@ -72,7 +72,7 @@ pub struct KMeans {
 
 /// Per-brick sufficient statistics of an assignment: rows, feature sums and squared distances
 /// per cluster. Partials merge by addition.
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Partial {
     /// Rows per cluster.
     pub counts: Vec<u64>,
@@ -232,42 +232,18 @@ impl KMeans {
         }
         let mut rng = Rng::new(cfg.seed);
         // The initialisation sample: rows of a seeded subset of chunks.
-        let mut order: Vec<usize> = (0..chunks).collect();
-        rng.shuffle(&mut order);
+        let mut order = sample_order(chunks, &mut rng);
+        let want = sample_want(chunks, cfg);
         let mut sample = Vec::new();
-        for &c in order.iter().take(64) {
+        for &c in order.iter().take(SAMPLE_CHUNKS) {
             let rows = load(c)?;
             let rows = rows.as_ref();
             check_rows(rows, dim)?;
-            let n = rows.len() / dim;
-            let want = (cfg.init_sample / order.len().min(64)).max(1);
-            for _ in 0..want.min(n) {
-                let r = rng.below(n);
+            for r in draw_rows(&mut rng, want, rows.len() / dim) {
                 sample.extend_from_slice(&rows[r * dim..(r + 1) * dim]);
             }
         }
-        let centroids = kmeanspp(&sample, dim, cfg.k, &mut rng);
-        let ns = sample.len() / dim;
-        // scikit-learn's tolerance: relative to the mean per-feature variance.
-        let mut var = 0.0f64;
-        for j in 0..dim {
-            let (mut s, mut s2) = (0.0f64, 0.0f64);
-            for r in 0..ns {
-                let v = sample[r * dim + j] as f64;
-                s += v;
-                s2 += v * v;
-            }
-            let m = s / ns.max(1) as f64;
-            var += (s2 / ns.max(1) as f64 - m * m).max(0.0);
-        }
-        let tol = cfg.tol * var / dim as f64;
-        let mut km = KMeans {
-            dim,
-            centroids,
-            inertia: 0.0,
-            iterations: 0,
-            counts: Vec::new(),
-        };
+        let (mut km, tol) = KMeans::seed(&sample, dim, cfg, &mut rng);
         let pass = |km: &KMeans| -> Result<Partial> {
             let parts: Vec<Result<Partial>> = (0..chunks)
                 .into_par_iter()
@@ -284,16 +260,7 @@ impl KMeans {
             Ok(total)
         };
         match cfg.algorithm {
-            Algorithm::Lloyd => {
-                for it in 0..cfg.max_iter.max(1) {
-                    let p = pass(&km)?;
-                    let shift = km.update(&p, &sample);
-                    km.iterations = it + 1;
-                    if shift <= tol {
-                        break;
-                    }
-                }
-            }
+            Algorithm::Lloyd => km.lloyd(&sample, tol, cfg, &mut |k| pass(k)),
             Algorithm::MiniBatch { epochs } => {
                 let mut seen = vec![0u64; km.k()];
                 for e in 0..epochs.max(1) {
@@ -317,18 +284,83 @@ impl KMeans {
                     }
                     km.iterations = e + 1;
                 }
+                // The reported inertia and counts belong to the final centroids.
+                let p = pass(&km)?;
+                km.inertia = p.inertia;
+                km.counts = p.counts;
+                Ok(km)
             }
         }
-        // The reported inertia and counts belong to the final centroids.
+    }
+
+    /// The k-means++ initialisation on `sample` and the convergence tolerance (scikit-learn's:
+    /// `tol` times the mean per-feature variance of the sample). `rng` continues from the
+    /// sampling.
+    pub fn seed(sample: &[f32], dim: usize, cfg: &KMeansConfig, rng: &mut Rng) -> (KMeans, f64) {
+        let centroids = kmeanspp(sample, dim, cfg.k, rng);
+        let ns = sample.len() / dim;
+        let mut var = 0.0f64;
+        for j in 0..dim {
+            let (mut s, mut s2) = (0.0f64, 0.0f64);
+            for r in 0..ns {
+                let v = sample[r * dim + j] as f64;
+                s += v;
+                s2 += v * v;
+            }
+            let m = s / ns.max(1) as f64;
+            var += (s2 / ns.max(1) as f64 - m * m).max(0.0);
+        }
+        let km = KMeans {
+            dim,
+            centroids,
+            inertia: 0.0,
+            iterations: 0,
+            counts: Vec::new(),
+        };
+        (km, cfg.tol * var / dim as f64)
+    }
+
+    /// Lloyd iterations from the current centroids: `pass` returns the merged partial of every
+    /// row for the given centroids (any scheduler: rayon, actors, cluster workers; merged in
+    /// chunk order). Stops when the squared centroid shift is at most `tol` or after
+    /// `max_iter`; a last pass gives the inertia and counts of the final centroids.
+    pub fn lloyd(
+        self,
+        sample: &[f32],
+        tol: f64,
+        cfg: &KMeansConfig,
+        pass: &mut dyn FnMut(&KMeans) -> Result<Partial>,
+    ) -> Result<KMeans> {
+        let mut km = self.lloyd_iterations(sample, tol, cfg, pass)?;
         let p = pass(&km)?;
         km.inertia = p.inertia;
         km.counts = p.counts;
         Ok(km)
     }
 
+    /// [`Self::lloyd`] without the last pass (the caller computes the final statistics, e.g.
+    /// together with view partials).
+    pub fn lloyd_iterations(
+        mut self,
+        sample: &[f32],
+        tol: f64,
+        cfg: &KMeansConfig,
+        pass: &mut dyn FnMut(&KMeans) -> Result<Partial>,
+    ) -> Result<KMeans> {
+        for it in 0..cfg.max_iter.max(1) {
+            let p = pass(&self)?;
+            let shift = self.update(&p, sample);
+            self.iterations = it + 1;
+            if shift <= tol {
+                break;
+            }
+        }
+        Ok(self)
+    }
+
     /// Moves every centroid to the mean of its rows; an empty cluster takes the sample row
     /// farthest from its centroid. Returns the summed squared centroid shift.
-    fn update(&mut self, p: &Partial, sample: &[f32]) -> f64 {
+    pub fn update(&mut self, p: &Partial, sample: &[f32]) -> f64 {
         let d = self.dim;
         let mut shift = 0.0f64;
         for c in 0..self.k() {
@@ -360,6 +392,26 @@ impl KMeans {
         }
         shift
     }
+}
+
+/// Chunks the initialisation sample is drawn from.
+pub const SAMPLE_CHUNKS: usize = 64;
+
+/// The seeded order in which chunks are visited (the first [`SAMPLE_CHUNKS`] give the sample).
+pub fn sample_order(chunks: usize, rng: &mut Rng) -> Vec<usize> {
+    let mut order: Vec<usize> = (0..chunks).collect();
+    rng.shuffle(&mut order);
+    order
+}
+
+/// Rows drawn from each sampled chunk.
+pub fn sample_want(chunks: usize, cfg: &KMeansConfig) -> usize {
+    (cfg.init_sample / chunks.min(SAMPLE_CHUNKS)).max(1)
+}
+
+/// The rows drawn (with replacement) from a chunk of `n` rows.
+pub fn draw_rows(rng: &mut Rng, want: usize, n: usize) -> Vec<usize> {
+    (0..want.min(n)).map(|_| rng.below(n)).collect()
 }
 
 /// Greedy k-means++ on `sample` (as scikit-learn: each step draws `2 + ln k` candidates by D^2

@@ -11,6 +11,7 @@
 
 #![warn(missing_docs)]
 
+pub mod distributed;
 pub mod kmeans;
 pub mod pipeline;
 pub mod scores;

@@ -38,7 +38,7 @@ use serde::{Deserialize, Serialize};
 const SCALE: f64 = (1u64 << 24) as f64;
 
 /// Per-brick cluster statistics: voxels, gradient sums and gradient-magnitude sums, in integers.
-#[derive(Debug, Clone, PartialEq, Eq)]
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
 pub struct ClusterPartial {
     /// Voxels per cluster.
     pub counts: Vec<u64>,

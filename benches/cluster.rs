@@ -1,0 +1,372 @@
+//! Scaling of the distributed stages on NATS JetStream: classification (prediction into the
+//! store), feature extraction, and Lloyd k-means with view partials, in one process and on
+//! 1, 2 and 4 worker processes, on the abdomen CT and a 512x512x452 volume (the CT-like
+//! phantom at CTA scale). Per stage and worker count: wall time, mean work per task, queue
+//! overhead per task (the worker's fetch, decode, result publish and ack around the work), bytes
+//! through the queue and written to the store.
+//!
+//! `cargo bench -p neuvolex-benches --bench cluster` (needs nats-server, which
+//! deploy/test.sh or deploy/cluster.sh install). `NEUVOLEX_BENCH_BIG=0` skips the large volume.
+//! Workers are this binary re-executed with `--worker`, one process each. Results also go to
+//! `benches/results/cluster.json`.
+
+use neuvolex_bricks::{BrickStore, IngestOptions};
+use neuvolex_classify::pipeline::{classify, ClassifyRequest, FeatureSpec, OpenedFeatures};
+use neuvolex_classify::{ClassifyConfig, FeatureSet};
+use neuvolex_cluster::{ClusterExecutor, EngineConfig, WorkerOptions};
+use neuvolex_tasks::{Executor, LocalExecutor, RunReport};
+use neuvolex_viewpoints::distributed::recommend_on;
+use neuvolex_viewpoints::{KMeansConfig, RecommendConfig};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+fn dir_bytes(p: &Path) -> u64 {
+    let mut n = 0;
+    let mut stack = vec![p.to_path_buf()];
+    while let Some(d) = stack.pop() {
+        for e in std::fs::read_dir(&d).into_iter().flatten().flatten() {
+            let m = match e.metadata() {
+                Ok(m) => m,
+                Err(_) => continue,
+            };
+            if m.is_dir() {
+                stack.push(e.path());
+            } else {
+                n += m.len();
+            }
+        }
+    }
+    n
+}
+
+struct Workers(Vec<Child>);
+
+impl Drop for Workers {
+    fn drop(&mut self) {
+        for c in &mut self.0 {
+            let _ = c.kill();
+            let _ = c.wait();
+        }
+    }
+}
+
+fn start_workers(url: &str, n: usize) -> Workers {
+    let exe = std::env::current_exe().expect("exe");
+    let threads = (2 / n).max(1);
+    let ws = (0..n)
+        .map(|i| {
+            Command::new(&exe)
+                .args(["--worker", url, &format!("w{i}"), &threads.to_string()])
+                .stdout(Stdio::null())
+                .stderr(Stdio::null())
+                .spawn()
+                .expect("worker")
+        })
+        .collect();
+    // Let them connect before timing.
+    std::thread::sleep(Duration::from_millis(800));
+    Workers(ws)
+}
+
+#[derive(serde::Serialize)]
+struct Row {
+    volume: String,
+    stage: String,
+    workers: usize,
+    tasks: usize,
+    wall_s: f64,
+    work_ms_per_task: f64,
+    queue_ms_per_task: f64,
+    queue_share: f64,
+    queue_bytes: u64,
+    store_written: u64,
+}
+
+fn row(volume: &str, stage: &str, workers: usize, r: &RunReport, wall: f64, written: u64) -> Row {
+    let n = r.completed.max(1) as f64;
+    let w = r.work_seconds / n;
+    let q = r.queue_seconds / n;
+    let row = Row {
+        volume: volume.into(),
+        stage: stage.into(),
+        workers,
+        tasks: r.completed,
+        wall_s: wall,
+        work_ms_per_task: w * 1e3,
+        queue_ms_per_task: q * 1e3,
+        queue_share: if w > 0.0 { q / w } else { 0.0 },
+        queue_bytes: r.queue_bytes,
+        store_written: written,
+    };
+    println!(
+        "| {} | {} | {} | {} | {:.2} | {:.1} | {:.2} ({:.1}%) | {:.2} | {:.1} |",
+        row.volume,
+        row.stage,
+        if workers == 0 {
+            "in process".to_string()
+        } else {
+            workers.to_string()
+        },
+        row.tasks,
+        row.wall_s,
+        row.work_ms_per_task,
+        row.queue_ms_per_task,
+        100.0 * row.queue_share,
+        row.queue_bytes as f64 / 1e6,
+        row.store_written as f64 / 1e6,
+    );
+    row
+}
+
+#[allow(clippy::too_many_arguments)]
+fn stages<E: Executor>(
+    exec: &E,
+    workers: usize,
+    volume: &str,
+    store: &Path,
+    scribbles: &Path,
+    features: bool,
+    big: bool,
+    rows: &mut Vec<Row>,
+) {
+    // Every run computes every brick: drop pending generations an interrupted run left.
+    if let Ok(s) = BrickStore::open(store) {
+        for name in ["classes_proba", "classes_labels", "inr_hidden"] {
+            let _ = s.discard_pending_vectors(name);
+        }
+    }
+    // Classification: the forest (50 trees) on local features (the large volume: 20 trees on
+    // intensity, to bound the bench's time), prediction into the store.
+    let req = ClassifyRequest {
+        store: store.to_path_buf(),
+        scribbles: scribbles.to_path_buf(),
+        features: if big { "intensity" } else { "local" }.parse().unwrap(),
+        classes: None,
+        out: None,
+        force: true,
+        stored_features: false,
+        config: ClassifyConfig {
+            forest: neuvolex_classify::ForestConfig {
+                trees: if big { 20 } else { 50 },
+                class_weight: neuvolex_classify::ClassWeight::Balanced,
+                ..Default::default()
+            },
+            ..ClassifyConfig::default()
+        },
+        bricks_per_task: 1,
+    };
+    let t = Instant::now();
+    let o = classify(&req, exec, &mut |_| {}).expect("classify");
+    let wall =
+        t.elapsed().as_secs_f64() - o.report.seconds_training_features - o.report.seconds_fit;
+    let written = dir_bytes(&store.join("neuvolex/vectors/classes_proba"))
+        + dir_bytes(&store.join("neuvolex/vectors/classes_labels"));
+    rows.push(row(
+        volume,
+        "classify",
+        workers,
+        &o.report.run,
+        wall,
+        written,
+    ));
+    // Feature extraction (the INR's 64-D hidden layer).
+    if features {
+        let s = BrickStore::open(store).expect("store");
+        let model = neuvolex_classify::pipeline::load_model(&s)
+            .expect("model")
+            .expect("trained");
+        let t = Instant::now();
+        let (_, r) = neuvolex_features::stage::write_features_on(
+            exec,
+            &s,
+            &store.display().to_string(),
+            model,
+            neuvolex_features::FeatureKind::Hidden,
+            false,
+            1,
+            &mut |_| {},
+        )
+        .expect("features");
+        let wall = t.elapsed().as_secs_f64();
+        rows.push(row(
+            volume,
+            "features",
+            workers,
+            &r,
+            wall,
+            dir_bytes(&store.join("neuvolex/vectors/inr_hidden")),
+        ));
+    }
+    if big {
+        return;
+    }
+    // Lloyd k-means (k = 16, 10 iterations) and the view partials, on local features.
+    let set: FeatureSet = "local".parse().unwrap();
+    let src = OpenedFeatures {
+        store: std::sync::Arc::new(BrickStore::open(store).expect("store")),
+        model: None,
+        spec: FeatureSpec::new(store, &set, false, None),
+        set,
+        model_bytes: None,
+    };
+    let cfg = RecommendConfig {
+        kmeans: KMeansConfig {
+            k: 16,
+            max_iter: 10,
+            ..Default::default()
+        },
+        views: 600,
+        ..Default::default()
+    };
+    let t = Instant::now();
+    let (_, r) = recommend_on(exec, src, &cfg, 1, &mut |_| {}, &mut |_, _| {}).expect("kmeans");
+    rows.push(row(
+        volume,
+        "kmeans+views",
+        workers,
+        &r,
+        t.elapsed().as_secs_f64(),
+        0,
+    ));
+}
+
+fn main() {
+    let args: Vec<String> = std::env::args().collect();
+    if args.get(1).map(String::as_str) == Some("--worker") {
+        let threads: usize = args.get(4).and_then(|t| t.parse().ok()).unwrap_or(1);
+        let _ = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build_global();
+        let _ = neuvolex_cluster::serve(
+            EngineConfig::new(&args[2]),
+            neuvolex_cluster::standard_registry(),
+            WorkerOptions {
+                name: args.get(3).cloned(),
+                ..Default::default()
+            },
+            &mut |_| {},
+        );
+        return;
+    }
+    if args.iter().any(|a| a == "--list" || a == "--test") {
+        return;
+    }
+    let Some(nats) = ["/usr/sbin/nats-server", "/usr/bin/nats-server"]
+        .iter()
+        .map(PathBuf::from)
+        .find(|p| p.exists())
+    else {
+        eprintln!("SKIP: nats-server is not installed");
+        return;
+    };
+    let tmp = tempfile::tempdir().expect("tmp");
+    let port = std::net::TcpListener::bind("127.0.0.1:0")
+        .and_then(|l| l.local_addr())
+        .map(|a| a.port())
+        .expect("port");
+    let mut server = Command::new(nats)
+        .args(["-js", "-sd"])
+        .arg(tmp.path().join("nats"))
+        .args(["-a", "127.0.0.1", "-p", &port.to_string()])
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()
+        .expect("nats-server");
+    std::thread::sleep(Duration::from_millis(500));
+    let url = format!("nats://127.0.0.1:{port}");
+    println!("machine: {}", neuvolex_benches::machine());
+    println!(
+        "\n| volume | stage | workers | tasks | wall s | work ms/task | queue ms/task (share) | queue MB | store written MB |"
+    );
+    println!("|---|---|---|---|---|---|---|---|---|");
+    let mut vols: Vec<(String, PathBuf, PathBuf, bool, bool)> = Vec::new();
+    if let (Some(ct), Some(lab)) = (
+        neuvolex_benches::shared("abdomen_ct/ct.nii.gz"),
+        neuvolex_benches::shared("abdomen_ct/labels.nii.gz"),
+    ) {
+        let p = tmp.path().join("abdomen.zarr");
+        let mut src = neuvolex_bricks::open_volume(&ct, None).expect("ct");
+        neuvolex_bricks::ingest(src.as_mut(), &p, &IngestOptions::default(), &mut |_| {})
+            .expect("ingest");
+        let s = BrickStore::open(&p).expect("store");
+        let model = neuvolex_benches::train_one_epoch(&s);
+        neuvolex_features::checkpoint::save(neuvolex_features::train::model_path(&s), &model, None)
+            .expect("model");
+        vols.push((
+            "abdomen CT 122x101x112".into(),
+            p,
+            scribbles(&lab, tmp.path(), "ct"),
+            true,
+            false,
+        ));
+    }
+    if std::env::var("NEUVOLEX_BENCH_BIG")
+        .map(|v| v != "0")
+        .unwrap_or(true)
+    {
+        let p = tmp.path().join("big.zarr");
+        let params = neuvolex_bricks::synth::PhantomParams {
+            dims: [512, 512, 452],
+            ..neuvolex_bricks::synth::PhantomParams::with_size(512, 0)
+        };
+        neuvolex_bricks::synth::phantom_store(&p, params, &IngestOptions::default(), &mut |_| {})
+            .expect("phantom");
+        let lab = p.join("labels/ground_truth");
+        vols.push((
+            "phantom 512x512x452".into(),
+            p.clone(),
+            scribbles(&lab, tmp.path(), "big"),
+            false,
+            true,
+        ));
+    }
+    let mut rows = Vec::new();
+    for (name, store, scr, features, big) in &vols {
+        stages(
+            &LocalExecutor::new(),
+            0,
+            name,
+            store,
+            scr,
+            *features,
+            *big,
+            &mut rows,
+        );
+        for w in [1, 2, 4] {
+            let _ws = start_workers(&url, w);
+            let ex = ClusterExecutor::connect(EngineConfig::new(&url)).expect("connect");
+            stages(&ex, w, name, store, scr, *features, *big, &mut rows);
+        }
+    }
+    let _ = server.kill();
+    let _ = server.wait();
+    let out = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("results/cluster.json");
+    let _ = std::fs::write(
+        &out,
+        serde_json::to_string_pretty(
+            &serde_json::json!({"machine": neuvolex_benches::machine(), "rows": rows}),
+        )
+        .unwrap_or_default(),
+    );
+    println!("\nresults: {}", out.display());
+}
+
+/// S2 scribbles simulated from ground truth, as NIfTI.
+fn scribbles(labels: &Path, dir: &Path, name: &str) -> PathBuf {
+    use neuvolex_classify::{simulate, Level, ScribbleSource, SimConfig};
+    let mut src = neuvolex_bricks::open_volume(labels, None).expect("labels");
+    let meta = src.meta().clone();
+    let (_, s) = simulate(
+        src.as_mut(),
+        &SimConfig {
+            level: Level::S2,
+            ..SimConfig::default()
+        },
+    )
+    .expect("scribbles");
+    let out = dir.join(format!("{name}_scr.nii.gz"));
+    neuvolex_bricks::nifti::write_nifti(&out, &mut ScribbleSource::new(s, &meta), 16)
+        .expect("nifti");
+    out
+}

@@ -1,0 +1,820 @@
+//! The `neuvolex classify` pipeline, on any executor: the forest is trained once on the
+//! scribbles, then the prediction stage ([`PredictStage`]) runs over every brick, writing
+//! per-class u8 probabilities and the label of every voxel into the store, each brick marked
+//! done once written (a re-run with the same forest resumes). The label image and the
+//! optional NIfTI are assembled from the stored label bricks, so in-process and cluster runs
+//! give the same bytes.
+
+use crate::features::{BrickFeatures, FeatureSet};
+use crate::forest::Forest;
+use crate::scribble::load_scribbles;
+use crate::shard::{classify_brick, fit, output_labels, training_set, ClassTable, ClassifyConfig};
+use crate::ClassifyError;
+use neuvolex_bricks::meta::MemVolume;
+use neuvolex_bricks::store::{Brick, BrickStore, VectorArray, VectorEncoding};
+use neuvolex_bricks::synth::ClassInfo;
+use neuvolex_bricks::DType;
+use neuvolex_features::InrModel;
+use neuvolex_tasks::{
+    codec, execute_ordered, fingerprint, Blob, Blobs, DeadTask, DynStage, Executor, RunEvent,
+    RunReport, Stage, Task, TaskCtx, TaskError,
+};
+use serde::{Deserialize, Serialize};
+use std::collections::{BTreeMap, BTreeSet};
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::time::Instant;
+
+/// The stage's name (workers dispatch on it).
+pub const STAGE: &str = "classify";
+/// The probability array the pipeline writes.
+pub const PROBA: &str = "classes_proba";
+/// The per-brick label array the pipeline writes (assembled into `labels/classified`).
+pub const LABELS: &str = "classes_labels";
+
+/// Where a stage's per-voxel features come from: a store, a feature set, and the trained
+/// model the learned parts need (checked by fingerprint on every worker).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct FeatureSpec {
+    /// The store (path or URL).
+    pub store: String,
+    /// Feature set.
+    pub features: String,
+    /// Read INR features from the store's feature arrays.
+    pub stored_features: bool,
+    /// Version of the store's trained model, when the features need it
+    /// ([`neuvolex_features::stage::model_identity`]).
+    pub model: Option<String>,
+    /// Blob holding that model, when it is not the store's model file (a snapshot of a model
+    /// still training in the service).
+    #[serde(default)]
+    pub model_blob: Option<String>,
+}
+
+/// A [`FeatureSpec`] opened: the store, the model and the parsed feature set.
+pub struct OpenedFeatures {
+    /// The store.
+    pub store: Arc<BrickStore>,
+    /// The model, when the set needs one.
+    pub model: Option<Arc<InrModel>>,
+    /// The feature set.
+    pub set: FeatureSet,
+    /// What was opened.
+    pub spec: FeatureSpec,
+    /// The bytes of the model file to publish as `spec.model_blob` (coordinator side).
+    pub model_bytes: Option<Arc<Vec<u8>>>,
+}
+
+impl FeatureSpec {
+    /// The spec of `set` over the store at `store`, computed with `model` (the store's trained
+    /// model, when the set needs one).
+    pub fn new(
+        store: &Path,
+        set: &FeatureSet,
+        stored_features: bool,
+        model: Option<&InrModel>,
+    ) -> Self {
+        FeatureSpec {
+            store: store_path_string(store),
+            features: set.to_string(),
+            stored_features,
+            model: if set.needs_model() {
+                model.map(neuvolex_features::stage::model_identity)
+            } else {
+                None
+            },
+            model_blob: None,
+        }
+    }
+
+    /// Opens the store and the model, from its blob when the spec names one.
+    pub fn open_with(&self, blobs: &dyn Blobs) -> Result<OpenedFeatures, ClassifyError> {
+        let (Some(key), Some(version)) = (&self.model_blob, &self.model) else {
+            return self.open();
+        };
+        let bytes = blobs
+            .get(key)
+            .map_err(|e| ClassifyError::Input(format!("model blob {key}: {e}")))?;
+        let model = Arc::new(neuvolex_features::stage::model_from_bytes(&bytes, version)?);
+        Ok(OpenedFeatures {
+            store: Arc::new(BrickStore::open(Path::new(&self.store))?),
+            model: Some(model),
+            set: self.features.parse().map_err(ClassifyError::Input)?,
+            spec: self.clone(),
+            model_bytes: None,
+        })
+    }
+
+    /// Opens the store and loads the model (checking its fingerprint).
+    pub fn open(&self) -> Result<OpenedFeatures, ClassifyError> {
+        let set: FeatureSet = self.features.parse().map_err(ClassifyError::Input)?;
+        let store = Arc::new(BrickStore::open(Path::new(&self.store))?);
+        let model = match &self.model {
+            Some(v) => Some(Arc::new(neuvolex_features::stage::load_model_checked(
+                &store, v,
+            )?)),
+            None if set.needs_model() => {
+                return Err(ClassifyError::Input(format!(
+                    "features '{set}' need a trained INR: run `neuvolex train {}` first",
+                    self.store
+                )))
+            }
+            None => None,
+        };
+        Ok(OpenedFeatures {
+            store,
+            model,
+            set,
+            spec: self.clone(),
+            model_bytes: None,
+        })
+    }
+}
+
+impl OpenedFeatures {
+    /// Another handle on the same store, model and spec.
+    pub fn share(&self) -> OpenedFeatures {
+        OpenedFeatures {
+            store: self.store.clone(),
+            model: self.model.clone(),
+            set: self.set.clone(),
+            spec: self.spec.clone(),
+            model_bytes: self.model_bytes.clone(),
+        }
+    }
+
+    /// The model blob workers fetch, when the spec names one.
+    pub fn blobs(&self) -> Vec<Blob> {
+        match (&self.spec.model_blob, &self.model_bytes) {
+            (Some(k), Some(b)) => vec![Blob {
+                key: k.clone(),
+                bytes: b.clone(),
+            }],
+            _ => Vec::new(),
+        }
+    }
+
+    /// The per-brick feature computer.
+    pub fn features(&self) -> Result<BrickFeatures<'_>, ClassifyError> {
+        BrickFeatures::new(
+            &self.store,
+            self.set.clone(),
+            self.model.clone(),
+            self.spec.stored_features,
+        )
+    }
+}
+
+/// The parameters of the prediction stage: everything a worker needs besides the forest.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct PredictParams {
+    /// Where the features come from.
+    pub source: FeatureSpec,
+    /// Blob key of the trained forest.
+    pub forest: String,
+    /// Scribble label of each class index.
+    pub labels: Vec<u32>,
+    /// Threshold, background label, empty-brick rule.
+    pub tau: f32,
+    /// The label meaning background.
+    pub background: u32,
+    /// Empty bricks are background without prediction.
+    pub skip_empty: bool,
+    /// Bricks holding an ROI scribble (never skipped).
+    pub roi_bricks: Vec<[usize; 3]>,
+    /// Identity of this run (done markers).
+    pub identity: String,
+}
+
+/// What one prediction task did.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct PredictOutput {
+    /// Bricks predicted.
+    pub predicted: u32,
+    /// Empty bricks taken as background.
+    pub empty: u32,
+    /// Voxels predicted.
+    pub voxels: u64,
+    /// Seconds computing features.
+    pub feature_seconds: f64,
+    /// Seconds in the forest.
+    pub predict_seconds: f64,
+}
+
+/// The prediction stage: a task's bricks are classified and their probabilities and labels
+/// written into the store.
+pub struct PredictStage {
+    params: PredictParams,
+    src: OpenedFeatures,
+    forest: Arc<Forest>,
+    forest_bytes: Arc<Vec<u8>>,
+    cfg: ClassifyConfig,
+    out_labels: Vec<u16>,
+    roi: BTreeSet<[usize; 3]>,
+    /// The pending generations the pipeline started; a brick is done once both mark it.
+    proba: VectorArray,
+    labels: VectorArray,
+}
+
+impl PredictStage {
+    /// The stage over opened features; the probability and label arrays and the done markers
+    /// must exist (the pipeline creates them).
+    pub fn new(
+        params: PredictParams,
+        src: OpenedFeatures,
+        forest_bytes: Arc<Vec<u8>>,
+    ) -> Result<Self, ClassifyError> {
+        let forest: Forest = codec::decode(&forest_bytes)
+            .map_err(|e| ClassifyError::Input(format!("forest blob {}: {e}", params.forest)))?;
+        let store = src.store.clone();
+        let cfg = ClassifyConfig {
+            tau: params.tau,
+            background: params.background,
+            skip_empty: params.skip_empty,
+            ..ClassifyConfig::default()
+        };
+        Ok(PredictStage {
+            out_labels: output_labels(&params.labels, params.background),
+            roi: params.roi_bricks.iter().copied().collect(),
+            proba: store.open_pending_vectors(PROBA, &params.identity)?,
+            labels: store.open_pending_vectors(LABELS, &params.identity)?,
+            forest: Arc::new(forest),
+            forest_bytes,
+            cfg,
+            src,
+            params,
+        })
+    }
+
+    /// Rebuilds the stage on a worker from its parameters (the forest from the blob store).
+    pub fn build(
+        v: &serde_json::Value,
+        blobs: &dyn Blobs,
+    ) -> neuvolex_tasks::Result<Arc<dyn DynStage>> {
+        let p: PredictParams =
+            serde_json::from_value(v.clone()).map_err(|e| TaskError::Codec(e.to_string()))?;
+        let src = p.source.open_with(blobs).map_err(TaskError::failed)?;
+        let forest = blobs.get(&p.forest)?;
+        Ok(Arc::new(
+            PredictStage::new(p, src, forest).map_err(TaskError::failed)?,
+        ))
+    }
+}
+
+impl Stage for PredictStage {
+    type Output = PredictOutput;
+
+    fn name(&self) -> &'static str {
+        STAGE
+    }
+
+    fn params(&self) -> serde_json::Value {
+        serde_json::to_value(&self.params).unwrap_or_default()
+    }
+
+    fn blobs(&self) -> Vec<Blob> {
+        vec![Blob {
+            key: self.params.forest.clone(),
+            bytes: self.forest_bytes.clone(),
+        }]
+    }
+
+    fn run(&self, task: &Task, ctx: &TaskCtx<'_>) -> neuvolex_tasks::Result<PredictOutput> {
+        let fx = self.src.features().map_err(TaskError::failed)?;
+        let mut out = PredictOutput::default();
+        for &bi in &task.bricks {
+            ctx.check()?;
+            let b = self.src.store.brick(bi)?;
+            if self.proba.is_done(&b)? && self.labels.is_done(&b)? {
+                ctx.skip(1);
+                continue;
+            }
+            let r = classify_brick(
+                &fx,
+                &self.forest,
+                &self.params.labels,
+                &self.out_labels,
+                &self.roi,
+                &self.cfg,
+                &b,
+            )
+            .map_err(|e| TaskError::Failed(format!("brick {bi:?}: {e}")))?;
+            self.proba.write_brick(&b, &r.proba)?;
+            let lab: Vec<f32> = r.labels.iter().map(|&l| l as f32).collect();
+            self.labels.write_brick(&b, &lab)?;
+            self.proba.mark_done(&b)?;
+            self.labels.mark_done(&b)?;
+            if r.skipped {
+                out.empty += 1;
+            } else {
+                out.predicted += 1;
+                out.voxels += b.voxels() as u64;
+                out.feature_seconds += r.feature_seconds;
+                out.predict_seconds += r.predict_seconds;
+            }
+        }
+        Ok(out)
+    }
+}
+
+/// What `neuvolex classify` is asked to do.
+#[derive(Debug, Clone)]
+pub struct ClassifyRequest {
+    /// The store.
+    pub store: PathBuf,
+    /// Scribbles (sparse label volume or JSON strokes).
+    pub scribbles: PathBuf,
+    /// Feature set.
+    pub features: FeatureSet,
+    /// Class table.
+    pub classes: Option<PathBuf>,
+    /// NIfTI label volume to write.
+    pub out: Option<PathBuf>,
+    /// Replace an existing `out`.
+    pub force: bool,
+    /// Read INR features from the store.
+    pub stored_features: bool,
+    /// Forest and labelling settings.
+    pub config: ClassifyConfig,
+    /// Bricks per task.
+    pub bricks_per_task: usize,
+}
+
+/// What `classify` did (the JSON report).
+#[derive(Debug, Clone, Serialize)]
+pub struct ClassifyReport {
+    /// Feature set.
+    pub features: String,
+    /// Channels per voxel.
+    pub channels: usize,
+    /// Class labels (scribble labels).
+    pub labels: Vec<u32>,
+    /// Scribbled voxels per label.
+    pub scribbled: Vec<(u32, u64)>,
+    /// Bricks read for training.
+    pub training_bricks: usize,
+    /// Trees.
+    pub trees: usize,
+    /// Nodes.
+    pub nodes: usize,
+    /// Seconds gathering training features.
+    pub seconds_training_features: f64,
+    /// Seconds fitting the forest.
+    pub seconds_fit: f64,
+    /// Bricks predicted in this run.
+    pub bricks_predicted: usize,
+    /// Empty bricks taken as background in this run.
+    pub bricks_skipped: usize,
+    /// Bricks already done by an earlier run (resumed).
+    pub bricks_resumed: u64,
+    /// Voxels predicted in this run.
+    pub voxels_predicted: u64,
+    /// Wall-clock seconds of prediction.
+    pub seconds_classify: f64,
+    /// Voxels per second of prediction.
+    pub voxels_per_second: f64,
+    /// Voxels per output label.
+    pub counts: Vec<(u16, u64)>,
+    /// How the stage ran.
+    pub run: RunReport,
+}
+
+/// The result of the pipeline.
+#[derive(Debug, Clone)]
+pub struct ClassifyOutcome {
+    /// The report.
+    pub report: ClassifyReport,
+    /// The classes of the label image.
+    pub classes: Vec<ClassInfo>,
+    /// Scribbled voxels.
+    pub scribbled_voxels: usize,
+    /// Tasks given up (their bricks have no output; the label image was not written).
+    pub dead: Vec<DeadTask>,
+}
+
+/// Loads the store's trained model (`None` when untrained).
+pub fn load_model(store: &BrickStore) -> Result<Option<Arc<InrModel>>, ClassifyError> {
+    let mp = neuvolex_features::train::model_path(store);
+    if !mp.exists() {
+        return Ok(None);
+    }
+    Ok(Some(Arc::new(
+        neuvolex_features::checkpoint::load(&mp)?.model,
+    )))
+}
+
+/// The label volume as u8 (or u16) on the store's grid.
+fn label_volume(store: &BrickStore, labels: &[u16]) -> MemVolume {
+    let max = labels.iter().copied().max().unwrap_or(0);
+    let v: Vec<f64> = labels.iter().map(|&l| l as f64).collect();
+    let dtype = if max <= 255 { DType::U8 } else { DType::U16 };
+    let mut m = MemVolume::from_f64(store.info().dims, dtype, &v);
+    let meta = store.meta();
+    m.meta.spacing = meta.spacing;
+    m.meta.affine = meta.affine;
+    m.name = PathBuf::from("<classified>");
+    m
+}
+
+/// Runs `neuvolex classify` on `exec`.
+pub fn classify<E: Executor + ?Sized>(
+    req: &ClassifyRequest,
+    exec: &E,
+    progress: &mut dyn FnMut(RunEvent),
+) -> Result<ClassifyOutcome, ClassifyError> {
+    let cfg = &req.config;
+    if let Some(o) = &req.out {
+        if o.exists() && !req.force {
+            return Err(ClassifyError::File {
+                path: o.clone(),
+                detail: "exists (use --force to replace it)".into(),
+            });
+        }
+    }
+    let mut store = BrickStore::open(&req.store)?;
+    let scr = load_scribbles(&req.scribbles, &store.meta()).map_err(|e| ClassifyError::File {
+        path: req.scribbles.clone(),
+        detail: format!("cannot use these scribbles: {e}"),
+    })?;
+    let table = match &req.classes {
+        Some(p) => {
+            let t = ClassTable::load(p)?;
+            if t.background != cfg.background {
+                return Err(ClassifyError::File {
+                    path: p.clone(),
+                    detail: format!(
+                        "background {} differs from --background {}",
+                        t.background, cfg.background
+                    ),
+                });
+            }
+            let labels: Vec<u32> = scr.counts().keys().copied().collect();
+            t.check(&labels).map_err(|e| ClassifyError::File {
+                path: req.scribbles.clone(),
+                detail: e.to_string(),
+            })?;
+            Some(t)
+        }
+        None => None,
+    };
+    let set = req.features.clone();
+    let model = if set.needs_model() {
+        load_model(&store)?
+    } else {
+        None
+    };
+    let spec = FeatureSpec::new(&req.store, &set, req.stored_features, model.as_deref());
+    let (ts, t_feat, forest, t_fit) = {
+        let fx = BrickFeatures::new(&store, set.clone(), model.clone(), req.stored_features)?;
+        let t = Instant::now();
+        let ts = training_set(&fx, &scr, cfg.background).map_err(|e| ClassifyError::File {
+            path: req.scribbles.clone(),
+            detail: e.to_string(),
+        })?;
+        let t_feat = t.elapsed().as_secs_f64();
+        let t = Instant::now();
+        let forest = fit(&ts, &cfg.forest)?;
+        let t_fit = t.elapsed().as_secs_f64();
+        tracing::info!(
+            rows = ts.y.len(),
+            d = ts.d,
+            classes = ts.labels.len(),
+            t_feat,
+            t_fit,
+            "forest trained"
+        );
+        // Where the probability array goes.
+        (ts, t_feat, forest, t_fit)
+    };
+    let max_label = output_labels(&ts.labels, cfg.background)
+        .into_iter()
+        .max()
+        .unwrap_or(0);
+    if max_label > 2048 {
+        return Err(ClassifyError::Input(format!(
+            "class id {max_label}: ids above 2048 are not supported"
+        )));
+    }
+    let forest_bytes =
+        Arc::new(codec::encode(&forest).map_err(|e| ClassifyError::Input(e.to_string()))?);
+    let forest_key = format!("forest-{:016x}", fingerprint(&forest_bytes));
+    let identity = format!(
+        "{:016x}",
+        fingerprint(
+            format!(
+                "{forest_key}|{set}|{:?}|{}|{}|{}|{}",
+                spec.model, cfg.tau, cfg.background, cfg.skip_empty, req.stored_features
+            )
+            .as_bytes()
+        )
+    );
+    let store_arc = Arc::new(BrickStore::open(&req.store)?);
+    // The pending generations of both arrays for this run: resumed when an interrupted run
+    // with the same forest and settings left them, published together at the end.
+    let c = ts.labels.len();
+    let mut proba_w = store_arc.resume_vectors(
+        PROBA,
+        c,
+        VectorEncoding::U8 {
+            lo: vec![0.0; c],
+            hi: vec![1.0; c],
+        },
+        &identity,
+    )?;
+    let enc = if max_label <= 255 {
+        VectorEncoding::U8 {
+            lo: vec![0.0],
+            hi: vec![255.0],
+        }
+    } else {
+        VectorEncoding::F16
+    };
+    let mut labels_w = store_arc.resume_vectors(LABELS, 1, enc, &identity)?;
+    let every: Vec<Brick> = store_arc.bricks().collect();
+    let undone_p: BTreeSet<[usize; 3]> = proba_w
+        .pending(every.iter().cloned())?
+        .iter()
+        .map(|b| b.index)
+        .collect();
+    let undone_l: BTreeSet<[usize; 3]> = labels_w
+        .pending(every.iter().cloned())?
+        .iter()
+        .map(|b| b.index)
+        .collect();
+    let all: Vec<[usize; 3]> = every.iter().map(|b| b.index).collect();
+    let pending: Vec<[usize; 3]> = all
+        .iter()
+        .copied()
+        .filter(|i| undone_p.contains(i) || undone_l.contains(i))
+        .collect();
+    let resumed = (all.len() - pending.len()) as u64;
+    if resumed > 0 {
+        progress(RunEvent::Message(format!(
+            "resuming: {resumed} of {} bricks already classified by an earlier run",
+            all.len()
+        )));
+    }
+    let params = PredictParams {
+        source: spec.clone(),
+        forest: forest_key,
+        labels: ts.labels.clone(),
+        tau: cfg.tau,
+        background: cfg.background,
+        skip_empty: cfg.skip_empty,
+        roi_bricks: ts.roi_bricks.iter().copied().collect(),
+        identity,
+    };
+    let src = OpenedFeatures {
+        store: store_arc.clone(),
+        model: model.clone(),
+        set: set.clone(),
+        spec,
+        model_bytes: None,
+    };
+    let stage = PredictStage::new(params, src, forest_bytes)?;
+    let tasks = neuvolex_tasks::plan(&pending, req.bricks_per_task, 0);
+    let t = Instant::now();
+    let (outs, run) = execute_ordered(exec, &stage, &tasks, progress)
+        .map_err(|e| ClassifyError::Input(e.to_string()))?;
+    let seconds = t.elapsed().as_secs_f64();
+    let mut sum = PredictOutput::default();
+    for o in outs.iter().flatten() {
+        sum.predicted += o.predicted;
+        sum.empty += o.empty;
+        sum.voxels += o.voxels;
+    }
+    let classes: Vec<ClassInfo> = match &table {
+        Some(t) => t.classes.clone(),
+        None => ts
+            .labels
+            .iter()
+            .filter(|&&l| l != cfg.background)
+            .map(|&l| ClassInfo {
+                id: l,
+                name: format!("class_{l}"),
+                color: neuvolex_bricks::synth::palette(l),
+            })
+            .collect(),
+    };
+    let mut counts = BTreeMap::<u16, u64>::new();
+    let dead = run.dead.clone();
+    if dead.is_empty() && !run.cancelled {
+        let labels = assemble_labels(&store_arc, &stage.labels)?;
+        labels
+            .iter()
+            .for_each(|&l| *counts.entry(l).or_default() += 1);
+        proba_w.set_extra(serde_json::json!({
+            "kind": "class_probabilities",
+            "labels": ts.labels,
+            "background": cfg.background,
+            "features": set.to_string(),
+            "identity": stage.params.identity,
+        }));
+        proba_w.finish()?;
+        labels_w.finish()?;
+        let mut lv = label_volume(&store, &labels);
+        store.add_labels("classified", &mut lv, &classes, &mut |_| {})?;
+        if let Some(o) = &req.out {
+            neuvolex_bricks::nifti::write_nifti(o, &mut lv, 64)?;
+        }
+    }
+    Ok(ClassifyOutcome {
+        report: ClassifyReport {
+            features: set.to_string(),
+            channels: ts.d,
+            labels: ts.labels.clone(),
+            scribbled: scr.counts().into_iter().collect(),
+            training_bricks: ts.bricks,
+            trees: forest.trees(),
+            nodes: forest.nodes(),
+            seconds_training_features: t_feat,
+            seconds_fit: t_fit,
+            bricks_predicted: sum.predicted as usize,
+            bricks_skipped: sum.empty as usize,
+            bricks_resumed: resumed + run.bricks_skipped,
+            voxels_predicted: sum.voxels,
+            seconds_classify: seconds,
+            voxels_per_second: sum.voxels as f64 / seconds.max(1e-9),
+            counts: counts.into_iter().collect(),
+            run,
+        },
+        classes,
+        scribbled_voxels: scr.voxels.len(),
+        dead,
+    })
+}
+
+/// The store as workers should open it: an absolute path (or the URL as given).
+pub fn store_path_string(p: &Path) -> String {
+    let s = p.to_string_lossy();
+    if s.contains("://") {
+        return s.into_owned();
+    }
+    p.canonicalize()
+        .unwrap_or_else(|_| p.to_path_buf())
+        .display()
+        .to_string()
+}
+
+/// Reads every label brick into one volume (x fastest).
+fn assemble_labels(store: &BrickStore, va: &VectorArray) -> Result<Vec<u16>, ClassifyError> {
+    let dims = store.info().dims;
+    let mut out = vec![0u16; dims.iter().product()];
+    let bricks: Vec<Brick> = store.bricks().collect();
+    for b in &bricks {
+        let lab = va.read_brick(b)?;
+        let mut k = 0;
+        for z in 0..b.size[2] {
+            for y in 0..b.size[1] {
+                let row = ((b.origin[2] + z) * dims[1] + b.origin[1] + y) * dims[0] + b.origin[0];
+                for (o, &v) in out[row..row + b.size[0]]
+                    .iter_mut()
+                    .zip(&lab[k..k + b.size[0]])
+                {
+                    *o = v.round() as u16;
+                }
+                k += b.size[0];
+            }
+        }
+    }
+    Ok(out)
+}
+
+/// The name of the stage that returns probabilities instead of writing them (the service).
+pub const PROBA_STAGE: &str = "classify-proba";
+
+/// Parameters of [`ProbaStage`].
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ProbaParams {
+    /// Where the features come from.
+    pub source: FeatureSpec,
+    /// Blob key of the trained forest.
+    pub forest: String,
+    /// Scribble label of each class index.
+    pub labels: Vec<u32>,
+    /// The label meaning background.
+    pub background: u32,
+    /// Round features to half precision first (what the service's feature cache holds).
+    pub f16_features: bool,
+}
+
+/// Features of a brick from somewhere else than the store (the service's feature cache); it
+/// must give what [`BrickFeatures`] gives (rounded to f16 when the params say so).
+pub type FeatureHook<'a> =
+    Box<dyn Fn(&Brick) -> Result<Vec<f32>, ClassifyError> + Send + Sync + 'a>;
+
+/// Predicts a task's bricks and returns their u8 probabilities (occupied bricks through the
+/// forest, empty ones background with certainty): the service's streaming classification.
+pub struct ProbaStage<'a> {
+    params: ProbaParams,
+    src: OpenedFeatures,
+    forest: Arc<Forest>,
+    forest_bytes: Arc<Vec<u8>>,
+    hook: Option<FeatureHook<'a>>,
+}
+
+impl<'a> ProbaStage<'a> {
+    /// The stage; `hook` serves features in this process.
+    pub fn new(
+        params: ProbaParams,
+        src: OpenedFeatures,
+        forest: Arc<Forest>,
+        hook: Option<FeatureHook<'a>>,
+    ) -> Result<Self, ClassifyError> {
+        let forest_bytes =
+            Arc::new(codec::encode(&*forest).map_err(|e| ClassifyError::Input(e.to_string()))?);
+        Ok(ProbaStage {
+            params,
+            src,
+            forest,
+            forest_bytes,
+            hook,
+        })
+    }
+
+    /// The blob key under which `forest` is published.
+    pub fn forest_key(forest: &Forest) -> Result<String, ClassifyError> {
+        let b = codec::encode(forest).map_err(|e| ClassifyError::Input(e.to_string()))?;
+        Ok(format!("forest-{:016x}", fingerprint(&b)))
+    }
+
+    /// Rebuilds the stage on a worker.
+    pub fn build(
+        v: &serde_json::Value,
+        blobs: &dyn Blobs,
+    ) -> neuvolex_tasks::Result<Arc<dyn DynStage>> {
+        let p: ProbaParams =
+            serde_json::from_value(v.clone()).map_err(|e| TaskError::Codec(e.to_string()))?;
+        let src = p.source.open_with(blobs).map_err(TaskError::failed)?;
+        let bytes = blobs.get(&p.forest)?;
+        let forest: Forest = codec::decode(&bytes)?;
+        Ok(Arc::new(
+            ProbaStage::<'static>::new(p, src, Arc::new(forest), None)
+                .map_err(TaskError::failed)?,
+        ))
+    }
+}
+
+impl Stage for ProbaStage<'_> {
+    type Output = Vec<([usize; 3], Vec<u8>)>;
+
+    fn name(&self) -> &'static str {
+        PROBA_STAGE
+    }
+
+    fn params(&self) -> serde_json::Value {
+        serde_json::to_value(&self.params).unwrap_or_default()
+    }
+
+    fn blobs(&self) -> Vec<Blob> {
+        let mut v = vec![Blob {
+            key: self.params.forest.clone(),
+            bytes: self.forest_bytes.clone(),
+        }];
+        v.extend(self.src.blobs());
+        v
+    }
+
+    fn run(&self, task: &Task, ctx: &TaskCtx<'_>) -> neuvolex_tasks::Result<Self::Output> {
+        let mut fx = self.src.features().map_err(TaskError::failed)?;
+        if self.params.f16_features {
+            fx.set_quantise(crate::features::Quantise::F16);
+        }
+        let out_labels = output_labels(&self.params.labels, self.params.background);
+        let c = self.params.labels.len();
+        let bg = self
+            .params
+            .labels
+            .iter()
+            .position(|&l| l == self.params.background);
+        task.bricks
+            .iter()
+            .map(|&bi| {
+                ctx.check()?;
+                let b = self.src.store.brick(bi)?;
+                let u8s: Vec<u8> = if self.src.store.is_occupied(&b, None) {
+                    let f = match &self.hook {
+                        Some(h) => h(&b),
+                        None => fx.brick(&b),
+                    }
+                    .map_err(|e| TaskError::Failed(format!("brick {bi:?}: {e}")))?;
+                    let (p, _) = crate::shard::predict_brick(&self.forest, &f, &out_labels, 0.5)
+                        .map_err(|e| TaskError::Failed(format!("brick {bi:?}: {e}")))?;
+                    p.iter()
+                        .map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8)
+                        .collect()
+                } else {
+                    // Empty brick: background with certainty.
+                    let mut v = vec![0u8; b.voxels() * c];
+                    if let Some(k) = bg {
+                        for px in v.chunks_exact_mut(c) {
+                            px[k] = 255;
+                        }
+                    }
+                    v
+                };
+                Ok((bi, u8s))
+            })
+            .collect()
+    }
+}
