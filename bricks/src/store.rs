@@ -774,7 +774,11 @@ pub fn ingest_with_labels(
             .meta()
             .check_same_grid(l.source.meta(), l.source.path())?;
     }
-    let add = |info: StoreInfo, at: &StoreLocation, labels: Option<IngestLabels<'_>>, progress: &mut dyn FnMut(Progress)| -> Result<StoreInfo> {
+    let add = |info: StoreInfo,
+               at: &StoreLocation,
+               labels: Option<IngestLabels<'_>>,
+               progress: &mut dyn FnMut(Progress)|
+     -> Result<StoreInfo> {
         match labels {
             Some(l) => {
                 let mut store = BrickStore::open(at.clone())?;

@@ -200,7 +200,9 @@ fn shape(files: &[String]) -> Vec<String> {
         .map(|f| {
             f.split('/')
                 .map(|c| {
-                    if c.len() > 1 && c.starts_with('v') && c[1..].chars().all(|d| d.is_ascii_digit())
+                    if c.len() > 1
+                        && c.starts_with('v')
+                        && c[1..].chars().all(|d| d.is_ascii_digit())
                     {
                         "v*".to_string()
                     } else {
@@ -669,7 +671,10 @@ fn a_second_writer_is_refused_with_the_store_and_the_holder() {
             refused = true;
             break;
         }
-        assert!(refused, "{other:?}: never ran while the holder held the lock");
+        assert!(
+            refused,
+            "{other:?}: never ran while the holder held the lock"
+        );
         // The holder's result is intact.
         assert_eq!(digest(&w.join("st.zarr")), reference, "after {other:?}");
     }
