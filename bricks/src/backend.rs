@@ -53,6 +53,13 @@ impl std::fmt::Debug for Backend {
 pub struct Version(pub Option<String>);
 
 impl Backend {
+    /// Deletes temporaries left by killed writers (local stores; see [`AtomicFsStore`]).
+    pub fn remove_stale_temporaries(&self) {
+        if let Kind::Fs(fs) = &self.kind {
+            fs.remove_stale_temporaries();
+        }
+    }
+
     /// The storage rooted at `location` (nothing is read yet; a missing store is reported by
     /// the first read).
     pub fn open(location: &StoreLocation) -> Result<Arc<Backend>> {
@@ -482,8 +489,26 @@ fn s3_client(
     Ok(client)
 }
 
+/// Folder of a local store holding the temporaries of atomic writes.
+pub const TMP_DIR: &str = ".neuvolex-tmp";
+
+/// This host's name as used in temporary names (letters, digits, '.', '_').
+fn tmp_host() -> String {
+    crate::lock::host_name()
+        .chars()
+        .map(|c| {
+            if c.is_ascii_alphanumeric() || c == '.' {
+                c
+            } else {
+                '_'
+            }
+        })
+        .collect()
+}
+
 /// zarrs' file-system store with atomic writes: each value is written to a unique temporary
-/// file beside its key (`.NAME.tmp-PID-N`), synced, and renamed over the key.
+/// file (`.neuvolex-tmp/HOST-PID-N` in the store), synced, and renamed over its key; the
+/// temporaries of killed writers are removed when the writer lock is next taken.
 ///
 /// Reads, listing and erasing are zarrs' own. zarrs' handle cache stays off, so replacing a
 /// file by rename never leaves a stale open handle.
@@ -507,22 +532,54 @@ impl AtomicFsStore {
         self.root.join(key.trim_start_matches('/'))
     }
 
-    fn tmp_path(dst: &Path) -> PathBuf {
+    /// Where temporaries go: one folder per store, so those of killed writers are found
+    /// without walking the store.
+    fn tmp_dir(&self) -> PathBuf {
+        self.root.join(TMP_DIR)
+    }
+
+    fn tmp_path(&self) -> PathBuf {
         static N: AtomicU64 = AtomicU64::new(0);
-        let name = dst.file_name().unwrap_or_default().to_string_lossy();
-        dst.with_file_name(format!(
-            ".{name}.tmp-{}-{}",
+        self.tmp_dir().join(format!(
+            "{}-{}-{}",
+            tmp_host(),
             std::process::id(),
             N.fetch_add(1, Ordering::Relaxed)
         ))
     }
 
-    fn write_tmp(dst: &Path, value: &[u8], create_new: bool) -> std::io::Result<PathBuf> {
+    /// Deletes the temporaries that writers on this host left when they were killed (their
+    /// process is gone). Called when the writer lock is taken. Linux only; elsewhere a no-op.
+    pub fn remove_stale_temporaries(&self) {
+        let Ok(rd) = std::fs::read_dir(self.tmp_dir()) else {
+            return;
+        };
+        let prefix = format!("{}-", tmp_host());
+        for e in rd.flatten() {
+            let name = e.file_name().to_string_lossy().into_owned();
+            let pid = name
+                .strip_prefix(&prefix)
+                .and_then(|r| r.split('-').next())
+                .and_then(|p| p.parse::<u32>().ok());
+            if let Some(pid) = pid {
+                if cfg!(target_os = "linux")
+                    && pid != std::process::id()
+                    && !Path::new(&format!("/proc/{pid}")).exists()
+                {
+                    tracing::debug!(path = %e.path().display(), "removing a killed writer's temporary");
+                    let _ = std::fs::remove_file(e.path());
+                }
+            }
+        }
+    }
+
+    fn write_tmp(&self, dst: &Path, value: &[u8], create_new: bool) -> std::io::Result<PathBuf> {
         use std::io::Write;
         if let Some(dir) = dst.parent() {
             std::fs::create_dir_all(dir)?;
         }
-        let tmp = Self::tmp_path(dst);
+        std::fs::create_dir_all(self.tmp_dir())?;
+        let tmp = self.tmp_path();
         let res = (|| {
             let mut f = std::fs::OpenOptions::new()
                 .write(true)
@@ -546,7 +603,7 @@ impl AtomicFsStore {
     }
 
     fn create_new(&self, key: &str, value: &[u8]) -> std::io::Result<bool> {
-        match Self::write_tmp(&self.path(key), value, true) {
+        match self.write_tmp(&self.path(key), value, true) {
             Ok(_) => Ok(true),
             Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => Ok(false),
             Err(e) => Err(e),
@@ -574,7 +631,7 @@ impl ReadableStorageTraits for AtomicFsStore {
 
 impl WritableStorageTraits for AtomicFsStore {
     fn set(&self, key: &StoreKey, value: Bytes) -> std::result::Result<(), StorageError> {
-        Self::write_tmp(&self.path(key.as_str()), &value, false)?;
+        self.write_tmp(&self.path(key.as_str()), &value, false)?;
         Ok(())
     }
 

@@ -57,6 +57,6 @@ pub use open::{detect_format, open_volume, Format};
 pub use raw::RawSpec;
 pub use stats::VolumeStats;
 pub use store::{
-    ingest, Brick, BrickStore, IngestOptions, NonFinitePolicy, Progress, StoreInfo, VectorArray,
-    VectorEncoding,
+    ingest, ingest_with_labels, Brick, BrickStore, IngestLabels, IngestOptions, NonFinitePolicy,
+    Progress, StoreInfo, VectorArray, VectorEncoding,
 };

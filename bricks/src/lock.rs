@@ -86,7 +86,7 @@ fn fmt_time(unix: u64) -> String {
     )
 }
 
-fn host_name() -> String {
+pub(crate) fn host_name() -> String {
     std::fs::read_to_string("/proc/sys/kernel/hostname")
         .ok()
         .or_else(|| std::env::var("HOSTNAME").ok())
@@ -173,7 +173,12 @@ impl WriterLock {
             expires_unix: 0,
         };
         let held = Arc::new(match backend.local_root() {
-            Some(_) => acquire_fs(backend, holder, id.clone())?,
+            Some(_) => {
+                let h = acquire_fs(backend, holder, id.clone())?;
+                // Temporaries of killed writers (their process is gone) are debris now.
+                backend.remove_stale_temporaries();
+                h
+            }
             None => acquire_object(backend, holder, id.clone())?,
         });
         reg.insert(id, Arc::downgrade(&held));

@@ -368,13 +368,22 @@ fn validate_options(out: &Path, opts: &IngestOptions) -> Result<()> {
 }
 
 /// Moves `tmp` to `out` (replacing `out` only when `overwrite`), keeping the old store until
-/// the new one is in place.
+/// the new one is in place. On Linux a replacement is one atomic exchange of the two names
+/// (`renameat2(RENAME_EXCHANGE)`), so `out` is at every instant the old store or the new one,
+/// even if the process is killed; the old store then sits under `tmp` and is deleted.
 fn commit_dir(tmp: &Path, out: &Path, overwrite: bool) -> Result<()> {
     if out.exists() {
         if !overwrite {
             return Err(BrickError::Exists {
                 path: out.to_path_buf(),
             });
+        }
+        match exchange(tmp, out) {
+            Ok(()) => {
+                let _ = std::fs::remove_dir_all(tmp);
+                return Ok(());
+            }
+            Err(e) => tracing::debug!("atomic exchange unavailable ({e}); two renames"),
         }
         let old = out.with_file_name(format!(
             ".{}.old-{}",
@@ -388,6 +397,67 @@ fn commit_dir(tmp: &Path, out: &Path, overwrite: bool) -> Result<()> {
         std::fs::rename(tmp, out).map_err(|e| BrickError::io(out, e))?;
     }
     Ok(())
+}
+
+/// Atomically swaps the names `a` and `b` (both must exist).
+#[cfg(target_os = "linux")]
+fn exchange(a: &Path, b: &Path) -> std::io::Result<()> {
+    use std::ffi::CString;
+    use std::os::unix::ffi::OsStrExt;
+    let ca = CString::new(a.as_os_str().as_bytes())?;
+    let cb = CString::new(b.as_os_str().as_bytes())?;
+    // SAFETY: both arguments are valid NUL-terminated paths that outlive the call.
+    let r = unsafe {
+        libc::renameat2(
+            libc::AT_FDCWD,
+            ca.as_ptr(),
+            libc::AT_FDCWD,
+            cb.as_ptr(),
+            libc::RENAME_EXCHANGE,
+        )
+    };
+    if r == 0 {
+        Ok(())
+    } else {
+        Err(std::io::Error::last_os_error())
+    }
+}
+
+/// Atomically swaps the names `a` and `b`: not available on this platform.
+#[cfg(not(target_os = "linux"))]
+fn exchange(_a: &Path, _b: &Path) -> std::io::Result<()> {
+    Err(std::io::ErrorKind::Unsupported.into())
+}
+
+/// Deletes what killed writers left beside `out`: `.NAME.partial-PID` and `.NAME.old-PID`
+/// folders whose process is gone (Linux; elsewhere they are left).
+fn remove_stale_siblings(out: &Path) {
+    let (Some(dir), Some(name)) = (out.parent(), out.file_name()) else {
+        return;
+    };
+    let dir = if dir.as_os_str().is_empty() {
+        Path::new(".")
+    } else {
+        dir
+    };
+    let name = name.to_string_lossy();
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return;
+    };
+    for e in entries.flatten() {
+        let f = e.file_name().to_string_lossy().into_owned();
+        let pid = [".partial-", ".old-"].iter().find_map(|tag| {
+            f.strip_prefix(&format!(".{name}{tag}"))
+                .and_then(|p| p.parse::<u32>().ok())
+        });
+        if let Some(pid) = pid {
+            let gone = cfg!(target_os = "linux") && !Path::new(&format!("/proc/{pid}")).exists();
+            if gone && pid != std::process::id() {
+                tracing::info!(path = %e.path().display(), "removing what an interrupted writer left");
+                let _ = std::fs::remove_dir_all(e.path());
+            }
+        }
+    }
 }
 
 /// One streaming pass over slabs: statistics, per-brick ranges and the NaN/Inf policy.
@@ -671,12 +741,61 @@ pub fn ingest(
     opts: &IngestOptions,
     progress: &mut dyn FnMut(Progress),
 ) -> Result<StoreInfo> {
+    ingest_with_labels(source, None, out, opts, progress)
+}
+
+/// A label image ingested with its volume (see [`ingest_with_labels`]).
+pub struct IngestLabels<'a> {
+    /// Name of the label image (`labels/NAME`).
+    pub name: &'a str,
+    /// The label volume, on the same grid as the image.
+    pub source: &'a mut dyn VolumeSource,
+    /// Its class table.
+    pub classes: &'a [crate::synth::ClassInfo],
+}
+
+/// [`ingest`], with a label image written into the store before it is published: on a file
+/// system the store appears (or replaces the old one) with its labels in one rename, so an
+/// interruption never leaves the new image without its labels. On S3 the labels are added
+/// after the image is published.
+pub fn ingest_with_labels(
+    source: &mut dyn VolumeSource,
+    labels: Option<IngestLabels<'_>>,
+    out: impl Into<StoreLocation>,
+    opts: &IngestOptions,
+    progress: &mut dyn FnMut(Progress),
+) -> Result<StoreInfo> {
     let out = out.into();
     out.validate()?;
     validate_options(&out.as_path(), opts)?;
+    if let Some(l) = &labels {
+        check_name("label", l.name)?;
+        source
+            .meta()
+            .check_same_grid(l.source.meta(), l.source.path())?;
+    }
+    let add = |info: StoreInfo,
+               at: &StoreLocation,
+               labels: Option<IngestLabels<'_>>,
+               progress: &mut dyn FnMut(Progress)|
+     -> Result<StoreInfo> {
+        match labels {
+            Some(l) => {
+                let mut store = BrickStore::open(at.clone())?;
+                store.add_labels(l.name, l.source, l.classes, progress)?;
+                Ok(store.info().clone())
+            }
+            None => Ok(info),
+        }
+    };
     match &out {
-        StoreLocation::Local(dir) => ingest_local(source, dir, opts, progress),
-        StoreLocation::S3(_) => ingest_remote(source, &out, opts, progress),
+        StoreLocation::Local(dir) => ingest_local(source, dir, opts, progress, |tmp, info, p| {
+            add(info, &StoreLocation::Local(tmp.to_path_buf()), labels, p)
+        }),
+        StoreLocation::S3(_) => {
+            let info = ingest_remote(source, &out, opts, progress)?;
+            add(info, &out, labels, progress)
+        }
     }
 }
 
@@ -685,6 +804,7 @@ fn ingest_local(
     out: &Path,
     opts: &IngestOptions,
     progress: &mut dyn FnMut(Progress),
+    before_commit: impl FnOnce(&Path, StoreInfo, &mut dyn FnMut(Progress)) -> Result<StoreInfo>,
 ) -> Result<StoreInfo> {
     if out.exists() && !opts.overwrite {
         return Err(BrickError::Exists {
@@ -700,16 +820,19 @@ fn ingest_local(
     } else {
         None
     };
+    remove_stale_siblings(out);
     let tmp = crate::nifti::tmp_name(out);
     if tmp.exists() {
         std::fs::remove_dir_all(&tmp).map_err(|e| BrickError::io(&tmp, e))?;
     }
     std::fs::create_dir_all(&tmp).map_err(|e| BrickError::io(&tmp, e))?;
     let backend = Backend::open(&StoreLocation::Local(tmp.clone()))?;
-    let res = ingest_into(source, &backend, None, opts, progress).and_then(|info| {
-        commit_dir(&tmp, out, opts.overwrite)?;
-        Ok(info)
-    });
+    let res = ingest_into(source, &backend, None, opts, progress)
+        .and_then(|info| before_commit(&tmp, info, progress))
+        .and_then(|info| {
+            commit_dir(&tmp, out, opts.overwrite)?;
+            Ok(info)
+        });
     if res.is_err() {
         let _ = std::fs::remove_dir_all(&tmp);
     }

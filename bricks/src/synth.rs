@@ -522,18 +522,17 @@ pub fn phantom_store(
     opts: &crate::IngestOptions,
     progress: &mut dyn FnMut(crate::Progress),
 ) -> crate::Result<crate::BrickStore> {
-    crate::ingest(
+    crate::ingest_with_labels(
         &mut Phantom::new(params, PhantomChannel::Image),
+        Some(crate::IngestLabels {
+            name: "ground_truth",
+            source: &mut Phantom::new(params, PhantomChannel::Labels),
+            classes: &phantom_classes(),
+        }),
         path,
         opts,
         progress,
     )?;
-    let mut store = crate::BrickStore::open(path)?;
-    store.add_labels(
-        "ground_truth",
-        &mut Phantom::new(params, PhantomChannel::Labels),
-        &phantom_classes(),
-        progress,
-    )?;
+    let store = crate::BrickStore::open(path)?;
     Ok(store)
 }

@@ -312,6 +312,12 @@ struct TrainArgs {
     /// Continue from the store's checkpoint.
     #[arg(long)]
     resume: bool,
+    /// Save a resumable checkpoint every N optimiser steps (0: only at the end and every 2 min).
+    #[arg(long)]
+    checkpoint_every: Option<u64>,
+    /// log2 of the hash-table size per level (the paper's 19; smaller is a smaller model).
+    #[arg(long)]
+    log2_table: Option<u32>,
     /// Engine: cpu (the fused CPU engine), gpu (the GPU engine on any adapter, software ones
     /// included), auto (a hardware GPU where one exists, else cpu). GPU needs `--features gpu`.
     #[arg(long, default_value = "auto")]
@@ -352,6 +358,9 @@ impl TrainArgs {
         if let Some(v) = self.tile_bricks {
             t.tile_bricks = v;
         }
+        if let Some(v) = self.checkpoint_every {
+            t.checkpoint_every = v;
+        }
         t.seed = self.seed;
         t.include_empty = self.include_empty;
         t.table_adam = match self.table_adam.as_str() {
@@ -359,10 +368,16 @@ impl TrainArgs {
             "dense" => TableAdam::Dense,
             o => bail!("--table-adam '{o}' must be lazy or dense"),
         };
-        let inr = InrConfig {
+        let mut inr = InrConfig {
             ablation: self.ablation.parse().map_err(anyhow::Error::msg)?,
             ..InrConfig::default()
         };
+        if let Some(v) = self.log2_table {
+            if !(8..=24).contains(&v) {
+                bail!("--log2-table {v} must be 8..=24");
+            }
+            inr.log2_table = v;
+        }
         let _: neuvolex_features::Backend = self.backend.parse().map_err(anyhow::Error::msg)?;
         Ok((inr, t))
     }
@@ -372,6 +387,8 @@ fn run_train(store_path: &Path, args: &TrainArgs, quiet: bool) -> Result<()> {
     use neuvolex_features::{checkpoint, TrainEvent};
     let store = BrickStore::open(store_path)?;
     let (inr, cfg) = args.configs()?;
+    // Checkpoints and the model are written into the store: one writer at a time.
+    let _lock = store.writer_lock("train")?;
     let ckpt = neuvolex_features::train::checkpoint_path(&store);
     let resume = if args.resume {
         if !ckpt.exists() {
@@ -773,11 +790,18 @@ fn main() -> Result<()> {
             };
             let t = std::time::Instant::now();
             let mut sink = progress_sink(quiet);
-            let info = ingest(src.as_mut(), &output, &opts, &mut sink)?;
-            if let Some(l) = lab.as_mut() {
-                let mut store = BrickStore::open(&output)?;
-                store.add_labels(&labels_name, l.as_mut(), &classes, &mut sink)?;
-            }
+            let labels = lab.as_mut().map(|l| neuvolex_bricks::IngestLabels {
+                name: &labels_name,
+                source: l.as_mut(),
+                classes: &classes,
+            });
+            let info = neuvolex_bricks::ingest_with_labels(
+                src.as_mut(),
+                labels,
+                &output,
+                &opts,
+                &mut sink,
+            )?;
             let mb = info.stats.voxels as f64 * info.source_dtype.size() as f64 / 1e6;
             tracing::info!(store = %output.display(), dims = ?info.dims, bricks = info.grid().iter().product::<usize>(), seconds = t.elapsed().as_secs_f64(), mb_per_s = mb / t.elapsed().as_secs_f64(), "ingest complete");
         }

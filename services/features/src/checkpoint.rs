@@ -126,6 +126,8 @@ pub fn save(
     }
     let (backend, key) = Backend::for_file(&location)?;
     backend.put(&key, out)?;
+    // Temporaries of earlier, killed saves into this folder.
+    backend.remove_stale_temporaries();
     Ok(())
 }
 

@@ -467,6 +467,19 @@ pub fn train(
             .collect()
     };
     let stopped_by: String = std::thread::scope(|scope| -> Result<String> {
+        // Resuming a training that had already met its budget (e.g. killed after its last
+        // checkpoint) trains no further step, so the model equals an uninterrupted run's.
+        if budget_samples.is_some_and(|b| state.samples >= b) {
+            return Ok(if tc.budget.samples.is_some_and(|s| state.samples >= s) {
+                "samples"
+            } else {
+                "epochs"
+            }
+            .into());
+        }
+        if tc.budget.seconds.is_some_and(|s| state.seconds >= s) {
+            return Ok("seconds".into());
+        }
         loop {
             let groups = groups_of(state.epoch);
             let mut next: Option<std::thread::ScopedJoinHandle<'_, Result<Vec<Tile>>>> = None;

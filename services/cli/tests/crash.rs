@@ -1,0 +1,694 @@
+//! Crash safety of the brick store (issue 16, "Stores, crash-safe"), on the real `neuvolex`
+//! binary:
+//!
+//! - **SIGKILL**: each stage (ingest with labels over an existing store; train with periodic
+//!   checkpoints; features then classify) runs once uninterrupted for its reference result and
+//!   duration, then `NEUVOLEX_CRASH_KILLS` times (default 6; the recorded run uses 50) is killed
+//!   with SIGKILL at a time drawn from a seeded RNG (`NEUVOLEX_CRASH_SEED`) over that duration
+//!   (+10 %, so some kills land after the end). After each kill every node of the store (image,
+//!   each label image, each vector array, the model) must read as its state before the
+//!   interrupted step or after it (and the store as a whole as one of them with
+//!   `NEUVOLEX_CRASH_STRICT=1`); then `--resume`
+//!   (training with a checkpoint) or a re-run must complete and give the reference result bit
+//!   for bit, leaving no debris (temporary folders, unpublished generations).
+//! - **Disk full**: the same stages on a small tmpfs (mounted by the test, unmounted after)
+//!   filled to a few KiB: a clear error naming a path on it, the previous store intact, and a
+//!   re-run after space is freed completes. Skips visibly where mounting is not permitted
+//!   (fails under `CI=true`).
+//! - **Concurrent writers**: while one process writes a store, every other writer (ingest,
+//!   train, features, classify) is refused with an error naming the store and the holder.
+
+use std::collections::BTreeMap;
+use std::hash::{Hash, Hasher};
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+use std::time::{Duration, Instant};
+
+use neuvolex_bricks::BrickStore;
+
+const BIN: &str = env!("CARGO_BIN_EXE_neuvolex");
+
+/// splitmix64: the kill offsets.
+struct Rng(u64);
+
+impl Rng {
+    fn unit(&mut self) -> f64 {
+        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        let mut z = self.0;
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        ((z ^ (z >> 31)) >> 11) as f64 / (1u64 << 53) as f64
+    }
+}
+
+fn env_num(name: &str, default: u64) -> u64 {
+    std::env::var(name)
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(default)
+}
+
+fn command(dir: &Path, args: &[String]) -> Command {
+    let mut c = Command::new(BIN);
+    c.current_dir(dir)
+        .args(args)
+        .arg("--quiet")
+        .env("RUST_LOG", "warn")
+        .stdin(Stdio::null());
+    c
+}
+
+/// Runs to completion; panics with stderr on failure.
+fn run_ok(dir: &Path, args: &[String]) -> Duration {
+    let t = Instant::now();
+    let o = command(dir, args).output().expect("run neuvolex");
+    assert!(
+        o.status.success(),
+        "neuvolex {args:?} failed: {}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    t.elapsed()
+}
+
+fn args(a: &[&str]) -> Vec<String> {
+    a.iter().map(|s| s.to_string()).collect()
+}
+
+fn hash_bytes(parts: &[&[u8]]) -> String {
+    let mut h = std::collections::hash_map::DefaultHasher::new();
+    for p in parts {
+        p.hash(&mut h);
+    }
+    format!("{:016x}", h.finish())
+}
+
+/// What a reader sees in the store, node by node: a content hash per node, "absent", or the
+/// error a reader gets.
+type State = BTreeMap<String, String>;
+
+fn digest(store: &Path) -> State {
+    let mut m = State::new();
+    if !store.exists() {
+        m.insert("store".into(), "absent".into());
+        return m;
+    }
+    let s = match BrickStore::open(store) {
+        Ok(s) => s,
+        Err(e) => {
+            m.insert("store".into(), format!("unreadable: {e}"));
+            return m;
+        }
+    };
+    let info = s.info().clone();
+    let mut head = serde_json::to_value(&info).unwrap();
+    head.as_object_mut().unwrap().remove("labels");
+    let mut parts = vec![serde_json::to_vec(&head).unwrap()];
+    for (k, d) in info.levels.iter().enumerate() {
+        match s.read_box(k, [0; 3], *d) {
+            Ok(v) => parts.push(bytemuck_f32(&v)),
+            Err(e) => parts.push(format!("level {k}: {e}").into_bytes()),
+        }
+    }
+    let refs: Vec<&[u8]> = parts.iter().map(|p| p.as_slice()).collect();
+    m.insert("image".into(), hash_bytes(&refs));
+    for l in &info.labels {
+        let v = match (s.label_classes(l), s.read_labels_box(l, [0; 3], info.dims)) {
+            (Ok(c), Ok(v)) => {
+                let c = serde_json::to_vec(&c).unwrap();
+                let v: Vec<u8> = v.iter().flat_map(|x| x.to_le_bytes()).collect();
+                hash_bytes(&[&c, &v])
+            }
+            (c, v) => format!("error: {:?} {:?}", c.err(), v.err()),
+        };
+        m.insert(format!("labels/{l}"), v);
+    }
+    for name in ["inr_hidden", "classes_proba"] {
+        let node = store.join("neuvolex/vectors").join(name);
+        if !node.join("zarr.json").exists() {
+            m.insert(format!("vectors/{name}"), "absent".into());
+            continue;
+        }
+        let v = match s.open_vectors(name) {
+            Ok(va) => {
+                let mut parts = vec![serde_json::to_vec(va.info()).unwrap()];
+                for b in s.bricks() {
+                    match va.read_brick(&b) {
+                        Ok(v) => parts.push(bytemuck_f32(&v)),
+                        Err(e) if e.to_string().contains("missing") => {
+                            parts.push(b"unwritten".to_vec())
+                        }
+                        Err(e) => parts.push(format!("error: {e}").into_bytes()),
+                    }
+                }
+                let refs: Vec<&[u8]> = parts.iter().map(|p| p.as_slice()).collect();
+                hash_bytes(&refs)
+            }
+            Err(e) => format!("error: {e}"),
+        };
+        m.insert(format!("vectors/{name}"), v);
+    }
+    let model = store.join("neuvolex/inr/model.nvx");
+    let v = match std::fs::read(&model) {
+        Err(_) => "absent".into(),
+        Ok(bytes) => match neuvolex_features::checkpoint::load(&model) {
+            Ok(_) => hash_bytes(&[&bytes]),
+            Err(e) => format!("error: {e}"),
+        },
+    };
+    m.insert("model".into(), v);
+    // The training checkpoint is resume data, not a result: it must load wherever it exists.
+    let ck = store.join("neuvolex/inr/checkpoint.nvx");
+    if ck.exists() {
+        if let Err(e) = neuvolex_features::checkpoint::load(&ck) {
+            m.insert("checkpoint".into(), format!("error: {e}"));
+        }
+    }
+    m
+}
+
+fn bytemuck_f32(v: &[f32]) -> Vec<u8> {
+    v.iter().flat_map(|x| x.to_bits().to_le_bytes()).collect()
+}
+
+/// Every file under `dir` (relative), without the lock file, for the debris check.
+fn files(dir: &Path) -> Vec<String> {
+    fn walk(root: &Path, d: &Path, out: &mut Vec<String>) {
+        let Ok(rd) = std::fs::read_dir(d) else {
+            return;
+        };
+        for e in rd.flatten() {
+            let p = e.path();
+            if p.is_dir() {
+                walk(root, &p, out);
+            } else {
+                let r = p.strip_prefix(root).unwrap().to_string_lossy().into_owned();
+                if !r.ends_with("writer.lock") {
+                    out.push(r);
+                }
+            }
+        }
+    }
+    let mut out = Vec::new();
+    walk(dir, dir, &mut out);
+    out.sort();
+    out
+}
+
+/// Generation folders (`vN`) renamed to `v*`, so two runs' file sets compare.
+fn shape(files: &[String]) -> Vec<String> {
+    let mut v: Vec<String> = files
+        .iter()
+        .map(|f| {
+            f.split('/')
+                .map(|c| {
+                    if c.len() > 1
+                        && c.starts_with('v')
+                        && c[1..].chars().all(|d| d.is_ascii_digit())
+                    {
+                        "v*".to_string()
+                    } else {
+                        c.to_string()
+                    }
+                })
+                .collect::<Vec<_>>()
+                .join("/")
+        })
+        .collect();
+    v.sort();
+    v
+}
+
+fn copy_dir(from: &Path, to: &Path) {
+    if to.exists() {
+        std::fs::remove_dir_all(to).unwrap();
+    }
+    std::fs::create_dir_all(to).unwrap();
+    for e in std::fs::read_dir(from).unwrap().flatten() {
+        let p = e.path();
+        let t = to.join(e.file_name());
+        if p.is_dir() {
+            copy_dir(&p, &t);
+        } else {
+            std::fs::copy(&p, &t).unwrap();
+        }
+    }
+}
+
+/// The inputs every stage uses: a 40-voxel phantom (new) and another seed (the store the
+/// ingest replaces), simulated scribbles.
+struct Inputs {
+    dir: tempfile::TempDir,
+}
+
+impl Inputs {
+    fn new() -> Self {
+        let dir = tempfile::tempdir().unwrap();
+        let d = dir.path();
+        for (name, seed) in [("ph", "0"), ("old", "1")] {
+            run_ok(
+                d,
+                &args(&[
+                    "synth",
+                    "phantom",
+                    "--out",
+                    &format!("{name}.nii.gz"),
+                    "--size",
+                    "40",
+                    "--seed",
+                    seed,
+                ]),
+            );
+        }
+        run_ok(
+            d,
+            &args(&[
+                "scribble-sim",
+                "ph_labels.nii.gz",
+                "--level",
+                "S2",
+                "--out",
+                "scr.nii.gz",
+            ]),
+        );
+        Inputs { dir }
+    }
+
+    fn path(&self, name: &str) -> String {
+        self.dir.path().join(name).to_string_lossy().into_owned()
+    }
+}
+
+/// A stage: steps run one after the other on `st.zarr` in its work folder.
+struct Stage {
+    name: &'static str,
+    steps: Vec<Vec<String>>,
+}
+
+impl Stage {
+    /// The arguments to re-run `step` after an interruption: training resumes from its
+    /// checkpoint when one was saved.
+    fn rerun(&self, step: usize, work: &Path) -> Vec<String> {
+        let mut a = self.steps[step].clone();
+        if a[0] == "train" && work.join("st.zarr/neuvolex/inr/checkpoint.nvx").exists() {
+            a.push("--resume".into());
+        }
+        a
+    }
+}
+
+fn stages(inp: &Inputs) -> Vec<(Stage, Vec<Vec<String>>)> {
+    let ingest = |src: &str, lab: &str| {
+        args(&[
+            "ingest",
+            &inp.path(&format!("{src}.nii.gz")),
+            "st.zarr",
+            "--brick",
+            "16",
+            "--labels",
+            &inp.path(&format!("{lab}_labels.nii.gz")),
+            "--classes",
+            &inp.path("ph_classes.json"),
+            "--force",
+        ])
+    };
+    let train = args(&[
+        "train",
+        "st.zarr",
+        "--samples",
+        "40000",
+        "--batch",
+        "1024",
+        "--checkpoint-every",
+        "6",
+        "--log2-table",
+        "14",
+    ]);
+    let features = args(&["features", "st.zarr", "--all-bricks"]);
+    let classify = args(&[
+        "classify",
+        "st.zarr",
+        "--scribbles",
+        &inp.path("scr.nii.gz"),
+        "--features",
+        "paper",
+        "--stored-features",
+        "--trees",
+        "12",
+    ]);
+    vec![
+        (
+            Stage {
+                name: "ingest",
+                steps: vec![ingest("ph", "ph")],
+            },
+            vec![ingest("old", "old")],
+        ),
+        (
+            Stage {
+                name: "train + checkpoint",
+                steps: vec![train.clone()],
+            },
+            vec![ingest("ph", "ph")],
+        ),
+        (
+            Stage {
+                name: "features + classify",
+                steps: vec![features.clone(), classify.clone()],
+            },
+            vec![ingest("ph", "ph"), train],
+        ),
+    ]
+}
+
+/// Outcome counts of one stage's kills.
+#[derive(Default, Debug)]
+struct Tally {
+    kills: usize,
+    killed_running: usize,
+    saw_before: usize,
+    saw_after: usize,
+    mixed_nodes: usize,
+    resumed: usize,
+    failures: Vec<String>,
+}
+
+fn kill_stage(stage: &Stage, setup: &[Vec<String>], kills: usize, rng: &mut Rng) -> Tally {
+    let root = tempfile::tempdir().unwrap();
+    let base = root.path().join("base");
+    let work = root.path().join("work");
+    std::fs::create_dir_all(&base).unwrap();
+    for s in setup {
+        run_ok(&base, s);
+    }
+    // The reference: each step uninterrupted, the state after it, and its duration.
+    copy_dir(&base, &work);
+    let mut states = vec![digest(&work.join("st.zarr"))];
+    let mut durations = Vec::new();
+    for s in &stage.steps {
+        durations.push(run_ok(&work, s).as_secs_f64());
+        states.push(digest(&work.join("st.zarr")));
+    }
+    let final_files = shape(&files(&work));
+    let total: f64 = durations.iter().sum();
+    assert_ne!(
+        states[0],
+        states[stage.steps.len()],
+        "{}: the stage must change the store",
+        stage.name
+    );
+    let mut t = Tally::default();
+    for i in 0..kills {
+        copy_dir(&base, &work);
+        let at = rng.unit() * total * 1.1;
+        // The step the kill lands in; earlier steps complete.
+        let (mut k, mut before) = (0, 0.0);
+        while k + 1 < stage.steps.len() && at > before + durations[k] {
+            before += durations[k];
+            run_ok(&work, &stage.steps[k]);
+            k += 1;
+        }
+        let mut child = command(&work, &stage.steps[k])
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .expect("spawn neuvolex");
+        std::thread::sleep(Duration::from_secs_f64((at - before).max(0.0)));
+        let _ = child.kill(); // SIGKILL
+        let status = child.wait().unwrap();
+        t.kills += 1;
+        {
+            use std::os::unix::process::ExitStatusExt;
+            if status.signal() == Some(9) {
+                t.killed_running += 1;
+            }
+        }
+        let seen = digest(&work.join("st.zarr"));
+        if seen == states[k] {
+            t.saw_before += 1;
+        } else if seen == states[k + 1] {
+            t.saw_after += 1;
+        } else if std::env::var("NEUVOLEX_CRASH_STRICT").as_deref() != Ok("1")
+            && seen
+                .iter()
+                .all(|(n, v)| states[k].get(n) == Some(v) || states[k + 1].get(n) == Some(v))
+        {
+            // Every node is complete (old or new), but not all from one state: `classify`
+            // publishes its probabilities and its label image one after the other. Counted,
+            // and an error with NEUVOLEX_CRASH_STRICT=1 (open: a store-level commit).
+            t.mixed_nodes += 1;
+        } else {
+            let diff: Vec<String> = seen
+                .iter()
+                .filter(|(n, v)| states[k].get(*n) != Some(v) && states[k + 1].get(*n) != Some(v))
+                .map(|(n, v)| format!("{n}={v}"))
+                .collect();
+            t.failures.push(format!(
+                "kill {i} at {at:.3} s in step {k} ({:?}): a mixed or unreadable store: {diff:?} (nodes in neither state), whole {seen:?}",
+                stage.steps[k][0]
+            ));
+            continue;
+        }
+        // Resume or re-run the interrupted step, then the rest.
+        let mut ok = true;
+        for s in k..stage.steps.len() {
+            let a = stage.rerun(s, &work);
+            let o = command(&work, &a).output().unwrap();
+            if !o.status.success() {
+                t.failures.push(format!(
+                    "kill {i} at {at:.3} s: re-run {a:?} failed: {}",
+                    String::from_utf8_lossy(&o.stderr)
+                ));
+                ok = false;
+                break;
+            }
+        }
+        if !ok {
+            continue;
+        }
+        let end = digest(&work.join("st.zarr"));
+        if end != states[stage.steps.len()] {
+            t.failures.push(format!(
+                "kill {i} at {at:.3} s: the re-run's result differs from the uninterrupted run: {end:?} vs {:?}",
+                states[stage.steps.len()]
+            ));
+            continue;
+        }
+        let left = shape(&files(&work));
+        if left != final_files {
+            let extra: Vec<&String> = left.iter().filter(|f| !final_files.contains(f)).collect();
+            let missing: Vec<&String> = final_files.iter().filter(|f| !left.contains(f)).collect();
+            t.failures.push(format!(
+                "kill {i} at {at:.3} s: debris after the re-run: extra {extra:?}, missing {missing:?}"
+            ));
+            continue;
+        }
+        t.resumed += 1;
+    }
+    eprintln!(
+        "crash-safety {:<20} {} kills over {:.2} s (seed {}): {} killed while running, store read as before {} / after {} / complete nodes from both {}, re-run equal to uninterrupted {}/{}, failures {}",
+        stage.name,
+        t.kills,
+        total,
+        env_num("NEUVOLEX_CRASH_SEED", 16),
+        t.killed_running,
+        t.saw_before,
+        t.saw_after,
+        t.mixed_nodes,
+        t.resumed,
+        t.kills,
+        t.failures.len()
+    );
+    t
+}
+
+#[test]
+fn sigkill_at_random_points_leaves_a_complete_store_and_resumes_to_the_same_result() {
+    let kills = env_num("NEUVOLEX_CRASH_KILLS", 6) as usize;
+    let only = std::env::var("NEUVOLEX_CRASH_STAGE").ok();
+    let mut rng = Rng(env_num("NEUVOLEX_CRASH_SEED", 16));
+    let inp = Inputs::new();
+    let mut failures = Vec::new();
+    for (stage, setup) in stages(&inp) {
+        if only.as_deref().is_some_and(|o| !stage.name.starts_with(o)) {
+            continue;
+        }
+        let t = kill_stage(&stage, &setup, kills, &mut rng);
+        failures.extend(t.failures.iter().map(|f| format!("{}: {f}", stage.name)));
+    }
+    assert!(failures.is_empty(), "{}", failures.join("\n"));
+}
+
+/// A tmpfs of `mb` MiB at a new folder, unmounted and removed on drop.
+struct Tmpfs {
+    dir: tempfile::TempDir,
+}
+
+impl Tmpfs {
+    fn mount(mb: u64) -> Option<Self> {
+        let dir = tempfile::tempdir().unwrap();
+        let o = Command::new("mount")
+            .args(["-t", "tmpfs", "-o", &format!("size={mb}m"), "tmpfs"])
+            .arg(dir.path())
+            .output();
+        match o {
+            Ok(o) if o.status.success() => Some(Tmpfs { dir }),
+            o => {
+                let why = match o {
+                    Ok(o) => String::from_utf8_lossy(&o.stderr).into_owned(),
+                    Err(e) => e.to_string(),
+                };
+                assert!(
+                    std::env::var("CI").as_deref() != Ok("true"),
+                    "cannot mount a tmpfs for the disk-full test under CI: {why}"
+                );
+                eprintln!("SKIPPED disk-full test: cannot mount a tmpfs ({why})");
+                None
+            }
+        }
+    }
+}
+
+impl Drop for Tmpfs {
+    fn drop(&mut self) {
+        let _ = Command::new("umount").arg(self.dir.path()).status();
+    }
+}
+
+/// Fills the file system of `dir` up to `leave` bytes with `dir/filler`.
+fn fill(dir: &Path, leave: u64) -> PathBuf {
+    let p = dir.join("filler");
+    let mut f = std::fs::File::create(&p).unwrap();
+    let block = vec![0x5au8; 1 << 16];
+    let mut n = 0u64;
+    while f.write_all(&block).is_ok() {
+        n += block.len() as u64;
+    }
+    let _ = f.flush();
+    f.set_len(n.saturating_sub(leave)).unwrap();
+    p
+}
+
+#[test]
+fn a_full_disk_gives_a_clear_error_and_keeps_the_previous_store() {
+    let Some(fs) = Tmpfs::mount(96) else {
+        return;
+    };
+    let inp = Inputs::new();
+    for (stage, setup) in stages(&inp) {
+        let work = fs.dir.path().join("work");
+        if work.exists() {
+            std::fs::remove_dir_all(&work).unwrap();
+        }
+        std::fs::create_dir_all(&work).unwrap();
+        for s in &setup {
+            run_ok(&work, s);
+        }
+        for (k, step) in stage.steps.iter().enumerate() {
+            let before = digest(&work.join("st.zarr"));
+            let filler = fill(fs.dir.path(), 48 << 10);
+            let o = command(&work, step).output().unwrap();
+            let err = String::from_utf8_lossy(&o.stderr);
+            assert!(
+                !o.status.success(),
+                "{}: {step:?} succeeded on a full disk",
+                stage.name
+            );
+            assert!(!err.contains("panicked"), "{}: panic: {err}", stage.name);
+            assert!(
+                err.contains("No space left on device") || err.contains("no space"),
+                "{}: {step:?} does not say the disk is full: {err}",
+                stage.name
+            );
+            let fs_root = fs.dir.path().to_string_lossy();
+            assert!(
+                err.contains(fs_root.as_ref()) || err.contains("st.zarr"),
+                "{}: {step:?}: the error names no path: {err}",
+                stage.name
+            );
+            assert_eq!(
+                digest(&work.join("st.zarr")),
+                before,
+                "{}: {step:?} on a full disk changed the store",
+                stage.name
+            );
+            eprintln!(
+                "disk full, {} step {k} ({}): {}",
+                stage.name,
+                step[0],
+                err.lines().last().unwrap_or_default()
+            );
+            std::fs::remove_file(filler).unwrap();
+            // With space again, the step completes.
+            run_ok(&work, &stage.rerun(k, &work));
+        }
+    }
+}
+
+#[test]
+fn a_second_writer_is_refused_with_the_store_and_the_holder() {
+    let inp = Inputs::new();
+    let d = tempfile::tempdir().unwrap();
+    let w = d.path();
+    let all = stages(&inp);
+    // A trained store: every writer has something to do.
+    for s in &all[2].1 {
+        run_ok(w, s);
+    }
+    let pristine = d.path().join("pristine");
+    copy_dir(&w.join("st.zarr"), &pristine);
+    run_ok(w, &args(&["features", "st.zarr"]));
+    let reference = digest(&w.join("st.zarr"));
+    let others = [
+        all[0].0.steps[0].clone(),
+        all[1].0.steps[0].clone(),
+        args(&["features", "st.zarr"]),
+        all[2].0.steps[1].clone(),
+    ];
+    let lock = w.join("st.zarr/neuvolex/writer.lock");
+    for other in &others {
+        let mut refused = false;
+        for _attempt in 0..10 {
+            copy_dir(&pristine, &w.join("st.zarr"));
+            // The holder: feature extraction, a few seconds on this store.
+            let mut holder = command(w, &args(&["features", "st.zarr"]))
+                .stdout(Stdio::null())
+                .stderr(Stdio::piped())
+                .spawn()
+                .unwrap();
+            let pid = holder.id().to_string();
+            let t = Instant::now();
+            while !std::fs::read_to_string(&lock).is_ok_and(|s| s.contains(&pid))
+                && t.elapsed() < Duration::from_secs(20)
+            {
+                std::thread::sleep(Duration::from_millis(5));
+            }
+            let o = command(w, other).output().unwrap();
+            let still = holder.try_wait().unwrap().is_none();
+            let h = holder.wait_with_output().unwrap();
+            assert!(
+                h.status.success(),
+                "the holder failed: {}",
+                String::from_utf8_lossy(&h.stderr)
+            );
+            let err = String::from_utf8_lossy(&o.stderr);
+            if o.status.success() {
+                assert!(!still, "{other:?} ran beside a writer");
+                continue; // the holder had finished first: try again
+            }
+            assert!(
+                err.contains("st.zarr") && err.contains(&format!("pid {pid}")),
+                "{other:?} beside a writer: the error names neither the store nor the holder: {err}"
+            );
+            eprintln!("second writer {:?}: {}", other[0], err.trim());
+            refused = true;
+            break;
+        }
+        assert!(
+            refused,
+            "{other:?}: never ran while the holder held the lock"
+        );
+        // The holder's result is intact.
+        assert_eq!(digest(&w.join("st.zarr")), reference, "after {other:?}");
+    }
+}
