@@ -10,6 +10,7 @@
 
 pub mod features;
 pub mod forest;
+mod packed;
 pub mod scribble;
 pub mod shard;
 
