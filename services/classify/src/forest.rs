@@ -479,8 +479,8 @@ impl Forest {
         self.trees.iter().map(|t| t.nodes.len()).sum()
     }
 
-    /// Class probabilities of `x` (`rows x d`), returned as `rows x classes`.
-    pub fn predict_proba(&self, x: &[f32]) -> Result<Vec<f32>, ForestError> {
+    /// A zeroed `rows x classes` output for the rows of `x`, or the error naming ragged input.
+    fn output_for(&self, x: &[f32]) -> Result<Vec<f32>, ForestError> {
         if !x.len().is_multiple_of(self.d) {
             return Err(ForestError::Input(format!(
                 "{} values are not whole rows of {} features",
@@ -488,9 +488,12 @@ impl Forest {
                 self.d
             )));
         }
-        let rows = x.len() / self.d;
-        let c = self.classes;
-        let mut out = vec![0.0f32; rows * c];
+        Ok(vec![0.0f32; x.len() / self.d * self.classes])
+    }
+
+    /// Class probabilities of `x` (`rows x d`), returned as `rows x classes`.
+    pub fn predict_proba(&self, x: &[f32]) -> Result<Vec<f32>, ForestError> {
+        let mut out = self.output_for(x)?;
         let inv = 1.0 / self.trees.len() as f32;
         if let Some(p) = self.packed() {
             p.predict_into(x, &mut out, inv);
@@ -503,14 +506,7 @@ impl Forest {
     /// [`Forest::predict_proba`] by the f32 walk, without coding the features: the path for
     /// forests that cannot be coded, kept public to measure against.
     pub fn predict_proba_f32(&self, x: &[f32]) -> Result<Vec<f32>, ForestError> {
-        if !x.len().is_multiple_of(self.d) {
-            return Err(ForestError::Input(format!(
-                "{} values are not whole rows of {} features",
-                x.len(),
-                self.d
-            )));
-        }
-        let mut out = vec![0.0f32; x.len() / self.d * self.classes];
+        let mut out = self.output_for(x)?;
         self.predict_f32(x, &mut out, 1.0 / self.trees.len() as f32);
         Ok(out)
     }
