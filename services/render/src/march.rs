@@ -732,6 +732,8 @@ impl<'a> Frame<'a> {
             'ray: while k < k1 {
                 // The cell of sample k, and the first sample past the cell's exit.
                 let p = pos(k);
+                // max then min (not clamp): a NaN coordinate goes to cell 0 as before.
+                #[allow(clippy::manual_clamp)]
                 let cc = [0, 1, 2].map(|a| {
                     (floor_index((p[a] - APRON as f32 + 0.5).max(0.0).min(1e9)) / CELL).min(last[a])
                 });
