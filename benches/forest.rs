@@ -1,10 +1,12 @@
 //! Random-forest benchmark against scikit-learn on identical inputs
-//! (`cargo bench -p neuvolex-benches --bench forest -- [--trees 1000]`).
+//! (`cargo bench -p neuvolex-benches --bench forest -- [--trees 1000] [--repeat 3]`).
 //!
 //! Inputs are real: the 64-D INR features of the abdomen CT (trained 1 epoch) with its
 //! ground-truth labels. 20 000 voxels drawn at random (seeded) train both forests; 1 000 000
 //! other voxels are predicted. Fit time, predict time and the mean F1 over the four foreground
-//! classes are reported for both, from one run. scikit-learn runs where `NEUVOLEX_SKLEARN_PYTHON`
+//! classes are reported for both, from one run; prediction runs `--repeat` times for both
+//! (alternating is not possible across processes, so each side repeats back to back) and is
+//! reported as the range and the ratio of the medians. scikit-learn runs where `NEUVOLEX_SKLEARN_PYTHON`
 //! (or `python3`) imports it.
 
 use neuvolex_benches::{machine, shared};
@@ -40,6 +42,18 @@ fn f1_mean(pred: &[u16], truth: &[u16], classes: usize) -> (f64, Vec<f64>) {
     (f1s.iter().sum::<f64>() / f1s.len().max(1) as f64, f1s)
 }
 
+/// Median and `min–max` of timings.
+fn median_range(t: &mut [f64]) -> (f64, String) {
+    if t.is_empty() {
+        return (f64::NAN, String::new());
+    }
+    t.sort_by(f64::total_cmp);
+    (
+        t[t.len() / 2],
+        format!("{:.2}–{:.2} s", t[0], t[t.len() - 1]),
+    )
+}
+
 fn main() {
     let args: Vec<String> = std::env::args().collect();
     let trees: usize = args
@@ -48,6 +62,13 @@ fn main() {
         .and_then(|i| args.get(i + 1))
         .and_then(|s| s.parse().ok())
         .unwrap_or(1000);
+    let repeat: usize = args
+        .iter()
+        .position(|a| a == "--repeat")
+        .and_then(|i| args.get(i + 1))
+        .and_then(|s| s.parse().ok())
+        .unwrap_or(1)
+        .max(1);
     println!("machine: {}, {trees} trees", machine());
     let (Some(ct), Some(lab)) = (
         shared("abdomen_ct/ct.nii.gz"),
@@ -110,11 +131,22 @@ fn main() {
     )
     .expect("fit");
     let fit = t.elapsed().as_secs_f64();
+    let mut times = Vec::new();
+    let mut pred = Vec::new();
+    for _ in 0..repeat {
+        let t = Instant::now();
+        pred = f.predict(&xte).expect("predict");
+        times.push(t.elapsed().as_secs_f64());
+    }
+    let (predict, range) = median_range(&mut times);
+    // The uncoded f32 walk (the previous prediction), once, for the step's gain.
     let t = Instant::now();
-    let pred = f.predict(&xte).expect("predict");
-    let predict = t.elapsed().as_secs_f64();
+    let p32 = f.predict_proba_f32(&xte).expect("predict");
+    let walk = t.elapsed().as_secs_f64();
+    let same = p32 == f.predict_proba(&xte).expect("predict");
+    println!("| neuvolex f32 walk (before coding) | predict {walk:.2} s | coded / f32 walk {:.2}x | identical probabilities: {same} |", walk / predict);
     let (f1, per) = f1_mean(&pred, &yte, classes);
-    println!("| neuvolex forest | fit {fit:.1} s | predict {nte} rows {predict:.1} s ({:.0} k rows/s) | mean F1 {f1:.3} {per:.3?} | {} nodes |", nte as f64 / predict / 1e3, f.nodes());
+    println!("| neuvolex forest | fit {fit:.1} s | predict {nte} rows {predict:.2} s [{range}] ({:.0} k rows/s) | mean F1 {f1:.3} {per:.3?} | {} nodes |", nte as f64 / predict / 1e3, f.nodes());
     // scikit-learn on the same arrays.
     let w = |name: &str, bytes: &[u8]| std::fs::write(dir.path().join(name), bytes).expect("write");
     w(
@@ -147,17 +179,20 @@ fn main() {
         .arg(dir.path())
         .arg(trees.to_string())
         .arg(threads.to_string())
+        .arg(repeat.to_string())
         .output()
     {
         Ok(o) if o.status.success() => {
             let text = String::from_utf8_lossy(&o.stdout);
             let v: serde_json::Value =
                 serde_json::from_str(text.lines().last().unwrap_or("{}")).unwrap_or_default();
-            let (sf, sp) = (
-                v["fit_s"].as_f64().unwrap_or(f64::NAN),
-                v["predict_s"].as_f64().unwrap_or(f64::NAN),
-            );
-            println!("| scikit-learn {} | fit {sf:.1} s | predict {predict_rows} rows {sp:.1} s ({:.0} k rows/s) | mean F1 {:.3} {:?} |", v["sklearn"], nte as f64 / sp / 1e3, v["f1_mean"].as_f64().unwrap_or(f64::NAN), v["f1"], predict_rows = nte);
+            let sf = v["fit_s"].as_f64().unwrap_or(f64::NAN);
+            let mut st: Vec<f64> = v["predict_s"]
+                .as_array()
+                .map(|a| a.iter().filter_map(|t| t.as_f64()).collect())
+                .unwrap_or_default();
+            let (sp, srange) = median_range(&mut st);
+            println!("| scikit-learn {} | fit {sf:.1} s | predict {predict_rows} rows {sp:.2} s [{srange}] ({:.0} k rows/s) | mean F1 {:.3} {:?} |", v["sklearn"], nte as f64 / sp / 1e3, v["f1_mean"].as_f64().unwrap_or(f64::NAN), v["f1"], predict_rows = nte);
             println!("| ratio scikit-learn / neuvolex | fit {:.2}x | predict {:.2}x | F1 difference {:+.3} |", sf / fit, sp / predict, f1 - v["f1_mean"].as_f64().unwrap_or(f64::NAN));
         }
         Ok(o) => eprintln!(

@@ -3,7 +3,8 @@
 Same settings as neuvolex's forest: n_estimators=T, min_samples_split=8, max_features='sqrt',
 bootstrap=False, Gini. Prints one JSON line: fit and predict seconds, and the mean F1 over the
 foreground classes (background 0 excluded).
-Usage: python3 forest_sklearn.py DIR TREES THREADS
+Prediction runs REPEAT times (default 1); predict_s lists every time.
+Usage: python3 forest_sklearn.py DIR TREES THREADS [REPEAT]
 """
 import json
 import sys
@@ -14,6 +15,7 @@ from sklearn.ensemble import RandomForestClassifier
 from sklearn.metrics import f1_score
 
 d, trees, threads = sys.argv[1], int(sys.argv[2]), int(sys.argv[3])
+repeat = int(sys.argv[4]) if len(sys.argv) > 4 else 1
 meta = json.load(open(f"{d}/meta.json"))
 xtr = np.fromfile(f"{d}/xtr.f32", dtype=np.float32).reshape(-1, meta["d"])
 ytr = np.fromfile(f"{d}/ytr.u16", dtype=np.uint16)
@@ -24,10 +26,12 @@ rf = RandomForestClassifier(n_estimators=trees, min_samples_split=8, max_feature
 t = time.perf_counter()
 rf.fit(xtr, ytr)
 fit = time.perf_counter() - t
-t = time.perf_counter()
-proba = rf.predict_proba(xte)
-pred = rf.classes_[proba.argmax(1)]
-predict = time.perf_counter() - t
+predict = []
+for _ in range(repeat):
+    t = time.perf_counter()
+    proba = rf.predict_proba(xte)
+    pred = rf.classes_[proba.argmax(1)]
+    predict.append(time.perf_counter() - t)
 fg = [c for c in range(1, meta["classes"]) if (yte == c).any()]
 f1 = f1_score(yte, pred, labels=fg, average=None)
 print(json.dumps({"sklearn": __import__("sklearn").__version__, "fit_s": fit, "predict_s": predict,

@@ -1,6 +1,6 @@
 //! Milliseconds per frame of the renderer on real volumes, against VTK's ray casters on the same
 //! volume, view and transfer function (`cargo bench -p neuvolex-benches --bench render
-//! [--features gpu] -- [--size 512] [--frames 5]`).
+//! [--features gpu] -- [--size 512] [--frames 5] [--only bonsai|abdomen_ct]`).
 //!
 //! Volumes: CT-Bonsai (256^3) and the abdomen CT (122x101x112, 3 mm), from ../shared/data.
 //! Reported per volume: the first frame (bricks read and decompressed from the store), then the
@@ -122,7 +122,15 @@ fn main() {
         "| volume | mode | renderer | first frame ms | warm ms/frame | vs VTK fixed-point (CPU) |"
     );
     println!("|---|---|---|---|---|---|");
+    // `--only NAME` runs one volume (for profiling).
+    let only = args
+        .iter()
+        .position(|a| a == "--only")
+        .and_then(|i| args.get(i + 1));
     for (name, rel, labels, preset) in cases {
+        if only.is_some_and(|o| o != name) {
+            continue;
+        }
         let Some(src) = shared(rel) else { continue };
         let labels = labels.and_then(shared);
         let dir = tempfile::tempdir().expect("tmp");

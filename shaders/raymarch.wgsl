@@ -304,7 +304,11 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
             if (s.w <= 0.0) {
                 continue;
             }
-            let a = 1.0 - pow(1.0 - min(s.w, 1.0), P.view.w);
+            // The intensity table is corrected for the step already (as on the CPU).
+            var a = s.w;
+            if (P.size.w != 0u) {
+                a = 1.0 - pow(1.0 - min(s.w, 1.0), P.view.w);
+            }
             let w = (1.0 - px.w) * a;
             px = vec4<f32>(px.xyz + s.xyz * w, px.w + w);
             if (px.w >= P.misc.x) {

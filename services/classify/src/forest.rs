@@ -7,9 +7,11 @@
 //! number of threads. Prediction walks flat node arrays tree by tree over blocks of rows, so
 //! one tree stays in cache while a block of rows passes through it.
 
+use crate::packed::{Packed, TreeView};
 use neuvolex_bricks::rng::Rng;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
+use std::sync::OnceLock;
 
 /// Features considered per split.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -125,6 +127,20 @@ pub struct Forest {
     d: usize,
     classes: usize,
     trees: Vec<Tree>,
+    /// The coded form prediction walks, made on first use.
+    #[serde(skip)]
+    packed: PackedCell,
+}
+
+/// The coded forest, made on first use (`None`: the forest cannot be coded and predicts with
+/// the f32 walk); equality and serialisation ignore it.
+#[derive(Debug, Clone, Default)]
+struct PackedCell(OnceLock<Option<Packed>>);
+
+impl PartialEq for PackedCell {
+    fn eq(&self, _: &Self) -> bool {
+        true
+    }
 }
 
 /// Values closer than this count as equal when looking for split points (as scikit-learn).
@@ -404,6 +420,7 @@ impl Forest {
             d: data.d,
             classes: data.classes,
             trees,
+            packed: PackedCell::default(),
         })
     }
 
@@ -429,7 +446,32 @@ impl Forest {
             d: self.d,
             classes: self.classes,
             trees: self.trees[..k.clamp(1, self.trees.len())].to_vec(),
+            packed: PackedCell::default(),
         }
+    }
+
+    /// The coded form of the forest ([`crate::packed`]), packed on first use.
+    fn packed(&self) -> Option<&Packed> {
+        self.packed
+            .0
+            .get_or_init(|| {
+                let views: Vec<TreeView<'_>> = self
+                    .trees
+                    .iter()
+                    .map(|t| TreeView {
+                        nodes: t
+                            .nodes
+                            .iter()
+                            .map(|n| (n.feature, n.threshold, n.left))
+                            .collect(),
+                        leaf_of: &t.leaf_of,
+                        probs: &t.probs,
+                        depth: t.depth,
+                    })
+                    .collect();
+                Packed::new(self.d, self.classes, &views, LEAF)
+            })
+            .as_ref()
     }
 
     /// Total nodes in the forest.
@@ -437,8 +479,8 @@ impl Forest {
         self.trees.iter().map(|t| t.nodes.len()).sum()
     }
 
-    /// Class probabilities of `x` (`rows x d`), returned as `rows x classes`.
-    pub fn predict_proba(&self, x: &[f32]) -> Result<Vec<f32>, ForestError> {
+    /// A zeroed `rows x classes` output for the rows of `x`, or the error naming ragged input.
+    fn output_for(&self, x: &[f32]) -> Result<Vec<f32>, ForestError> {
         if !x.len().is_multiple_of(self.d) {
             return Err(ForestError::Input(format!(
                 "{} values are not whole rows of {} features",
@@ -446,11 +488,33 @@ impl Forest {
                 self.d
             )));
         }
-        let rows = x.len() / self.d;
-        let c = self.classes;
-        let mut out = vec![0.0f32; rows * c];
-        const BLOCK: usize = 1024;
+        Ok(vec![0.0f32; x.len() / self.d * self.classes])
+    }
+
+    /// Class probabilities of `x` (`rows x d`), returned as `rows x classes`.
+    pub fn predict_proba(&self, x: &[f32]) -> Result<Vec<f32>, ForestError> {
+        let mut out = self.output_for(x)?;
         let inv = 1.0 / self.trees.len() as f32;
+        if let Some(p) = self.packed() {
+            p.predict_into(x, &mut out, inv);
+            return Ok(out);
+        }
+        self.predict_f32(x, &mut out, inv);
+        Ok(out)
+    }
+
+    /// [`Forest::predict_proba`] by the f32 walk, without coding the features: the path for
+    /// forests that cannot be coded, kept public to measure against.
+    pub fn predict_proba_f32(&self, x: &[f32]) -> Result<Vec<f32>, ForestError> {
+        let mut out = self.output_for(x)?;
+        self.predict_f32(x, &mut out, 1.0 / self.trees.len() as f32);
+        Ok(out)
+    }
+
+    /// The f32 walk of [`Forest::predict_proba`] into `out`.
+    fn predict_f32(&self, x: &[f32], out: &mut [f32], inv: f32) {
+        let c = self.classes;
+        const BLOCK: usize = 1024;
         const LANES: usize = 16;
         let d = self.d;
         out.par_chunks_mut(BLOCK * c)
@@ -495,7 +559,6 @@ impl Forest {
                 }
                 o.iter_mut().for_each(|v| *v *= inv);
             });
-        Ok(out)
     }
 
     /// The most probable class of every row.
@@ -688,6 +751,61 @@ mod tests {
         }
         // The first k trees of a forest are the forest trained with k trees.
         assert_eq!(f.truncated(5), Forest::fit(data, &cfg(5)).unwrap());
+    }
+
+    #[test]
+    fn coded_prediction_equals_the_f32_walk_bit_for_bit() {
+        let (n, d, c) = (3000, 5, 4);
+        let x: Vec<f32> = (0..n * d)
+            .map(|i| ((i * 2654435761usize) % 997) as f32 / 37.0 - 9.0)
+            .collect();
+        let y: Vec<u16> = (0..n)
+            .map(|r| ((x[r * d] * x[r * d + 2]).abs() as u16 + (x[r * d + 1] > 0.0) as u16) % 4)
+            .collect();
+        let f = Forest::fit(
+            Dataset {
+                x: &x,
+                y: &y,
+                d,
+                classes: c,
+            },
+            &cfg(25),
+        )
+        .unwrap();
+        assert!(f.packed().is_some(), "small forests are coded");
+        // Inputs exactly on thresholds, next to them, outside the range, infinite and NaN.
+        let mut probe = x[..200 * d].to_vec();
+        for t in &f.trees {
+            for nd in t
+                .nodes
+                .iter()
+                .filter(|nd| nd.threshold.is_finite())
+                .take(40)
+            {
+                let mut row = vec![0.0f32; d];
+                for (k, v) in row.iter_mut().enumerate() {
+                    *v = if k == nd.feature as usize {
+                        nd.threshold
+                    } else {
+                        x[k]
+                    };
+                }
+                probe.extend(&row);
+                row[nd.feature as usize] = f32::from_bits(nd.threshold.to_bits() + 1);
+                probe.extend(&row);
+            }
+        }
+        probe.extend([f32::NAN, f32::INFINITY, f32::NEG_INFINITY, -1e30, 1e30]);
+        let want = {
+            let mut o = vec![0.0f32; probe.len() / d * c];
+            f.predict_f32(&probe, &mut o, 1.0 / 25.0);
+            o
+        };
+        let got = f.predict_proba(&probe).unwrap();
+        assert_eq!(
+            got.iter().map(|v| v.to_bits()).collect::<Vec<_>>(),
+            want.iter().map(|v| v.to_bits()).collect::<Vec<_>>()
+        );
     }
 
     #[test]

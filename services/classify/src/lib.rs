@@ -12,6 +12,7 @@ pub mod cache;
 pub mod components;
 pub mod features;
 pub mod forest;
+mod packed;
 pub mod pipeline;
 pub mod scribble;
 pub mod shard;

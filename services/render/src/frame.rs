@@ -187,9 +187,14 @@ impl<S: BrickSource> Renderer<S> {
         Ok(Some(img))
     }
 
-    fn load(&self, index: [usize; 3], probs: bool) -> Result<Arc<RenderBrick>> {
+    /// Brick `index` through the cache; with its central differences made when `shaded` (so
+    /// the cache counts them).
+    fn load(&self, index: [usize; 3], probs: bool, shaded: bool) -> Result<Arc<RenderBrick>> {
         self.cache.get_or_try_insert(&(index, probs), || {
             let b = self.source.load(index, probs)?;
+            if shaded {
+                b.differences();
+            }
             let cost = b.bytes();
             Ok((Arc::new(b), cost))
         })
@@ -206,6 +211,7 @@ impl<S: BrickSource> Renderer<S> {
         let t = Instant::now();
         let w = frame.params.width;
         let probs = frame.params.mode.needs_probs();
+        let shaded = frame.params.shading.is_some();
         let order = frame.ordered_bricks();
         let mut stats = RenderStats {
             bricks: order.len(),
@@ -247,7 +253,7 @@ impl<S: BrickSource> Renderer<S> {
             }
             let loaded: Vec<Result<Arc<RenderBrick>>> = queue
                 .par_iter()
-                .map(|(i, _)| self.load(*i, probs))
+                .map(|(i, _)| self.load(*i, probs, shaded))
                 .collect();
             for ((_, r), b) in queue.iter().zip(loaded) {
                 let b = b?;

@@ -211,7 +211,8 @@ impl<S: BrickSource> GpuRenderer<S> {
         };
         let params_u = self.params(&frame, luts, ch);
         // Tables.
-        let mut lut_data: Vec<[f32; 4]> = luts.intensity.table.clone();
+        // The intensity mode's table has its opacity corrected for the step, as on the CPU.
+        let mut lut_data: Vec<[f32; 4]> = frame.intensity_lut().table.clone();
         let mut info: Vec<[f32; 4]> = Vec::new();
         for n in 0..ch.max(1) {
             match luts.classes.get(n).and_then(|c| c.as_ref()) {

@@ -7,9 +7,10 @@
 
 use crate::camera::{dot, Camera, View};
 use crate::source::{RenderBrick, VolumeGeom, APRON, CELL};
-use crate::tf::Luts;
+use crate::tf::{Lut, Luts};
 use crate::{RenderError, Result};
 use serde::{Deserialize, Serialize};
+use std::sync::OnceLock;
 
 /// What a sample's colour and opacity come from.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -159,6 +160,70 @@ pub struct Frame<'a> {
     pub dt: f32,
     /// Opacity-correction exponent: `dt` over one voxel of the finest spacing.
     pub alpha_exp: f32,
+    /// The intensity table with its opacity corrected for the step (intensity mode).
+    corrected: Lut,
+    /// Half the reciprocal spacing: central differences to world-unit gradients.
+    half_inv_spacing: [f32; 3],
+    /// Each image row's rays, resolved on first use.
+    rays: Vec<OnceLock<Box<[Ray]>>>,
+}
+
+/// A pixel's ray in voxel coordinates: origin, direction, its reciprocal, the `[t0, tend)` it
+/// spends inside the volume (empty when it misses) and the headlight direction.
+#[derive(Debug, Clone, Copy)]
+struct Ray {
+    o: [f32; 3],
+    d: [f32; 3],
+    inv: [f32; 3],
+    t0: f32,
+    tend: f32,
+    light: [f32; 3],
+}
+
+/// Opacity correction for a step of `s` voxels, `1 - (1 - a)^s`, with the common steps
+/// (1, 1/2 and 2: the default and the progressive passes) in closed form.
+#[derive(Debug, Clone, Copy)]
+enum Correction {
+    Identity,
+    Sqrt,
+    Square,
+    Pow(f32),
+}
+
+impl Correction {
+    fn new(s: f32) -> Self {
+        if s == 1.0 {
+            Correction::Identity
+        } else if s == 0.5 {
+            Correction::Sqrt
+        } else if s == 2.0 {
+            Correction::Square
+        } else {
+            Correction::Pow(s)
+        }
+    }
+
+    /// The corrected opacity of `a` (in `(0, 1]` after clamping).
+    #[inline(always)]
+    fn apply(self, a: f32) -> f32 {
+        let t = 1.0 - a.min(1.0);
+        match self {
+            Correction::Identity => 1.0 - t,
+            Correction::Sqrt => 1.0 - t.sqrt(),
+            Correction::Square => 1.0 - t * t,
+            Correction::Pow(s) => 1.0 - t.powf(s),
+        }
+    }
+}
+
+/// `x^e` for the specular term: repeated multiplication for whole exponents.
+#[inline(always)]
+fn spec_pow(x: f32, e: f32) -> f32 {
+    if e.fract() == 0.0 && e <= 256.0 {
+        powi_inline(x, e as u32)
+    } else {
+        x.powf(e)
+    }
 }
 
 /// Entry and exit `t` of the ray `o + t d` through the box `lo..hi`, or `None`.
@@ -181,6 +246,53 @@ pub fn slab(o: [f32; 3], d: [f32; 3], lo: [f32; 3], hi: [f32; 3]) -> Option<(f32
     (t0 < t1).then_some((t0, t1))
 }
 
+/// [`slab`] with the direction's reciprocal given (`inv[k] = 1 / d[k]`): the same result.
+#[inline(always)]
+fn slab_inv(
+    o: [f32; 3],
+    d: [f32; 3],
+    inv: [f32; 3],
+    lo: [f32; 3],
+    hi: [f32; 3],
+) -> Option<(f32, f32)> {
+    let (mut t0, mut t1) = (f32::NEG_INFINITY, f32::INFINITY);
+    for k in 0..3 {
+        if d[k].abs() < 1e-20 {
+            if o[k] < lo[k] || o[k] >= hi[k] {
+                return None;
+            }
+            continue;
+        }
+        let (a, b) = ((lo[k] - o[k]) * inv[k], (hi[k] - o[k]) * inv[k]);
+        let (a, b) = if a <= b { (a, b) } else { (b, a) };
+        t0 = t0.max(a);
+        t1 = t1.min(b);
+    }
+    (t0 < t1).then_some((t0, t1))
+}
+
+/// Colour and opacity of a table at `x`, as [`Lut::get`], with the opacity first: a
+/// transparent entry returns before the colour is interpolated.
+#[inline(always)]
+fn lut_get(l: &Lut, x: f32) -> [f32; 4] {
+    let n = l.table.len();
+    // max(0) also sends NaN to the first entry.
+    let u = ((x - l.lo) * l.scale).max(0.0).min((n - 1) as f32);
+    let i = floor_index(u).min(n - 2);
+    let t = u - i as f32;
+    let (a, b) = (l.table[i], l.table[i + 1]);
+    let alpha = a[3] + (b[3] - a[3]) * t;
+    if alpha <= 0.0 {
+        return [0.0; 4];
+    }
+    [
+        a[0] + (b[0] - a[0]) * t,
+        a[1] + (b[1] - a[1]) * t,
+        a[2] + (b[2] - a[2]) * t,
+        alpha,
+    ]
+}
+
 /// The 8 voxels and weights of a trilinear sample at local continuous voxel coordinates.
 #[inline(always)]
 fn corners(p: [f32; 3], dims: [usize; 3]) -> ([usize; 8], [f32; 8]) {
@@ -188,8 +300,8 @@ fn corners(p: [f32; 3], dims: [usize; 3]) -> ([usize; 8], [f32; 8]) {
     let mut i = [0usize; 3];
     for k in 0..3 {
         // Non-negative after the clamp, so truncation is floor (and needs no libm call).
-        let x = p[k].clamp(0.0, dims[k] as f32 - 1.0001);
-        i[k] = x as usize;
+        let x = p[k].max(0.0).min(dims[k] as f32 - 1.0001);
+        i[k] = floor_index(x);
         f[k] = x - i[k] as f32;
     }
     let (sx, sy) = (1, dims[0]);
@@ -219,6 +331,118 @@ fn corners(p: [f32; 3], dims: [usize; 3]) -> ([usize; 8], [f32; 8]) {
     (idx, w)
 }
 
+/// Channels that [`probs_at`] interpolates together.
+const FAST_CH: usize = 16;
+
+/// Trilinear probabilities (times 255) of every channel (`ch <= FAST_CH`) from the corners of
+/// a sample, each summed as [`prob_at`] sums it.
+#[inline(always)]
+fn probs_at(probs: &[u8], idx: &[usize; 8], w: &[f32; 8], ch: usize) -> [f32; FAST_CH] {
+    match ch {
+        1 => probs_n::<1>(probs, idx, w),
+        2 => probs_n::<2>(probs, idx, w),
+        3 => probs_n::<3>(probs, idx, w),
+        4 => probs_n::<4>(probs, idx, w),
+        5 => probs_n::<5>(probs, idx, w),
+        6 => probs_n::<6>(probs, idx, w),
+        7 => probs_n::<7>(probs, idx, w),
+        8 => probs_n::<8>(probs, idx, w),
+        _ => {
+            let mut s = [0.0f32; FAST_CH];
+            for c in 0..8 {
+                let q = &probs[idx[c] * ch..idx[c] * ch + ch];
+                for (a, &v) in s.iter_mut().zip(q) {
+                    *a += v as f32 * w[c];
+                }
+            }
+            s
+        }
+    }
+}
+
+/// [`probs_at`] for `N` channels.
+#[inline(always)]
+fn probs_n<const N: usize>(probs: &[u8], idx: &[usize; 8], w: &[f32; 8]) -> [f32; FAST_CH] {
+    let mut s = [0.0f32; FAST_CH];
+    assert!(idx[7] * N + N <= probs.len(), "sample outside the brick");
+    for c in 0..8 {
+        // SAFETY: corner c is at most idx[7] (see `corner_values`), in bounds as checked.
+        let q = unsafe { &*(probs.as_ptr().add(idx[c] * N) as *const [u8; N]) };
+        for n in 0..N {
+            s[n] += q[n] as f32 * w[c];
+        }
+    }
+    s
+}
+
+/// `x` truncated, for `x` from `max(0).min(hi)` with `hi` below 2^31 (so never NaN, negative
+/// or too large): a bare conversion without the saturating checks of `as`.
+#[inline(always)]
+fn floor_index(x: f32) -> usize {
+    debug_assert!((0.0..2147483648.0).contains(&x));
+    // SAFETY: x is finite and within i32 (every caller clamps it with max(0).min(hi), which
+    // also maps NaN to 0).
+    unsafe { x.to_int_unchecked::<i32>() as usize }
+}
+
+/// The smallest whole number at or above `x`, as an index (0 for negative or NaN `x`).
+#[inline(always)]
+fn ceil_index(x: f32) -> u64 {
+    let x = x.min(1e18);
+    // Truncation saturates at 0 for negative and NaN x, and floats above 2^24 are whole.
+    let t = x as u64;
+    t + ((t as f32) < x) as u64
+}
+
+/// `x^n` by repeated squaring.
+#[inline(always)]
+fn powi_inline(mut x: f32, mut n: u32) -> f32 {
+    let mut r = 1.0f32;
+    while n > 0 {
+        if n & 1 == 1 {
+            r *= x;
+        }
+        x *= x;
+        n >>= 1;
+    }
+    r
+}
+
+/// The 8 corner values of a sample (from [`corners`]), with one bounds check: the last corner
+/// is the largest index.
+#[inline(always)]
+fn corner_values<T: Copy>(v: &[T], idx: &[usize; 8]) -> [T; 8] {
+    assert!(idx[7] < v.len(), "sample outside the brick");
+    // SAFETY: every corner is `idx[0]` plus a subset of the three strides, so at most
+    // `idx[7]`, which is in bounds (checked above).
+    std::array::from_fn(|c| unsafe { *v.get_unchecked(idx[c]) })
+}
+
+/// Trilinear interpolation of a scalar field.
+#[inline(always)]
+fn interpolate(v: &[f32], idx: &[usize; 8], w: &[f32; 8]) -> f32 {
+    let q = corner_values(v, idx);
+    let mut s = 0.0;
+    for c in 0..8 {
+        s += q[c] * w[c];
+    }
+    s
+}
+
+/// Trilinear interpolation of 4-wide voxels (one SIMD lane each).
+#[inline(always)]
+fn interpolate4(g: &[[f32; 4]], idx: &[usize; 8], w: &[f32; 8]) -> [f32; 4] {
+    let g = corner_values(g, idx);
+    let mut acc = [0.0f32; 4];
+    for c in 0..8 {
+        let q = g[c];
+        for k in 0..4 {
+            acc[k] += q[k] * w[c];
+        }
+    }
+    acc
+}
+
 /// Trilinear probability of channel `n` (of `ch`) from the corners of a sample.
 #[inline(always)]
 fn prob_at(probs: &[u8], idx: &[usize; 8], w: &[f32; 8], ch: usize, n: usize) -> f32 {
@@ -227,16 +451,6 @@ fn prob_at(probs: &[u8], idx: &[usize; 8], w: &[f32; 8], ch: usize, n: usize) ->
         s += probs[idx[c] * ch + n] as f32 * w[c];
     }
     s * (1.0 / 255.0)
-}
-
-#[inline(always)]
-fn trilinear(v: &[f32], p: [f32; 3], dims: [usize; 3]) -> f32 {
-    let (idx, w) = corners(p, dims);
-    let mut s = 0.0;
-    for c in 0..8 {
-        s += v[idx[c]] * w[c];
-    }
-    s
 }
 
 impl<'a> Frame<'a> {
@@ -249,15 +463,58 @@ impl<'a> Frame<'a> {
             .view(geom.extent(), params.width, params.height);
         let min_sp = geom.spacing.iter().cloned().fold(f32::MAX, f32::min);
         let dt = params.step * min_sp;
+        let correction = Correction::new(params.step);
+        let mut corrected = luts.intensity.clone();
+        for e in &mut corrected.table {
+            if e[3] > 0.0 {
+                e[3] = correction.apply(e[3]);
+            }
+        }
+        let inv_spacing = geom.spacing.map(|s| 1.0 / s);
         Ok(Frame {
             params,
             view,
             geom,
             luts,
-            inv_spacing: geom.spacing.map(|s| 1.0 / s),
+            inv_spacing,
             centre: geom.dims.map(|d| (d as f32 - 1.0) * 0.5),
             dt,
             alpha_exp: params.step,
+            corrected,
+            half_inv_spacing: inv_spacing.map(|v| 0.5 * v),
+            rays: (0..params.height).map(|_| OnceLock::new()).collect(),
+        })
+    }
+
+    /// The intensity table the intensity mode reads: opacity already corrected for the step
+    /// (`1 - (1 - a)^step` per entry, as VTK's casters do), so no sample pays for a power.
+    pub fn intensity_lut(&self) -> &Lut {
+        &self.corrected
+    }
+
+    /// The rays of image row `j`, resolved once per frame.
+    fn row_rays(&self, j: usize) -> &[Ray] {
+        self.rays[j].get_or_init(|| {
+            (0..self.params.width)
+                .map(|i| match self.voxel_ray(i, j) {
+                    Some((o, d, t0, tend)) => Ray {
+                        o,
+                        d,
+                        inv: d.map(|v| 1.0 / v),
+                        t0,
+                        tend,
+                        light: self.view.forward_of(d, self.inv_spacing),
+                    },
+                    None => Ray {
+                        o: [0.0; 3],
+                        d: [0.0; 3],
+                        inv: [0.0; 3],
+                        t0: 0.0,
+                        tend: 0.0,
+                        light: [0.0; 3],
+                    },
+                })
+                .collect()
         })
     }
 
@@ -402,75 +659,115 @@ impl<'a> Frame<'a> {
         mask: Option<&[bool]>,
         cells: &[bool],
     ) -> u64 {
+        let diffs = self.params.shading.map(|_| b.differences());
+        match self.params.mode {
+            Mode::Intensity => self.march_rows_with(b, j, xs, row, mask, cells, |p, light| {
+                self.sample_intensity(b, diffs, p, light)
+            }),
+            Mode::Probabilistic | Mode::ProbIntensity => {
+                let c = Correction::new(self.alpha_exp);
+                self.march_rows_with(b, j, xs, row, mask, cells, |p, light| {
+                    let mut s = self.sample_with(b, diffs, p, light);
+                    if s[3] > 0.0 {
+                        s[3] = c.apply(s[3]);
+                    }
+                    s
+                })
+            }
+        }
+    }
+
+    /// The march of [`Self::march_row`] with `sample` giving a sample's shaded colour and
+    /// corrected opacity. Samples sit at `t0 + (k + 1/2) dt`; the ray walks the brick's 8^3
+    /// cells in order, leaping over invisible ones whole and sampling visible ones.
+    #[allow(clippy::too_many_arguments)]
+    #[inline(always)]
+    fn march_rows_with(
+        &self,
+        b: &RenderBrick,
+        j: usize,
+        xs: std::ops::Range<usize>,
+        row: &mut [Accum],
+        mask: Option<&[bool]>,
+        cells: &[bool],
+        sample: impl Fn([f32; 3], [f32; 3]) -> [f32; 4],
+    ) -> u64 {
+        let rays = self.row_rays(j);
         let (lo, hi) = self.brick_bounds(b.index);
-        let (cx, cxy) = (b.cells[0], b.cells[0] * b.cells[1]);
-        let cell_of = |p: [f32; 3]| {
-            // Core coordinates of the sample, rounded to the voxel whose cell owns it.
-            let c = p.map(|v| (v - APRON as f32 + 0.5).max(0.0) as usize / CELL);
-            let c = [
-                c[0].min(b.cells[0] - 1),
-                c[1].min(b.cells[1] - 1),
-                c[2].min(b.cells[2] - 1),
-            ];
-            (c[2] * cxy + c[1] * cx + c[0], c)
-        };
         let base = b.origin.map(|o| o as f32 - APRON as f32);
+        let (ncx, ncxy) = (b.cells[0], b.cells[0] * b.cells[1]);
+        let last = [b.cells[0] - 1, b.cells[1] - 1, b.cells[2] - 1];
+        let (dt, ert) = (self.dt, self.params.ert);
         let mut samples = 0;
-        {
-            for (i, px) in row.iter_mut().enumerate().take(xs.end).skip(xs.start) {
-                if px[3] >= self.params.ert || mask.is_some_and(|m| !m[i]) {
+        for i in xs {
+            let px = &mut row[i];
+            if px[3] >= ert || mask.is_some_and(|m| !m[i]) {
+                continue;
+            }
+            let r = &rays[i];
+            if r.t0 >= r.tend {
+                continue;
+            }
+            let Some((ta, tb)) = slab_inv(r.o, r.d, r.inv, lo, hi) else {
+                continue;
+            };
+            let (ta, tb) = (ta.max(r.t0), tb.min(r.tend));
+            if ta >= tb {
+                continue;
+            }
+            let (o, d, t0) = (r.o, r.d, r.t0);
+            // Midpoint samples: sample k stands for [t0 + k dt, t0 + (k + 1) dt).
+            let k0 = ceil_index((ta - t0) / dt - 0.5);
+            let k1 = ceil_index((tb - t0) / dt - 0.5);
+            let ol = [o[0] - base[0], o[1] - base[1], o[2] - base[2]];
+            let pos = |k: u64| {
+                let t = t0 + (k as f32 + 0.5) * dt;
+                [
+                    o[0] + d[0] * t - base[0],
+                    o[1] + d[1] * t - base[1],
+                    o[2] + d[2] * t - base[2],
+                ]
+            };
+            let mut k = k0;
+            'ray: while k < k1 {
+                // The cell of sample k, and the first sample past the cell's exit.
+                let p = pos(k);
+                // max then min (not clamp): a NaN coordinate goes to cell 0 as before.
+                #[allow(clippy::manual_clamp)]
+                let cc = [0, 1, 2].map(|a| {
+                    (floor_index((p[a] - APRON as f32 + 0.5).max(0.0).min(1e9)) / CELL).min(last[a])
+                });
+                let mut te = f32::INFINITY;
+                for a in 0..3 {
+                    let face = if d[a] > 0.0 {
+                        ((cc[a] + 1) * CELL + APRON) as f32 - 0.5
+                    } else {
+                        (cc[a] * CELL + APRON) as f32 - 0.5
+                    };
+                    te = te.min((face - ol[a]) * r.inv[a]);
+                }
+                let next = ceil_index((te - t0) / dt - 0.5);
+                let end = if next > k { next.min(k1) } else { k + 1 };
+                if !cells[cc[2] * ncxy + cc[1] * ncx + cc[0]] {
+                    samples += 1;
+                    k = end;
                     continue;
                 }
-                let Some((o, d, t0, tend)) = self.voxel_ray(i, j) else {
-                    continue;
-                };
-                let Some((ta, tb)) = slab(o, d, lo, hi) else {
-                    continue;
-                };
-                let (ta, tb) = (ta.max(t0), tb.min(tend));
-                if ta >= tb {
-                    continue;
-                }
-                // Midpoint samples: sample k stands for [t0 + k dt, t0 + (k + 1) dt).
-                let k0 = ((ta - t0) / self.dt - 0.5).ceil().max(0.0) as u64;
-                let k1 = ((tb - t0) / self.dt - 0.5).ceil().max(0.0) as u64;
-                let light = self.view.forward_of(d, self.inv_spacing);
-                let ol = [o[0] - base[0], o[1] - base[1], o[2] - base[2]];
-                let mut k = k0;
-                while k < k1 {
-                    let t = t0 + (k as f32 + 0.5) * self.dt;
-                    let p = [
-                        o[0] + d[0] * t - base[0],
-                        o[1] + d[1] * t - base[1],
-                        o[2] + d[2] * t - base[2],
-                    ];
+                while k < end {
+                    let p = pos(k);
                     samples += 1;
                     k += 1;
-                    let (ci, cc) = cell_of(p);
-                    if !cells[ci] {
-                        // Leap to the first sample past this cell's box.
-                        let lo = cc.map(|c| (c * CELL + APRON) as f32 - 0.5);
-                        let hi = cc.map(|c| ((c + 1) * CELL + APRON) as f32 - 0.5);
-                        if let Some((_, te)) = slab(ol, d, lo, hi) {
-                            let next = ((te - t0) / self.dt - 0.5).ceil();
-                            if next.is_finite() && next > k as f32 {
-                                k = (next as u64).min(k1);
-                            }
-                        }
-                        continue;
-                    }
-                    let [cr, cg, cb, a] = self.sample(b, p, light);
+                    let [cr, cg, cb, a] = sample(p, r.light);
                     if a <= 0.0 {
                         continue;
                     }
-                    let a = 1.0 - (1.0 - a.min(1.0)).powf(self.alpha_exp);
                     let wgt = (1.0 - px[3]) * a;
                     px[0] += wgt * cr;
                     px[1] += wgt * cg;
                     px[2] += wgt * cb;
                     px[3] += wgt;
-                    if px[3] >= self.params.ert {
-                        break;
+                    if px[3] >= ert {
+                        break 'ray;
                     }
                 }
             }
@@ -478,23 +775,64 @@ impl<'a> Frame<'a> {
         samples
     }
 
+    /// Shaded colour and corrected opacity of an intensity-mode sample at local padded
+    /// coordinates `p` (`diffs`: the brick's central differences when shading).
+    #[inline(always)]
+    fn sample_intensity(
+        &self,
+        b: &RenderBrick,
+        diffs: Option<&[[f32; 4]]>,
+        p: [f32; 3],
+        light: [f32; 3],
+    ) -> [f32; 4] {
+        let (idx, w) = corners(p, b.padded);
+        if let (Some(s), Some(g)) = (self.params.shading, diffs) {
+            // One 4-wide interpolation gives the gradient and the value (lane 3, summed in
+            // the same order as the scalar path, so bit for bit the same value).
+            let acc = interpolate4(g, &idx, &w);
+            let e = lut_get(&self.corrected, acc[3]);
+            if e[3] <= 0.0 {
+                return [0.0; 4];
+            }
+            let rgb = self.shade_grad(acc, [e[0], e[1], e[2]], light, s);
+            return [rgb[0], rgb[1], rgb[2], e[3]];
+        }
+        lut_get(&self.corrected, interpolate(&b.intensity, &idx, &w))
+    }
+
     /// Colour (shaded) and uncorrected opacity of a sample at local padded coordinates `p`.
     #[inline]
     pub fn sample(&self, b: &RenderBrick, p: [f32; 3], light: [f32; 3]) -> [f32; 4] {
+        let diffs = self.params.shading.map(|_| b.differences());
+        self.sample_with(b, diffs, p, light)
+    }
+
+    #[inline(always)]
+    fn sample_with(
+        &self,
+        b: &RenderBrick,
+        diffs: Option<&[[f32; 4]]>,
+        p: [f32; 3],
+        light: [f32; 3],
+    ) -> [f32; 4] {
         let dims = b.padded;
         let luts = self.luts;
+        let (idx, w) = corners(p, dims);
         let (rgb, a) = match self.params.mode {
             Mode::Intensity => {
-                let e = luts.intensity.get(trilinear(&b.intensity, p, dims));
+                let e = luts.intensity.get(interpolate(&b.intensity, &idx, &w));
                 ([e[0], e[1], e[2]], e[3])
             }
             Mode::Probabilistic => {
-                let (idx, w) = corners(p, dims);
                 let ch = b.channels;
+                let all = (ch <= FAST_CH).then(|| probs_at(&b.probs, &idx, &w, ch));
                 let (mut rgb, mut a) = ([0.0f32; 3], 0.0f32);
                 for (n, l) in luts.classes.iter().enumerate().take(ch) {
                     let Some(l) = l else { continue };
-                    let pn = prob_at(&b.probs, &idx, &w, ch, n);
+                    let pn = match &all {
+                        Some(s) => s[n] * (1.0 / 255.0),
+                        None => prob_at(&b.probs, &idx, &w, ch, n),
+                    };
                     if pn <= 0.0 {
                         continue;
                     }
@@ -507,16 +845,16 @@ impl<'a> Frame<'a> {
                 (rgb, a)
             }
             Mode::ProbIntensity => {
-                let (idx, w) = corners(p, dims);
                 let ch = b.channels;
-                let mut iv = 0.0;
-                for c in 0..8 {
-                    iv += b.intensity[idx[c]] * w[c];
-                }
+                let iv = interpolate(&b.intensity, &idx, &w);
+                let all = (ch <= FAST_CH).then(|| probs_at(&b.probs, &idx, &w, ch));
                 let (mut rgb, mut a, mut wsum) = ([0.0f32; 3], 0.0f32, 0.0f32);
                 for (n, l) in luts.classes.iter().enumerate().take(ch) {
                     let Some(l) = l else { continue };
-                    let pn = prob_at(&b.probs, &idx, &w, ch, n);
+                    let pn = match &all {
+                        Some(s) => s[n] * (1.0 / 255.0),
+                        None => prob_at(&b.probs, &idx, &w, ch, n),
+                    };
                     if pn <= 0.0 || pn < l.tau {
                         continue;
                     }
@@ -538,34 +876,35 @@ impl<'a> Frame<'a> {
         if a <= 0.0 {
             return [0.0; 4];
         }
-        let rgb = match self.params.shading {
-            Some(s) => self.shade(b, p, rgb, light, s),
-            None => rgb,
+        let rgb = match (self.params.shading, diffs) {
+            (Some(s), Some(g)) => self.shade_at(g, &idx, &w, rgb, light, s),
+            _ => rgb,
         };
         [rgb[0], rgb[1], rgb[2], a]
     }
 
-    /// Blinn-Phong with a headlight, the normal from the intensity gradient (central
-    /// differences of the trilinear field, in world units); flat regions stay unshaded.
-    #[inline]
-    fn shade(
+    /// Blinn-Phong with a headlight, the normal from the intensity gradient (the central
+    /// differences of the trilinear field one voxel either side, in world units, read as the
+    /// trilinear interpolation of the voxels' central differences `g`); flat regions stay
+    /// unshaded.
+    #[inline(always)]
+    fn shade_at(
         &self,
-        b: &RenderBrick,
-        p: [f32; 3],
+        g: &[[f32; 4]],
+        idx: &[usize; 8],
+        w: &[f32; 8],
         rgb: [f32; 3],
         light: [f32; 3],
         s: Shading,
     ) -> [f32; 3] {
-        let dims = b.padded;
-        let mut g = [0.0f32; 3];
-        for k in 0..3 {
-            let (mut a, mut c) = (p, p);
-            a[k] += 1.0;
-            c[k] -= 1.0;
-            g[k] = (trilinear(&b.intensity, a, dims) - trilinear(&b.intensity, c, dims))
-                * 0.5
-                * self.inv_spacing[k];
-        }
+        self.shade_grad(interpolate4(g, idx, w), rgb, light, s)
+    }
+
+    /// [`Self::shade_at`] from the interpolated central differences `acc` (lanes 0-2).
+    #[inline(always)]
+    fn shade_grad(&self, acc: [f32; 4], rgb: [f32; 3], light: [f32; 3], s: Shading) -> [f32; 3] {
+        let h = self.half_inv_spacing;
+        let g = [acc[0] * h[0], acc[1] * h[1], acc[2] * h[2]];
         let len = dot(g, g).sqrt();
         let min_sp = self.dt / self.params.step;
         // Also catches NaN: a flat or degenerate gradient leaves the colour unshaded.
@@ -573,7 +912,7 @@ impl<'a> Frame<'a> {
             return rgb;
         }
         let ndl = (dot(g, light) / len).abs();
-        let spec = s.specular * ndl.powf(s.shininess);
+        let spec = s.specular * spec_pow(ndl, s.shininess);
         let k = s.ambient + s.diffuse * ndl;
         rgb.map(|c| (c * k + spec).min(1.0))
     }

@@ -9,7 +9,7 @@ use crate::{RenderError, Result};
 use neuvolex_bricks::lru::Lru;
 use neuvolex_bricks::synth::palette;
 use neuvolex_bricks::{Brick, BrickError, BrickStore, Normaliser, VectorArray};
-use std::sync::Arc;
+use std::sync::{Arc, OnceLock};
 
 /// Voxels of apron on each side of a brick: trilinear samples in the brick's box reach one voxel
 /// beyond it, and their central-difference gradients one more.
@@ -103,6 +103,19 @@ pub struct RenderBrick {
     pub cell_range: Vec<(f32, f32)>,
     /// Per cell and channel: the largest probability a sample inside the cell reads.
     pub cell_prob_max: Vec<u8>,
+    /// Per padded voxel, the central differences of the intensity along x, y and z, and the
+    /// intensity itself (4-wide loads); made on first use by a shaded frame.
+    differences: Derived<Vec<[f32; 4]>>,
+}
+
+/// A value derived from a brick's data on first use; equality ignores it.
+#[derive(Debug, Clone, Default)]
+struct Derived<T>(OnceLock<T>);
+
+impl<T> PartialEq for Derived<T> {
+    fn eq(&self, _: &Self) -> bool {
+        true
+    }
 }
 
 /// Edge of the cells inside a brick used for fine empty-space skipping.
@@ -176,12 +189,46 @@ impl RenderBrick {
             cells,
             cell_range,
             cell_prob_max,
+            differences: Derived::default(),
         }
     }
 
-    /// Bytes held.
+    /// Bytes held (with the central differences once they are made).
     pub fn bytes(&self) -> usize {
-        self.intensity.len() * 4 + self.probs.len() + 128
+        let d = self.differences.0.get().map_or(0, |d| d.len() * 16);
+        self.intensity.len() * 4 + self.probs.len() + d + 128
+    }
+
+    /// Central differences of the intensity at every padded voxel, `[I(x+1) - I(x-1), ...]`
+    /// per axis (one-sided at the padded edge, which samples inside the core never reach),
+    /// with the intensity as the fourth lane.
+    /// The trilinear interpolation of these equals the central difference of the trilinear
+    /// field one voxel either side, the gradient shading uses, at a sixth of the reads.
+    pub fn differences(&self) -> &[[f32; 4]] {
+        self.differences.0.get_or_init(|| {
+            let [nx, ny, nz] = self.padded;
+            let v = &self.intensity;
+            let mut out = vec![[0.0f32; 4]; v.len()];
+            for z in 0..nz {
+                let (z0, z1) = (z.saturating_sub(1), (z + 1).min(nz - 1));
+                for y in 0..ny {
+                    let (y0, y1) = (y.saturating_sub(1), (y + 1).min(ny - 1));
+                    let row = (z * ny + y) * nx;
+                    let (ym, yp) = ((z * ny + y0) * nx, (z * ny + y1) * nx);
+                    let (zm, zp) = ((z0 * ny + y) * nx, (z1 * ny + y) * nx);
+                    for x in 0..nx {
+                        let (x0, x1) = (x.saturating_sub(1), (x + 1).min(nx - 1));
+                        out[row + x] = [
+                            v[row + x1] - v[row + x0],
+                            v[yp + x] - v[ym + x],
+                            v[zp + x] - v[zm + x],
+                            v[row + x],
+                        ];
+                    }
+                }
+            }
+            out
+        })
     }
 }
 

@@ -1,0 +1,245 @@
+//! The forest as prediction walks it: features coded exactly as u16 bin indices between the
+//! forest's own split thresholds, and 8-byte nodes comparing codes.
+//!
+//! For each feature, the forest's distinct thresholds `e_0 < e_1 < ...` are the bin edges. A
+//! value `v` codes to `#{i : e_i < v}`, and a node splitting at `e_j` sends `v` right exactly
+//! when its code exceeds `j`. So coded prediction equals the f32 walk for every input (NaN
+//! codes to 0 and goes left, as `v > t` is false for NaN), as long as a feature has at most
+//! 65 535 distinct thresholds; forests past that (or with more than 65 536 features) keep the
+//! f32 walk.
+//!
+//! A block of rows is coded feature by feature (one feature's edges stay cached), then every
+//! tree walks the block in lockstep lanes while the next tree's nodes are prefetched.
+
+use rayon::prelude::*;
+
+/// Code of a leaf: larger than every feature code, so a leaf's test always goes "left", to
+/// itself.
+const LEAF_CODE: u16 = u16::MAX;
+
+/// One node: go to `left` when the row's code of `feature` is at most `code`, else to
+/// `left + 1`. Leaves loop to themselves.
+#[derive(Debug, Clone, Copy, PartialEq)]
+#[repr(C, align(8))]
+struct Node {
+    code: u16,
+    feature: u16,
+    left: u32,
+}
+
+/// A forest packed for coded prediction.
+#[derive(Debug, Clone, PartialEq)]
+pub(crate) struct Packed {
+    d: usize,
+    classes: usize,
+    /// Per feature: its distinct split thresholds, ascending.
+    edges: Vec<Vec<f32>>,
+    /// Every tree's nodes, one after the other (a tree's `left` indices are global).
+    nodes: Vec<Node>,
+    /// Per tree: first node and depth of its deepest leaf.
+    trees: Vec<(u32, u32)>,
+    /// Per node: the offset of its leaf's class fractions in `probs` (split nodes: 0).
+    leaf_at: Vec<u32>,
+    /// Leaf class fractions, `classes` per leaf, all trees.
+    probs: Vec<f32>,
+}
+
+/// One tree as [`Packed::new`] reads it: per node `(feature, threshold, left)` with
+/// self-looping leaves (threshold `+inf`), the leaf index per node (`None` for splits), the
+/// leaves' class fractions and the depth.
+pub(crate) struct TreeView<'a> {
+    pub nodes: Vec<(u32, f32, u32)>,
+    pub leaf_of: &'a [u32],
+    pub probs: &'a [f32],
+    pub depth: u32,
+}
+
+/// `#{i : e_i < v}` for ascending `e`, without data-dependent branches.
+#[inline(always)]
+fn code(e: &[f32], v: f32) -> u16 {
+    if e.is_empty() {
+        return 0;
+    }
+    let (mut base, mut len) = (0usize, e.len());
+    while len > 1 {
+        let half = len / 2;
+        base += (e[base + half - 1] < v) as usize * half;
+        len -= half;
+    }
+    (base + (e[base] < v) as usize) as u16
+}
+
+impl Packed {
+    /// Packs the trees, or `None` where a feature has too many distinct thresholds for u16
+    /// codes or there are too many features.
+    pub(crate) fn new(d: usize, classes: usize, trees: &[TreeView<'_>], leaf: u32) -> Option<Self> {
+        if d > u16::MAX as usize + 1 {
+            return None;
+        }
+        let mut edges: Vec<Vec<f32>> = vec![Vec::new(); d];
+        for t in trees {
+            for &(f, thr, _) in &t.nodes {
+                if thr != f32::INFINITY {
+                    edges[f as usize].push(thr);
+                }
+            }
+        }
+        for e in &mut edges {
+            e.sort_unstable_by(|a, b| a.total_cmp(b));
+            e.dedup_by(|a, b| a.to_bits() == b.to_bits());
+            if e.len() > LEAF_CODE as usize {
+                return None;
+            }
+        }
+        let total: usize = trees.iter().map(|t| t.nodes.len()).sum();
+        let total_u32 = u32::try_from(total).ok()?;
+        let mut nodes = Vec::with_capacity(total);
+        let mut leaf_at = Vec::with_capacity(total);
+        let mut probs = Vec::new();
+        let mut starts = Vec::with_capacity(trees.len());
+        for t in trees {
+            let start = nodes.len() as u32;
+            let leaf0 = probs.len() / classes;
+            probs.extend_from_slice(t.probs);
+            for (i, &(f, thr, left)) in t.nodes.iter().enumerate() {
+                if t.leaf_of[i] != leaf {
+                    nodes.push(Node {
+                        code: LEAF_CODE,
+                        feature: 0,
+                        left: start + i as u32,
+                    });
+                    leaf_at.push(((leaf0 + t.leaf_of[i] as usize) * classes) as u32);
+                } else {
+                    let e = &edges[f as usize];
+                    let j = e
+                        .binary_search_by(|a| a.total_cmp(&thr))
+                        .expect("every threshold is an edge");
+                    nodes.push(Node {
+                        code: j as u16,
+                        feature: f as u16,
+                        left: start + left,
+                    });
+                    leaf_at.push(0);
+                }
+            }
+            starts.push((start, t.depth));
+        }
+        debug_assert_eq!(nodes.len() as u32, total_u32);
+        u32::try_from(probs.len()).ok()?;
+        Some(Packed {
+            d,
+            classes,
+            edges,
+            nodes,
+            trees: starts,
+            leaf_at,
+            probs,
+        })
+    }
+
+    /// Codes rows `x` (`rows x d`) into `out`, feature by feature.
+    fn code_rows(&self, x: &[f32], out: &mut [u16]) {
+        let d = self.d;
+        for (f, e) in self.edges.iter().enumerate() {
+            for (o, row) in out.chunks_exact_mut(d).zip(x.chunks_exact(d)) {
+                o[f] = code(e, row[f]);
+            }
+        }
+    }
+
+    /// Hints the cache to fetch a tree's nodes.
+    #[inline(always)]
+    fn prefetch(&self, tree: usize) {
+        let Some(&(start, _)) = self.trees.get(tree) else {
+            return;
+        };
+        let end = self
+            .trees
+            .get(tree + 1)
+            .map_or(self.nodes.len(), |t| t.0 as usize);
+        #[cfg(target_arch = "x86_64")]
+        {
+            use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
+            // 8 nodes per 64-byte line.
+            for i in (start as usize..end).step_by(8) {
+                // SAFETY: prefetching is a hint; the address is inside `nodes`.
+                unsafe { _mm_prefetch::<_MM_HINT_T0>(self.nodes.as_ptr().add(i) as *const i8) };
+            }
+        }
+        #[cfg(not(target_arch = "x86_64"))]
+        let _ = (start, end);
+    }
+
+    /// Mean class fractions over the trees of every row of `x`, added into `out`
+    /// (`rows x classes`, zeroed by the caller), scaled by `inv`.
+    pub(crate) fn predict_into(&self, x: &[f32], out: &mut [f32], inv: f32) {
+        const BLOCK: usize = 1024;
+        const LANES: usize = 16;
+        let (d, c) = (self.d, self.classes);
+        out.par_chunks_mut(BLOCK * c)
+            .zip(x.par_chunks(BLOCK * d))
+            .for_each_init(
+                || vec![0u16; BLOCK * d],
+                |codes, (o, xb)| {
+                    let nr = xb.len() / d;
+                    let codes = &mut codes[..nr * d];
+                    self.code_rows(xb, codes);
+                    for (ti, &(start, depth)) in self.trees.iter().enumerate() {
+                        self.prefetch(ti + 1);
+                        let nodes = &self.nodes;
+                        let mut r0 = 0;
+                        while r0 < nr {
+                            let lanes = LANES.min(nr - r0);
+                            let mut at = [start; LANES];
+                            let rows = &codes[r0 * d..(r0 + lanes) * d];
+                            // All lanes walk in lockstep (independent loads overlap, no
+                            // branches) and stop early once every lane sits on a leaf.
+                            let mut step = 0;
+                            while step < depth {
+                                let mut live = false;
+                                for _ in 0..4 {
+                                    live = false;
+                                    for (a, row) in at.iter_mut().zip(rows.chunks_exact(d)) {
+                                        let nd = nodes[*a as usize];
+                                        let v = row[nd.feature as usize];
+                                        *a = nd.left + (v > nd.code) as u32;
+                                        live |= nd.code != LEAF_CODE;
+                                    }
+                                }
+                                step += 4;
+                                if !live {
+                                    break;
+                                }
+                            }
+                            for (l, a) in at.iter().enumerate().take(lanes) {
+                                let p = self.leaf_at[*a as usize] as usize;
+                                o[(r0 + l) * c..(r0 + l + 1) * c]
+                                    .iter_mut()
+                                    .zip(&self.probs[p..p + c])
+                                    .for_each(|(a, b)| *a += b);
+                            }
+                            r0 += lanes;
+                        }
+                    }
+                    o.iter_mut().for_each(|v| *v *= inv);
+                },
+            );
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::code;
+
+    #[test]
+    fn codes_count_the_edges_below() {
+        let e = [-1.0f32, 0.0, 0.5, 2.0, 7.0];
+        for v in [-5.0f32, -1.0, -0.5, 0.0, 0.25, 0.5, 1.0, 2.0, 3.0, 7.0, 8.0] {
+            let want = e.iter().filter(|&&t| t < v).count() as u16;
+            assert_eq!(code(&e, v), want, "{v}");
+        }
+        assert_eq!(code(&e, f32::NAN), 0);
+        assert_eq!(code(&[], 3.0), 0);
+        assert_eq!(code(&e, f32::INFINITY), 5);
+    }
+}
