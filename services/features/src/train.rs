@@ -225,26 +225,17 @@ pub struct Trained {
     pub psnr: f64,
 }
 
-/// Trains the INR on `store`. With `resume`, continues from a checkpoint (its configuration
-/// wins over `inr`/`cfg`, except for the budget). Checkpoints go to `checkpoint` when given.
-pub fn train(
-    store: &BrickStore,
-    inr: &InrConfig,
-    cfg: &TrainConfig,
-    resume: Option<Loaded>,
-    checkpoint: Option<&StoreLocation>,
-    cancel: &AtomicBool,
-    events: &mut dyn FnMut(TrainEvent),
-) -> Result<Trained> {
-    if cfg.batch == 0 || cfg.tile_bricks == 0 {
+/// The settings the CPU engine can train with.
+fn check_config(tc: &TrainConfig, inr: &InrConfig) -> Result<()> {
+    if tc.batch == 0 || tc.tile_bricks == 0 {
         return Err(FeatureError::Config(
             "batch and tile_bricks must be positive".into(),
         ));
     }
-    if !(cfg.lr > 0.0 && cfg.lr.is_finite() && cfg.lr_table > 0.0 && cfg.lr_table.is_finite()) {
+    if !(tc.lr > 0.0 && tc.lr.is_finite() && tc.lr_table > 0.0 && tc.lr_table.is_finite()) {
         return Err(FeatureError::Config(format!(
             "learning rates {} / {} must be positive and finite",
-            cfg.lr, cfg.lr_table
+            tc.lr, tc.lr_table
         )));
     }
     if inr.patch.is_multiple_of(2) || inr.patch > 9 {
@@ -263,6 +254,21 @@ pub fn train(
             "levels must be 1..=32 and log2_table at most 24".into(),
         ));
     }
+    Ok(())
+}
+
+/// Trains the INR on `store`. With `resume`, continues from a checkpoint (its configuration
+/// wins over `inr`/`cfg`, except for the budget). Checkpoints go to `checkpoint` when given.
+pub fn train(
+    store: &BrickStore,
+    inr: &InrConfig,
+    cfg: &TrainConfig,
+    resume: Option<Loaded>,
+    checkpoint: Option<&StoreLocation>,
+    cancel: &AtomicBool,
+    events: &mut dyn FnMut(TrainEvent),
+) -> Result<Trained> {
+    check_config(cfg, inr)?;
     let dims = store.info().dims;
     let (mut model, mut adam, mut state, mut tc) = match resume {
         Some(l) => {
@@ -286,6 +292,8 @@ pub fn train(
             (m, a, TrainState::default(), cfg.clone())
         }
     };
+    // A resumed checkpoint brings its own settings: they are checked too.
+    check_config(&tc, &model.cfg)?;
     tc.batch = tc.batch.max(1);
     let bricks = training_bricks(store, tc.include_empty);
     let voxels: u64 = bricks.iter().map(|b| b.voxels() as u64).sum();

@@ -11,9 +11,12 @@
 //!   failed actor and reports it.
 //! - [`http`]: the routes; every malformed request gets a 4xx with a message.
 //! - [`paths`]: volumes only from the configured data root.
+//! - [`access`]: the token, host and origin checks, the request timeout and the shutdown gate
+//!   in front of every route.
 
 #![warn(missing_docs)]
 
+pub mod access;
 pub mod actors;
 pub mod cache;
 pub mod error;
