@@ -8,6 +8,11 @@
 #                                  and files the project writes; never committed)
 #   fuzz/run.sh ci [SECONDS]       build, seed, run every target SECONDS (default 15); fails on
 #                                  any crash, leak, out-of-memory or timeout
+#   fuzz/run.sh replay             without cargo-fuzz, nightly or sanitizers (what CI runs): build
+#                                  the targets with plain `cargo build --release` into the
+#                                  workspace's target folder (sharing its compiled dependencies),
+#                                  write the seeds and run every target over every seed and every
+#                                  saved finding (fuzz/regressions/); fails on any panic or abort
 #   fuzz/run.sh long [RUNS] [T..]  RUNS executions (default 10000000) of each target (or the
 #                                  ones named), one at a time at nice 19; logs and a summary in
 #                                  fuzz/runs/
@@ -79,8 +84,42 @@ run() {
     -print_final_stats=1 "$@"
 }
 
+# replay: every target over its seeds and saved findings, no instrumentation needed (libFuzzer
+# runs the files named on its command line once each and stops at the first crash).
+replay() {
+  local tdir bins start
+  start=$(date +%s)
+  tdir="$(cd .. && pwd)/target"
+  cargo build --release --locked --target-dir "$tdir" --bins
+  bins="$tdir/release"
+  local data="${NVX_DATA:-../../shared/data}"
+  if [ ! -d "$data" ] && [ "${CI:-}" = "true" ]; then
+    echo "fuzz seeds: $data is missing (CI=true requires the real volumes)" >&2
+    exit 1
+  fi
+  local corpus="$tdir/fuzz-replay"
+  rm -rf "$corpus"
+  "$bins/seeds" "$data" "$corpus"
+  for t in "${TARGETS[@]}"; do
+    mkdir -p "$corpus/$t"
+    [ -d "regressions/$t" ] && cp regressions/"$t"/* "$corpus/$t/" 2>/dev/null || true
+    local n
+    n=$(find "$corpus/$t" -type f | wc -l)
+    if ! find "$corpus/$t" -type f -print0 |
+      xargs -0 -r -n 200 "$bins/$t" -malloc_limit_mb=512 -rss_limit_mb=2048 -timeout=10 \
+        >"$corpus/$t.log" 2>&1; then
+      tail -40 "$corpus/$t.log" >&2
+      echo "fuzz replay $t: FAILED" >&2
+      exit 1
+    fi
+    echo "fuzz replay $t: $n inputs, no finding"
+  done
+  echo "fuzz replay: every target over its seeds in $(($(date +%s) - start)) s"
+}
+
 case "${1:-ci}" in
   build) build ;;
+  replay) replay ;;
   seeds) seeds ;;
   ci)
     secs="${2:-15}"
@@ -125,7 +164,7 @@ case "${1:-ci}" in
     done
     ;;
   *)
-    echo "usage: fuzz/run.sh build|seeds|ci [SECONDS]|long [RUNS] [TARGET...]" >&2
+    echo "usage: fuzz/run.sh build|seeds|replay|ci [SECONDS]|long [RUNS] [TARGET...]" >&2
     exit 2
     ;;
 esac
