@@ -122,12 +122,10 @@ pub fn run_serve(a: &ServeArgs) -> Result<()> {
     cfg.max_sessions = a.max_sessions;
     cfg.max_trainings = a.max_trainings;
     cfg.request_timeout = Duration::from_secs_f64(a.request_timeout);
-    let addrs: Vec<std::net::SocketAddr> = std::net::ToSocketAddrs::to_socket_addrs(&(
-        a.host.as_str(),
-        a.port,
-    ))
-    .with_context(|| format!("cannot resolve --host {}", a.host))?
-    .collect();
+    let addrs: Vec<std::net::SocketAddr> =
+        std::net::ToSocketAddrs::to_socket_addrs(&(a.host.as_str(), a.port))
+            .with_context(|| format!("cannot resolve --host {}", a.host))?
+            .collect();
     let loopback = !addrs.is_empty() && addrs.iter().all(|s| s.ip().is_loopback());
     let token = match a
         .token
@@ -136,7 +134,9 @@ pub fn run_serve(a: &ServeArgs) -> Result<()> {
     {
         Some(t) => {
             anyhow::ensure!(
-                t.len() >= 8 && t.bytes().all(|b| b.is_ascii_alphanumeric() || b"-_.~".contains(&b)),
+                t.len() >= 8
+                    && t.bytes()
+                        .all(|b| b.is_ascii_alphanumeric() || b"-_.~".contains(&b)),
                 "the token must be at least 8 characters of A-Z, a-z, 0-9, '-', '_', '.', '~'"
             );
             Some(t)
@@ -197,19 +197,24 @@ pub fn run_serve(a: &ServeArgs) -> Result<()> {
             tracing::info!("{sig}: stopping (event streams end, trainings save their checkpoints)");
             let t = std::time::Instant::now();
             let saved = st.shutdown(SHUTDOWN_GRACE).await;
-            handle.stop(true).await;
             tracing::info!(
-                "stopped in {:.2} s; {} session(s) saved in {}",
-                t.elapsed().as_secs_f64(),
+                "{} session(s) saved in {} after {:.2} s; closing connections",
                 saved.len(),
-                state_dir.display()
+                state_dir.display(),
+                t.elapsed().as_secs_f64()
             );
+            handle.stop(true).await;
         });
-        server.await.context("server")
-    })?;
-    // Work still running on the blocking pool (a render, a classification) was cancelled or
-    // made stale and writes only atomically: end the process instead of waiting for it.
-    std::process::exit(0)
+        let r = server.await.context("server");
+        // Dropping the runtime would wait for work still running on its blocking pool (a
+        // training past the grace period, a render, a classification). That work was cancelled
+        // or made stale and writes only atomically (the last checkpoint and the saved session
+        // are whole): end the process here instead of waiting for it.
+        if r.is_ok() {
+            std::process::exit(0)
+        }
+        r
+    })
 }
 
 /// Waits for SIGTERM or SIGINT (Ctrl-C); returns which.
