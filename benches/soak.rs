@@ -64,7 +64,9 @@ impl Opts {
     fn num<T: std::str::FromStr>(&self, k: &str, default: T) -> Result<T> {
         match self.get(k) {
             None => Ok(default),
-            Some(v) => v.parse().map_err(|_| anyhow::anyhow!("--{k} {v} is not a number")),
+            Some(v) => v
+                .parse()
+                .map_err(|_| anyhow::anyhow!("--{k} {v} is not a number")),
         }
     }
 }
@@ -92,7 +94,10 @@ impl Record {
         if !expected(route, status) {
             let v = self.samples.entry(route.into()).or_default();
             if v.len() < 3 {
-                v.push(format!("{status}: {}", body.chars().take(300).collect::<String>()));
+                v.push(format!(
+                    "{status}: {}",
+                    body.chars().take(300).collect::<String>()
+                ));
             }
         }
     }
@@ -125,7 +130,13 @@ impl Client {
     }
 
     /// One request; records its latency and status under `route`; returns status and body.
-    fn call(&mut self, route: &str, method: &str, path: &str, body: Option<&Value>) -> (u16, Vec<u8>) {
+    fn call(
+        &mut self,
+        route: &str,
+        method: &str,
+        path: &str,
+        body: Option<&Value>,
+    ) -> (u16, Vec<u8>) {
         let t = Instant::now();
         let req = self.agent.request(method, &format!("{}{path}", self.base));
         let r = match body {
@@ -149,11 +160,18 @@ impl Client {
             Err(e) => (0, e.to_string().into_bytes()),
         };
         let ms = t.elapsed().as_secs_f64() * 1e3;
-        self.rec.add(route, ms, status, &String::from_utf8_lossy(&bytes));
+        self.rec
+            .add(route, ms, status, &String::from_utf8_lossy(&bytes));
         (status, bytes)
     }
 
-    fn json(&mut self, route: &str, method: &str, path: &str, body: Option<&Value>) -> (u16, Value) {
+    fn json(
+        &mut self,
+        route: &str,
+        method: &str,
+        path: &str,
+        body: Option<&Value>,
+    ) -> (u16, Value) {
         let (st, b) = self.call(route, method, path, body);
         (st, serde_json::from_slice(&b).unwrap_or(Value::Null))
     }
@@ -169,7 +187,12 @@ fn worker(o: &Opts) -> Result<()> {
     let mut c = Client::new(addr);
     let mut rng = Rng::new(seed);
     let deadline = Instant::now() + Duration::from_secs_f64(seconds);
-    let (_, info) = c.json("GET /sessions/{id}", "GET", &format!("/api/sessions/{session}"), None);
+    let (_, info) = c.json(
+        "GET /sessions/{id}",
+        "GET",
+        &format!("/api/sessions/{session}"),
+        None,
+    );
     let dims: Vec<usize> = info["dims"]
         .as_array()
         .context("session info has no dims")?
@@ -179,7 +202,9 @@ fn worker(o: &Opts) -> Result<()> {
         .collect();
     let mut acked: Vec<Stroke> = Vec::new();
     let pause = |rng: &mut Rng, lo: u64, hi: u64| {
-        std::thread::sleep(Duration::from_millis(lo + rng.below((hi - lo) as usize) as u64))
+        std::thread::sleep(Duration::from_millis(
+            lo + rng.below((hi - lo) as usize) as u64,
+        ))
     };
     let s = &session;
     match role {
@@ -205,7 +230,12 @@ fn worker(o: &Opts) -> Result<()> {
                     radius: [0.5f32, 1.0, 2.0, 3.5][rng.below(4)],
                 };
                 let body = serde_json::to_value([&stroke])?;
-                let (st, _) = c.call("POST /strokes", "POST", &format!("/api/sessions/{s}/strokes"), Some(&body));
+                let (st, _) = c.call(
+                    "POST /strokes",
+                    "POST",
+                    &format!("/api/sessions/{s}/strokes"),
+                    Some(&body),
+                );
                 if st == 202 {
                     acked.push(stroke);
                 }
@@ -217,7 +247,12 @@ fn worker(o: &Opts) -> Result<()> {
                 let a = rng.below(3);
                 let axis = ["x", "y", "z"][a];
                 let i = rng.below(dims[a]);
-                c.call("GET /slice", "GET", &format!("/api/sessions/{s}/slice/{axis}/{i}"), None);
+                c.call(
+                    "GET /slice",
+                    "GET",
+                    &format!("/api/sessions/{s}/slice/{axis}/{i}"),
+                    None,
+                );
                 let kind = ["labels", "uncertainty"][rng.below(2)];
                 c.call(
                     "GET /overlay",
@@ -226,8 +261,18 @@ fn worker(o: &Opts) -> Result<()> {
                     None,
                 );
                 if rng.below(4) == 0 {
-                    c.call("GET /fractions", "GET", &format!("/api/sessions/{s}/fractions"), None);
-                    c.call("GET /sessions/{id}", "GET", &format!("/api/sessions/{s}"), None);
+                    c.call(
+                        "GET /fractions",
+                        "GET",
+                        &format!("/api/sessions/{s}/fractions"),
+                        None,
+                    );
+                    c.call(
+                        "GET /sessions/{id}",
+                        "GET",
+                        &format!("/api/sessions/{s}"),
+                        None,
+                    );
                 }
                 pause(&mut rng, 10, 60);
             }
@@ -238,7 +283,8 @@ fn worker(o: &Opts) -> Result<()> {
                 let size = [96, 128, 192, 256][rng.below(4)];
                 let az = rng.below(360);
                 let el = rng.below(120) as i64 - 60;
-                let mode = ["", "&mode=intensity", "&mode=prob", "&mode=prob-intensity"][rng.below(4)];
+                let mode =
+                    ["", "&mode=intensity", "&mode=prob", "&mode=prob-intensity"][rng.below(4)];
                 c.call(
                     "GET /render",
                     "GET",
@@ -247,9 +293,19 @@ fn worker(o: &Opts) -> Result<()> {
                 );
                 if rng.below(6) == 0 {
                     let p = presets[rng.below(presets.len())];
-                    let (st, tf) = c.json("GET /presets/{name}", "GET", &format!("/api/presets/{p}"), None);
+                    let (st, tf) = c.json(
+                        "GET /presets/{name}",
+                        "GET",
+                        &format!("/api/presets/{p}"),
+                        None,
+                    );
                     if st == 200 {
-                        c.call("PUT /tf", "PUT", &format!("/api/sessions/{s}/tf"), Some(&tf));
+                        c.call(
+                            "PUT /tf",
+                            "PUT",
+                            &format!("/api/sessions/{s}/tf"),
+                            Some(&tf),
+                        );
                     }
                 }
                 pause(&mut rng, 20, 100);
@@ -265,11 +321,26 @@ fn worker(o: &Opts) -> Result<()> {
                                "color": [rng.below(256), rng.below(256), rng.below(256)]})
                     })
                     .collect();
-                c.call("PUT /classes", "PUT", &format!("/api/sessions/{s}/classes"), Some(&Value::Array(classes)));
-                c.call("GET /state", "GET", &format!("/api/sessions/{s}/state"), None);
+                c.call(
+                    "PUT /classes",
+                    "PUT",
+                    &format!("/api/sessions/{s}/classes"),
+                    Some(&Value::Array(classes)),
+                );
+                c.call(
+                    "GET /state",
+                    "GET",
+                    &format!("/api/sessions/{s}/state"),
+                    None,
+                );
                 match rng.below(5) {
                     0 => {
-                        c.call("GET /export/labels.nii.gz", "GET", &format!("/api/sessions/{s}/export/labels.nii.gz"), None);
+                        c.call(
+                            "GET /export/labels.nii.gz",
+                            "GET",
+                            &format!("/api/sessions/{s}/export/labels.nii.gz"),
+                            None,
+                        );
                     }
                     1 => {
                         c.call(
@@ -296,7 +367,12 @@ fn worker(o: &Opts) -> Result<()> {
                         );
                     }
                     _ => {
-                        c.call("GET /strokes", "GET", &format!("/api/sessions/{s}/strokes"), None);
+                        c.call(
+                            "GET /strokes",
+                            "GET",
+                            &format!("/api/sessions/{s}/strokes"),
+                            None,
+                        );
                     }
                 }
                 pause(&mut rng, 200, 800);
@@ -329,7 +405,12 @@ fn worker(o: &Opts) -> Result<()> {
                     }
                     std::thread::sleep(Duration::from_millis(100));
                 }
-                c.call("GET /preview.png", "GET", &format!("/api/sessions/{s}/preview.png"), None);
+                c.call(
+                    "GET /preview.png",
+                    "GET",
+                    &format!("/api/sessions/{s}/preview.png"),
+                    None,
+                );
             }
         }
         "streamer" => {
@@ -342,9 +423,15 @@ fn worker(o: &Opts) -> Result<()> {
                     .call();
                 match r {
                     Ok(resp) => {
-                        c.rec.add("GET /events (headers)", t.elapsed().as_secs_f64() * 1e3, resp.status(), "");
+                        c.rec.add(
+                            "GET /events (headers)",
+                            t.elapsed().as_secs_f64() * 1e3,
+                            resp.status(),
+                            "",
+                        );
                         let mut lines = BufReader::new(resp.into_reader());
-                        let until = Instant::now() + Duration::from_millis(2000 + rng.below(6000) as u64);
+                        let until =
+                            Instant::now() + Duration::from_millis(2000 + rng.below(6000) as u64);
                         let mut l = String::new();
                         let mut events = 0u64;
                         while Instant::now() < until.min(deadline) {
@@ -355,9 +442,16 @@ fn worker(o: &Opts) -> Result<()> {
                                 Ok(_) => {}
                             }
                         }
-                        *c.rec.status.entry("events received".into()).or_default().entry(200).or_insert(0) += events;
+                        *c.rec
+                            .status
+                            .entry("events received".into())
+                            .or_default()
+                            .entry(200)
+                            .or_insert(0) += events;
                     }
-                    Err(ureq::Error::Status(st, _)) => c.rec.add("GET /events (headers)", 0.0, st, ""),
+                    Err(ureq::Error::Status(st, _)) => {
+                        c.rec.add("GET /events (headers)", 0.0, st, "")
+                    }
                     Err(e) => c.rec.add("GET /events (headers)", 0.0, 0, &e.to_string()),
                 }
             }
@@ -371,7 +465,8 @@ fn worker(o: &Opts) -> Result<()> {
         "samples": c.rec.samples,
         "acked": acked,
     });
-    std::fs::write(&out, serde_json::to_vec(&report)?).with_context(|| format!("{}", out.display()))?;
+    std::fs::write(&out, serde_json::to_vec(&report)?)
+        .with_context(|| format!("{}", out.display()))?;
     Ok(())
 }
 
@@ -391,7 +486,18 @@ impl Drop for Server {
 
 fn start_server(bin: &Path, data: &Path, work: &Path) -> Result<Server> {
     let mut child = Command::new(bin)
-        .args(["serve", "--port", "0", "--max-sessions", "8", "--cache-mib", "256", "--request-timeout", "30", "--data-root"])
+        .args([
+            "serve",
+            "--port",
+            "0",
+            "--max-sessions",
+            "8",
+            "--cache-mib",
+            "256",
+            "--request-timeout",
+            "30",
+            "--data-root",
+        ])
         .arg(data)
         .arg("--work")
         .arg(work)
@@ -446,7 +552,11 @@ fn coordinator(o: &Opts) -> Result<()> {
         Some(p) => PathBuf::from(p),
         None => me.with_file_name("neuvolex"),
     };
-    anyhow::ensure!(bin.exists(), "{}: no neuvolex binary (build it: cargo build --release -p neuvolex)", bin.display());
+    anyhow::ensure!(
+        bin.exists(),
+        "{}: no neuvolex binary (build it: cargo build --release -p neuvolex)",
+        bin.display()
+    );
     let tmp = tempfile::tempdir()?;
     let (data, volume) = match (o.get("data-root"), o.get("volume")) {
         (Some(d), Some(v)) => (PathBuf::from(d), v.to_string()),
@@ -454,7 +564,16 @@ fn coordinator(o: &Opts) -> Result<()> {
             let d = tmp.path().join("data");
             std::fs::create_dir_all(&d)?;
             let st = Command::new(&bin)
-                .args(["synth", "phantom", "--size", &size.to_string(), "--brick", "16", "--quiet", "--out"])
+                .args([
+                    "synth",
+                    "phantom",
+                    "--size",
+                    &size.to_string(),
+                    "--brick",
+                    "16",
+                    "--quiet",
+                    "--out",
+                ])
                 .arg(d.join("phantom.zarr"))
                 .status()?;
             anyhow::ensure!(st.success(), "generating the phantom failed");
@@ -466,13 +585,23 @@ fn coordinator(o: &Opts) -> Result<()> {
     let srv = start_server(&bin, &data, &work)?;
     let pid = srv.child.id();
     let mut c = Client::new(&srv.addr);
-    let (st, info) = c.json("POST /sessions", "POST", "/api/sessions", Some(&json!({"volume": volume})));
+    let (st, info) = c.json(
+        "POST /sessions",
+        "POST",
+        "/api/sessions",
+        Some(&json!({"volume": volume})),
+    );
     anyhow::ensure!(st == 201, "opening {volume}: {st} {info}");
     let sid = info["id"].as_str().context("session id")?.to_string();
     let classes: Vec<Value> = (1..=3)
         .map(|id| json!({"id": id, "name": format!("class {id}"), "color": [60 * id, 200, 255 - 60 * id]}))
         .collect();
-    let (st, _) = c.call("PUT /classes", "PUT", &format!("/api/sessions/{sid}/classes"), Some(&Value::Array(classes)));
+    let (st, _) = c.call(
+        "PUT /classes",
+        "PUT",
+        &format!("/api/sessions/{sid}/classes"),
+        Some(&Value::Array(classes)),
+    );
     anyhow::ensure!(st == 200, "setting classes: {st}");
     eprintln!(
         "soak: {} for {seconds} s on {volume} {:?} at {} (pid {pid}), {drawers} drawers + viewer, renderer, editor, trainer, streamer",
@@ -489,8 +618,21 @@ fn coordinator(o: &Opts) -> Result<()> {
     for (i, (role, k)) in roles.iter().enumerate() {
         let out = tmp.path().join(format!("{role}-{k}.json"));
         let child = Command::new(&me)
-            .args(["worker", "--role", role, "--addr", &srv.addr, "--session", &sid])
-            .args(["--seconds", &seconds.to_string(), "--seed", &(i as u64 + 1).to_string()])
+            .args([
+                "worker",
+                "--role",
+                role,
+                "--addr",
+                &srv.addr,
+                "--session",
+                &sid,
+            ])
+            .args([
+                "--seconds",
+                &seconds.to_string(),
+                "--seed",
+                &(i as u64 + 1).to_string(),
+            ])
             .args(["--index", &k.to_string(), "--drawers", &drawers.to_string()])
             .arg("--out")
             .arg(&out)
@@ -501,7 +643,9 @@ fn coordinator(o: &Opts) -> Result<()> {
     let mut peak_rss: f64 = 0.0;
     let mut samples = 0u64;
     loop {
-        let done = kids.iter_mut().all(|k| matches!(k.2.try_wait(), Ok(Some(_))));
+        let done = kids
+            .iter_mut()
+            .all(|k| matches!(k.2.try_wait(), Ok(Some(_))));
         let (rss, _) = rss_mib(pid);
         peak_rss = peak_rss.max(rss);
         samples += 1;
@@ -524,9 +668,12 @@ fn coordinator(o: &Opts) -> Result<()> {
         anyhow::ensure!(st.success(), "worker {role} {k} failed: {st}");
         let v: Value = serde_json::from_slice(&std::fs::read(&out)?)?;
         for (route, xs) in v["ms"].as_object().into_iter().flatten() {
-            ms.entry(route.clone())
-                .or_default()
-                .extend(xs.as_array().into_iter().flatten().filter_map(Value::as_f64));
+            ms.entry(route.clone()).or_default().extend(
+                xs.as_array()
+                    .into_iter()
+                    .flatten()
+                    .filter_map(Value::as_f64),
+            );
         }
         for (route, codes) in v["status"].as_object().into_iter().flatten() {
             for (code, n) in codes.as_object().into_iter().flatten() {
@@ -548,7 +695,12 @@ fn coordinator(o: &Opts) -> Result<()> {
         }
     }
     // Every acknowledged stroke is held, and the scribble volume is exactly their union.
-    let (_, held) = c.json("GET /strokes", "GET", &format!("/api/sessions/{sid}/strokes"), None);
+    let (_, held) = c.json(
+        "GET /strokes",
+        "GET",
+        &format!("/api/sessions/{sid}/strokes"),
+        None,
+    );
     let held = held.as_array().map_or(0, Vec::len);
     let (st, nii) = c.call(
         "GET /export/scribbles.nii.gz",
@@ -574,7 +726,12 @@ fn coordinator(o: &Opts) -> Result<()> {
     let t = Instant::now();
     let mut converged = None;
     while t.elapsed() < Duration::from_secs(300) {
-        let (_, v) = c.json("GET /sessions/{id}", "GET", &format!("/api/sessions/{sid}"), None);
+        let (_, v) = c.json(
+            "GET /sessions/{id}",
+            "GET",
+            &format!("/api/sessions/{sid}"),
+            None,
+        );
         let g = &v["generation"];
         if v["status"]["generation"] == *g && v["status"]["state"] == "done" {
             converged = Some(t.elapsed().as_secs_f64());
@@ -585,7 +742,9 @@ fn coordinator(o: &Opts) -> Result<()> {
     let (_, hwm) = rss_mib(pid);
     // A clean stop.
     let t = Instant::now();
-    let _ = Command::new("kill").args(["-TERM", &pid.to_string()]).status();
+    let _ = Command::new("kill")
+        .args(["-TERM", &pid.to_string()])
+        .status();
     let mut srv = srv;
     let mut stop_s = f64::NAN;
     while t.elapsed() < Duration::from_secs(30) {
@@ -631,8 +790,10 @@ fn coordinator(o: &Opts) -> Result<()> {
             xs.last().copied().unwrap_or(f64::NAN),
             codes_s.join(", ")
         );
-        rows.push(json!({"route": route, "requests": xs.len(), "p50_ms": percentile(&xs, 0.5),
-            "p99_ms": percentile(&xs, 0.99), "max_ms": xs.last(), "statuses": codes}));
+        rows.push(
+            json!({"route": route, "requests": xs.len(), "p50_ms": percentile(&xs, 0.5),
+            "p99_ms": percentile(&xs, 0.99), "max_ms": xs.last(), "statuses": codes}),
+        );
     }
     println!();
     println!(
@@ -664,7 +825,10 @@ fn coordinator(o: &Opts) -> Result<()> {
     anyhow::ensure!(unexpected == 0, "{unexpected} unexpected error(s)");
     anyhow::ensure!(strokes_ok, "strokes lost or the scribble volume differs");
     anyhow::ensure!(!acked.is_empty(), "no stroke was acknowledged");
-    anyhow::ensure!(converged.is_some(), "the last classification never finished");
+    anyhow::ensure!(
+        converged.is_some(),
+        "the last classification never finished"
+    );
     anyhow::ensure!(
         hwm.max(peak_rss) <= max_rss,
         "server peak RSS {:.0} MiB above --max-rss-mib {max_rss}",

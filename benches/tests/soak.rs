@@ -11,7 +11,10 @@ fn sixty_seconds_of_mixed_load_lose_no_stroke_and_stay_bounded() {
         if std::env::var("CI").is_ok_and(|v| v == "true") {
             panic!("{} is missing under CI=true", neuvolex.display());
         }
-        eprintln!("SKIP: {} absent (cargo build --release -p neuvolex)", neuvolex.display());
+        eprintln!(
+            "SKIP: {} absent (cargo build --release -p neuvolex)",
+            neuvolex.display()
+        );
         return;
     }
     let out = std::env::temp_dir().join(format!("nvx-soak-{}.json", std::process::id()));

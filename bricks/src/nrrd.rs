@@ -236,10 +236,7 @@ pub fn open(path: &Path) -> Result<FileVolume> {
     if data_path != path && !data_path.is_file() {
         return Err(BrickError::header(
             path,
-            format!(
-                "data file '{}' is not a regular file",
-                data_path.display()
-            ),
+            format!("data file '{}' is not a regular file", data_path.display()),
         ));
     }
     let mut start = start;

@@ -225,7 +225,11 @@ pub fn check_chunks_exist(
                 ),
             ));
         }
-        if decoded > stored.saturating_mul(MAX_DECODE_RATIO).saturating_add(1 << 16) {
+        if decoded
+            > stored
+                .saturating_mul(MAX_DECODE_RATIO)
+                .saturating_add(1 << 16)
+        {
             return Err(BrickError::corrupt(
                 root,
                 format!(

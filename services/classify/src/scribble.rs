@@ -166,8 +166,14 @@ pub fn rasterise(strokes: &[Stroke], dims: [usize; 3]) -> Result<Scribbles, Scri
                      runs: &mut Vec<(usize, usize, usize)>,
                      open: &mut std::collections::HashMap<usize, (usize, usize)>|
          -> u64 {
-            let (u0, u1) = ((cu - r).floor().max(0.0) as usize, ((cu + r).ceil() as usize).min(nu - 1));
-            let (v0, v1) = ((cv - r).floor().max(0.0) as usize, ((cv + r).ceil() as usize).min(nv - 1));
+            let (u0, u1) = (
+                (cu - r).floor().max(0.0) as usize,
+                ((cu + r).ceil() as usize).min(nu - 1),
+            );
+            let (v0, v1) = (
+                (cv - r).floor().max(0.0) as usize,
+                ((cv + r).ceil() as usize).min(nv - 1),
+            );
             for v in v0..=v1 {
                 let dv = (v as f32 - cv).powi(2);
                 if dv > rr {
@@ -700,7 +706,11 @@ mod tests {
                 })
                 .collect();
             let fast = rasterise(&strokes, dims).unwrap().voxels;
-            assert_eq!(fast, rasterise_per_pixel(&strokes, dims), "case {case}: {strokes:?}");
+            assert_eq!(
+                fast,
+                rasterise_per_pixel(&strokes, dims),
+                "case {case}: {strokes:?}"
+            );
         }
     }
 
@@ -713,7 +723,9 @@ mod tests {
                 class: 1,
                 axis: Axis::Z,
                 slice: z,
-                points: (0..64).map(|i| [(i % 2) as f32 * 4095.0, i as f32 * 64.0]).collect(),
+                points: (0..64)
+                    .map(|i| [(i % 2) as f32 * 4095.0, i as f32 * 64.0])
+                    .collect(),
                 radius: 64.0,
             })
             .collect();
@@ -727,7 +739,9 @@ mod tests {
             class: 1,
             axis: Axis::Z,
             slice: 0,
-            points: (0..100_000).map(|i| [(i % 2) as f32 * 4095.0, 10.0]).collect(),
+            points: (0..100_000)
+                .map(|i| [(i % 2) as f32 * 4095.0, 10.0])
+                .collect(),
             radius: 64.0,
         };
         let e = rasterise(&[s], dims).unwrap_err().to_string();

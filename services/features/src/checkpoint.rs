@@ -225,7 +225,11 @@ pub fn load(location: impl Into<StoreLocation>) -> Result<Loaded> {
             path,
             format!(
                 "{}: the header describes {need} bytes of parameters, the file holds {have}",
-                if have < need { "truncated" } else { "size mismatch" }
+                if have < need {
+                    "truncated"
+                } else {
+                    "size mismatch"
+                }
             ),
         ));
     }

@@ -34,8 +34,7 @@ pub fn cookie_name(port: u16) -> String {
 /// Compares in time independent of where the strings differ.
 fn same(a: &str, b: &str) -> bool {
     a.len() == b.len()
-        && a
-            .bytes()
+        && a.bytes()
             .zip(b.bytes())
             .fold(0u8, |acc, (x, y)| acc | (x ^ y))
             == 0
@@ -53,7 +52,10 @@ fn presented(req: &ServiceRequest) -> Vec<String> {
     let mut out = Vec::new();
     let h = req.headers();
     if let Some(v) = h.get(header::AUTHORIZATION).and_then(|v| v.to_str().ok()) {
-        if let Some(t) = v.strip_prefix("Bearer ").or_else(|| v.strip_prefix("token ")) {
+        if let Some(t) = v
+            .strip_prefix("Bearer ")
+            .or_else(|| v.strip_prefix("token "))
+        {
             out.push(t.trim().to_string());
         }
     }
@@ -232,10 +234,23 @@ mod tests {
 
     #[test]
     fn loopback_names() {
-        for h in ["localhost:8080", "127.0.0.1:1", "127.3.4.5", "[::1]:8080", "LOCALHOST", "a.localhost"] {
+        for h in [
+            "localhost:8080",
+            "127.0.0.1:1",
+            "127.3.4.5",
+            "[::1]:8080",
+            "LOCALHOST",
+            "a.localhost",
+        ] {
             assert!(is_loopback_name(h), "{h}");
         }
-        for h in ["evil.example:8080", "10.0.0.1:8080", "[::2]:80", "localhost.evil.com", ""] {
+        for h in [
+            "evil.example:8080",
+            "10.0.0.1:8080",
+            "[::2]:80",
+            "localhost.evil.com",
+            "",
+        ] {
             assert!(!is_loopback_name(h), "{h}");
         }
     }

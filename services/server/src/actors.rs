@@ -141,7 +141,9 @@ impl TrainingSlot {
     /// A slot if fewer than `max` trainings hold one (`running` counts them).
     pub fn take(running: &Arc<AtomicUsize>, max: usize) -> Option<TrainingSlot> {
         running
-            .fetch_update(Ordering::SeqCst, Ordering::SeqCst, |n| (n < max).then_some(n + 1))
+            .fetch_update(Ordering::SeqCst, Ordering::SeqCst, |n| {
+                (n < max).then_some(n + 1)
+            })
             .ok()
             .map(|_| TrainingSlot {
                 running: running.clone(),
@@ -393,8 +395,8 @@ async fn ingester(rx: Inbox<IngestJob>, hub: Hub) {
             reply,
         } = job;
         let h = hub.clone();
-        let r = tokio::task::spawn_blocking(move || ingest_one(&source, &dest, &name, &root, &h))
-            .await;
+        let r =
+            tokio::task::spawn_blocking(move || ingest_one(&source, &dest, &name, &root, &h)).await;
         let _ = reply.send(r.unwrap_or_else(|_| Err(ApiError::Internal("ingest panicked".into()))));
     }
 }
@@ -549,9 +551,8 @@ async fn trainer(rx: Inbox<TrainCommand>, hub: Hub, classify: mpsc::Sender<Mail<
         let (h, c) = (hub.clone(), classify.clone());
         tokio::spawn(async move {
             let (s, flag, h2) = (session.clone(), cancel.clone(), h.clone());
-            let r =
-                tokio::task::spawn_blocking(move || train(&s, epochs, resume, &flag, &h2, &c))
-                    .await;
+            let r = tokio::task::spawn_blocking(move || train(&s, epochs, resume, &flag, &h2, &c))
+                .await;
             {
                 // Only this training's flag: a newer one may have been installed since.
                 let mut tc = session

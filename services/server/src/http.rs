@@ -184,7 +184,9 @@ impl AppState {
                     (Some(_), Some(g)) => g.clone(),
                     _ => self.cfg.data_root.clone(),
                 };
-                self.actors.ingest(path, dest, rel.to_string(), root).await?
+                self.actors
+                    .ingest(path, dest, rel.to_string(), root)
+                    .await?
             }
         };
         let id = format!("s{}", self.next.fetch_add(1, Ordering::SeqCst));
@@ -252,7 +254,13 @@ fn stop_work(s: &Session) {
 pub fn state_path(work: &std::path::Path, volume: &str) -> PathBuf {
     let name: String = volume
         .chars()
-        .map(|c| if c.is_ascii_alphanumeric() || c == '.' || c == '-' { c } else { '_' })
+        .map(|c| {
+            if c.is_ascii_alphanumeric() || c == '.' || c == '-' {
+                c
+            } else {
+                '_'
+            }
+        })
         .collect();
     work.join("sessions").join(format!("{name}.json"))
 }
@@ -805,42 +813,43 @@ async fn events(st: web::Data<AppState>, q: web::Query<EventsQuery>) -> HttpResp
     let rx = st.actors.hub.subscribe();
     let want = q.into_inner().session;
     let stop = st.shutdown.subscribe();
-    let stream = futures_util::stream::unfold((rx, want, stop), |(mut rx, want, mut stop)| async move {
-        loop {
-            if *stop.borrow() {
-                return None;
-            }
-            let got = tokio::select! {
-                e = rx.recv() => e,
-                // The server is stopping: say so and end the stream.
-                _ = stop.changed() => {
-                    let line = "event: shutdown\ndata: {}\n\n";
-                    return Some((Ok(web::Bytes::from(line)), (rx, want, stop)));
+    let stream =
+        futures_util::stream::unfold((rx, want, stop), |(mut rx, want, mut stop)| async move {
+            loop {
+                if *stop.borrow() {
+                    return None;
                 }
-            };
-            match got {
-                Ok(e) => {
-                    if want.is_some() && e.session.is_some() && e.session != want {
-                        continue;
+                let got = tokio::select! {
+                    e = rx.recv() => e,
+                    // The server is stopping: say so and end the stream.
+                    _ = stop.changed() => {
+                        let line = "event: shutdown\ndata: {}\n\n";
+                        return Some((Ok(web::Bytes::from(line)), (rx, want, stop)));
                     }
-                    let line = format!(
-                        "event: {}\ndata: {}\n\n",
-                        e.kind,
-                        serde_json::to_string(&e).unwrap_or_default()
-                    );
-                    return Some((
-                        Ok::<_, actix_web::Error>(web::Bytes::from(line)),
-                        (rx, want, stop),
-                    ));
+                };
+                match got {
+                    Ok(e) => {
+                        if want.is_some() && e.session.is_some() && e.session != want {
+                            continue;
+                        }
+                        let line = format!(
+                            "event: {}\ndata: {}\n\n",
+                            e.kind,
+                            serde_json::to_string(&e).unwrap_or_default()
+                        );
+                        return Some((
+                            Ok::<_, actix_web::Error>(web::Bytes::from(line)),
+                            (rx, want, stop),
+                        ));
+                    }
+                    Err(tokio::sync::broadcast::error::RecvError::Lagged(n)) => {
+                        let line = format!("event: lagged\ndata: {{\"missed\": {n}}}\n\n");
+                        return Some((Ok(web::Bytes::from(line)), (rx, want, stop)));
+                    }
+                    Err(_) => return None,
                 }
-                Err(tokio::sync::broadcast::error::RecvError::Lagged(n)) => {
-                    let line = format!("event: lagged\ndata: {{\"missed\": {n}}}\n\n");
-                    return Some((Ok(web::Bytes::from(line)), (rx, want, stop)));
-                }
-                Err(_) => return None,
             }
-        }
-    });
+        });
     HttpResponse::Ok()
         .content_type("text/event-stream")
         .insert_header(("Cache-Control", "no-cache"))

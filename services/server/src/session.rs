@@ -198,7 +198,11 @@ impl Session {
     pub fn add_strokes(&self, strokes: Vec<Stroke>) -> ApiResult<(u64, usize)> {
         // Writers take turns; readers are only held while the new list is swapped in.
         let _writer = self.stroke_writer.lock().unwrap_or_else(|p| p.into_inner());
-        let mut all = self.strokes.read().unwrap_or_else(|p| p.into_inner()).clone();
+        let mut all = self
+            .strokes
+            .read()
+            .unwrap_or_else(|p| p.into_inner())
+            .clone();
         all.extend(strokes);
         self.check_strokes(&all)?;
         let n = all.len();
@@ -223,8 +227,16 @@ impl Session {
             format: neuvolex_session::FORMAT.into(),
             version: neuvolex_session::VERSION,
             volume: self.name.clone(),
-            classes: self.classes.read().unwrap_or_else(|p| p.into_inner()).clone(),
-            strokes: self.strokes.read().unwrap_or_else(|p| p.into_inner()).clone(),
+            classes: self
+                .classes
+                .read()
+                .unwrap_or_else(|p| p.into_inner())
+                .clone(),
+            strokes: self
+                .strokes
+                .read()
+                .unwrap_or_else(|p| p.into_inner())
+                .clone(),
             tf: self
                 .tf
                 .read()

@@ -27,7 +27,13 @@ async fn a_token_is_required_when_set() {
     cfg.token = Some("s3cret-token-0123".into());
     let app = app!(cfg);
     // Nothing without it: the page, the API, the event stream.
-    for uri in ["/", "/app.js", "/api/volumes", "/api/events", "/api/nothing"] {
+    for uri in [
+        "/",
+        "/app.js",
+        "/api/volumes",
+        "/api/events",
+        "/api/nothing",
+    ] {
         let r = test::call_service(&app, test::TestRequest::get().uri(uri).to_request()).await;
         assert_eq!(r.status(), StatusCode::UNAUTHORIZED, "{uri}");
         assert!(r.headers().contains_key("www-authenticate"));
@@ -57,7 +63,10 @@ async fn a_token_is_required_when_set() {
     for (k, v) in [
         ("authorization", "Bearer s3cret-token-0123".to_string()),
         ("x-neuvolex-token", "s3cret-token-0123".to_string()),
-        ("cookie", "a=b; neuvolex_token_8080=s3cret-token-0123".to_string()),
+        (
+            "cookie",
+            "a=b; neuvolex_token_8080=s3cret-token-0123".to_string(),
+        ),
     ] {
         let r = test::call_service(
             &app,
@@ -81,7 +90,10 @@ async fn a_token_is_required_when_set() {
     assert_eq!(r.headers().get("location").unwrap(), "/?x=1");
     let cookie = r.headers().get("set-cookie").unwrap().to_str().unwrap();
     assert!(cookie.starts_with("neuvolex_token_"), "{cookie}");
-    assert!(cookie.contains("HttpOnly") && cookie.contains("SameSite=Strict"), "{cookie}");
+    assert!(
+        cookie.contains("HttpOnly") && cookie.contains("SameSite=Strict"),
+        "{cookie}"
+    );
     let cookie = cookie.split(';').next().unwrap().to_string();
     let r = test::call_service(
         &app,
@@ -185,7 +197,8 @@ async fn a_detached_header_cannot_read_outside_the_data_root() {
     std::fs::write(d.path().join("secret.raw"), vec![7u8; 64]).unwrap();
     let hdr = "NRRD0004\ntype: uchar\ndimension: 3\nsizes: 4 4 4\nencoding: raw\ndata file: ../secret.raw\n";
     std::fs::write(cfg.data_root.join("evil.nhdr"), hdr).unwrap();
-    let inside = "NRRD0004\ntype: uchar\ndimension: 3\nsizes: 4 4 4\nencoding: raw\ndata file: ok.raw\n";
+    let inside =
+        "NRRD0004\ntype: uchar\ndimension: 3\nsizes: 4 4 4\nencoding: raw\ndata file: ok.raw\n";
     std::fs::write(cfg.data_root.join("ok.nhdr"), inside).unwrap();
     std::fs::write(cfg.data_root.join("ok.raw"), vec![7u8; 64]).unwrap();
     let app = app!(cfg);
@@ -238,8 +251,11 @@ where
         Error = actix_web::Error,
     >,
 {
-    test::call_and_read_body_json(app, test::TestRequest::get().uri("/api/server").to_request())
-        .await
+    test::call_and_read_body_json(
+        app,
+        test::TestRequest::get().uri("/api/server").to_request(),
+    )
+    .await
 }
 
 #[actix_web::test]
@@ -326,21 +342,36 @@ async fn concurrent_trainings_are_capped() {
             .set_json(json!({"action": action, "epochs": 1000}))
             .to_request()
     };
-    assert_eq!(test::call_service(&app, train(&a, "start")).await.status(), 202);
+    assert_eq!(
+        test::call_service(&app, train(&a, "start")).await.status(),
+        202
+    );
     let r = test::call_service(&app, train(&b, "start")).await;
     assert_eq!(r.status(), StatusCode::SERVICE_UNAVAILABLE);
     assert!(error_of(r).await.contains("1 training(s) running"));
     let r = test::call_service(&app, train(&a, "start")).await;
     assert_eq!(r.status(), StatusCode::CONFLICT, "already training");
     assert_eq!(server_status(&app).await["trainings"], 1);
-    assert_eq!(test::call_service(&app, train(&a, "stop")).await.status(), 202);
+    assert_eq!(
+        test::call_service(&app, train(&a, "stop")).await.status(),
+        202
+    );
     let t = Instant::now();
     while server_status(&app).await["trainings"] != 0 {
-        assert!(t.elapsed() < Duration::from_secs(120), "the training never stopped");
+        assert!(
+            t.elapsed() < Duration::from_secs(120),
+            "the training never stopped"
+        );
         tokio::time::sleep(Duration::from_millis(50)).await;
     }
-    assert_eq!(test::call_service(&app, train(&b, "start")).await.status(), 202);
-    assert_eq!(test::call_service(&app, train(&b, "stop")).await.status(), 202);
+    assert_eq!(
+        test::call_service(&app, train(&b, "start")).await.status(),
+        202
+    );
+    assert_eq!(
+        test::call_service(&app, train(&b, "stop")).await.status(),
+        202
+    );
 }
 
 #[actix_web::test]
@@ -415,7 +446,12 @@ async fn session_files_save_load_and_restore() {
         ("/strokes/0/slice", json!(999), 400, "strokes"),
         ("/classes/0/id", json!(0), 400, "classes[0]"),
         ("/tf/intensity/opacity/0/1", json!(7), 400, "tf:"),
-        ("/volume", json!("other.nii.gz"), 409, "open that volume first"),
+        (
+            "/volume",
+            json!("other.nii.gz"),
+            409,
+            "open that volume first",
+        ),
     ] {
         let mut bad = saved.clone();
         *bad.pointer_mut(ptr).unwrap() = val;

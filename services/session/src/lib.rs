@@ -125,10 +125,7 @@ fn err(source: &str, detail: impl Into<String>) -> SessionError {
 /// [`MAX_NAME`] characters without control characters.
 pub fn validate_classes(classes: &[ClassInfo]) -> Result<(), String> {
     if classes.len() > MAX_CLASSES {
-        return Err(format!(
-            "{} classes: at most {MAX_CLASSES}",
-            classes.len()
-        ));
+        return Err(format!("{} classes: at most {MAX_CLASSES}", classes.len()));
     }
     for (i, c) in classes.iter().enumerate() {
         if c.id == 0 || c.id >= BACKGROUND {
@@ -156,10 +153,7 @@ pub fn validate_classes(classes: &[ClassInfo]) -> Result<(), String> {
 /// most [`MAX_POINTS`] points, each painting a listed class or the background.
 pub fn validate_strokes(strokes: &[Stroke], classes: &[ClassInfo]) -> Result<(), String> {
     if strokes.len() > MAX_STROKES {
-        return Err(format!(
-            "{} strokes: at most {MAX_STROKES}",
-            strokes.len()
-        ));
+        return Err(format!("{} strokes: at most {MAX_STROKES}", strokes.len()));
     }
     for (i, s) in strokes.iter().enumerate() {
         if s.points.len() > MAX_POINTS {

@@ -31,7 +31,6 @@ pub fn data() -> (tempfile::TempDir, ServerConfig) {
     (d, cfg)
 }
 
-
 macro_rules! app {
     ($cfg:expr) => {
         test::init_service(
@@ -78,7 +77,6 @@ where
         tokio::time::sleep(Duration::from_millis(50)).await;
     }
 }
-
 
 /// A Server-Sent Events client over the in-process service.
 pub struct Sse {
@@ -171,4 +169,3 @@ where
     let r: Value = test::call_and_read_body_json(app, req).await;
     r["generation"].as_u64().unwrap()
 }
-
