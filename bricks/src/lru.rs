@@ -121,6 +121,20 @@ impl<K: Eq + Hash + Clone, V: Clone> Lru<K, V> {
         }
     }
 
+    /// Keeps only the entries whose key passes `keep` (e.g. drops a closed session's).
+    pub fn retain(&self, keep: impl Fn(&K) -> bool) {
+        let mut s = self.lock();
+        let mut freed = 0;
+        s.map.retain(|k, e| {
+            let k2 = keep(k);
+            if !k2 {
+                freed += e.cost;
+            }
+            k2
+        });
+        s.used -= freed;
+    }
+
     /// Drops every entry.
     pub fn clear(&self) {
         let mut s = self.lock();

@@ -192,14 +192,24 @@ pub fn open(path: &Path) -> Result<FileVolume> {
     };
     meta.validate(path)?;
     let len = meta.voxels() * dtype.size() as u64;
-    let line_skip: u64 = get("line skip")
-        .or(get("lineskip"))
-        .map(|s| s.parse().unwrap_or(0))
-        .unwrap_or(0);
-    let byte_skip: i64 = get("byte skip")
-        .or(get("byteskip"))
-        .map(|s| s.parse().unwrap_or(0))
-        .unwrap_or(0);
+    let line_skip: u64 = match get("line skip").or(get("lineskip")) {
+        None => 0,
+        Some(v) => v.parse().map_err(|_| {
+            BrickError::header(path, format!("line skip '{v}' is not a count of lines"))
+        })?,
+    };
+    let byte_skip: i64 = match get("byte skip").or(get("byteskip")) {
+        None => 0,
+        Some(v) => match v.parse::<i64>() {
+            Ok(b) if b >= -1 => b,
+            _ => {
+                return Err(BrickError::header(
+                    path,
+                    format!("byte skip '{v}' must be -1 or a count of bytes"),
+                ))
+            }
+        },
+    };
     let data_file = get("data file").or(get("datafile"));
     let (data_path, start) = match data_file {
         Some(f) => {
@@ -223,6 +233,12 @@ pub fn open(path: &Path) -> Result<FileVolume> {
             (path.to_path_buf(), consumed)
         }
     };
+    if data_path != path && !data_path.is_file() {
+        return Err(BrickError::header(
+            path,
+            format!("data file '{}' is not a regular file", data_path.display()),
+        ));
+    }
     let mut start = start;
     if line_skip > 0 {
         // Skip whole lines in the data file before the data.
@@ -234,9 +250,17 @@ pub fn open(path: &Path) -> Result<FileVolume> {
         let mut buf = Vec::new();
         for _ in 0..line_skip {
             buf.clear();
-            start += r
+            let n = r
                 .read_until(b'\n', &mut buf)
-                .map_err(|e| BrickError::io(&data_path, e))? as u64;
+                .map_err(|e| BrickError::io(&data_path, e))?;
+            if n == 0 {
+                return Err(BrickError::Truncated {
+                    path: data_path,
+                    expected: len,
+                    found: 0,
+                });
+            }
+            start += n as u64;
         }
     }
     let stream = if gz {

@@ -172,7 +172,17 @@ pub fn write_slab_chunks(
     })
 }
 
-/// Errors with [`BrickError::MissingChunk`] if any chunk (shard) touching `subset` is absent.
+/// Most bytes one stored chunk may decode to per stored byte: zstd's largest ratio (an RLE
+/// block of 4 bytes decodes to at most 128 KiB). A chunk claiming more cannot be genuine.
+pub const MAX_DECODE_RATIO: u64 = 1 << 15;
+/// Largest decoded chunk (shard) accepted, bytes; larger chunk shapes are refused rather than
+/// allocated.
+pub const MAX_CHUNK_BYTES: u64 = 256 << 20;
+
+/// Errors with [`BrickError::MissingChunk`] if any chunk (shard) touching `subset` is absent,
+/// and with [`BrickError::CorruptStore`] if a chunk's shape claims more decoded bytes than
+/// [`MAX_CHUNK_BYTES`] or than its stored size can hold ([`MAX_DECODE_RATIO`]): the sizes the
+/// metadata claims are checked against the files before anything is allocated for them.
 pub fn check_chunks_exist(
     array: &ZArray,
     root: &Path,
@@ -186,17 +196,47 @@ pub fn check_chunks_exist(
             BrickError::corrupt(root, format!("array '{name}' has an irregular chunk grid"))
         })?;
     let storage = array.storage();
+    let esize = array.data_type().fixed_size().unwrap_or(1) as u64;
     for idx in chunks.indices().iter() {
         let key = array.chunk_key(&idx);
         let size = storage
             .size_key(&key)
             .map_err(|e| BrickError::zarr(root, e))?;
-        if size.is_none() {
+        let Some(stored) = size else {
             return Err(BrickError::MissingChunk {
                 path: root.to_path_buf(),
                 array: name.to_string(),
                 key: key.to_string(),
             });
+        };
+        let shape = array
+            .chunk_shape(&idx)
+            .map_err(|e| BrickError::zarr(root, e))?;
+        let decoded = shape
+            .iter()
+            .map(|d| d.get())
+            .fold(esize, |a, d| a.saturating_mul(d));
+        if decoded > MAX_CHUNK_BYTES {
+            return Err(BrickError::corrupt(
+                root,
+                format!(
+                    "array '{name}': chunk {key} would decode to {decoded} bytes, above the \
+                     limit {MAX_CHUNK_BYTES}"
+                ),
+            ));
+        }
+        if decoded
+            > stored
+                .saturating_mul(MAX_DECODE_RATIO)
+                .saturating_add(1 << 16)
+        {
+            return Err(BrickError::corrupt(
+                root,
+                format!(
+                    "array '{name}': chunk {key} holds {stored} bytes, too few to decode to \
+                     the {decoded} its shape claims"
+                ),
+            ));
         }
     }
     Ok(())
@@ -284,6 +324,19 @@ impl OmeZarrSource {
                     .get("path")
                     .and_then(Value::as_str)
                     .ok_or_else(|| BrickError::corrupt(path, "dataset has no path"))?;
+                // The image's arrays live inside its group.
+                if p.is_empty()
+                    || p.starts_with('/')
+                    || p.split('/').any(|c| c.is_empty() || c == "." || c == "..")
+                {
+                    return Err(BrickError::corrupt(
+                        path,
+                        format!(
+                            "dataset path '{}' must name an array inside the group",
+                            p.escape_debug()
+                        ),
+                    ));
+                }
                 let mut spacing = [1.0; 3];
                 let mut origin = [0.0; 3];
                 for t in ds

@@ -1195,6 +1195,14 @@ impl BrickStore {
             let a: ZArray = Array::open(storage.clone(), &format!("/{k}"))
                 .map_err(|e| BrickError::corrupt(root.join(k.to_string()), e.to_string()))?;
             let want = [d[2] as u64, d[1] as u64, d[0] as u64];
+            let have = crate::omezarr::dtype_name(&a);
+            let want_type = if k == 0 { info.dtype } else { DType::F32 };
+            if DType::parse(&have) != Some(want_type) {
+                return Err(BrickError::corrupt(
+                    root,
+                    format!("level {k} holds {have}, attributes say {want_type}"),
+                ));
+            }
             if a.shape() != want {
                 return Err(BrickError::corrupt(
                     root,
@@ -1215,7 +1223,17 @@ impl BrickStore {
                 .map_err(|e| BrickError::corrupt(root, e.to_string()))?;
             let sub = zyx([0; 3], grid);
             check_chunks_exist(&a, root, &p, &sub)?;
+            let n: usize = grid.iter().product();
+            if DType::parse(&crate::omezarr::dtype_name(&a)) != Some(DType::F64) {
+                return Err(BrickError::corrupt(root, format!("{p} is not float64")));
+            }
             let bytes = read_bytes(&a, &sub).map_err(|e| BrickError::corrupt(root, e))?;
+            if bytes.len() != n * 8 {
+                return Err(BrickError::corrupt(
+                    root,
+                    format!("{p} holds {} bytes for {n} bricks", bytes.len()),
+                ));
+            }
             ranges.push(bytemuck::pod_collect_to_vec::<u8, f64>(&bytes));
         }
         let brick_max = ranges.pop().unwrap_or_default();
@@ -1375,6 +1393,18 @@ impl BrickStore {
             } else {
                 DType::F32
             };
+            // Sizes come from the attributes; the array's own type decides the byte count.
+            if bytes.len() != size.iter().product::<usize>() * dt.size() {
+                return Err(BrickError::corrupt(
+                    &self.root,
+                    format!(
+                        "level {level} brick {idx:?}: {} bytes read, the attributes' {dt} \
+                         brick of {size:?} needs {}",
+                        bytes.len(),
+                        size.iter().product::<usize>() * dt.size()
+                    ),
+                ));
+            }
             let mut v = vec![0.0f32; bytes.len() / dt.size()];
             crate::dtype::bytes_to_f32(&bytes, dt, &mut v);
             Ok((Arc::new(v), 1))

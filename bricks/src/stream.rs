@@ -31,6 +31,25 @@ pub(crate) struct ByteStream {
     len: u64,
 }
 
+/// Most decompressed bytes per compressed byte of a gzip (deflate) stream.
+const GZIP_MAX_RATIO: u64 = 1032;
+
+/// The length of `path`, which must be a regular file (a header may name any path as its data
+/// file; a device or pipe would block or never end).
+fn regular_len(path: &Path) -> Result<u64> {
+    let m = std::fs::metadata(path).map_err(|e| BrickError::io(path, e))?;
+    if !m.is_file() {
+        return Err(BrickError::io(
+            path,
+            std::io::Error::new(
+                std::io::ErrorKind::InvalidInput,
+                "not a regular file (voxel data must come from a file)",
+            ),
+        ));
+    }
+    Ok(m.len())
+}
+
 fn open_file(path: &Path) -> Result<File> {
     File::open(path).map_err(|e| BrickError::io(path, e))
 }
@@ -56,8 +75,8 @@ impl ByteStream {
     /// Maps `path`; voxel data is `len` bytes at `offset`. Errors if the file is too short
     /// (truncated) or, with `exact`, if it has trailing bytes.
     pub(crate) fn plain(path: &Path, offset: u64, len: u64, exact: bool) -> Result<Self> {
+        let flen = regular_len(path)?;
         let file = open_file(path)?;
-        let flen = file.metadata().map_err(|e| BrickError::io(path, e))?.len();
         let need = offset.checked_add(len).ok_or_else(|| BrickError::BadDims {
             path: path.to_path_buf(),
             detail: "byte size overflows".into(),
@@ -91,6 +110,18 @@ impl ByteStream {
     /// Opens a gzip stream starting at byte `start` of `path`; voxel data is `len`
     /// decompressed bytes after skipping `offset` decompressed bytes.
     pub(crate) fn gzip(path: &Path, start: u64, offset: u64, len: u64) -> Result<Self> {
+        // Deflate cannot expand a byte into more than 1032: a header claiming more voxel bytes
+        // than the compressed file can hold is refused before anything is allocated for it.
+        let flen = regular_len(path)?;
+        let most = flen.saturating_sub(start).saturating_mul(GZIP_MAX_RATIO);
+        let need = offset.saturating_add(len);
+        if need > most {
+            return Err(BrickError::Truncated {
+                path: path.to_path_buf(),
+                expected: len,
+                found: most.saturating_sub(offset),
+            });
+        }
         let dec = Self::open_gz(path, start)?;
         Ok(ByteStream {
             path: path.to_path_buf(),

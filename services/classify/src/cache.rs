@@ -1,8 +1,10 @@
-//! The feature cache: an LRU of feature bricks in half precision, shared by every
-//! classification and recommendation of a session (and every seed and round of an
-//! evaluation), so a new scribble re-trains the forest without recomputing the features.
-//! Entries are keyed by feature set, model version and brick, so a newer model snapshot never
-//! serves stale features.
+//! The feature cache: one LRU of feature bricks in half precision for a whole process (the
+//! server's sessions, or every seed and round of an evaluation), under one memory budget
+//! (`--cache-mib`), so opening more sessions never multiplies the memory it may hold. Each session reads it through a [`SessionFeatures`]
+//! handle, shared by every classification and recommendation of that session, so a new scribble
+//! re-trains the forest without recomputing the features. Entries are keyed by session, feature
+//! set, model version and brick, so a newer model snapshot never serves stale features, and a
+//! closed session's entries are dropped.
 
 use crate::features::{f16_saturating, BrickFeatures};
 use crate::ClassifyError;
@@ -10,21 +12,59 @@ use neuvolex_bricks::lru::Lru;
 use neuvolex_bricks::Brick;
 use std::sync::Arc;
 
-type Key = (String, u64, [usize; 3]);
+type Key = (String, String, u64, [usize; 3]);
 
-/// Feature bricks (`voxels x channels`, f16) under a byte budget.
+/// Feature bricks (`voxels x channels`, f16) of every session under one byte budget.
 pub struct FeatureCache {
     lru: Lru<Key, Arc<Vec<half::f16>>>,
+    budget: usize,
 }
 
 impl FeatureCache {
-    /// A cache holding at most `bytes` of features.
+    /// A cache holding at most `bytes` of features (at least one brick is always kept).
     pub fn new(bytes: usize) -> Self {
         FeatureCache {
             lru: Lru::new(bytes),
+            budget: bytes,
         }
     }
 
+    /// The handle a session reads through.
+    pub fn for_session(self: &Arc<Self>, session: &str) -> SessionFeatures {
+        SessionFeatures {
+            cache: self.clone(),
+            session: session.to_string(),
+        }
+    }
+
+    /// Drops every entry of `session` (it was closed).
+    pub fn drop_session(&self, session: &str) {
+        self.lru.retain(|k| k.0 != session);
+    }
+
+    /// `(hits, misses)` so far, all sessions.
+    pub fn stats(&self) -> (u64, u64) {
+        self.lru.hit_stats()
+    }
+
+    /// Bytes held, all sessions.
+    pub fn used(&self) -> usize {
+        self.lru.used()
+    }
+
+    /// The budget, bytes.
+    pub fn budget(&self) -> usize {
+        self.budget
+    }
+}
+
+/// One session's view of the shared [`FeatureCache`].
+pub struct SessionFeatures {
+    cache: Arc<FeatureCache>,
+    session: String,
+}
+
+impl SessionFeatures {
     /// The features of `b` from `fx` (named `set`, computed with model `version`), as f32.
     pub fn get(
         &self,
@@ -33,24 +73,23 @@ impl FeatureCache {
         fx: &BrickFeatures,
         b: &Brick,
     ) -> Result<Vec<f32>, ClassifyError> {
-        let v = self
-            .lru
-            .get_or_try_insert(&(set.to_string(), version, b.index), || {
-                let f = fx.brick(b)?;
-                let h: Vec<half::f16> = f.iter().map(|&v| f16_saturating(v)).collect();
-                let cost = h.len() * 2;
-                Ok::<_, ClassifyError>((Arc::new(h), cost))
-            })?;
+        let key = (self.session.clone(), set.to_string(), version, b.index);
+        let v = self.cache.lru.get_or_try_insert(&key, || {
+            let f = fx.brick(b)?;
+            let h: Vec<half::f16> = f.iter().map(|&v| f16_saturating(v)).collect();
+            let cost = h.len() * 2;
+            Ok::<_, ClassifyError>((Arc::new(h), cost))
+        })?;
         Ok(v.iter().map(|h| h.to_f32()).collect())
     }
 
-    /// `(hits, misses)` so far.
+    /// `(hits, misses)` so far, all sessions.
     pub fn stats(&self) -> (u64, u64) {
-        self.lru.hit_stats()
+        self.cache.stats()
     }
 
-    /// Bytes held.
+    /// Bytes held, all sessions.
     pub fn used(&self) -> usize {
-        self.lru.used()
+        self.cache.used()
     }
 }

@@ -81,9 +81,45 @@ impl Scribbles {
     }
 }
 
+/// Most distinct voxels strokes may cover (4 Mi, 16 fully painted 512x512 slices); more is
+/// refused rather than held in memory.
+pub const MAX_SCRIBBLED_VOXELS: usize = 1 << 22;
+/// Most brush-row evaluations one rasterisation may spend (each stamp of the brush costs one
+/// per slice row it touches); more is refused rather than tying up a core.
+pub const MAX_RASTER_WORK: u64 = 1 << 24;
+
 /// Rasterises strokes (a disc of `radius` swept along each polyline). Later strokes win.
+///
+/// The brush is stamped every half voxel along each segment; a voxel is painted when its centre
+/// lies within `radius` of a stamp. Each stamp's rows are computed as intervals and merged per
+/// segment, so a wide brush costs one interval per row instead of one test per pixel. Strokes
+/// covering more than [`MAX_SCRIBBLED_VOXELS`] voxels, or costing more than [`MAX_RASTER_WORK`],
+/// get an error instead of exhausting memory or time.
 pub fn rasterise(strokes: &[Stroke], dims: [usize; 3]) -> Result<Scribbles, ScribbleError> {
-    let mut map = std::collections::BTreeMap::new();
+    /// Voxel indices hash well with one multiplication (Fibonacci hashing).
+    #[derive(Default, Clone, Copy)]
+    struct VoxelHasher(u64);
+    impl std::hash::Hasher for VoxelHasher {
+        fn finish(&self) -> u64 {
+            self.0
+        }
+        fn write(&mut self, bytes: &[u8]) {
+            for &b in bytes {
+                self.0 = (self.0.rotate_left(8) ^ b as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15);
+            }
+        }
+        fn write_u64(&mut self, v: u64) {
+            self.0 = v.wrapping_mul(0x9E37_79B9_7F4A_7C15);
+        }
+    }
+    let mut map: std::collections::HashMap<u64, u32, std::hash::BuildHasherDefault<VoxelHasher>> =
+        Default::default();
+    let mut work = 0u64;
+    // (row, first, last) runs of the segment being stamped, and the run still growing on each
+    // row (consecutive stamps overlap, so most extend it).
+    let mut runs: Vec<(usize, usize, usize)> = Vec::new();
+    let mut open: std::collections::HashMap<usize, (usize, usize)> = Default::default();
+    const FLUSH: usize = 1 << 20;
     for (si, s) in strokes.iter().enumerate() {
         let bad = |detail: String| ScribbleError::Stroke { index: si, detail };
         let (ua, va, wa) = match s.axis {
@@ -118,42 +154,135 @@ pub fn rasterise(strokes: &[Stroke], dims: [usize; 3]) -> Result<Scribbles, Scri
             }
         }
         let r = s.radius;
-        let mut stamp = |cu: f32, cv: f32| {
+        let rr = r * r + 1e-6;
+        let (nu, nv) = (dims[ua], dims[va]);
+        // Inside the brush centred at (cu, cv): the test every stamp applies to a voxel centre.
+        let inside = |u: usize, v: usize, cu: f32, cv: f32| {
+            (u as f32 - cu).powi(2) + (v as f32 - cv).powi(2) <= rr
+        };
+        // Stamps the brush at (cu, cv), adding its runs; returns the rows it cost.
+        let stamp = |cu: f32,
+                     cv: f32,
+                     runs: &mut Vec<(usize, usize, usize)>,
+                     open: &mut std::collections::HashMap<usize, (usize, usize)>|
+         -> u64 {
             let (u0, u1) = (
                 (cu - r).floor().max(0.0) as usize,
-                ((cu + r).ceil() as usize).min(dims[ua] - 1),
+                ((cu + r).ceil() as usize).min(nu - 1),
             );
             let (v0, v1) = (
                 (cv - r).floor().max(0.0) as usize,
-                ((cv + r).ceil() as usize).min(dims[va] - 1),
+                ((cv + r).ceil() as usize).min(nv - 1),
             );
             for v in v0..=v1 {
-                for u in u0..=u1 {
-                    if (u as f32 - cu).powi(2) + (v as f32 - cv).powi(2) <= r * r + 1e-6 {
-                        let mut c = [0usize; 3];
-                        c[ua] = u;
-                        c[va] = v;
-                        c[wa] = s.slice;
-                        map.insert(((c[2] * dims[1] + c[1]) * dims[0] + c[0]) as u64, s.class);
+                let dv = (v as f32 - cv).powi(2);
+                if dv > rr {
+                    continue;
+                }
+                // The covered voxels of a row are one run (the test is monotone in |u - cu|):
+                // estimate its ends, then settle them with the exact test.
+                let half = (rr - dv).max(0.0).sqrt();
+                let mut lo = ((cu - half).ceil().max(u0 as f32) as usize).min(u1);
+                let mut hi = ((cu + half).floor().max(u0 as f32) as usize).min(u1);
+                while lo > u0 && inside(lo - 1, v, cu, cv) {
+                    lo -= 1;
+                }
+                while lo <= hi && !inside(lo, v, cu, cv) {
+                    lo += 1;
+                }
+                while hi < u1 && inside(hi + 1, v, cu, cv) {
+                    hi += 1;
+                }
+                while hi >= lo && !inside(hi, v, cu, cv) {
+                    if hi == 0 {
+                        break;
+                    }
+                    hi -= 1;
+                }
+                if lo <= hi && inside(lo, v, cu, cv) {
+                    match open.get_mut(&v) {
+                        Some(o) if lo <= o.1 + 1 && hi + 1 >= o.0 => {
+                            *o = (o.0.min(lo), o.1.max(hi));
+                        }
+                        Some(o) => {
+                            runs.push((v, o.0, o.1));
+                            *o = (lo, hi);
+                        }
+                        None => {
+                            open.insert(v, (lo, hi));
+                        }
                     }
                 }
             }
+            (v1 - v0 + 1) as u64
         };
-        stamp(s.points[0][0], s.points[0][1]);
+        let mut flush = |runs: &mut Vec<(usize, usize, usize)>,
+                         open: &mut std::collections::HashMap<usize, (usize, usize)>|
+         -> Result<(), ScribbleError> {
+            runs.extend(open.drain().map(|(v, (lo, hi))| (v, lo, hi)));
+            runs.sort_unstable();
+            let mut k = 0;
+            while k < runs.len() {
+                let (v, lo, mut hi) = runs[k];
+                k += 1;
+                while k < runs.len() && runs[k].0 == v && runs[k].1 <= hi + 1 {
+                    hi = hi.max(runs[k].2);
+                    k += 1;
+                }
+                for u in lo..=hi {
+                    let mut c = [0usize; 3];
+                    c[ua] = u;
+                    c[va] = v;
+                    c[wa] = s.slice;
+                    map.insert(((c[2] * dims[1] + c[1]) * dims[0] + c[0]) as u64, s.class);
+                }
+                if map.len() > MAX_SCRIBBLED_VOXELS {
+                    return Err(bad(format!(
+                        "the strokes cover more than {MAX_SCRIBBLED_VOXELS} voxels; scribble less \
+                         (a few strokes per class are enough)"
+                    )));
+                }
+            }
+            runs.clear();
+            Ok(())
+        };
+        let too_costly = |work: u64| {
+            (work > MAX_RASTER_WORK).then(|| {
+                bad(format!(
+                    "the strokes are too long or too wide to rasterise (more than \
+                     {MAX_RASTER_WORK} brush rows); split them or use a smaller brush"
+                ))
+            })
+        };
+        work += stamp(s.points[0][0], s.points[0][1], &mut runs, &mut open);
         for w in s.points.windows(2) {
             let (a, b) = (w[0], w[1]);
             let len = ((b[0] - a[0]).powi(2) + (b[1] - a[1]).powi(2)).sqrt();
             let steps = (len * 2.0).ceil().max(1.0) as usize;
             for k in 1..=steps {
                 let t = k as f32 / steps as f32;
-                stamp(a[0] + (b[0] - a[0]) * t, a[1] + (b[1] - a[1]) * t);
+                let (cu, cv) = (a[0] + (b[0] - a[0]) * t, a[1] + (b[1] - a[1]) * t);
+                work += stamp(cu, cv, &mut runs, &mut open);
+                if runs.len() >= FLUSH {
+                    if let Some(e) = too_costly(work) {
+                        return Err(e);
+                    }
+                    flush(&mut runs, &mut open)?;
+                }
             }
+            if let Some(e) = too_costly(work) {
+                return Err(e);
+            }
+            flush(&mut runs, &mut open)?;
         }
+        if let Some(e) = too_costly(work) {
+            return Err(e);
+        }
+        flush(&mut runs, &mut open)?;
     }
-    Ok(Scribbles {
-        dims,
-        voxels: map.into_iter().collect(),
-    })
+    let mut voxels: Vec<(u64, u32)> = map.into_iter().collect();
+    voxels.sort_unstable_by_key(|v| v.0);
+    Ok(Scribbles { dims, voxels })
 }
 
 /// Scribble density, after the paper: S1 one slice, S2 about 3, S3 about 9, S4 about 27.
@@ -520,6 +649,130 @@ mod tests {
             radius: 0.0,
         };
         assert_eq!(rasterise(&[s], [6, 3, 2]).unwrap().voxels, vec![(5, 1)]);
+    }
+
+    /// The per-pixel stamping the interval rasteriser replaces: every stamp tests every pixel
+    /// of its bounding box.
+    fn rasterise_per_pixel(strokes: &[Stroke], dims: [usize; 3]) -> Vec<(u64, u32)> {
+        let mut map = std::collections::BTreeMap::new();
+        for s in strokes {
+            let (ua, va, wa) = match s.axis {
+                Axis::X => (1, 2, 0),
+                Axis::Y => (0, 2, 1),
+                Axis::Z => (0, 1, 2),
+            };
+            let r = s.radius;
+            let mut stamp = |cu: f32, cv: f32| {
+                let u0 = (cu - r).floor().max(0.0) as usize;
+                let u1 = ((cu + r).ceil() as usize).min(dims[ua] - 1);
+                let v0 = (cv - r).floor().max(0.0) as usize;
+                let v1 = ((cv + r).ceil() as usize).min(dims[va] - 1);
+                for v in v0..=v1 {
+                    for u in u0..=u1 {
+                        if (u as f32 - cu).powi(2) + (v as f32 - cv).powi(2) <= r * r + 1e-6 {
+                            let mut c = [0usize; 3];
+                            c[ua] = u;
+                            c[va] = v;
+                            c[wa] = s.slice;
+                            map.insert(((c[2] * dims[1] + c[1]) * dims[0] + c[0]) as u64, s.class);
+                        }
+                    }
+                }
+            };
+            stamp(s.points[0][0], s.points[0][1]);
+            for w in s.points.windows(2) {
+                let (a, b) = (w[0], w[1]);
+                let len = ((b[0] - a[0]).powi(2) + (b[1] - a[1]).powi(2)).sqrt();
+                let steps = (len * 2.0).ceil().max(1.0) as usize;
+                for k in 1..=steps {
+                    let t = k as f32 / steps as f32;
+                    stamp(a[0] + (b[0] - a[0]) * t, a[1] + (b[1] - a[1]) * t);
+                }
+            }
+        }
+        map.into_iter().collect()
+    }
+
+    #[test]
+    fn interval_rasteriser_equals_per_pixel_stamping() {
+        let mut rng = Rng::new(7);
+        let dims = [37, 23, 11];
+        for case in 0..400 {
+            let n = 1 + rng.below(4);
+            let strokes: Vec<Stroke> = (0..n)
+                .map(|_| {
+                    let axis = [Axis::X, Axis::Y, Axis::Z][rng.below(3)];
+                    let (nu, nv, nw) = match axis {
+                        Axis::X => (dims[1], dims[2], dims[0]),
+                        Axis::Y => (dims[0], dims[2], dims[1]),
+                        Axis::Z => (dims[0], dims[1], dims[2]),
+                    };
+                    let pts = 1 + rng.below(5);
+                    // Radii include 0, integers, halves and arbitrary values; points include
+                    // voxel centres, half-voxel edges and arbitrary positions.
+                    let radius = match rng.below(4) {
+                        0 => 0.0,
+                        1 => rng.below(6) as f32,
+                        2 => rng.below(12) as f32 * 0.5,
+                        _ => rng.f32() * 9.0,
+                    };
+                    let coord = |rng: &mut Rng, n: usize| match rng.below(3) {
+                        0 => rng.below(n) as f32,
+                        1 => rng.below(n) as f32 - 0.5,
+                        _ => rng.f32() * (n as f32 - 0.5),
+                    };
+                    Stroke {
+                        class: 1 + rng.below(3) as u32,
+                        axis,
+                        slice: rng.below(nw),
+                        points: (0..pts)
+                            .map(|_| [coord(&mut rng, nu), coord(&mut rng, nv)])
+                            .collect(),
+                        radius,
+                    }
+                })
+                .collect();
+            let fast = rasterise(&strokes, dims).unwrap().voxels;
+            assert_eq!(
+                fast,
+                rasterise_per_pixel(&strokes, dims),
+                "case {case}: {strokes:?}"
+            );
+        }
+    }
+
+    #[test]
+    fn huge_strokes_are_refused_quickly() {
+        let dims = [4096, 4096, 64];
+        // 64 full-width zig-zags with the widest brush on every slice: far more than 8 Mi voxels.
+        let strokes: Vec<Stroke> = (0..64)
+            .map(|z| Stroke {
+                class: 1,
+                axis: Axis::Z,
+                slice: z,
+                points: (0..64)
+                    .map(|i| [(i % 2) as f32 * 4095.0, i as f32 * 64.0])
+                    .collect(),
+                radius: 64.0,
+            })
+            .collect();
+        let t = std::time::Instant::now();
+        let e = rasterise(&strokes, dims).unwrap_err().to_string();
+        assert!(e.contains("more than"), "{e}");
+        // A hang guard only (the machine may be loaded): about 1 s on an idle core.
+        assert!(t.elapsed().as_secs_f64() < 60.0, "{:?}", t.elapsed());
+        // The same path over and over stays within the voxel limit but not the work limit.
+        let s = Stroke {
+            class: 1,
+            axis: Axis::Z,
+            slice: 0,
+            points: (0..100_000)
+                .map(|i| [(i % 2) as f32 * 4095.0, 10.0])
+                .collect(),
+            radius: 64.0,
+        };
+        let e = rasterise(&[s], dims).unwrap_err().to_string();
+        assert!(e.contains("too long or too wide"), "{e}");
     }
 
     #[test]

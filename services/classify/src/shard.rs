@@ -43,12 +43,20 @@ enum TableFile {
 impl ClassTable {
     /// Reads `{"classes": [{"id", "name", "color"}...], "background": 255}` or a bare class list.
     pub fn load(path: &Path) -> Result<Self, ClassifyError> {
+        let text = std::fs::read_to_string(path).map_err(|e| ClassifyError::File {
+            path: path.to_path_buf(),
+            detail: e.to_string(),
+        })?;
+        Self::parse(&text, path)
+    }
+
+    /// Parses a class table from JSON text; `path` names it in errors.
+    pub fn parse(text: &str, path: &Path) -> Result<Self, ClassifyError> {
         let bad = |d: String| ClassifyError::File {
             path: path.to_path_buf(),
             detail: d,
         };
-        let text = std::fs::read_to_string(path).map_err(|e| bad(e.to_string()))?;
-        let t = match serde_json::from_str::<TableFile>(&text) {
+        let t = match serde_json::from_str::<TableFile>(text) {
             Ok(TableFile::Full(t)) => t,
             Ok(TableFile::List(classes)) => ClassTable {
                 classes,
@@ -61,6 +69,11 @@ impl ClassTable {
                 )))
             }
         };
+        if t.background == 0 {
+            return Err(bad(
+                "background 0 is the unlabelled value; use another label (255 by default)".into(),
+            ));
+        }
         let mut ids: Vec<u32> = t.classes.iter().map(|c| c.id).collect();
         ids.sort_unstable();
         if ids.windows(2).any(|w| w[0] == w[1]) {

@@ -1,8 +1,19 @@
 //! `neuvolex serve`: the HTTP API and browser UI.
+//!
+//! On loopback the server is open to this machine's users (browsers on other sites and names
+//! that merely resolve to 127.0.0.1 are refused); on any other address it requires a token,
+//! generated at start and printed in the URL, or given with `--token` / `NEUVOLEX_TOKEN`.
+//! SIGTERM and Ctrl-C stop it within 2 s: event streams end, trainings stop and save their
+//! checkpoints, sessions are saved to `WORK/sessions/`.
 
 use anyhow::{Context, Result};
 use neuvolex_server::{configure, AppState, ServerConfig};
 use std::path::PathBuf;
+use std::time::Duration;
+
+/// How long shutdown waits for trainings to save their checkpoints before the server stops
+/// (the whole shutdown stays under 2 s).
+const SHUTDOWN_GRACE: Duration = Duration::from_millis(1200);
 
 /// Arguments of `neuvolex serve`.
 #[derive(clap::Args)]
@@ -16,13 +27,27 @@ pub struct ServeArgs {
     /// Where stores ingested from plain files are kept.
     #[arg(long, default_value = "out/serve")]
     work: PathBuf,
-    /// Address to listen on.
+    /// Address to listen on. Anything but loopback requires a token.
     #[arg(long, default_value = "127.0.0.1")]
     host: String,
+    /// The access token (default: `NEUVOLEX_TOKEN`, else one generated at start whenever the
+    /// address is not loopback). Given on loopback, it is required there too.
+    #[arg(long)]
+    token: Option<String>,
+    /// Most sessions open at once.
+    #[arg(long, default_value_t = neuvolex_server::http::MAX_SESSIONS)]
+    max_sessions: usize,
+    /// Most INR trainings running at once.
+    #[arg(long, default_value_t = 1)]
+    max_trainings: usize,
+    /// Seconds a request may take before it is answered with 503 (event streams excepted).
+    #[arg(long, default_value_t = 60.0)]
+    request_timeout: f64,
     /// Port (0 picks a free one).
     #[arg(long, default_value_t = 8080)]
     port: u16,
-    /// Feature-cache budget per session, MiB (features are kept in half precision).
+    /// Feature-cache budget, MiB, for all sessions together (features are kept in half
+    /// precision).
     #[arg(long, default_value_t = 512)]
     cache_mib: usize,
     /// Engines of the INR trainer and the renderer: cpu, gpu (any adapter, software ones
@@ -102,20 +127,63 @@ pub fn run_serve(a: &ServeArgs) -> Result<()> {
         ),
         None => None,
     };
+    anyhow::ensure!(a.max_sessions >= 1, "--max-sessions must be at least 1");
+    anyhow::ensure!(a.max_trainings >= 1, "--max-trainings must be at least 1");
+    anyhow::ensure!(
+        a.request_timeout.is_finite() && a.request_timeout > 0.0 && a.request_timeout <= 86400.0,
+        "--request-timeout {} must be in (0, 86400] seconds",
+        a.request_timeout
+    );
+    cfg.max_sessions = a.max_sessions;
+    cfg.max_trainings = a.max_trainings;
+    cfg.request_timeout = Duration::from_secs_f64(a.request_timeout);
+    let addrs: Vec<std::net::SocketAddr> =
+        std::net::ToSocketAddrs::to_socket_addrs(&(a.host.as_str(), a.port))
+            .with_context(|| format!("cannot resolve --host {}", a.host))?
+            .collect();
+    let loopback = !addrs.is_empty() && addrs.iter().all(|s| s.ip().is_loopback());
+    let token = match a
+        .token
+        .clone()
+        .or_else(|| std::env::var("NEUVOLEX_TOKEN").ok())
+    {
+        Some(t) => {
+            anyhow::ensure!(
+                t.len() >= 8
+                    && t.bytes()
+                        .all(|b| b.is_ascii_alphanumeric() || b"-_.~".contains(&b)),
+                "the token must be at least 8 characters of A-Z, a-z, 0-9, '-', '_', '.', '~'"
+            );
+            Some(t)
+        }
+        None if loopback => None,
+        None => Some(new_token()?),
+    };
+    cfg.local_only = loopback && token.is_none();
+    cfg.token = token.clone();
+    let state_dir = cfg.work_dir.join("sessions");
     actix_web::rt::System::new().block_on(async move {
         let state = AppState::new(cfg.clone());
         let engines = state.actors.compute().clone();
+        let st = state.clone();
         let server = actix_web::HttpServer::new(move || {
             actix_web::App::new()
                 .app_data(state.clone())
                 .configure(configure)
         })
+        // Signals are handled below: a graceful stop that never waits on open event streams.
+        .disable_signals()
+        .shutdown_timeout(1)
+        .client_request_timeout(Duration::from_secs(10))
         .bind((a.host.as_str(), a.port))
         .with_context(|| format!("cannot listen on {}:{}", a.host, a.port))?;
+        let query = token
+            .as_ref()
+            .map(|t| format!("?token={t}"))
+            .unwrap_or_default();
         for addr in server.addrs() {
-            println!(
-                "neuvolex: http://{addr}/  (data root {}; training on {}, rendering on {}{})",
-                cfg.data_root.display(),
+            let engines_note = format!(
+                "training on {}, rendering on {}{}",
                 engines.train,
                 engines.render,
                 engines
@@ -124,7 +192,86 @@ pub fn run_serve(a: &ServeArgs) -> Result<()> {
                     .map(|a| format!(": {a}"))
                     .unwrap_or_default()
             );
+            if addr.ip().is_unspecified() {
+                let name = std::fs::read_to_string("/etc/hostname")
+                    .map(|h| h.trim().to_string())
+                    .ok()
+                    .filter(|h| !h.is_empty())
+                    .unwrap_or_else(|| "HOSTNAME".into());
+                println!(
+                    "neuvolex: http://{name}:{}/{query}  (data root {}; {engines_note})",
+                    addr.port(),
+                    cfg.data_root.display()
+                );
+                println!("neuvolex: http://127.0.0.1:{}/{query}", addr.port());
+            } else {
+                println!(
+                    "neuvolex: http://{addr}/{query}  (data root {}; {engines_note})",
+                    cfg.data_root.display()
+                );
+            }
         }
-        server.run().await.context("server")
+        if token.is_some() {
+            println!("neuvolex: requests without the token are refused (401)");
+        }
+        use std::io::Write;
+        let _ = std::io::stdout().flush();
+        let server = server.run();
+        let handle = server.handle();
+        actix_web::rt::spawn(async move {
+            let sig = stop_signal().await;
+            tracing::info!("{sig}: stopping (event streams end, trainings save their checkpoints)");
+            let t = std::time::Instant::now();
+            let saved = st.shutdown(SHUTDOWN_GRACE).await;
+            tracing::info!(
+                "{} session(s) saved in {} after {:.2} s; closing connections",
+                saved.len(),
+                state_dir.display(),
+                t.elapsed().as_secs_f64()
+            );
+            handle.stop(true).await;
+        });
+        let r = server.await.context("server");
+        // Dropping the runtime would wait for work still running on its blocking pool (a
+        // training past the grace period, a render, a classification). That work was cancelled
+        // or made stale and writes only atomically (the last checkpoint and the saved session
+        // are whole): end the process here instead of waiting for it.
+        if r.is_ok() {
+            std::process::exit(0)
+        }
+        r
     })
+}
+
+/// Waits for SIGTERM or SIGINT (Ctrl-C); returns which.
+async fn stop_signal() -> &'static str {
+    #[cfg(unix)]
+    {
+        use tokio::signal::unix::{signal, SignalKind};
+        match (
+            signal(SignalKind::terminate()),
+            signal(SignalKind::interrupt()),
+        ) {
+            (Ok(mut term), Ok(mut int)) => tokio::select! {
+                _ = term.recv() => "SIGTERM",
+                _ = int.recv() => "SIGINT",
+            },
+            _ => {
+                let _ = tokio::signal::ctrl_c().await;
+                "Ctrl-C"
+            }
+        }
+    }
+    #[cfg(not(unix))]
+    {
+        let _ = tokio::signal::ctrl_c().await;
+        "Ctrl-C"
+    }
+}
+
+/// A fresh access token: 24 random bytes, hex.
+fn new_token() -> Result<String> {
+    let mut b = [0u8; 24];
+    getrandom::fill(&mut b).map_err(|e| anyhow::anyhow!("no random source for the token: {e}"))?;
+    Ok(b.iter().map(|x| format!("{x:02x}")).collect())
 }

@@ -182,7 +182,7 @@ pub fn run(cfg: &EvalConfig, os: &OneShotConfig, events: Events) -> Result<Vec<R
                 scribbles.push((level, seed, s));
             }
         }
-        let cache = FeatureCache::new(cfg.cache_bytes);
+        let cache = std::sync::Arc::new(FeatureCache::new(cfg.cache_bytes)).for_session("eval");
         let dims = ds.store.info().dims;
         let brick = ds.store.info().brick;
         for (fname, priors) in feature_sets(&cfg.methods) {

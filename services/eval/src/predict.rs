@@ -2,12 +2,12 @@
 //! predicted (empty ones skipped), the labels, each voxel's confidence and the per-slice
 //! uncertainty gathered brick by brick, then optionally the component prior.
 //!
-//! Features come through the half-precision [`FeatureCache`] keyed by (method, model), so
+//! Features come through the half-precision [`neuvolex_classify::cache::FeatureCache`] keyed by (method, model), so
 //! seeds, levels and robot rounds on one volume compute them once.
 
 use crate::{EvalEvent, Events, Result};
 use neuvolex_bricks::Brick;
-use neuvolex_classify::cache::FeatureCache;
+use neuvolex_classify::cache::SessionFeatures;
 use neuvolex_classify::components::{apply_in_memory, PriorConfig};
 use neuvolex_classify::shard::{fit, predict_brick, training_set_with, TrainingSet};
 use neuvolex_classify::suggest::{uncertainty, SliceMass};
@@ -20,7 +20,7 @@ use std::time::Instant;
 pub struct Features<'s> {
     /// The feature set over the store.
     pub fx: BrickFeatures<'s>,
-    cache: Option<&'s FeatureCache>,
+    cache: Option<&'s SessionFeatures>,
     key: String,
     quantise: Quantise,
 }
@@ -28,7 +28,7 @@ pub struct Features<'s> {
 impl<'s> Features<'s> {
     /// Features of `fx` cached in `cache` under `key` (the method and model); `None` recomputes
     /// every brick in full precision.
-    pub fn new(fx: BrickFeatures<'s>, cache: Option<&'s FeatureCache>, key: String) -> Self {
+    pub fn new(fx: BrickFeatures<'s>, cache: Option<&'s SessionFeatures>, key: String) -> Self {
         Features {
             fx,
             cache,

@@ -401,7 +401,7 @@ pub fn run(cfg: &EvalConfig, rc: &RobotConfig, events: Events) -> Result<Vec<Rou
         let dims = ds.store.info().dims;
         let brick = ds.store.info().brick;
         let fg = foreground_slices(&ds.truth, dims);
-        let cache = FeatureCache::new(cfg.cache_bytes);
+        let cache = std::sync::Arc::new(FeatureCache::new(cfg.cache_bytes)).for_session("eval");
         for (fname, priors) in feature_sets(&cfg.methods) {
             let set: FeatureSet = fname.parse().map_err(EvalError::Config)?;
             let variants: Vec<Option<&TrainedInr>> = if set.needs_model() {

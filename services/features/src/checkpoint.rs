@@ -147,7 +147,8 @@ pub struct Loaded {
 }
 
 /// Loads a model or checkpoint (a path or a location in an `s3://` store), checking magic,
-/// sizes and CRC.
+/// sizes and CRC. Every size the header claims is checked against the configuration's limits
+/// and the file's length before anything is allocated for it.
 pub fn load(location: impl Into<StoreLocation>) -> Result<Loaded> {
     let location = location.into();
     let path_buf = location.as_path();
@@ -157,6 +158,7 @@ pub fn load(location: impl Into<StoreLocation>) -> Result<Loaded> {
         path: path.to_path_buf(),
         source: std::io::Error::new(std::io::ErrorKind::NotFound, "no such file"),
     })?;
+    let flen = bytes.len() as u64;
     let mut f = bytes.as_slice();
     let mut head = [0u8; 16];
     f.read_exact(&mut head)
@@ -168,11 +170,39 @@ pub fn load(location: impl Into<StoreLocation>) -> Result<Loaded> {
     if hl > 1 << 24 {
         return Err(bad(path, format!("header length {hl} is absurd")));
     }
+    if hl > flen.saturating_sub(16) {
+        return Err(bad(
+            path,
+            format!(
+                "truncated: the header claims {hl} bytes, the file has {} after the preamble",
+                flen.saturating_sub(16)
+            ),
+        ));
+    }
     let mut json = vec![0u8; hl as usize];
     f.read_exact(&mut json)
         .map_err(|_| bad(path, "truncated header"))?;
     let header: Header =
         serde_json::from_slice(&json).map_err(|e| bad(path, format!("header: {e}")))?;
+    header
+        .inr
+        .validate()
+        .map_err(|e| bad(path, format!("header: {e}")))?;
+    if header.dims.iter().any(|&d| d == 0 || d > 1 << 20) {
+        return Err(bad(
+            path,
+            format!("header: grid {:?} is empty or absurd", header.dims),
+        ));
+    }
+    if !["model", "checkpoint"].contains(&header.kind.as_str()) {
+        return Err(bad(
+            path,
+            format!(
+                "header: kind '{}' is neither model nor checkpoint",
+                header.kind.escape_debug()
+            ),
+        ));
+    }
     let grid = HashGrid::new(&header.inr, *header.dims.iter().max().unwrap_or(&1));
     let layout = DenseLayout::for_config(&header.inr, grid.out_dim());
     if grid.table_len() != header.table_len || layout.len != header.dense_len {
@@ -190,6 +220,21 @@ pub fn load(location: impl Into<StoreLocation>) -> Result<Loaded> {
         header.dense_len,
         header.dense_len,
     ];
+    let need: u64 = lens.iter().take(n_arrays).map(|&l| l as u64 * 4).sum();
+    let have = flen.saturating_sub(16 + hl);
+    if need != have {
+        return Err(bad(
+            path,
+            format!(
+                "{}: the header describes {need} bytes of parameters, the file holds {have}",
+                if have < need {
+                    "truncated"
+                } else {
+                    "size mismatch"
+                }
+            ),
+        ));
+    }
     let mut arrays = Vec::new();
     let mut crc = crc32fast::Hasher::new();
     for &len in lens.iter().take(n_arrays) {

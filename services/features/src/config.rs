@@ -115,6 +115,41 @@ impl InrConfig {
         }
         Ok(())
     }
+
+    /// Checks every size against limits far above any useful model (16 levels of 2^19 entries
+    /// is the paper's), so a damaged or hostile model file is refused before anything is
+    /// allocated for it.
+    pub fn validate(&self) -> Result<(), String> {
+        let within = |name: &str, v: usize, lo: usize, hi: usize| {
+            if (lo..=hi).contains(&v) {
+                Ok(())
+            } else {
+                Err(format!("{name} {v} is outside {lo}..={hi}"))
+            }
+        };
+        within("levels", self.levels, 1, 32)?;
+        within("features_per_level", self.features_per_level, 1, 16)?;
+        within("log2_table", self.log2_table as usize, 1, 26)?;
+        within("base_resolution", self.base_resolution, 1, 1 << 20)?;
+        if let Some(f) = self.finest_resolution {
+            within("finest_resolution", f, 1, 1 << 20)?;
+        }
+        within("patch", self.patch, 1, 15)?;
+        within("structural_hidden", self.structural_hidden, 1, 1024)?;
+        within("hidden", self.hidden, 1, 1024)?;
+        within("hidden_layers", self.hidden_layers, 1, 64)?;
+        if !(self.lambda_grad.is_finite() && self.lambda_stat.is_finite()) {
+            return Err("loss weights must be finite".into());
+        }
+        if self.context_sigmas.len() > 8 {
+            return Err(format!(
+                "{} context sigmas: at most 8",
+                self.context_sigmas.len()
+            ));
+        }
+        self.check()
+
+    }
 }
 
 /// The paper's ablation ladder.

@@ -209,6 +209,8 @@ pub fn start(
             (m, a, TrainState::default(), cfg.clone())
         }
     };
+    // A resumed checkpoint brings its own settings: they are checked too.
+    check_configs(&model.cfg, &tc)?;
     tc.batch = tc.batch.max(1);
     model.cfg.check().map_err(FeatureError::Config)?;
     let bricks = training_bricks(store, tc.include_empty);

@@ -8,7 +8,7 @@ use neuvolex_bricks::BrickStore;
 use neuvolex_cluster::ClusterExecutor;
 use serde::Serialize;
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::sync::Arc;
 use tokio::sync::{broadcast, mpsc, oneshot, Mutex as AsyncMutex};
 
@@ -94,6 +94,19 @@ pub enum Mail<T> {
     Crash,
 }
 
+/// A reserved place in the classifier's mailbox ([`Actors::reserve_classify`]).
+pub struct ClassifyPermit(mpsc::OwnedPermit<Mail<ClassifyJob>>);
+
+impl ClassifyPermit {
+    /// Queues classification of `session` at `generation` (cannot fail: the place is held).
+    pub fn send(self, session: Arc<Session>, generation: u64) {
+        self.0.send(Mail::Work(ClassifyJob {
+            session,
+            generation,
+        }));
+    }
+}
+
 /// A request to classify a session at a stroke generation.
 pub struct ClassifyJob {
     /// The session.
@@ -112,7 +125,37 @@ pub enum TrainCommand {
         epochs: f64,
         /// Continue from the checkpoint.
         resume: bool,
+        /// Stops this training (also installed as the session's `train_cancel`).
+        cancel: Arc<AtomicBool>,
+        /// Its place among the concurrent trainings the server allows.
+        slot: TrainingSlot,
     },
+}
+
+/// A place among the concurrent trainings the server allows ([`TrainingSlot::take`]); freed
+/// when dropped, that is when the training ends however it ends.
+pub struct TrainingSlot {
+    running: Arc<AtomicUsize>,
+}
+
+impl TrainingSlot {
+    /// A slot if fewer than `max` trainings hold one (`running` counts them).
+    pub fn take(running: &Arc<AtomicUsize>, max: usize) -> Option<TrainingSlot> {
+        running
+            .fetch_update(Ordering::SeqCst, Ordering::SeqCst, |n| {
+                (n < max).then_some(n + 1)
+            })
+            .ok()
+            .map(|_| TrainingSlot {
+                running: running.clone(),
+            })
+    }
+}
+
+impl Drop for TrainingSlot {
+    fn drop(&mut self) {
+        self.running.fetch_sub(1, Ordering::SeqCst);
+    }
 }
 
 /// A render request with its reply slot.
@@ -135,6 +178,9 @@ pub struct IngestJob {
     pub dest: PathBuf,
     /// Name shown in progress events.
     pub name: String,
+    /// The folder every byte read must come from (a detached NRRD header may name a data file
+    /// elsewhere: that is refused).
+    pub root: PathBuf,
     /// The opened store or an error.
     pub reply: oneshot::Sender<ApiResult<BrickStore>>,
 }
@@ -237,12 +283,14 @@ impl Actors {
         }
     }
 
-    /// Ingests `source` into the store `dest` (reused when it exists), publishing progress.
+    /// Ingests `source` into the store `dest` (reused when it exists), publishing progress;
+    /// every file read must lie under `root`.
     pub async fn ingest(
         &self,
         source: PathBuf,
         dest: PathBuf,
         name: String,
+        root: PathBuf,
     ) -> ApiResult<BrickStore> {
         let (reply, rx) = oneshot::channel();
         self.ingest
@@ -250,6 +298,7 @@ impl Actors {
                 source,
                 dest,
                 name,
+                root,
                 reply,
             }))
             .map_err(busy("ingester"))?;
@@ -265,6 +314,16 @@ impl Actors {
                 generation,
             }))
             .map_err(busy("classifier"))
+    }
+
+    /// Reserves a place in the classifier's mailbox before a change that needs classifying
+    /// is made, so a full mailbox answers 503 with nothing changed (never "changed, but 503").
+    pub fn reserve_classify(&self) -> ApiResult<ClassifyPermit> {
+        self.classify
+            .clone()
+            .try_reserve_owned()
+            .map(ClassifyPermit)
+            .map_err(|_| ApiError::Busy("the classifier is busy; try again".into()))
     }
 
     /// Queues a training command.
@@ -355,21 +414,44 @@ async fn ingester(rx: Inbox<IngestJob>, hub: Hub) {
             source,
             dest,
             name,
+            root,
             reply,
         } = job;
         let h = hub.clone();
-        let r = tokio::task::spawn_blocking(move || ingest_one(&source, &dest, &name, &h)).await;
+        let r =
+            tokio::task::spawn_blocking(move || ingest_one(&source, &dest, &name, &root, &h)).await;
         let _ = reply.send(r.unwrap_or_else(|_| Err(ApiError::Internal("ingest panicked".into()))));
     }
 }
 
 /// Ingests one file (the pure work is `neuvolex_bricks::ingest`), publishing progress.
-fn ingest_one(source: &Path, dest: &Path, name: &str, hub: &Hub) -> ApiResult<BrickStore> {
+fn ingest_one(
+    source: &Path,
+    dest: &Path,
+    name: &str,
+    root: &Path,
+    hub: &Hub,
+) -> ApiResult<BrickStore> {
     if let Ok(s) = BrickStore::open(dest) {
         return Ok(s);
     }
     let mut src = neuvolex_bricks::open_volume(source, None)
         .map_err(|e| ApiError::BadRequest(format!("{name}: {e}")))?;
+    // The voxels may come from another file (a detached NRRD header's data file): it must
+    // lie in the data root too.
+    let data = src
+        .path()
+        .canonicalize()
+        .map_err(|e| ApiError::BadRequest(format!("{name}: {}: {e}", src.path().display())))?;
+    let root_c = root
+        .canonicalize()
+        .map_err(|e| ApiError::Internal(format!("{}: {e}", root.display())))?;
+    if !data.starts_with(&root_c) {
+        return Err(ApiError::Forbidden(format!(
+            "{name}: its data file {} lies outside the data root",
+            src.path().display()
+        )));
+    }
     let (mut stage, mut total) = ("", 0u64);
     let mut last = std::time::Instant::now();
     neuvolex_bricks::ingest(
@@ -478,6 +560,8 @@ fn spawn_classify(
     })
 }
 
+/// Starts each training as its own task (the HTTP layer caps how many run at once), so the
+/// mailbox is never held up by a running training.
 async fn trainer(
     rx: Inbox<TrainCommand>,
     hub: Hub,
@@ -490,37 +574,39 @@ async fn trainer(
             session,
             epochs,
             resume,
+            cancel,
+            slot,
         } = match m {
             Mail::Work(c) => c,
             Mail::Crash => crash("trainer"),
         };
-        let cancel = Arc::new(AtomicBool::new(false));
-        *session
-            .train_cancel
-            .lock()
-            .unwrap_or_else(|p| p.into_inner()) = Some(cancel.clone());
-        let (h, c, s, e) = (
-            hub.clone(),
-            classify.clone(),
-            session.clone(),
-            compute.clone(),
-        );
-        let r = tokio::task::spawn_blocking(move || train(&s, epochs, resume, &cancel, &h, &c, &e))
-            .await;
-        *session
-            .train_cancel
-            .lock()
-            .unwrap_or_else(|p| p.into_inner()) = None;
-        let err = match r {
-            Ok(Ok(())) => continue,
-            Ok(Err(e)) => e.to_string(),
-            Err(_) => "training panicked".to_string(),
-        };
-        hub.publish(
-            Some(&session.id),
-            "training",
-            serde_json::json!({"state": "failed", "error": err}),
-        );
+        let (h, c, e) = (hub.clone(), classify.clone(), compute.clone());
+        tokio::spawn(async move {
+            let (s, flag, h2) = (session.clone(), cancel.clone(), h.clone());
+            let r = tokio::task::spawn_blocking(move || train(&s, epochs, resume, &flag, &h2, &c, &e))
+                .await;
+            {
+                // Only this training's flag: a newer one may have been installed since.
+                let mut tc = session
+                    .train_cancel
+                    .lock()
+                    .unwrap_or_else(|p| p.into_inner());
+                if tc.as_ref().is_some_and(|t| Arc::ptr_eq(t, &cancel)) {
+                    *tc = None;
+                }
+            }
+            drop(slot);
+            let err = match r {
+                Ok(Ok(())) => return,
+                Ok(Err(e)) => e.to_string(),
+                Err(_) => "training panicked".to_string(),
+            };
+            h.publish(
+                Some(&session.id),
+                "training",
+                serde_json::json!({"state": "failed", "error": err}),
+            );
+        });
     }
 }
 
@@ -642,7 +728,7 @@ fn train(
         _ => {}
     };
     let inr = InrConfig::default();
-    let t = match compute.gpu() {
+    let r = match compute.gpu() {
         #[cfg(feature = "gpu")]
         Some(ctx) => neuvolex_features_gpu::train_gpu(
             ctx,
@@ -657,8 +743,20 @@ fn train(
         .map(|g| g.trained)
         .map_err(neuvolex_features::FeatureError::from),
         _ => train(&s.store, &inr, &cfg, loaded, Some(&ckpt), cancel, &mut on),
-    }
-    .map_err(|e| ApiError::Internal(e.to_string()))?;
+    };
+    let t = match r {
+        Ok(t) => t,
+        // Stopped (by the user or a shutdown): its checkpoint is saved for `resume`.
+        Err(neuvolex_features::FeatureError::Cancelled) => {
+            hub.publish(
+                Some(&id),
+                "training",
+                serde_json::json!({"state": "stopped", "checkpoint": ckpt.exists()}),
+            );
+            return Ok(());
+        }
+        Err(e) => return Err(ApiError::Internal(e.to_string())),
+    };
     // The model file is what `neuvolex classify` and later sessions use; a stopped run keeps
     // its checkpoint for `resume`, and its last snapshot serves this session.
     if !cancel.load(Ordering::SeqCst) {

@@ -18,9 +18,12 @@ pub enum ApiError {
     /// The request conflicts with the session's state (409).
     #[error("{0}")]
     Conflict(String),
-    /// A mailbox is full: try again (503).
+    /// A mailbox is full, a limit is reached or the server is stopping: try again (503).
     #[error("{0}")]
     Busy(String),
+    /// The request body is over the limit (413).
+    #[error("{0}")]
+    TooLarge(String),
     /// Something failed inside (500).
     #[error("{0}")]
     Internal(String),
@@ -34,6 +37,7 @@ impl ResponseError for ApiError {
             ApiError::NotFound(_) => StatusCode::NOT_FOUND,
             ApiError::Conflict(_) => StatusCode::CONFLICT,
             ApiError::Busy(_) => StatusCode::SERVICE_UNAVAILABLE,
+            ApiError::TooLarge(_) => StatusCode::PAYLOAD_TOO_LARGE,
             ApiError::Internal(_) => StatusCode::INTERNAL_SERVER_ERROR,
         }
     }

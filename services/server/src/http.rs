@@ -1,6 +1,7 @@
 //! The HTTP API (actix-web) and the embedded browser UI.
 
-use crate::actors::{Actors, Hub, TrainCommand};
+use crate::actors::{Actors, Hub, TrainCommand, TrainingSlot};
+use crate::cache::FeatureCache;
 use crate::error::{ApiError, ApiResult};
 use crate::imaging::{png, window, SliceAxes};
 use crate::session::{Session, BACKGROUND};
@@ -11,15 +12,17 @@ use neuvolex_classify::scribble::Stroke;
 use serde::Deserialize;
 use std::collections::HashMap;
 use std::path::PathBuf;
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
 use std::sync::{Arc, RwLock};
+use std::time::{Duration, Instant};
 
-/// Most sessions open at once (each holds caches; memory stays bounded).
+/// Default for [`ServerConfig::max_sessions`]: most sessions open at once (each holds its
+/// strokes, probabilities and render state; memory stays bounded).
 pub const MAX_SESSIONS: usize = 32;
 /// Largest JSON body accepted.
 pub const MAX_BODY: usize = 4 << 20;
 
-/// Where volumes come from and where derived stores go.
+/// Where volumes come from and where derived stores go, who may connect, and the limits.
 #[derive(Debug, Clone)]
 pub struct ServerConfig {
     /// Only volumes under this folder can be opened.
@@ -31,7 +34,7 @@ pub struct ServerConfig {
     /// A second folder of volumes the server made (the generated phantom), addressed as
     /// `generated/NAME`.
     pub generated_root: Option<PathBuf>,
-    /// Feature-cache budget of each session, bytes.
+    /// Feature-cache budget, bytes, across all sessions together.
     pub feature_cache_bytes: usize,
     /// Exposes `POST /api/debug/crash/{actor}` (supervisor tests only).
     pub fault_injection: bool,
@@ -39,10 +42,24 @@ pub struct ServerConfig {
     pub backend: neuvolex_features::Backend,
     /// Runs classification and viewpoints on this cluster's workers (`serve --cluster`).
     pub cluster: Option<neuvolex_cluster::ClusterExecutor>,
+    /// When set, every request must carry this token (`Authorization: Bearer`, the
+    /// `X-Neuvolex-Token` header, the cookie set by the first visit, or `?token=`); others get
+    /// 401. `neuvolex serve` sets one whenever it listens beyond loopback.
+    pub token: Option<String>,
+    /// Refuse requests whose `Host` is not a loopback name (a server on loopback without a
+    /// token; guards against DNS rebinding).
+    pub local_only: bool,
+    /// Most sessions open at once; one more gets 503.
+    pub max_sessions: usize,
+    /// Most trainings running at once; one more gets 503.
+    pub max_trainings: usize,
+    /// Longest a request may take before it is answered with 503 (event streams excepted).
+    pub request_timeout: Duration,
 }
 
 impl ServerConfig {
-    /// A configuration with the default cache budget (512 MiB per session) and no fault
+    /// A configuration with the default cache budget (512 MiB for all sessions), no token,
+    /// [`MAX_SESSIONS`] sessions, one training at a time, a 60 s request timeout and no fault
     /// injection.
     pub fn new(data_root: PathBuf, work_dir: PathBuf) -> Self {
         ServerConfig {
@@ -54,6 +71,11 @@ impl ServerConfig {
             fault_injection: false,
             backend: neuvolex_features::Backend::Cpu,
             cluster: None,
+            token: None,
+            local_only: false,
+            max_sessions: MAX_SESSIONS,
+            max_trainings: 1,
+            request_timeout: Duration::from_secs(60),
         }
     }
 }
@@ -66,6 +88,15 @@ pub struct AppState {
     pub sessions: RwLock<HashMap<String, Arc<Session>>>,
     /// The actors.
     pub actors: Actors,
+    /// Feature bricks of every session, under one budget.
+    pub features: Arc<FeatureCache>,
+    /// Trainings running now.
+    pub trainings: Arc<AtomicUsize>,
+    /// Sessions being opened (counted against the session limit while they ingest).
+    opening: AtomicUsize,
+    /// Set once shutdown began: new requests get 503 and event streams end.
+    shutdown: tokio::sync::watch::Sender<bool>,
+    started: Instant,
     next: AtomicU64,
 }
 
@@ -75,9 +106,14 @@ impl AppState {
         let compute = crate::compute::Compute::resolve(cfg.backend);
         let actors = Actors::start_with(Hub::default(), compute, cfg.cluster.clone());
         web::Data::new(AppState {
+            features: Arc::new(FeatureCache::new(cfg.feature_cache_bytes)),
             cfg,
             sessions: RwLock::new(HashMap::new()),
             actors,
+            trainings: Arc::new(AtomicUsize::new(0)),
+            opening: AtomicUsize::new(0),
+            shutdown: tokio::sync::watch::channel(false).0,
+            started: Instant::now(),
             next: AtomicU64::new(1),
         })
     }
@@ -91,20 +127,48 @@ impl AppState {
             .ok_or_else(|| ApiError::NotFound(format!("no session '{}'", id.escape_debug())))
     }
 
+    /// Every open session.
+    pub fn all_sessions(&self) -> Vec<Arc<Session>> {
+        self.sessions
+            .read()
+            .unwrap_or_else(|p| p.into_inner())
+            .values()
+            .cloned()
+            .collect()
+    }
+
+    /// True once shutdown began.
+    pub fn shutting_down(&self) -> bool {
+        *self.shutdown.borrow()
+    }
+
     /// Opens `rel` (a store, or a file the ingest actor turns into a store in the work
     /// folder) as a new session.
     pub async fn open(&self, rel: &str) -> ApiResult<Arc<Session>> {
-        if self
-            .sessions
-            .read()
-            .unwrap_or_else(|p| p.into_inner())
-            .len()
-            >= MAX_SESSIONS
+        // Reserve a place first, so concurrent opens (each ingesting for a while) cannot
+        // exceed the limit together.
         {
-            return Err(ApiError::Busy(format!(
-                "{MAX_SESSIONS} sessions are open; close one first"
-            )));
+            let sessions = self.sessions.read().unwrap_or_else(|p| p.into_inner());
+            let max = self.cfg.max_sessions;
+            let took = self
+                .opening
+                .fetch_update(Ordering::SeqCst, Ordering::SeqCst, |n| {
+                    (sessions.len() + n < max).then_some(n + 1)
+                })
+                .is_ok();
+            if !took {
+                return Err(ApiError::Busy(format!(
+                    "{max} sessions are open (the server's limit); close one first"
+                )));
+            }
         }
+        struct Release<'a>(&'a AtomicUsize);
+        impl Drop for Release<'_> {
+            fn drop(&mut self) {
+                self.0.fetch_sub(1, Ordering::SeqCst);
+            }
+        }
+        let _release = Release(&self.opening);
         let path = match (rel.strip_prefix("generated/"), &self.cfg.generated_root) {
             (Some(r), Some(g)) => crate::paths::resolve(g, r)?,
             _ => crate::paths::resolve(&self.cfg.data_root, rel)?,
@@ -124,22 +188,119 @@ impl AppState {
                     .map(|c| if c.is_ascii_alphanumeric() { c } else { '_' })
                     .collect();
                 let dest = self.cfg.work_dir.join(format!("{name}.zarr"));
-                self.actors.ingest(path, dest, rel.to_string()).await?
+                let root = match (rel.strip_prefix("generated/"), &self.cfg.generated_root) {
+                    (Some(_), Some(g)) => g.clone(),
+                    _ => self.cfg.data_root.clone(),
+                };
+                self.actors
+                    .ingest(path, dest, rel.to_string(), root)
+                    .await?
             }
         };
         let id = format!("s{}", self.next.fetch_add(1, Ordering::SeqCst));
-        let s = Session::new(
-            id.clone(),
-            rel.to_string(),
-            Arc::new(store),
-            self.cfg.feature_cache_bytes,
-        );
+        let s = Session::with_cache(id.clone(), rel.to_string(), Arc::new(store), &self.features);
         self.sessions
             .write()
             .unwrap_or_else(|p| p.into_inner())
             .insert(id, s.clone());
         Ok(s)
     }
+
+    /// Closes a session: its work is cancelled (training stopped, classification made
+    /// stale), its state saved for the next open, and its cached features dropped.
+    pub fn close(&self, s: &Session) {
+        stop_work(s);
+        let _ = save_state(&self.cfg.work_dir, s);
+        self.sessions
+            .write()
+            .unwrap_or_else(|p| p.into_inner())
+            .remove(&s.id);
+        self.features.drop_session(&s.id);
+    }
+
+    /// Begins shutdown and returns once in-flight work has stopped, or after `grace`: new
+    /// requests get 503 and event streams end; every training is stopped (it saves its
+    /// checkpoint) and every classification made stale; each session's state is saved to
+    /// `WORK/sessions/` (atomically). Returns the session files written.
+    pub async fn shutdown(&self, grace: Duration) -> Vec<PathBuf> {
+        let deadline = Instant::now() + grace;
+        self.shutdown.send_replace(true);
+        let sessions = self.all_sessions();
+        for s in &sessions {
+            stop_work(s);
+        }
+        let work = self.cfg.work_dir.clone();
+        let saved = web::block(move || {
+            sessions
+                .iter()
+                .filter_map(|s| save_state(&work, s).ok())
+                .collect::<Vec<_>>()
+        })
+        .await
+        .unwrap_or_default();
+        while self.trainings.load(Ordering::SeqCst) > 0 && Instant::now() < deadline {
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+        saved
+    }
+}
+
+/// Stops a session's training and makes its classification stale.
+fn stop_work(s: &Session) {
+    if let Some(c) = s
+        .train_cancel
+        .lock()
+        .unwrap_or_else(|p| p.into_inner())
+        .as_ref()
+    {
+        c.store(true, Ordering::SeqCst);
+    }
+    s.bump_generation();
+}
+
+/// Where a volume's session is saved between runs: `WORK/sessions/NAME.json`.
+pub fn state_path(work: &std::path::Path, volume: &str) -> PathBuf {
+    let name: String = volume
+        .chars()
+        .map(|c| {
+            if c.is_ascii_alphanumeric() || c == '.' || c == '-' {
+                c
+            } else {
+                '_'
+            }
+        })
+        .collect();
+    work.join("sessions").join(format!("{name}.json"))
+}
+
+/// Writes a session's state atomically (temporary file, fsync, rename): a crash leaves the
+/// previous file or the new one, never a part. Sessions without strokes are not saved.
+fn save_state(work: &std::path::Path, s: &Session) -> std::io::Result<PathBuf> {
+    use std::io::Write;
+    let state = s.state();
+    let p = state_path(work, &s.name);
+    if state.strokes.is_empty() && state.tf.is_none() {
+        return Ok(p);
+    }
+    if let Some(d) = p.parent() {
+        std::fs::create_dir_all(d)?;
+    }
+    static SEQ: AtomicU64 = AtomicU64::new(0);
+    let tmp = p.with_extension(format!(
+        "json.partial-{}-{}",
+        std::process::id(),
+        SEQ.fetch_add(1, Ordering::SeqCst)
+    ));
+    let r = (|| {
+        let mut f = std::fs::File::create(&tmp)?;
+        f.write_all(state.to_json().as_bytes())?;
+        f.sync_all()?;
+        std::fs::rename(&tmp, &p)
+    })();
+    if r.is_err() {
+        let _ = std::fs::remove_file(&tmp);
+    }
+    r.map(|()| p)
 }
 
 /// Runs blocking work (store reads, classification, encoding) off the async workers.
@@ -207,11 +368,34 @@ async fn volumes(st: web::Data<AppState>) -> HttpResponse {
 #[serde(deny_unknown_fields)]
 struct OpenReq {
     volume: String,
+    /// Restore the state saved when this volume's last session closed or the server stopped.
+    #[serde(default)]
+    restore: bool,
 }
 
 async fn open(st: web::Data<AppState>, req: web::Json<OpenReq>) -> ApiResult<HttpResponse> {
-    let rel = req.into_inner().volume;
-    let s = st.open(&rel).await?;
+    let req = req.into_inner();
+    let s = st.open(&req.volume).await?;
+    if req.restore {
+        let p = state_path(&st.cfg.work_dir, &s.name);
+        let s2 = s.clone();
+        let restored = blocking(move || {
+            let Ok(text) = std::fs::read_to_string(&p) else {
+                return Ok(None);
+            };
+            let src = p.display().to_string();
+            let f = neuvolex_session::SessionFile::parse(&text, &src)
+                .map_err(|e| ApiError::BadRequest(e.to_string()))?;
+            s2.apply_state(&f, &src).map(Some)
+        })
+        .await;
+        match restored {
+            Ok(Some(g)) => st.actors.classify(s.clone(), g)?,
+            Ok(None) => {}
+            // A damaged saved state does not keep the volume from opening.
+            Err(e) => tracing::warn!("not restoring {}: {e}", s.name),
+        }
+    }
     Ok(HttpResponse::Created().json(info(&s)))
 }
 
@@ -222,11 +406,12 @@ async fn get_session(st: web::Data<AppState>, id: web::Path<String>) -> ApiResul
 
 async fn close_session(st: web::Data<AppState>, id: web::Path<String>) -> ApiResult<HttpResponse> {
     let s = st.session(&id)?;
-    s.generation.fetch_add(1, Ordering::SeqCst); // cancels its work
-    st.sessions
-        .write()
-        .unwrap_or_else(|p| p.into_inner())
-        .remove(&s.id);
+    let st2 = st.clone();
+    blocking(move || {
+        st2.close(&s);
+        Ok(())
+    })
+    .await?;
     Ok(HttpResponse::NoContent().finish())
 }
 
@@ -386,15 +571,114 @@ async fn put_strokes(
 ) -> ApiResult<HttpResponse> {
     let s = st.session(&id)?;
     let strokes = strokes.into_inner();
-    if strokes.len() > 100_000 {
-        return Err(ApiError::BadRequest(format!(
-            "{} strokes: at most 100000",
-            strokes.len()
+    let permit = st.actors.reserve_classify()?;
+    let s2 = s.clone();
+    let generation = blocking(move || s2.set_strokes(strokes)).await?;
+    permit.send(s.clone(), generation);
+    Ok(HttpResponse::Accepted().json(serde_json::json!({"generation": generation})))
+}
+
+/// Appends strokes (several clients may draw on one session: none is lost); answers the new
+/// generation and how many strokes the session holds.
+async fn post_strokes(
+    st: web::Data<AppState>,
+    id: web::Path<String>,
+    strokes: web::Json<Vec<Stroke>>,
+) -> ApiResult<HttpResponse> {
+    let s = st.session(&id)?;
+    let strokes = strokes.into_inner();
+    // Reserved first: a busy answer means the strokes were not added (a retry adds them once).
+    let permit = st.actors.reserve_classify()?;
+    let s2 = s.clone();
+    let (generation, total) = blocking(move || s2.add_strokes(strokes)).await?;
+    permit.send(s.clone(), generation);
+    Ok(HttpResponse::Accepted()
+        .json(serde_json::json!({"generation": generation, "strokes": total})))
+}
+
+async fn get_strokes(st: web::Data<AppState>, id: web::Path<String>) -> ApiResult<HttpResponse> {
+    let s = st.session(&id)?;
+    let strokes = s.strokes.read().unwrap_or_else(|p| p.into_inner()).clone();
+    Ok(HttpResponse::Ok().json(strokes))
+}
+
+/// The rasterised strokes as a label volume (0 unlabelled, class ids, 255 background).
+async fn export_scribbles(
+    st: web::Data<AppState>,
+    id: web::Path<String>,
+) -> ApiResult<HttpResponse> {
+    let s = st.session(&id)?;
+    let work = st.cfg.work_dir.clone();
+    let bytes = blocking(move || {
+        let scr = s.scribbles()?;
+        let mut voxels = vec![0u8; s.store.info().dims.iter().product()];
+        for &(i, c) in &scr.voxels {
+            voxels[i as usize] = c.min(255) as u8;
+        }
+        let mut vol = u8_volume(&s, voxels, "scribbles");
+        nifti_bytes(&work, &format!("{}-scribbles", s.id), &mut vol)
+    })
+    .await?;
+    Ok(gzip_attachment(bytes, "scribbles.nii.gz"))
+}
+
+/// The session file: volume, classes, strokes and transfer function.
+async fn get_state(st: web::Data<AppState>, id: web::Path<String>) -> ApiResult<HttpResponse> {
+    let s = st.session(&id)?;
+    Ok(HttpResponse::Ok().json(s.state()))
+}
+
+/// Loads a session file into the session: every part is validated (and the strokes checked
+/// against the grid) before anything changes.
+async fn put_state(
+    st: web::Data<AppState>,
+    id: web::Path<String>,
+    mut payload: web::Payload,
+) -> ApiResult<HttpResponse> {
+    use futures_util::StreamExt;
+    let s = st.session(&id)?;
+    let mut body = web::BytesMut::new();
+    while let Some(chunk) = payload.next().await {
+        let chunk = chunk.map_err(|e| ApiError::BadRequest(format!("request body: {e}")))?;
+        if body.len() + chunk.len() > MAX_BODY {
+            return Err(ApiError::TooLarge(format!(
+                "request body over the server's limit of {} MiB",
+                MAX_BODY >> 20
+            )));
+        }
+        body.extend_from_slice(&chunk);
+    }
+    let src = format!("session file for {}", s.id);
+    let text = std::str::from_utf8(&body)
+        .map_err(|_| ApiError::BadRequest(format!("{src}: not UTF-8 text")))?;
+    let f = neuvolex_session::SessionFile::parse(text, &src)
+        .map_err(|e| ApiError::BadRequest(e.to_string()))?;
+    if f.volume != s.name {
+        return Err(ApiError::Conflict(format!(
+            "{src}: it is for volume '{}', this session shows '{}'; open that volume first",
+            f.volume.escape_debug(),
+            s.name
         )));
     }
-    let generation = s.set_strokes(strokes)?;
-    st.actors.classify(s.clone(), generation)?;
-    Ok(HttpResponse::Accepted().json(serde_json::json!({"generation": generation})))
+    let permit = st.actors.reserve_classify()?;
+    let s2 = s.clone();
+    let generation = blocking(move || s2.apply_state(&f, &src)).await?;
+    permit.send(s.clone(), generation);
+    Ok(HttpResponse::Ok().json(info(&s)))
+}
+
+/// The server's limits and how much of them is in use.
+async fn server_status(st: web::Data<AppState>) -> HttpResponse {
+    HttpResponse::Ok().json(serde_json::json!({
+        "sessions": st.sessions.read().unwrap_or_else(|p| p.into_inner()).len(),
+        "max_sessions": st.cfg.max_sessions,
+        "trainings": st.trainings.load(Ordering::SeqCst),
+        "max_trainings": st.cfg.max_trainings,
+        "feature_cache": {"used": st.features.used(), "budget": st.features.budget()},
+        "request_timeout_s": st.cfg.request_timeout.as_secs_f64(),
+        "access": if st.cfg.token.is_some() { "token" } else { "open" },
+        "uptime_s": st.started.elapsed().as_secs_f64(),
+    }))
 }
 
 async fn put_classes(
@@ -404,14 +688,7 @@ async fn put_classes(
 ) -> ApiResult<HttpResponse> {
     let s = st.session(&id)?;
     let c = classes.into_inner();
-    let mut ids: Vec<u32> = c.iter().map(|c| c.id).collect();
-    ids.sort_unstable();
-    ids.dedup();
-    if ids.len() != c.len() || c.iter().any(|c| c.id == 0 || c.id >= BACKGROUND) || c.len() > 64 {
-        return Err(ApiError::BadRequest(
-            "classes need distinct ids in 1..254, at most 64".into(),
-        ));
-    }
+    neuvolex_session::validate_classes(&c).map_err(ApiError::BadRequest)?;
     *s.classes.write().unwrap_or_else(|p| p.into_inner()) = c;
     // Recolouring changes the render classes; the next render starts from scratch.
     Ok(HttpResponse::Ok().json(info(&s)))
@@ -502,11 +779,29 @@ async fn train(
         )));
     }
     match req.action.as_str() {
-        "start" | "resume" => st.actors.train(TrainCommand::Start {
-            session: s,
-            epochs,
-            resume: req.action == "resume",
-        })?,
+        "start" | "resume" => {
+            let mut tc = s.train_cancel.lock().unwrap_or_else(|p| p.into_inner());
+            if tc.is_some() {
+                return Err(ApiError::Conflict(
+                    "this session is already training; stop it first".into(),
+                ));
+            }
+            let max = st.cfg.max_trainings;
+            let slot = TrainingSlot::take(&st.trainings, max).ok_or_else(|| {
+                ApiError::Busy(format!(
+                    "{max} training(s) running (the server's limit); stop one or try later"
+                ))
+            })?;
+            let cancel = Arc::new(AtomicBool::new(false));
+            st.actors.train(TrainCommand::Start {
+                session: s.clone(),
+                epochs,
+                resume: req.action == "resume",
+                cancel: cancel.clone(),
+                slot,
+            })?;
+            *tc = Some(cancel);
+        }
         "stop" => match s
             .train_cancel
             .lock()
@@ -535,31 +830,44 @@ struct EventsQuery {
 async fn events(st: web::Data<AppState>, q: web::Query<EventsQuery>) -> HttpResponse {
     let rx = st.actors.hub.subscribe();
     let want = q.into_inner().session;
-    let stream = futures_util::stream::unfold((rx, want), |(mut rx, want)| async move {
-        loop {
-            match rx.recv().await {
-                Ok(e) => {
-                    if want.is_some() && e.session.is_some() && e.session != want {
-                        continue;
+    let stop = st.shutdown.subscribe();
+    let stream =
+        futures_util::stream::unfold((rx, want, stop), |(mut rx, want, mut stop)| async move {
+            loop {
+                if *stop.borrow() {
+                    return None;
+                }
+                let got = tokio::select! {
+                    e = rx.recv() => e,
+                    // The server is stopping: say so and end the stream.
+                    _ = stop.changed() => {
+                        let line = "event: shutdown\ndata: {}\n\n";
+                        return Some((Ok(web::Bytes::from(line)), (rx, want, stop)));
                     }
-                    let line = format!(
-                        "event: {}\ndata: {}\n\n",
-                        e.kind,
-                        serde_json::to_string(&e).unwrap_or_default()
-                    );
-                    return Some((
-                        Ok::<_, actix_web::Error>(web::Bytes::from(line)),
-                        (rx, want),
-                    ));
+                };
+                match got {
+                    Ok(e) => {
+                        if want.is_some() && e.session.is_some() && e.session != want {
+                            continue;
+                        }
+                        let line = format!(
+                            "event: {}\ndata: {}\n\n",
+                            e.kind,
+                            serde_json::to_string(&e).unwrap_or_default()
+                        );
+                        return Some((
+                            Ok::<_, actix_web::Error>(web::Bytes::from(line)),
+                            (rx, want, stop),
+                        ));
+                    }
+                    Err(tokio::sync::broadcast::error::RecvError::Lagged(n)) => {
+                        let line = format!("event: lagged\ndata: {{\"missed\": {n}}}\n\n");
+                        return Some((Ok(web::Bytes::from(line)), (rx, want, stop)));
+                    }
+                    Err(_) => return None,
                 }
-                Err(tokio::sync::broadcast::error::RecvError::Lagged(n)) => {
-                    let line = format!("event: lagged\ndata: {{\"missed\": {n}}}\n\n");
-                    return Some((Ok(web::Bytes::from(line)), (rx, want)));
-                }
-                Err(_) => return None,
             }
-        }
-    });
+        });
     HttpResponse::Ok()
         .content_type("text/event-stream")
         .insert_header(("Cache-Control", "no-cache"))
@@ -941,57 +1249,85 @@ fn json_error(err: impl std::fmt::Display) -> actix_web::Error {
     ApiError::BadRequest(format!("malformed request: {err}")).into()
 }
 
-/// Registers the routes, body limits and error handlers.
+fn body_error(e: actix_web::error::JsonPayloadError) -> actix_web::Error {
+    use actix_web::error::{JsonPayloadError as J, PayloadError as P};
+    match e {
+        J::Overflow { .. } | J::OverflowKnownLength { .. } | J::Payload(P::Overflow) => {
+            ApiError::TooLarge(format!(
+                "request body over the server's limit of {} MiB",
+                MAX_BODY >> 20
+            ))
+            .into()
+        }
+        other => json_error(other),
+    }
+}
+
+/// Registers the routes, body limits and error handlers, behind the access, timeout and
+/// shutdown guard ([`crate::access`]).
 pub fn configure(cfg: &mut web::ServiceConfig) {
     cfg.app_data(
         web::JsonConfig::default()
             .limit(MAX_BODY)
-            .error_handler(|e, _| json_error(e)),
+            .error_handler(|e, _| body_error(e)),
     )
     .app_data(web::QueryConfig::default().error_handler(|e, _| json_error(e)))
     .app_data(web::PathConfig::default().error_handler(|e, _| json_error(e)))
-    .route("/", web::get().to(index))
-    .route("/app.js", web::get().to(app_js))
     .service(
-        web::scope("/api")
-            .route("/volumes", web::get().to(volumes))
-            .route("/backend", web::get().to(backend))
-            .route("/events", web::get().to(events))
-            .route("/sessions", web::post().to(open))
-            .route("/sessions/{id}", web::get().to(get_session))
-            .route("/sessions/{id}", web::delete().to(close_session))
-            .route("/sessions/{id}/slice/{axis}/{index}", web::get().to(slice))
-            .route(
-                "/sessions/{id}/overlay/{axis}/{index}",
-                web::get().to(overlay),
+        web::scope("")
+            .wrap(actix_web::middleware::from_fn(crate::access::guard))
+            .route("/", web::get().to(index))
+            .route("/app.js", web::get().to(app_js))
+            .service(
+                web::scope("/api")
+                    .route("/server", web::get().to(server_status))
+                    .route("/volumes", web::get().to(volumes))
+                    .route("/backend", web::get().to(backend))
+                    .route("/events", web::get().to(events))
+                    .route("/sessions", web::post().to(open))
+                    .route("/sessions/{id}", web::get().to(get_session))
+                    .route("/sessions/{id}", web::delete().to(close_session))
+                    .route("/sessions/{id}/slice/{axis}/{index}", web::get().to(slice))
+                    .route(
+                        "/sessions/{id}/overlay/{axis}/{index}",
+                        web::get().to(overlay),
+                    )
+                    .route("/sessions/{id}/strokes", web::put().to(put_strokes))
+                    .route("/sessions/{id}/strokes", web::post().to(post_strokes))
+                    .route("/sessions/{id}/strokes", web::get().to(get_strokes))
+                    .route("/sessions/{id}/state", web::get().to(get_state))
+                    .route("/sessions/{id}/state", web::put().to(put_state))
+                    .route("/sessions/{id}/classes", web::put().to(put_classes))
+                    .route("/sessions/{id}/render", web::get().to(render))
+                    .route("/sessions/{id}/train", web::post().to(train))
+                    .route("/sessions/{id}/fractions", web::get().to(fractions))
+                    .route("/sessions/{id}/viewpoints", web::post().to(viewpoints))
+                    .route("/sessions/{id}/tf", web::get().to(get_tf))
+                    .route("/sessions/{id}/tf", web::put().to(put_tf))
+                    .route("/sessions/{id}/preview.png", web::get().to(preview))
+                    .route("/sessions/{id}/suggest", web::get().to(suggest))
+                    .route("/sessions/{id}/prior", web::get().to(get_prior))
+                    .route("/sessions/{id}/prior", web::put().to(put_prior))
+                    .route("/presets/{name}", web::get().to(get_preset))
+                    .route("/debug/crash/{actor}", web::post().to(crash))
+                    .route(
+                        "/sessions/{id}/export/labels.nii.gz",
+                        web::get().to(export_labels),
+                    )
+                    .route(
+                        "/sessions/{id}/export/scribbles.nii.gz",
+                        web::get().to(export_scribbles),
+                    )
+                    .route(
+                        "/sessions/{id}/export/probability/{file}",
+                        web::get().to(export_probability),
+                    )
+                    .route("/sessions/{id}/export/zarr", web::post().to(export_zarr)),
             )
-            .route("/sessions/{id}/strokes", web::put().to(put_strokes))
-            .route("/sessions/{id}/classes", web::put().to(put_classes))
-            .route("/sessions/{id}/render", web::get().to(render))
-            .route("/sessions/{id}/train", web::post().to(train))
-            .route("/sessions/{id}/fractions", web::get().to(fractions))
-            .route("/sessions/{id}/viewpoints", web::post().to(viewpoints))
-            .route("/sessions/{id}/tf", web::get().to(get_tf))
-            .route("/sessions/{id}/tf", web::put().to(put_tf))
-            .route("/sessions/{id}/preview.png", web::get().to(preview))
-            .route("/sessions/{id}/suggest", web::get().to(suggest))
-            .route("/sessions/{id}/prior", web::get().to(get_prior))
-            .route("/sessions/{id}/prior", web::put().to(put_prior))
-            .route("/presets/{name}", web::get().to(get_preset))
-            .route("/debug/crash/{actor}", web::post().to(crash))
-            .route(
-                "/sessions/{id}/export/labels.nii.gz",
-                web::get().to(export_labels),
-            )
-            .route(
-                "/sessions/{id}/export/probability/{file}",
-                web::get().to(export_probability),
-            )
-            .route("/sessions/{id}/export/zarr", web::post().to(export_zarr)),
-    )
-    .default_service(web::to(|| async {
-        ApiError::NotFound("no such route".into()).error_response_owned()
-    }));
+            .default_service(web::to(|| async {
+                ApiError::NotFound("no such route".into()).error_response_owned()
+            })),
+    );
 }
 
 trait OwnedResponse {

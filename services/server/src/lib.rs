@@ -13,9 +13,12 @@
 //! - [`paths`]: volumes only from the configured data root.
 //! - [`assist`]: the spatial prior over the streamed probabilities and the next-slice
 //!   suggestion.
+//! - [`access`]: the token, host and origin checks, the request timeout and the shutdown gate
+//!   in front of every route.
 
 #![warn(missing_docs)]
 
+pub mod access;
 pub mod actors;
 pub mod assist;
 pub use neuvolex_classify::cache;

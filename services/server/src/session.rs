@@ -19,14 +19,15 @@ use std::collections::{BTreeSet, HashMap};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, RwLock};
 
-use neuvolex_classify::cache::FeatureCache;
+use crate::cache::{FeatureCache, SessionFeatures};
 use neuvolex_features::InrModel;
+use neuvolex_session::SessionFile;
 
 /// A model and its version in a session (bumped by every snapshot).
 pub type VersionedModel = (u64, Arc<InrModel>);
 
 /// The label strokes use for background/other.
-pub const BACKGROUND: u32 = 255;
+pub const BACKGROUND: u32 = neuvolex_session::BACKGROUND;
 
 /// Class probabilities received so far, per brick (u8, voxel-major).
 #[derive(Default)]
@@ -81,6 +82,9 @@ pub struct Session {
     pub classes: RwLock<Vec<ClassInfo>>,
     /// The strokes, as last sent.
     pub strokes: RwLock<Vec<Stroke>>,
+    /// Held by whoever changes the strokes, so appends and replacements take turns while
+    /// readers are not held up by the validation.
+    stroke_writer: Mutex<()>,
     /// Bumped by every stroke update; work for older generations is stale.
     pub generation: AtomicU64,
     /// Probabilities streamed in so far.
@@ -96,8 +100,9 @@ pub struct Session {
     /// The INR the features come from, with a version bumped by every snapshot the trainer
     /// publishes (`None` until one is trained).
     pub model: RwLock<Option<VersionedModel>>,
-    /// Feature bricks shared by every classification and recommendation of this session.
-    pub features: FeatureCache,
+    /// Feature bricks shared by every classification and recommendation of this session (in
+    /// the server's one cache, under one budget for all sessions).
+    pub features: SessionFeatures,
     /// The session's transfer function (JSON as sent, and parsed); `None` uses a preset.
     pub tf: RwLock<Option<(serde_json::Value, neuvolex_render::TfFile)>>,
     /// The newest training preview: reconstruction beside the input, as PNG, and its PSNR.
@@ -125,12 +130,23 @@ pub struct RenderState {
 }
 
 impl Session {
-    /// A session over an opened store, caching at most `cache_bytes` of feature bricks.
+    /// A session over an opened store, with a feature cache of its own holding at most
+    /// `cache_bytes` (the server shares one cache: [`Session::with_cache`]).
     pub fn new(
         id: String,
         name: String,
         store: Arc<BrickStore>,
         cache_bytes: usize,
+    ) -> Arc<Session> {
+        Self::with_cache(id, name, store, &Arc::new(FeatureCache::new(cache_bytes)))
+    }
+
+    /// A session over an opened store, reading features through the shared `cache`.
+    pub fn with_cache(
+        id: String,
+        name: String,
+        store: Arc<BrickStore>,
+        cache: &Arc<FeatureCache>,
     ) -> Arc<Session> {
         // Classes from the store's first label image with a class table, else two defaults.
         let mut classes = Vec::new();
@@ -160,12 +176,14 @@ impl Session {
                 .ok()
                 .filter(|l| l.model.dims == store.info().dims)
                 .map(|l| (1, Arc::new(l.model)));
+        let features = cache.for_session(&id);
         Arc::new(Session {
             id,
             name,
             store,
             classes: RwLock::new(classes),
             strokes: RwLock::new(Vec::new()),
+            stroke_writer: Mutex::new(()),
             generation: AtomicU64::new(0),
             probs: RwLock::new(Probs::default()),
             status: RwLock::new(Status {
@@ -176,7 +194,7 @@ impl Session {
             train_cancel: Mutex::new(None),
             renderer: Mutex::new(None),
             model: RwLock::new(model),
-            features: FeatureCache::new(cache_bytes),
+            features,
             tf: RwLock::new(None),
             preview: RwLock::new(None),
             prior_on: AtomicBool::new(true),
@@ -192,18 +210,83 @@ impl Session {
 
     /// Replaces the strokes (validated against the grid); returns the new generation.
     pub fn set_strokes(&self, strokes: Vec<Stroke>) -> ApiResult<u64> {
-        let dims = self.store.info().dims;
-        rasterise(&strokes, dims).map_err(|e| ApiError::BadRequest(e.to_string()))?;
-        let classes = self.classes.read().unwrap_or_else(|p| p.into_inner());
-        for (i, s) in strokes.iter().enumerate() {
-            if s.class != 0 && s.class != BACKGROUND && !classes.iter().any(|c| c.id == s.class) {
-                return Err(ApiError::BadRequest(format!(
-                    "stroke {i}: class {} is not in the class list",
-                    s.class
-                )));
-            }
-        }
+        let _writer = self.stroke_writer.lock().unwrap_or_else(|p| p.into_inner());
+        self.check_strokes(&strokes)?;
         *self.strokes.write().unwrap_or_else(|p| p.into_inner()) = strokes;
+        Ok(self.generation.fetch_add(1, Ordering::SeqCst) + 1)
+    }
+
+    /// Appends strokes to the session's list, atomically with respect to other appends and
+    /// replacements (so concurrent clients drawing on one session lose nothing); returns the
+    /// new generation and the number of strokes now held.
+    pub fn add_strokes(&self, strokes: Vec<Stroke>) -> ApiResult<(u64, usize)> {
+        // Writers take turns; readers are only held while the new list is swapped in.
+        let _writer = self.stroke_writer.lock().unwrap_or_else(|p| p.into_inner());
+        let mut all = self
+            .strokes
+            .read()
+            .unwrap_or_else(|p| p.into_inner())
+            .clone();
+        all.extend(strokes);
+        self.check_strokes(&all)?;
+        let n = all.len();
+        *self.strokes.write().unwrap_or_else(|p| p.into_inner()) = all;
+        Ok((self.generation.fetch_add(1, Ordering::SeqCst) + 1, n))
+    }
+
+    /// Checks a whole stroke list: its size, its classes and its fit to the grid.
+    fn check_strokes(&self, strokes: &[Stroke]) -> ApiResult<()> {
+        let classes = self.classes.read().unwrap_or_else(|p| p.into_inner());
+        neuvolex_session::validate_strokes(strokes, &classes).map_err(ApiError::BadRequest)?;
+        drop(classes);
+        rasterise(strokes, self.store.info().dims)
+            .map_err(|e| ApiError::BadRequest(e.to_string()))?;
+        Ok(())
+    }
+
+    /// The session as a session file (volume, classes, strokes, transfer function; the view is
+    /// the client's).
+    pub fn state(&self) -> SessionFile {
+        SessionFile {
+            format: neuvolex_session::FORMAT.into(),
+            version: neuvolex_session::VERSION,
+            volume: self.name.clone(),
+            classes: self
+                .classes
+                .read()
+                .unwrap_or_else(|p| p.into_inner())
+                .clone(),
+            strokes: self
+                .strokes
+                .read()
+                .unwrap_or_else(|p| p.into_inner())
+                .clone(),
+            tf: self
+                .tf
+                .read()
+                .unwrap_or_else(|p| p.into_inner())
+                .as_ref()
+                .map(|t| t.0.clone()),
+            view: None,
+        }
+    }
+
+    /// Applies a session file (already validated) to this session: everything is checked
+    /// against the grid first, then classes, transfer function and strokes are replaced
+    /// together. Returns the new stroke generation.
+    pub fn apply_state(&self, f: &SessionFile, source: &str) -> ApiResult<u64> {
+        f.validate(source)
+            .map_err(|e| ApiError::BadRequest(e.to_string()))?;
+        f.check_grid(self.store.info().dims, source)
+            .map_err(|e| ApiError::BadRequest(e.to_string()))?;
+        let tf = f
+            .tf_file(source)
+            .map_err(|e| ApiError::BadRequest(e.to_string()))?;
+        let _writer = self.stroke_writer.lock().unwrap_or_else(|p| p.into_inner());
+        *self.classes.write().unwrap_or_else(|p| p.into_inner()) = f.classes.clone();
+        *self.tf.write().unwrap_or_else(|p| p.into_inner()) =
+            tf.map(|t| (f.tf.clone().unwrap_or_default(), t));
+        *self.strokes.write().unwrap_or_else(|p| p.into_inner()) = f.strokes.clone();
         Ok(self.generation.fetch_add(1, Ordering::SeqCst) + 1)
     }
 

@@ -1,6 +1,8 @@
 // neuvolex browser UI: plain JavaScript, no build step.
 "use strict";
 const $ = (id) => document.getElementById(id);
+// Text from files and other users (volume and class names) goes into HTML escaped.
+const esc = (t) => String(t).replace(/[&<>"']/g, (c) => ({ "&": "&amp;", "<": "&lt;", ">": "&gt;", '"': "&quot;", "'": "&#39;" }[c]));
 const api = async (method, url, body) => {
   const r = await fetch(url, { method, headers: body ? { "Content-Type": "application/json" } : {}, body: body ? JSON.stringify(body) : undefined });
   if (!r.ok) { let m = r.statusText; try { m = (await r.json()).error; } catch (_) {} throw new Error(m); }
@@ -14,7 +16,7 @@ const rgb = (h) => [1, 3, 5].map((i) => parseInt(h.slice(i, i + 2), 16));
 
 async function loadVolumes() {
   const v = await api("GET", "/api/volumes");
-  $("volume").innerHTML = v.map((p) => `<option>${p}</option>`).join("");
+  $("volume").innerHTML = v.map((p) => `<option>${esc(p)}</option>`).join("");
 }
 
 async function loadBackend() {
@@ -32,9 +34,11 @@ async function loadBackend() {
 async function open() {
   status("opening " + $("volume").value + " ...");
   try {
-    S.info = await api("POST", "/api/sessions", { volume: $("volume").value });
+    S.info = await api("POST", "/api/sessions", { volume: $("volume").value, restore: true });
   } catch (e) { status("error: " + e.message); return; }
   S.id = S.info.id; S.strokes = []; S.redo = [];
+  // A session restored from its last run brings its strokes back.
+  if (S.info.strokes > 0) { try { S.strokes = await api("GET", `/api/sessions/${S.id}/strokes`); } catch (_) {} }
   const d = S.info.dims;
   for (const a of ["x", "y", "z"]) {
     const n = d[{ x: 0, y: 1, z: 2 }[a]];
@@ -52,7 +56,7 @@ function renderClasses() {
   S.info.classes.forEach((c, i) => {
     const row = document.createElement("div");
     row.className = "cls" + (S.cls === c.id ? " sel" : ""); row.dataset.id = c.id;
-    row.innerHTML = `<input type="color" value="${hex(c.color)}"> <input type="text" value="${c.name}"> <small>${i + 1}</small>`;
+    row.innerHTML = `<input type="color" value="${hex(c.color)}"> <input type="text" value="${esc(c.name)}"> <small>${i + 1}</small>`;
     row.onclick = (e) => { if (e.target.tagName !== "INPUT") pick(c.id); };
     row.querySelector("input[type=color]").onchange = (e) => { c.color = rgb(e.target.value); pushClasses(); };
     row.querySelector("input[type=text]").onchange = (e) => { c.name = e.target.value; pushClasses(); };
@@ -244,19 +248,32 @@ $("exportz").onclick = async () => {
   catch (e) { status("error: " + e.message); }
 };
 $("stop").onclick = async () => { try { await api("POST", `/api/sessions/${S.id}/train`, { action: "stop" }); } catch (e) { status("error: " + e.message); } };
-$("save").onclick = () => {
-  const blob = new Blob([JSON.stringify({ volume: S.info.volume, classes: S.info.classes, strokes: S.strokes, tf: S.tf, view: { az: $("az").value, el: $("el").value, mode: $("mode").value } }, null, 1)], { type: "application/json" });
-  const a = document.createElement("a"); a.href = URL.createObjectURL(blob); a.download = "neuvolex-session.json"; a.click();
+// Session files: the server writes and validates them (classes, strokes, transfer function);
+// the view is the page's.
+$("save").onclick = async () => {
+  if (!S.id) return;
+  try {
+    const st = await api("GET", `/api/sessions/${S.id}/state`);
+    st.view = { az: +$("az").value, el: +$("el").value, mode: $("mode").value };
+    const blob = new Blob([JSON.stringify(st, null, 1)], { type: "application/json" });
+    const a = document.createElement("a"); a.href = URL.createObjectURL(blob); a.download = "neuvolex-session.json"; a.click();
+  } catch (e) { status("error: " + e.message); }
 };
 $("load").onchange = async (e) => {
   const f = e.target.files[0]; if (!f) return;
-  const j = JSON.parse(await f.text());
+  const text = await f.text();
+  let j; try { j = JSON.parse(text); } catch (err) { status(`error: ${f.name} is not JSON (${err.message})`); return; }
   if (!S.id || S.info.volume !== j.volume) { $("volume").value = j.volume; await open(); }
-  S.info.classes = j.classes; await pushClasses();
+  try {
+    const r = await fetch(`/api/sessions/${S.id}/state`, { method: "PUT", headers: { "Content-Type": "application/json" }, body: text });
+    if (!r.ok) { let m = r.statusText; try { m = (await r.json()).error; } catch (_) {} throw new Error(m); }
+    S.info = await r.json();
+  } catch (err) { status(`error: ${f.name}: ${err.message}`); return; }
   S.strokes = j.strokes || []; S.redo = [];
-  if (j.tf) { S.tf = j.tf; fillTfTargets(); drawTf(); await pushTf(); }
+  renderClasses(); await loadTf();
   if (j.view) { $("az").value = j.view.az; $("el").value = j.view.el; $("mode").value = j.view.mode || ""; }
-  sendStrokes();
+  refreshAll();
+  status(`loaded ${f.name}: ${S.strokes.length} strokes`);
 };
 
 // Assistance: the spatial prior (a toggle) and the next-slice suggestion.

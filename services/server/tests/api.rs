@@ -1,81 +1,16 @@
 //! The HTTP API end to end (in process): sessions, slices, strokes, streaming classification,
 //! rendering, export, hostile and malformed requests, and 20 concurrent clients.
 
-use actix_web::{test, App};
+#[macro_use]
+mod common;
+
+use actix_web::test;
+use common::*;
 use neuvolex_bricks::synth::PhantomParams;
 use neuvolex_bricks::{BrickStore, IngestOptions};
 use neuvolex_server::{configure, AppState, ServerConfig};
 use serde_json::{json, Value};
 use std::time::{Duration, Instant};
-
-/// A data root holding a small labelled phantom store, and a work folder.
-fn data() -> (tempfile::TempDir, ServerConfig) {
-    let d = tempfile::tempdir().unwrap();
-    let root = d.path().join("data");
-    let work = d.path().join("work");
-    std::fs::create_dir_all(&root).unwrap();
-    std::fs::create_dir_all(&work).unwrap();
-    neuvolex_bricks::synth::phantom_store(
-        &root.join("ph.zarr"),
-        PhantomParams::with_size(48, 0),
-        &IngestOptions {
-            brick: 16,
-            ..Default::default()
-        },
-        &mut |_| {},
-    )
-    .unwrap();
-    let mut cfg = ServerConfig::new(root.canonicalize().unwrap(), work.canonicalize().unwrap());
-    cfg.fault_injection = true;
-    (d, cfg)
-}
-
-macro_rules! app {
-    ($cfg:expr) => {
-        test::init_service(
-            App::new()
-                .app_data(AppState::new($cfg.clone()))
-                .configure(configure),
-        )
-        .await
-    };
-}
-
-/// Strokes on the phantom's middle axial slice: spine (class 1) and air around it (background).
-fn strokes(n: usize) -> Value {
-    json!([
-        {"class": 1, "axis": "z", "slice": 21, "points": [[23, 30 + n % 3], [25, 31]], "radius": 1.5},
-        {"class": 255, "axis": "z", "slice": 21, "points": [[2, 2], [12, 2], [12, 8]], "radius": 1.5},
-        {"class": 255, "axis": "z", "slice": 21, "points": [[40, 44], [46, 44]], "radius": 1.5}
-    ])
-}
-
-async fn wait_done<S>(app: &S, id: &str, generation: u64) -> Value
-where
-    S: actix_web::dev::Service<
-        actix_http::Request,
-        Response = actix_web::dev::ServiceResponse,
-        Error = actix_web::Error,
-    >,
-{
-    let t = Instant::now();
-    loop {
-        let req = test::TestRequest::get()
-            .uri(&format!("/api/sessions/{id}"))
-            .to_request();
-        let v: Value = test::call_and_read_body_json(app, req).await;
-        let st = &v["status"];
-        if st["generation"] == json!(generation) && (st["state"] == "done" || st["state"] == "idle")
-        {
-            return v;
-        }
-        assert!(
-            t.elapsed() < Duration::from_secs(120),
-            "classification never finished: {v}"
-        );
-        tokio::time::sleep(Duration::from_millis(50)).await;
-    }
-}
 
 #[actix_web::test]
 async fn scribble_classify_render_export() {
@@ -389,98 +324,6 @@ async fn twenty_concurrent_clients_lose_no_scribbles() {
     let grown = rss_mib() - before;
     eprintln!("RSS grew {grown:.0} MiB for 20 sessions");
     assert!(grown < 1500.0, "memory stays bounded: +{grown} MiB");
-}
-
-/// A Server-Sent Events client over the in-process service.
-struct Sse {
-    body: actix_web::body::BoxBody,
-    buf: String,
-}
-
-impl Sse {
-    async fn open<S>(app: &S, query: &str) -> Sse
-    where
-        S: actix_web::dev::Service<
-            actix_http::Request,
-            Response = actix_web::dev::ServiceResponse,
-            Error = actix_web::Error,
-        >,
-    {
-        let r = test::call_service(
-            app,
-            test::TestRequest::get()
-                .uri(&format!("/api/events{query}"))
-                .to_request(),
-        )
-        .await;
-        assert_eq!(r.status(), 200);
-        Sse {
-            body: r.into_body(),
-            buf: String::new(),
-        }
-    }
-
-    /// The next event of `kind` whose JSON satisfies `want`.
-    async fn next(&mut self, kind: &str, want: impl Fn(&Value) -> bool) -> Value {
-        use actix_web::body::MessageBody;
-        let deadline = tokio::time::Instant::now() + Duration::from_secs(180);
-        loop {
-            while let Some(i) = self.buf.find("\n\n") {
-                let ev: String = self.buf.drain(..i + 2).collect();
-                let Some(rest) = ev.strip_prefix(&format!("event: {kind}\ndata: ")) else {
-                    continue;
-                };
-                let v: Value = serde_json::from_str(rest.trim()).unwrap();
-                if want(&v) {
-                    return v;
-                }
-            }
-            let chunk = tokio::time::timeout_at(
-                deadline,
-                futures_util::future::poll_fn(|cx| {
-                    std::pin::Pin::new(&mut self.body).poll_next(cx)
-                }),
-            )
-            .await
-            .unwrap_or_else(|_| panic!("no '{kind}' event within 180 s"));
-            match chunk {
-                Some(Ok(b)) => self.buf.push_str(std::str::from_utf8(&b).unwrap()),
-                _ => panic!("the event stream ended"),
-            }
-        }
-    }
-}
-
-async fn open_session<S>(app: &S) -> String
-where
-    S: actix_web::dev::Service<
-        actix_http::Request,
-        Response = actix_web::dev::ServiceResponse,
-        Error = actix_web::Error,
-    >,
-{
-    let req = test::TestRequest::post()
-        .uri("/api/sessions")
-        .set_json(json!({"volume": "ph.zarr"}))
-        .to_request();
-    let s: Value = test::call_and_read_body_json(app, req).await;
-    s["id"].as_str().unwrap().to_string()
-}
-
-async fn put_strokes<S>(app: &S, id: &str, n: usize) -> u64
-where
-    S: actix_web::dev::Service<
-        actix_http::Request,
-        Response = actix_web::dev::ServiceResponse,
-        Error = actix_web::Error,
-    >,
-{
-    let req = test::TestRequest::put()
-        .uri(&format!("/api/sessions/{id}/strokes"))
-        .set_json(strokes(n))
-        .to_request();
-    let r: Value = test::call_and_read_body_json(app, req).await;
-    r["generation"].as_u64().unwrap()
 }
 
 #[actix_web::test]

@@ -1,0 +1,152 @@
+//! Regression tests for what the fuzzers (`fuzz/`) found, and the absurd-header cases: a size a
+//! header claims is checked against the file before anything is allocated for it, so an absurd
+//! dimension gives a clear error naming the file, never an out-of-memory or a hang.
+
+use neuvolex_bricks::{open_volume, BrickError, DType};
+use neuvolex_features::checkpoint;
+use neuvolex_features::config::InrConfig;
+use neuvolex_features::model::InrModel;
+use neuvolex_tests::{tmp, write_nifti_values};
+use std::io::Write;
+use std::path::Path;
+use std::time::{Duration, Instant};
+
+/// Opens and reads everything; returns the error, which must come quickly and name `name`.
+fn fails(p: &Path, name: &str) -> BrickError {
+    let t = Instant::now();
+    let r = open_volume(p, None).and_then(|mut s| {
+        let nz = s.meta().dims[2];
+        s.read_slab(0, nz).map(|_| ())
+    });
+    let e = r.expect_err("must be refused");
+    assert!(
+        t.elapsed() < Duration::from_secs(5),
+        "refusing took {:?}",
+        t.elapsed()
+    );
+    assert!(e.to_string().contains(name), "'{e}' does not name {name}");
+    e
+}
+
+/// A gzip'd NIfTI whose header claims 2048^3 voxels of float32 (32 GiB) in a file of a few
+/// hundred bytes: refused from the file's length (deflate expands at most 1032x), never
+/// allocated or streamed for minutes.
+#[test]
+fn gzip_volume_claiming_more_than_deflate_can_hold() {
+    let d = tmp();
+    let p = d.path().join("huge.nii.gz");
+    write_nifti_values(&p, [4, 4, 4], DType::F32, &[1.0; 64], None);
+    // Patch the dimensions inside the decompressed header, re-compress.
+    let mut raw = Vec::new();
+    std::io::Read::read_to_end(
+        &mut flate2::read::GzDecoder::new(std::fs::File::open(&p).unwrap()),
+        &mut raw,
+    )
+    .unwrap();
+    for k in 0..3 {
+        raw[42 + 2 * k..44 + 2 * k].copy_from_slice(&2048i16.to_le_bytes());
+    }
+    let mut gz = flate2::write::GzEncoder::new(Vec::new(), flate2::Compression::default());
+    gz.write_all(&raw).unwrap();
+    std::fs::write(&p, gz.finish().unwrap()).unwrap();
+    let e = fails(&p, "huge.nii.gz");
+    assert!(matches!(e, BrickError::Truncated { .. }), "{e}");
+}
+
+/// NRRD fields the fuzzer broke: an unparsable or negative `byte skip`, an unparsable
+/// `line skip`, a `line skip` past the end of the data, and a data file that is a folder or a
+/// device (which would block or never end).
+#[test]
+fn nrrd_skips_and_data_files_are_checked() {
+    let d = tmp();
+    let dir = d.path();
+    let head = "NRRD0004\ntype: uchar\ndimension: 3\nsizes: 2 2 2\nencoding: raw\n";
+    let cases = [
+        ("bs.nrrd", "byte skip: -7\n", "byte skip"),
+        ("bs2.nrrd", "byte skip: lots\n", "byte skip"),
+        ("ls.nrrd", "line skip: -1\n", "line skip"),
+    ];
+    for (name, extra, word) in cases {
+        let p = dir.join(name);
+        std::fs::write(&p, format!("{head}{extra}\n\0\0\0\0\0\0\0\0")).unwrap();
+        let e = fails(&p, name);
+        assert!(e.to_string().contains(word), "{e}");
+    }
+    // A detached header skipping more lines than its data file has.
+    std::fs::write(dir.join("few.raw"), b"one line\n12345678").unwrap();
+    let p = dir.join("few.nhdr");
+    std::fs::write(&p, format!("{head}line skip: 5\ndata file: few.raw\n\n")).unwrap();
+    assert!(matches!(fails(&p, "few.raw"), BrickError::Truncated { .. }));
+    // A data file that is a folder, and one that is a device.
+    std::fs::create_dir(dir.join("folder")).unwrap();
+    for (name, target) in [("dir.nhdr", "folder"), ("dev.nhdr", "/dev/zero")] {
+        let p = dir.join(name);
+        std::fs::write(&p, format!("{head}data file: {target}\n\n")).unwrap();
+        let e = fails(&p, name);
+        assert!(e.to_string().contains("regular file"), "{e}");
+    }
+}
+
+/// Model files whose header claims parameter arrays the file does not hold: refused from the
+/// file's length before the arrays are allocated.
+#[test]
+fn checkpoint_sizes_are_checked_against_the_file() {
+    let d = tmp();
+    let cfg = InrConfig {
+        levels: 4,
+        log2_table: 10,
+        ..InrConfig::default()
+    };
+    let model = InrModel::new(&cfg, [16, 16, 16], 7);
+    let p = d.path().join("model.nvx");
+    checkpoint::save(p.as_path(), &model, None).unwrap();
+    let good = std::fs::read(&p).unwrap();
+    assert!(checkpoint::load(p.as_path()).is_ok());
+    let hl = u64::from_le_bytes(good[8..16].try_into().unwrap()) as usize;
+    let check = |bytes: &[u8], word: &str| {
+        std::fs::write(&p, bytes).unwrap();
+        let e = checkpoint::load(p.as_path())
+            .err()
+            .unwrap_or_else(|| panic!("{word}: accepted"));
+        let msg = e.to_string();
+        assert!(msg.contains("model.nvx") && msg.contains(word), "{msg}");
+    };
+    // Truncated parameters, trailing bytes, a header length past the end of the file.
+    check(&good[..good.len() - 4], "truncated");
+    let mut long = good.clone();
+    long.extend_from_slice(&[0; 8]);
+    check(&long, "size mismatch");
+    let mut hlong = good.clone();
+    hlong[8..16].copy_from_slice(&(1u64 << 23).to_le_bytes());
+    check(&hlong, "truncated");
+    // A header whose configuration claims a 2^40-entry table: refused by the configuration's
+    // limits (never allocated).
+    let text = std::str::from_utf8(&good[16..16 + hl]).unwrap();
+    let absurd = text.replacen("\"log2_table\":10", "\"log2_table\":40", 1);
+    assert_ne!(absurd, text, "the header names log2_table");
+    let mut b = good[..8].to_vec();
+    b.extend_from_slice(&(absurd.len() as u64).to_le_bytes());
+    b.extend_from_slice(absurd.as_bytes());
+    b.extend_from_slice(&good[16 + hl..]);
+    check(&b, "header");
+}
+
+/// An OME-Zarr whose multiscales name a dataset outside the image's group is refused.
+#[test]
+fn ome_zarr_dataset_paths_stay_inside_the_group() {
+    let d = tmp();
+    let root = d.path().join("img.ome.zarr");
+    std::fs::create_dir(&root).unwrap();
+    let meta = serde_json::json!({
+        "zarr_format": 3, "node_type": "group",
+        "attributes": {"ome": {"version": "0.5", "multiscales": [{
+            "axes": [{"name": "z", "type": "space"}, {"name": "y", "type": "space"},
+                     {"name": "x", "type": "space"}],
+            "datasets": [{"path": "../../etc",
+                          "coordinateTransformations": [{"type": "scale", "scale": [1, 1, 1]}]}]
+        }]}}
+    });
+    std::fs::write(root.join("zarr.json"), meta.to_string()).unwrap();
+    let e = fails(&root, "img.ome.zarr");
+    assert!(e.to_string().contains("inside the group"), "{e}");
+}
