@@ -4,8 +4,8 @@
 
 mod backend;
 mod classify;
-mod eval;
 mod cluster;
+mod eval;
 mod render;
 mod serve;
 mod viewpoints;

@@ -148,7 +148,6 @@ impl InrConfig {
             ));
         }
         self.check()
-
     }
 }
 

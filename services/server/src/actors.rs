@@ -583,8 +583,9 @@ async fn trainer(
         let (h, c, e) = (hub.clone(), classify.clone(), compute.clone());
         tokio::spawn(async move {
             let (s, flag, h2) = (session.clone(), cancel.clone(), h.clone());
-            let r = tokio::task::spawn_blocking(move || train(&s, epochs, resume, &flag, &h2, &c, &e))
-                .await;
+            let r =
+                tokio::task::spawn_blocking(move || train(&s, epochs, resume, &flag, &h2, &c, &e))
+                    .await;
             {
                 // Only this training's flag: a newer one may have been installed since.
                 let mut tc = session
