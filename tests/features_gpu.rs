@@ -126,7 +126,7 @@ fn one_step_loss_and_gradients_equal_the_cpu_engine_for_every_ablation() {
                 .map(|i| SampleRef {
                     x: xs[i],
                     patch: &ps[i * p3..(i + 1) * p3],
-                    target: ts[i],
+                    target: &ts[i],
                 })
                 .collect();
             m.load(&mut w, &s);
@@ -238,12 +238,13 @@ fn cpu_run(
     ckpt: Option<&std::path::Path>,
 ) -> (InrModel, Vec<TrainEvent>) {
     let mut ev = Vec::new();
+    let ckpt = ckpt.map(neuvolex_bricks::StoreLocation::from);
     let t = train(
         store,
         inr,
         c,
         resume,
-        ckpt,
+        ckpt.as_ref(),
         &AtomicBool::new(false),
         &mut |e| ev.push(e),
     )
@@ -260,13 +261,14 @@ fn gpu_run(
     ckpt: Option<&std::path::Path>,
 ) -> (InrModel, Vec<TrainEvent>) {
     let mut ev = Vec::new();
+    let ckpt = ckpt.map(neuvolex_bricks::StoreLocation::from);
     let t = train_gpu(
         ctx,
         store,
         inr,
         c,
         resume,
-        ckpt,
+        ckpt.as_ref(),
         &AtomicBool::new(false),
         &mut |e| ev.push(e),
     )

@@ -460,13 +460,16 @@ mod tests {
             .collect()
     }
 
+    /// Component ids per brick, with the brick's index.
+    type BrickIds = Vec<([usize; 3], Vec<u32>)>;
+
     /// Labels every brick of `labels`, merging in the order `order` gives.
     fn components_by_brick(
         labels: &[u16],
         d: [usize; 3],
         bs: usize,
         tree: bool,
-    ) -> (Partial, Vec<([usize; 3], Vec<u32>)>) {
+    ) -> (Partial, BrickIds) {
         let g = d.map(|v| v.div_ceil(bs));
         let mut parts = Vec::new();
         let mut ids = Vec::new();

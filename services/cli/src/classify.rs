@@ -2,18 +2,12 @@
 
 use anyhow::{bail, Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
-use neuvolex_bricks::meta::MemVolume;
 use neuvolex_bricks::store::BrickStore;
 use neuvolex_classify::pipeline::ClassifyRequest;
-use neuvolex_classify::{
-    classify_volume, f1_scores, fit, simulate, training_set, BrickFeatures, ClassWeight,
-    ClassifyConfig, FeatureSet, Level, Quantise, SimConfig,
-};
+use neuvolex_classify::{ClassWeight, ClassifyConfig};
 use neuvolex_features::InrModel;
-use serde::Serialize;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::sync::Arc;
-use std::time::Instant;
 
 /// Forest and output options shared by `classify` and `eval`.
 #[derive(clap::Args, Clone, Debug)]

@@ -1151,6 +1151,10 @@ impl GpuInr {
             FeatureKind::Pos => vec![(pl.pos, self.grid.out_dim())],
             FeatureKind::Mod => vec![(pl.inp, mi)],
             FeatureKind::Concat => vec![(last, hid), (pl.inp, mi), (pl.coords, 3)],
+            // The coarse half of the hash-grid levels: the first rows of the encoding.
+            FeatureKind::Region => {
+                vec![(pl.pos, (self.grid.levels.len() / 2).max(1) * self.grid.f)]
+            }
         }
     }
 
@@ -1289,6 +1293,7 @@ impl Channels for FeatureKind {
             FeatureKind::Pos => enc,
             FeatureKind::Mod => mlp_in,
             FeatureKind::Concat => cfg.hidden + mlp_in + 3,
+            FeatureKind::Region => (cfg.levels / 2).max(1) * cfg.features_per_level,
         }
     }
 }

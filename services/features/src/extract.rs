@@ -8,8 +8,9 @@
 use crate::error::{FeatureError, Result};
 use crate::model::{FeatureKind, InrModel, CHUNK};
 use crate::tile::Tile;
+use crate::train::training_bricks;
 use neuvolex_bricks::lru::Lru;
-use neuvolex_bricks::{Brick, BrickStore, Progress, VectorArray};
+use neuvolex_bricks::{Brick, BrickStore, Progress, VectorArray, VectorEncoding};
 use rayon::prelude::*;
 use std::sync::Arc;
 

@@ -258,5 +258,6 @@ fn kind_name(k: FeatureKind) -> &'static str {
         FeatureKind::Pos => "pos",
         FeatureKind::Mod => "mod",
         FeatureKind::Concat => "concat",
+        FeatureKind::Region => "region",
     }
 }

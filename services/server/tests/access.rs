@@ -313,8 +313,7 @@ async fn slow_requests_time_out_with_503() {
             .to_request(),
     )
     .await
-    .err()
-    .expect("timed out");
+    .expect_err("timed out");
     let r = e.error_response();
     assert_eq!(r.status(), StatusCode::SERVICE_UNAVAILABLE);
     let body = actix_web::body::to_bytes(r.into_body()).await.unwrap();
@@ -500,7 +499,7 @@ async fn concurrent_appends_lose_no_stroke() {
     let app = app!(cfg);
     let id = open_session(&app).await;
     let one = |k: usize| {
-        json!([{"class": if k % 2 == 0 { 1 } else { 255 }, "axis": "z", "slice": k % 40,
+        json!([{"class": if k.is_multiple_of(2) { 1 } else { 255 }, "axis": "z", "slice": k % 40,
                 "points": [[2 + k % 40, 3], [2 + k % 40, 20]], "radius": 0.5}])
     };
     let work = (0..40).map(|k| {

@@ -6,11 +6,10 @@ mod common;
 
 use actix_web::test;
 use common::*;
-use neuvolex_bricks::synth::PhantomParams;
-use neuvolex_bricks::{BrickStore, IngestOptions};
-use neuvolex_server::{configure, AppState, ServerConfig};
+use neuvolex_bricks::BrickStore;
+use neuvolex_server::AppState;
 use serde_json::{json, Value};
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 #[actix_web::test]
 async fn scribble_classify_render_export() {
