@@ -874,6 +874,8 @@ fn main() -> Result<()> {
             cluster,
         } => {
             let kind: neuvolex_features::FeatureKind = kind.parse().map_err(anyhow::Error::msg)?;
+            // The engine first: a bad --backend is named before anything is read.
+            let engine = backend::Engine::pick(&backend)?;
             let s = BrickStore::open(&store)?;
             let mp = neuvolex_features::train::model_path(&s);
             if !mp.exists() {
@@ -884,7 +886,6 @@ fn main() -> Result<()> {
                 );
             }
             let model = std::sync::Arc::new(neuvolex_features::checkpoint::load(&mp)?.model);
-            let engine = backend::Engine::pick(&backend)?;
             let r = if !engine.is_cpu() {
                 if cluster.cluster.is_some() {
                     bail!("--backend gpu extracts in this process: drop --cluster, or use --backend cpu");
