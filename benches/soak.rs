@@ -104,12 +104,14 @@ impl Record {
 }
 
 /// The answers the API documents for load: success, 503 (a full mailbox, a limit, the request
-/// timeout), and 409 for exports asked before classification reached every brick and for
-/// training commands that race with a stop.
+/// timeout), 409 for exports asked before classification reached every brick and for training
+/// commands that race with a stop, and 404 for the training preview before a training has drawn
+/// its first one ("no training preview yet").
 fn expected(route: &str, status: u16) -> bool {
     (200..300).contains(&status)
         || status == 503
         || (status == 409 && (route.contains("export") || route.contains("train")))
+        || (status == 404 && route == "GET /preview.png")
 }
 
 struct Client {
