@@ -278,6 +278,8 @@ pub fn train_gpu(
             )));
         }
     }
+    let run = start(store, inr, cfg, resume)?;
+    events(run.started(store));
     let Start {
         model,
         adam,
@@ -286,15 +288,7 @@ pub fn train_gpu(
         bricks,
         voxels,
         budget_samples,
-    } = start(store, inr, cfg, resume)?;
-    events(TrainEvent::Started {
-        bricks: bricks.len(),
-        total_bricks: store.bricks().count(),
-        voxels,
-        params: model.table.len() + model.dense.len(),
-        budget_samples,
-        from_step: state.step,
-    });
+    } = run;
     ctx.reset_peak();
     let brick = store.info().brick;
     let tb = tc.tile_bricks;

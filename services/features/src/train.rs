@@ -177,6 +177,20 @@ pub struct Start {
     pub budget_samples: Option<u64>,
 }
 
+impl Start {
+    /// The [`TrainEvent::Started`] event of this run on `store`.
+    pub fn started(&self, store: &BrickStore) -> TrainEvent {
+        TrainEvent::Started {
+            bricks: self.bricks.len(),
+            total_bricks: store.bricks().count(),
+            voxels: self.voxels,
+            params: self.model.table.len() + self.model.dense.len(),
+            budget_samples: self.budget_samples,
+            from_step: self.state.step,
+        }
+    }
+}
+
 /// Validates the configuration and sets up a run: fresh, or continuing `resume` (whose
 /// configuration wins over `inr`/`cfg`, except for the budget).
 pub fn start(
@@ -434,6 +448,8 @@ pub fn train(
     cancel: &AtomicBool,
     events: &mut dyn FnMut(TrainEvent),
 ) -> Result<Trained> {
+    let run = start(store, inr, cfg, resume)?;
+    events(run.started(store));
     let Start {
         mut model,
         mut adam,
@@ -442,15 +458,7 @@ pub fn train(
         bricks,
         voxels,
         budget_samples,
-    } = start(store, inr, cfg, resume)?;
-    events(TrainEvent::Started {
-        bricks: bricks.len(),
-        total_bricks: store.bricks().count(),
-        voxels,
-        params: model.table.len() + model.dense.len(),
-        budget_samples,
-        from_step: state.step,
-    });
+    } = run;
     let patch = model.cfg.patch;
     let mut works: Vec<Work> = (0..LANES).map(|_| model.work()).collect();
     let mut tg = TableGrad::new(model.grid.levels.len(), model.grid.t, model.grid.f);
