@@ -450,16 +450,10 @@ pub fn train_gpu(
                     }));
                     last_ckpt = Instant::now();
                 }
-                if done_samples {
-                    return Ok(if tc.budget.samples.is_some_and(|s| state.samples >= s) {
-                        "samples"
-                    } else {
-                        "epochs"
-                    }
-                    .to_string());
-                }
-                if done_time {
-                    return Ok("seconds".to_string());
+                if let Some(why) =
+                    neuvolex_features::train::stop_reason(&tc, &state, done_samples, done_time)
+                {
+                    return Ok(why);
                 }
             }
             state.batch = 0;

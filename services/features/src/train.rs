@@ -177,6 +177,25 @@ pub struct Start {
     pub budget_samples: Option<u64>,
 }
 
+/// Why a run stops after this step, if it does: "samples" or "epochs" when the sample budget is
+/// spent (`done_samples`), "seconds" when the time budget is (`done_time`).
+pub fn stop_reason(
+    tc: &TrainConfig,
+    state: &TrainState,
+    done_samples: bool,
+    done_time: bool,
+) -> Option<String> {
+    if done_samples {
+        let by = if tc.budget.samples.is_some_and(|s| state.samples >= s) {
+            "samples"
+        } else {
+            "epochs"
+        };
+        return Some(by.into());
+    }
+    done_time.then(|| "seconds".into())
+}
+
 impl Start {
     /// The [`TrainEvent::Started`] event of this run on `store`.
     pub fn started(&self, store: &BrickStore) -> TrainEvent {
@@ -588,16 +607,8 @@ pub fn train(
                             path: p.clone(),
                         });
                     }
-                    if done_samples {
-                        return Ok(if tc.budget.samples.is_some_and(|s| state.samples >= s) {
-                            "samples"
-                        } else {
-                            "epochs"
-                        }
-                        .into());
-                    }
-                    if done_time {
-                        return Ok("seconds".into());
+                    if let Some(why) = stop_reason(&tc, &state, done_samples, done_time) {
+                        return Ok(why);
                     }
                 }
                 state.batch = 0;
