@@ -62,7 +62,7 @@ fn main() {
             let km = KMeans::fit(
                 chunks.len(),
                 dim,
-                |i| Ok(chunks[i].clone()),
+                |i| Ok(chunks[i].as_slice()),
                 &KMeansConfig {
                     k,
                     algorithm,

@@ -2,14 +2,26 @@
 //! initialisation on a sample, then either Lloyd iterations whose per-brick partial sums merge
 //! in brick order (deterministic for any thread count), or mini-batch updates with one brick per
 //! batch.
+//!
+//! The single-process Lloyd ([`KMeans::fit`]) keeps Hamerly's bounds per row (the assigned
+//! cluster, an upper bound on the distance to it and a lower bound on the distance to every
+//! other centroid; 10 bytes a row, within [`KMeansConfig::bounds_mib`]), so most rows skip the
+//! distance product once the centroids settle. The bounds carry margins for the rounding of the
+//! distance product, so a row is only skipped when the product would assign it to the same
+//! cluster: every pass's statistics equal the sum of [`KMeans::partial`] over the bricks (the
+//! step a distributed run merges) bit for bit.
 
 use crate::{Result, ViewpointError};
 use neuvolex_bricks::rng::Rng;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
+use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 
 /// Rows per matrix-product block.
 const BLOCK: usize = 2048;
+
+/// Bytes of bounds per row: the cluster (u16) and two f32 bounds.
+const BOUND_BYTES: usize = 10;
 
 /// How centroids are updated.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -40,6 +52,14 @@ pub struct KMeansConfig {
     pub init_sample: usize,
     /// Update rule.
     pub algorithm: Algorithm,
+    /// Memory for Lloyd's per-row bounds, in MiB (10 bytes a row). Bricks past the budget
+    /// run without bounds: the same result, each pass computing every distance.
+    #[serde(default = "default_bounds_mib")]
+    pub bounds_mib: usize,
+}
+
+fn default_bounds_mib() -> usize {
+    1024
 }
 
 impl Default for KMeansConfig {
@@ -51,6 +71,7 @@ impl Default for KMeansConfig {
             tol: 1e-4,
             init_sample: 20_000,
             algorithm: Algorithm::Lloyd,
+            bounds_mib: default_bounds_mib(),
         }
     }
 }
@@ -104,6 +125,144 @@ impl Partial {
     }
 }
 
+/// Squared Euclidean distance.
+#[inline]
+fn sq_dist(a: &[f32], b: &[f32]) -> f32 {
+    a.iter().zip(b).map(|(x, y)| (x - y) * (x - y)).sum()
+}
+
+/// The smallest entry of `n2[j] - 2 dots[j]` (first index on ties), and the smallest over the
+/// other entries (infinite for one centroid).
+#[inline]
+fn nearest_two(dots: &[f32], n2: &[f32]) -> (usize, f32) {
+    let mut best = (0, f32::INFINITY);
+    let mut second = f32::INFINITY;
+    for (c, (&dot, &n)) in dots.iter().zip(n2).enumerate() {
+        let v = n - 2.0 * dot;
+        if v < best.1 {
+            second = best.1;
+            best = (c, v);
+        } else if v < second {
+            second = v;
+        }
+    }
+    (best.0, second)
+}
+
+/// Hamerly's bounds of one chunk's rows: the assigned cluster, an upper bound on the distance to
+/// its centroid and a lower bound on the distance to every other centroid.
+#[derive(Debug, Clone, Default)]
+struct Bounds {
+    assign: Vec<u16>,
+    upper: Vec<f32>,
+    lower: Vec<f32>,
+}
+
+/// How a chunk runs its Lloyd passes.
+#[derive(Debug, Clone)]
+enum ChunkState {
+    /// Not seen yet.
+    Fresh,
+    /// Past the bounds budget: every distance, every pass.
+    Plain,
+    /// With bounds.
+    Bounded(Bounds),
+}
+
+/// What the bounds test needs to know about the current centroids. Every quantity is rounded
+/// the safe way (upper bounds up, lower bounds down) by a relative margin above the rounding
+/// error of `d`-term sums, so a skipped row is one the distance product would not move.
+struct Geometry {
+    /// Squared centroid norms, exactly as the distance product uses them.
+    n2: Vec<f32>,
+    /// Upper bounds of the centroid norms.
+    norm: Vec<f32>,
+    /// Largest centroid norm (upper bound).
+    norm_max: f32,
+    /// Lower bound of half the distance from each centroid to its nearest other centroid.
+    half_gap: Vec<f32>,
+    /// Upper bound of each centroid's move in the last update.
+    moved: Vec<f32>,
+    /// Upper bound of the largest move of the other centroids.
+    moved_other: Vec<f32>,
+    /// Relative error bound of a `d`-term sum of products in f32 (doubled).
+    gamma: f32,
+}
+
+impl Geometry {
+    fn new(km: &KMeans, previous: Option<&[f32]>) -> Geometry {
+        let (k, d) = (km.k(), km.dim);
+        let gamma = 2.0 * (d as f32 + 2.0) * f32::EPSILON * 0.5;
+        let up = |x: f32| x * (1.0 + gamma);
+        let down = |x: f32| x * (1.0 - gamma);
+        let n2 = km.norms2();
+        let norm: Vec<f32> = n2.iter().map(|&v| up(up(v).sqrt())).collect();
+        let norm_max = norm.iter().cloned().fold(0.0, f32::max);
+        let c = |j: usize| &km.centroids[j * d..(j + 1) * d];
+        let half_gap = (0..k)
+            .map(|j| {
+                let m = (0..k)
+                    .filter(|&i| i != j)
+                    .map(|i| sq_dist(c(i), c(j)))
+                    .fold(f32::INFINITY, f32::min);
+                down(0.5 * down(m).sqrt())
+            })
+            .collect();
+        let moved: Vec<f32> = match previous {
+            Some(p) => (0..k)
+                .map(|j| up(up(sq_dist(&p[j * d..(j + 1) * d], c(j))).sqrt()))
+                .collect(),
+            None => vec![0.0; k],
+        };
+        // The largest and second largest moves give every centroid's "largest other".
+        let (mut m1, mut m2, mut at) = (0.0f32, 0.0f32, usize::MAX);
+        for (j, &m) in moved.iter().enumerate() {
+            if m > m1 {
+                (m2, m1, at) = (m1, m, j);
+            } else if m > m2 {
+                m2 = m;
+            }
+        }
+        let moved_other = (0..k).map(|j| if j == at { m2 } else { m1 }).collect();
+        Geometry {
+            n2,
+            norm,
+            norm_max,
+            half_gap,
+            moved,
+            moved_other,
+            gamma,
+        }
+    }
+
+    #[inline]
+    fn up(&self, x: f32) -> f32 {
+        x * (1.0 + self.gamma)
+    }
+
+    #[inline]
+    fn down(&self, x: f32) -> f32 {
+        x * (1.0 - self.gamma)
+    }
+
+    /// Bound of the distance product's error on `|c|^2 - 2 x.c` for a row of norm at most `x`.
+    #[inline]
+    fn error(&self, x: f32) -> f32 {
+        let s = self.norm_max + x;
+        self.gamma * s * s
+    }
+
+    /// True when a row assigned to `a`, at distance at most `u` from it and at least `l` from
+    /// every other centroid, keeps `a` under the distance product: the squared distances
+    /// differ by more than twice the product's error (with a factor of 2 to spare).
+    #[inline]
+    fn settled(&self, a: usize, u: f32, l: f32) -> bool {
+        let lo = self.down(l.max(2.0 * self.half_gap[a] - u));
+        // |x| <= |x - c_a| + |c_a|.
+        lo > u && (lo - u) * (lo + u) > 4.0 * self.error(u + self.norm[a])
+    }
+}
+
 fn check_rows(rows: &[f32], dim: usize) -> Result<()> {
     if dim == 0 || !rows.len().is_multiple_of(dim) {
         return Err(ViewpointError::Input(format!(
@@ -144,67 +303,78 @@ impl KMeans {
         best
     }
 
-    /// Nearest centroid and squared distance of every row, through one matrix product per
-    /// block (`|x|^2 - 2 x.c + |c|^2`, as scikit-learn computes it).
-    fn nearest_rows(&self, rows: &[f32]) -> Vec<(usize, f32)> {
-        let (k, d) = (self.k(), self.dim);
-        let cn: Vec<f32> = self
-            .centroids
-            .chunks_exact(d)
+    /// Squared norms of the centroids, as the distance product uses them.
+    fn norms2(&self) -> Vec<f32> {
+        self.centroids
+            .chunks_exact(self.dim)
             .map(|c| c.iter().map(|v| v * v).sum())
-            .collect();
-        let mut out = Vec::with_capacity(rows.len() / d);
+            .collect()
+    }
+
+    /// `out[r * k + j] = x_r . c_j` for the `n` rows of `blk`.
+    fn dots(&self, blk: &[f32], out: &mut [f32]) {
+        let (k, d) = (self.k(), self.dim);
+        let n = blk.len() / d;
+        assert!(out.len() >= n * k && self.centroids.len() == k * d);
+        // SAFETY: `blk` holds n x d values, the centroids k x d, `out` at least n x k (checked).
+        unsafe {
+            matrixmultiply::sgemm(
+                n,
+                d,
+                k,
+                1.0,
+                blk.as_ptr(),
+                d as isize,
+                1,
+                self.centroids.as_ptr(),
+                1,
+                d as isize,
+                0.0,
+                out.as_mut_ptr(),
+                k as isize,
+                1,
+            );
+        }
+    }
+
+    /// Nearest centroid of every row, through one matrix product per block (`|c|^2 - 2 x.c`
+    /// is `|x - c|^2` less the row's own `|x|^2`, as scikit-learn computes it). Ties go to the
+    /// lower index.
+    fn nearest_rows(&self, rows: &[f32], n2: &[f32]) -> Vec<u16> {
+        let k = self.k();
+        let mut out = Vec::with_capacity(rows.len() / self.dim);
         let mut dots = vec![0.0f32; BLOCK * k];
-        for blk in rows.chunks(BLOCK * d) {
-            let n = blk.len() / d;
-            // SAFETY: `blk` holds n x d values, the centroids k x d, `dots` at least n x k.
-            unsafe {
-                matrixmultiply::sgemm(
-                    n,
-                    d,
-                    k,
-                    1.0,
-                    blk.as_ptr(),
-                    d as isize,
-                    1,
-                    self.centroids.as_ptr(),
-                    1,
-                    d as isize,
-                    0.0,
-                    dots.as_mut_ptr(),
-                    k as isize,
-                    1,
-                );
-            }
-            for (x, row) in blk.chunks_exact(d).zip(dots.chunks_exact(k)) {
-                let mut best = (0, f32::INFINITY);
-                for (c, (&dot, &n2)) in row.iter().zip(&cn).enumerate() {
-                    let v = n2 - 2.0 * dot;
-                    if v < best.1 {
-                        best = (c, v);
-                    }
-                }
-                let xn: f32 = x.iter().map(|v| v * v).sum();
-                out.push((best.0, (best.1 + xn).max(0.0)));
-            }
+        for blk in rows.chunks(BLOCK * self.dim) {
+            self.dots(blk, &mut dots);
+            let n = blk.len() / self.dim;
+            out.extend(dots[..n * k].chunks_exact(k).map(|row| nearest_two(row, n2).0 as u16));
         }
         out
     }
 
     /// The nearest cluster of every row.
     pub fn assign(&self, rows: &[f32]) -> Vec<u16> {
+        let n2 = self.norms2();
         rows.par_chunks(self.dim * BLOCK)
-            .flat_map_iter(|ch| self.nearest_rows(ch).into_iter().map(|(c, _)| c as u16))
+            .flat_map_iter(|ch| self.nearest_rows(ch, &n2))
             .collect()
     }
 
     /// The assignment statistics of one brick's rows (the pure per-brick step).
     pub fn partial(&self, rows: &[f32]) -> Partial {
+        let assign = self.nearest_rows(rows, &self.norms2());
+        self.tally(rows, &assign)
+    }
+
+    /// The statistics of rows under a given assignment: counts, feature sums and squared
+    /// distances (each computed directly, `|x - c|^2`, in row order).
+    fn tally(&self, rows: &[f32], assign: &[u16]) -> Partial {
         let (k, d) = (self.k(), self.dim);
         let mut p = Partial::new(k, d);
-        for (x, (c, dist)) in rows.chunks_exact(d).zip(self.nearest_rows(rows)) {
+        for (x, &c) in rows.chunks_exact(d).zip(assign) {
+            let c = c as usize;
             p.counts[c] += 1;
-            p.inertia += dist as f64;
+            p.inertia += sq_dist(x, &self.centroids[c * d..(c + 1) * d]) as f64;
             for (s, &v) in p.sums[c * d..(c + 1) * d].iter_mut().zip(x) {
                 *s += v as f64;
             }
@@ -212,9 +382,80 @@ impl KMeans {
         p
     }
 
+    /// One Lloyd pass over a chunk with Hamerly's bounds: the same statistics as
+    /// [`Self::partial`], computing distances only for rows whose bounds cannot rule out a
+    /// change of cluster. `state` is the chunk's bounds (made on the first pass). Also returns
+    /// how many rows needed every distance.
+    fn bounded_partial(&self, rows: &[f32], state: &mut Bounds, g: &Geometry) -> (Partial, usize) {
+        let (k, d) = (self.k(), self.dim);
+        let n = rows.len() / d;
+        let mut pending: Vec<u32> = Vec::new();
+        if state.assign.len() != n {
+            // First pass: every row gets its distances.
+            state.assign = vec![0; n];
+            state.upper = vec![0.0; n];
+            state.lower = vec![0.0; n];
+            pending.extend(0..n as u32);
+        } else {
+            for (i, x) in rows.chunks_exact(d).enumerate() {
+                let a = state.assign[i] as usize;
+                let mut u = g.up(state.upper[i] + g.moved[a]);
+                let l = g.down(state.lower[i] - g.moved_other[a]).max(0.0);
+                state.lower[i] = l;
+                if !g.settled(a, u, l) {
+                    // Tighten the upper bound to the distance itself, then test again.
+                    u = g.up(sq_dist(x, &self.centroids[a * d..(a + 1) * d]).sqrt());
+                    if !g.settled(a, u, l) {
+                        pending.push(i as u32);
+                    }
+                }
+                state.upper[i] = u;
+            }
+        }
+        // Rows the bounds cannot settle: the full distance product, as `partial` computes it.
+        const GATHER: usize = 256;
+        let mut blk = vec![0.0f32; GATHER.min(pending.len()) * d];
+        let mut dots = vec![0.0f32; GATHER.min(pending.len()) * k];
+        for ids in pending.chunks(GATHER) {
+            for (j, &i) in ids.iter().enumerate() {
+                let i = i as usize;
+                blk[j * d..(j + 1) * d].copy_from_slice(&rows[i * d..(i + 1) * d]);
+            }
+            let b = &blk[..ids.len() * d];
+            self.dots(b, &mut dots);
+            for (j, &i) in ids.iter().enumerate() {
+                let (x, i) = (&b[j * d..(j + 1) * d], i as usize);
+                let (a, second) = nearest_two(&dots[j * k..(j + 1) * k], &g.n2);
+                let xn: f32 = x.iter().map(|v| v * v).sum();
+                // |x|^2 + (|c|^2 - 2 x.c) is the squared distance within the product's error.
+                let e = g.error(g.up(xn.sqrt()));
+                state.assign[i] = a as u16;
+                state.upper[i] = g.up(sq_dist(x, &self.centroids[a * d..(a + 1) * d]).sqrt());
+                state.lower[i] = g.down((second + xn - e).max(0.0).sqrt());
+            }
+        }
+        (self.tally(rows, &state.assign), pending.len())
+    }
+
     /// Fits on `chunks` chunks of rows (`load(i)` gives chunk `i`, `dim` values per row); chunks
-    /// are loaded again for every pass, so only one chunk per thread is in memory.
+    /// are loaded again for every pass, so only one chunk per thread is in memory (besides
+    /// Lloyd's 10 bytes of bounds per row).
     pub fn fit<F, R>(chunks: usize, dim: usize, load: F, cfg: &KMeansConfig) -> Result<KMeans>
+    where
+        F: Fn(usize) -> Result<R> + Sync,
+        R: AsRef<[f32]>,
+    {
+        Ok(Self::fit_counting(chunks, dim, load, cfg)?.0)
+    }
+
+    /// [`Self::fit`], also returning how many rows had their distances to every centroid
+    /// computed, over all passes.
+    fn fit_counting<F, R>(
+        chunks: usize,
+        dim: usize,
+        load: F,
+        cfg: &KMeansConfig,
+    ) -> Result<(KMeans, u64)>
     where
         F: Fn(usize) -> Result<R> + Sync,
         R: AsRef<[f32]>,
@@ -244,12 +485,14 @@ impl KMeans {
             }
         }
         let (mut km, tol) = KMeans::seed(&sample, dim, cfg, &mut rng);
+        let full = AtomicU64::new(0);
         let pass = |km: &KMeans| -> Result<Partial> {
             let parts: Vec<Result<Partial>> = (0..chunks)
                 .into_par_iter()
                 .map(|c| {
                     let rows = load(c)?;
                     check_rows(rows.as_ref(), dim)?;
+                    full.fetch_add((rows.as_ref().len() / dim) as u64, Ordering::Relaxed);
                     Ok(km.partial(rows.as_ref()))
                 })
                 .collect();
@@ -260,7 +503,54 @@ impl KMeans {
             Ok(total)
         };
         match cfg.algorithm {
-            Algorithm::Lloyd => km.lloyd(&sample, tol, cfg, &mut |k| pass(k)),
+            Algorithm::Lloyd => {
+                // Rows get bounds while the budget lasts (the reservation order may vary with
+                // the threads; the result does not, bounds or not).
+                let budget = AtomicUsize::new(cfg.bounds_mib.saturating_mul(1 << 20));
+                let mut states = vec![ChunkState::Fresh; chunks];
+                let mut previous: Option<Vec<f32>> = None;
+                let mut bounded = |km: &KMeans| -> Result<Partial> {
+                    let g = Geometry::new(km, previous.as_deref());
+                    let parts: Vec<Result<Partial>> = states
+                        .par_iter_mut()
+                        .enumerate()
+                        .map(|(c, st)| {
+                            let rows = load(c)?;
+                            let rows = rows.as_ref();
+                            check_rows(rows, dim)?;
+                            if let ChunkState::Fresh = st {
+                                let bytes = rows.len() / dim * BOUND_BYTES;
+                                let fits = budget
+                                    .fetch_update(Ordering::Relaxed, Ordering::Relaxed, |b| {
+                                        b.checked_sub(bytes)
+                                    })
+                                    .is_ok();
+                                *st = if fits {
+                                    ChunkState::Bounded(Bounds::default())
+                                } else {
+                                    ChunkState::Plain
+                                };
+                            }
+                            let (p, n) = match st {
+                                ChunkState::Bounded(b) => km.bounded_partial(rows, b, &g),
+                                _ => (km.partial(rows), rows.len() / dim),
+                            };
+                            full.fetch_add(n as u64, Ordering::Relaxed);
+                            Ok(p)
+                        })
+                        .collect();
+                    previous = Some(km.centroids.clone());
+                    let mut total = Partial::new(km.k(), dim);
+                    for p in parts {
+                        total.merge(&p?);
+                    }
+                    Ok(total)
+                };
+                let km = km.lloyd(&sample, tol, cfg, &mut bounded)?;
+                let full = full.into_inner();
+                tracing::debug!(iterations = km.iterations, full_rows = full, "k-means");
+                Ok((km, full))
+            }
             Algorithm::MiniBatch { epochs } => {
                 let mut seen = vec![0u64; km.k()];
                 for e in 0..epochs.max(1) {
@@ -288,7 +578,7 @@ impl KMeans {
                 let p = pass(&km)?;
                 km.inertia = p.inertia;
                 km.counts = p.counts;
-                Ok(km)
+                Ok((km, full.into_inner()))
             }
         }
     }
@@ -534,6 +824,64 @@ mod tests {
             mb.inertia,
             a.inertia
         );
+    }
+
+    #[test]
+    fn bounds_skip_most_distances_and_equal_plain_lloyd_bit_for_bit() {
+        // 64-D rows around 20 overlapping centres, so rows keep changing cluster for many
+        // iterations, in uneven chunks.
+        let (n, d) = (6000, 64);
+        let mut r = Rng::new(5);
+        let centres: Vec<f32> = (0..20 * d).map(|_| r.uniform(-1.0, 1.0)).collect();
+        let mut rows = Vec::with_capacity(n * d);
+        for i in 0..n {
+            let c = (i * 7) % 20;
+            for t in 0..d {
+                rows.push(centres[c * d + t] * 3.0 + r.uniform(-2.0, 2.0));
+            }
+        }
+        let mut chunks: Vec<Vec<f32>> = Vec::new();
+        let mut at = 0;
+        for size in [1, 700, 1500, 37, 2000, 1762] {
+            chunks.push(rows[at * d..(at + size) * d].to_vec());
+            at += size;
+        }
+        let cfg = KMeansConfig {
+            k: 16,
+            max_iter: 60,
+            tol: 0.0,
+            ..Default::default()
+        };
+        let run = |bounds_mib: usize, threads: usize| {
+            rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap()
+                .install(|| {
+                    KMeans::fit_counting(
+                        chunks.len(),
+                        d,
+                        |i| Ok(&chunks[i][..]),
+                        &KMeansConfig { bounds_mib, ..cfg },
+                    )
+                    .unwrap()
+                })
+        };
+        let (plain, all) = run(0, 2);
+        let passes = plain.iterations as u64 + 1;
+        assert!(passes > 8, "{passes} passes");
+        assert_eq!(all, passes * n as u64, "no bounds: every row every pass");
+        let (bounded, some) = run(1024, 2);
+        assert_eq!(bounded, plain, "bounds change nothing");
+        assert!(some < all / 4, "bounds skip most rows: {some} of {all}");
+        assert_eq!(run(1024, 1).0, plain);
+        // Each chunk's final statistics are its plain partial.
+        let mut sum = Partial::new(16, d);
+        for c in &chunks {
+            sum.merge(&plain.partial(c));
+        }
+        assert_eq!(sum.counts, plain.counts);
+        assert_eq!(sum.inertia, plain.inertia);
     }
 
     #[test]
