@@ -347,7 +347,11 @@ impl KMeans {
         for blk in rows.chunks(BLOCK * self.dim) {
             self.dots(blk, &mut dots);
             let n = blk.len() / self.dim;
-            out.extend(dots[..n * k].chunks_exact(k).map(|row| nearest_two(row, n2).0 as u16));
+            out.extend(
+                dots[..n * k]
+                    .chunks_exact(k)
+                    .map(|row| nearest_two(row, n2).0 as u16),
+            );
         }
         out
     }
