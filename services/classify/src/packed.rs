@@ -9,7 +9,8 @@
 //! f32 walk.
 //!
 //! A block of rows is coded feature by feature (one feature's edges stay cached), then every
-//! tree walks the block in lockstep lanes while the next tree's nodes are prefetched.
+//! tree walks the block in 16 interleaved lanes (their independent loads overlap) while the
+//! next tree's nodes are prefetched; a lane that reaches its leaf takes the next row at once.
 
 use rayon::prelude::*;
 
@@ -174,7 +175,6 @@ impl Packed {
     /// (`rows x classes`, zeroed by the caller), scaled by `inv`.
     pub(crate) fn predict_into(&self, x: &[f32], out: &mut [f32], inv: f32) {
         const BLOCK: usize = 1024;
-        const LANES: usize = 16;
         let (d, c) = (self.d, self.classes);
         out.par_chunks_mut(BLOCK * c)
             .zip(x.par_chunks(BLOCK * d))
@@ -184,46 +184,81 @@ impl Packed {
                     let nr = xb.len() / d;
                     let codes = &mut codes[..nr * d];
                     self.code_rows(xb, codes);
-                    for (ti, &(start, depth)) in self.trees.iter().enumerate() {
+                    for (ti, &(start, _)) in self.trees.iter().enumerate() {
                         self.prefetch(ti + 1);
-                        let nodes = &self.nodes;
-                        let mut r0 = 0;
-                        while r0 < nr {
-                            let lanes = LANES.min(nr - r0);
-                            let mut at = [start; LANES];
-                            let rows = &codes[r0 * d..(r0 + lanes) * d];
-                            // All lanes walk in lockstep (independent loads overlap, no
-                            // branches) and stop early once every lane sits on a leaf.
-                            let mut step = 0;
-                            while step < depth {
-                                let mut live = false;
-                                for _ in 0..4 {
-                                    live = false;
-                                    for (a, row) in at.iter_mut().zip(rows.chunks_exact(d)) {
-                                        let nd = nodes[*a as usize];
-                                        let v = row[nd.feature as usize];
-                                        *a = nd.left + (v > nd.code) as u32;
-                                        live |= nd.code != LEAF_CODE;
-                                    }
-                                }
-                                step += 4;
-                                if !live {
-                                    break;
-                                }
-                            }
-                            for (l, a) in at.iter().enumerate().take(lanes) {
-                                let p = self.leaf_at[*a as usize] as usize;
-                                o[(r0 + l) * c..(r0 + l + 1) * c]
-                                    .iter_mut()
-                                    .zip(&self.probs[p..p + c])
-                                    .for_each(|(a, b)| *a += b);
-                            }
-                            r0 += lanes;
-                        }
+                        self.walk_tree(start, codes, nr, o);
                     }
                     o.iter_mut().for_each(|v| *v *= inv);
                 },
             );
+    }
+
+    /// Walks the `nr` coded rows of `codes` through the tree starting at node `start`, adding
+    /// each row's leaf fractions into `o`. `LANES` rows walk at once (their independent loads
+    /// overlap); a lane that reaches its leaf takes the next row at once, so no lane idles
+    /// while another walks a deeper path.
+    #[inline(always)]
+    fn walk_tree(&self, start: u32, codes: &[u16], nr: usize, o: &mut [f32]) {
+        const LANES: usize = 16;
+        let (d, c) = (self.d, self.classes);
+        let nodes = &self.nodes[..];
+        let mut at = [start; LANES];
+        // Each lane's row offset into `codes`.
+        let mut row = [0usize; LANES];
+        let mut live = LANES.min(nr);
+        for (l, r) in row.iter_mut().enumerate().take(live) {
+            *r = l * d;
+        }
+        let mut next = live;
+        let add = |o: &mut [f32], r: usize, node: u32| {
+            let p = self.leaf_at[node as usize] as usize;
+            let r = r / d;
+            o[r * c..(r + 1) * c]
+                .iter_mut()
+                .zip(&self.probs[p..p + c])
+                .for_each(|(a, b)| *a += b);
+        };
+        while live == LANES {
+            for l in 0..LANES {
+                let nd = nodes[at[l] as usize];
+                if nd.code == LEAF_CODE {
+                    add(o, row[l], at[l]);
+                    if next < nr {
+                        row[l] = next * d;
+                        at[l] = start;
+                        next += 1;
+                    } else {
+                        // Park the lane on its leaf; the tail loop below finishes the rest.
+                        live -= 1;
+                        at[l] = u32::MAX;
+                    }
+                    continue;
+                }
+                at[l] = nd.left + (codes[row[l] + nd.feature as usize] > nd.code) as u32;
+            }
+        }
+        // The last lanes (fewer than LANES rows left): compacted, walked to their leaves.
+        let mut m = 0;
+        for l in 0..LANES.min(nr) {
+            if at[l] != u32::MAX {
+                (at[m], row[m]) = (at[l], row[l]);
+                m += 1;
+            }
+        }
+        while m > 0 {
+            let mut l = 0;
+            while l < m {
+                let nd = nodes[at[l] as usize];
+                if nd.code == LEAF_CODE {
+                    add(o, row[l], at[l]);
+                    m -= 1;
+                    (at[l], row[l]) = (at[m], row[m]);
+                    continue;
+                }
+                at[l] = nd.left + (codes[row[l] + nd.feature as usize] > nd.code) as u32;
+                l += 1;
+            }
+        }
     }
 }
 
