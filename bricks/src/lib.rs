@@ -7,7 +7,7 @@
 //! feature stage trains on.
 //!
 //! A store lives on a local or shared-POSIX path or at an `s3://bucket/prefix.zarr` URL
-//! ([`StoreLocation`]); writes are atomic, stage outputs are published as a whole, a writer
+//! ([`StoreLocation`]); writes are atomic, the outputs of a step are published together by one commit ([`commit`]), a writer
 //! lock keeps two writers apart ([`lock`]) and done markers let a stage resume ([`done`]).
 //!
 //! ```no_run
@@ -25,6 +25,7 @@
 #![warn(missing_docs)]
 
 pub mod backend;
+pub mod commit;
 pub mod derived;
 pub mod done;
 pub mod dtype;
@@ -46,6 +47,7 @@ pub use stream::FileVolume;
 pub mod synth;
 
 pub use backend::Backend;
+pub use commit::Commit;
 pub use derived::{DerivedBrick, HaloBrick, Normaliser};
 pub use done::{DoneMarkers, StageTag};
 pub use dtype::{DType, Endian};

@@ -10,6 +10,9 @@
 //!   compare-and-swap PUT (`If-Match` on its ETag), so two writers cannot both take it over.
 //!   `neuvolex unlock STORE` ([`break_lock`]) deletes a lock by hand.
 //!
+//! Taking the lock finishes a store-level commit that a killed writer left after its commit
+//! point ([`crate::commit::recover`]).
+//!
 //! Within one process the lock is shared: acquiring a store's lock while this process already
 //! holds it returns another handle to the same lock, released when the last handle drops.
 //!
@@ -181,6 +184,9 @@ impl WriterLock {
             }
             None => acquire_object(backend, holder, id.clone())?,
         });
+        // A commit a killed writer left after its commit point is finished before anything
+        // else is written (if that fails, the lock is released with the error).
+        crate::commit::recover(backend)?;
         reg.insert(id, Arc::downgrade(&held));
         Ok(WriterLock { held })
     }

@@ -16,15 +16,17 @@
 //! interrupted ingest never leaves a store that opens as complete.
 //!
 //! Stage outputs (label images, vector arrays) are written as a new *generation* `vN` beside
-//! the current one and published by one atomic write of their node's `zarr.json`, which
-//! points at the generation; older generations are deleted after that. A reader sees the
-//! previous complete output or the new one, never a mix:
+//! the current one and published by a [`Commit`]: the new `zarr.json` of each output's node,
+//! which points at the generation, for every output of a step at once (one atomic write of a
+//! commit record); older generations are deleted after that. A reader sees the previous
+//! complete outputs or the new ones, never a mix:
 //! - `labels/NAME/zarr.json`: the OME image-label group; its multiscales datasets are
 //!   `vN/0`, `vN/1`, ...
 //! - `neuvolex/vectors/NAME/zarr.json`: a group whose `neuvolex.current` names the array
 //!   `neuvolex/vectors/NAME/vN`.
 
 use crate::backend::Backend;
+use crate::commit::{group_doc, Commit};
 use crate::derived::{HaloBrick, Normaliser};
 use crate::done::{layout_of, DoneMarkers, StageTag};
 use crate::dtype::DType;
@@ -446,18 +448,55 @@ fn remove_stale_siblings(out: &Path) {
     };
     for e in entries.flatten() {
         let f = e.file_name().to_string_lossy().into_owned();
+        // `.NAME.partial-PID`, `.NAME.old-PID`, or with a sequence number `-PID-N`.
         let pid = [".partial-", ".old-"].iter().find_map(|tag| {
             f.strip_prefix(&format!(".{name}{tag}"))
+                .and_then(|p| p.split('-').next())
                 .and_then(|p| p.parse::<u32>().ok())
         });
         if let Some(pid) = pid {
             let gone = cfg!(target_os = "linux") && !Path::new(&format!("/proc/{pid}")).exists();
             if gone && pid != std::process::id() {
                 tracing::info!(path = %e.path().display(), "removing what an interrupted writer left");
-                let _ = std::fs::remove_dir_all(e.path());
+                let p = e.path();
+                let _ = if p.is_dir() {
+                    std::fs::remove_dir_all(&p)
+                } else {
+                    std::fs::remove_file(&p)
+                };
             }
         }
     }
+}
+
+/// Replaces the file at `path` with `bytes` atomically: written to a hidden sibling
+/// temporary (`.NAME.partial-PID-N`), synced, then renamed over it, so a crash leaves the
+/// previous file or the new one, never a part. Temporaries that killed writers left beside
+/// it are removed first.
+pub fn replace_file(path: &Path, bytes: &[u8]) -> Result<()> {
+    use std::io::Write;
+    use std::sync::atomic::{AtomicU64, Ordering};
+    static SEQ: AtomicU64 = AtomicU64::new(0);
+    if let Some(d) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
+        std::fs::create_dir_all(d).map_err(|e| BrickError::io(d, e))?;
+    }
+    remove_stale_siblings(path);
+    let t = crate::nifti::tmp_name(path);
+    let tmp = t.with_file_name(format!(
+        "{}-{}",
+        t.file_name().unwrap_or_default().to_string_lossy(),
+        SEQ.fetch_add(1, Ordering::SeqCst)
+    ));
+    let r = (|| {
+        let mut f = std::fs::File::create(&tmp)?;
+        f.write_all(bytes)?;
+        f.sync_all()?;
+        std::fs::rename(&tmp, path)
+    })();
+    if r.is_err() {
+        let _ = std::fs::remove_file(&tmp);
+    }
+    r.map_err(|e| BrickError::io(path, e))
 }
 
 /// One streaming pass over slabs: statistics, per-brick ranges and the NaN/Inf policy.
@@ -1077,6 +1116,16 @@ fn write_root_attrs(
     root: &Path,
     info: &StoreInfo,
 ) -> Result<()> {
+    let mut g = GroupBuilder::new();
+    g.attributes(root_attrs(root, info)?);
+    g.build(storage.clone(), "/")
+        .map_err(|e| BrickError::zarr(root, e))?
+        .store_metadata()
+        .map_err(|e| BrickError::zarr(root, e))
+}
+
+/// The root group's attributes: the OME multiscales of the image and [`StoreInfo`].
+fn root_attrs(root: &Path, info: &StoreInfo) -> Result<serde_json::Map<String, Value>> {
     let mut attrs = serde_json::Map::new();
     attrs.insert(
         "ome".into(),
@@ -1086,12 +1135,7 @@ fn write_root_attrs(
         "neuvolex".into(),
         serde_json::to_value(info).map_err(|e| BrickError::corrupt(root, e.to_string()))?,
     );
-    let mut g = GroupBuilder::new();
-    g.attributes(attrs);
-    g.build(storage.clone(), "/")
-        .map_err(|e| BrickError::zarr(root, e))?
-        .store_metadata()
-        .map_err(|e| BrickError::zarr(root, e))
+    Ok(attrs)
 }
 
 /// How per-voxel vectors are stored.
@@ -1157,7 +1201,7 @@ impl BrickStore {
         let backend = Backend::open(&location)?;
         let root_path = location.as_path();
         let root = root_path.as_path();
-        let node = read_node(&backend, "")?;
+        let node = crate::commit::read_committed_node(&backend, "")?;
         let nv = node
             .pointer("/attributes/neuvolex")
             .ok_or_else(|| BrickError::corrupt(root, "not a neuvolex brick store (no neuvolex attributes); run `neuvolex ingest` on it first"))?;
@@ -1516,10 +1560,26 @@ impl BrickStore {
 
     /// Adds a label volume under `labels/NAME` (grid must match; values non-negative integers).
     /// Written as a new generation beside the previous image of that name and published by
-    /// one atomic metadata write, so a reader sees the old image or the new one and an
-    /// interrupted write leaves the old one. Takes the writer lock.
+    /// one commit, so a reader sees the old image or the new one and an interrupted write
+    /// leaves the old one. Takes the writer lock.
     pub fn add_labels(
         &mut self,
+        name: &str,
+        source: &mut dyn VolumeSource,
+        classes: &[crate::synth::ClassInfo],
+        progress: &mut dyn FnMut(Progress),
+    ) -> Result<()> {
+        let mut commit = Commit::new();
+        self.stage_labels(&mut commit, name, source, classes, progress)?;
+        commit.publish(&self.backend)
+    }
+
+    /// Writes label image `labels/NAME` as a new generation, as [`Self::add_labels`] does, and
+    /// adds its publication to `commit` instead of publishing it, so it appears together with
+    /// the step's other outputs ([`Commit::publish`]). The commit holds the writer lock.
+    pub fn stage_labels(
+        &mut self,
+        commit: &mut Commit,
         name: &str,
         source: &mut dyn VolumeSource,
         classes: &[crate::synth::ClassInfo],
@@ -1536,7 +1596,7 @@ impl BrickStore {
         };
         let lock = self.writer_lock(&format!("labels {name}"))?;
         // Another handle (or process) may have added label images since this one opened.
-        if let Ok(node) = read_node(&self.backend, "") {
+        if let Ok(node) = crate::commit::read_committed_node(&self.backend, "") {
             if let Some(l) = node
                 .pointer("/attributes/neuvolex/labels")
                 .and_then(|v| serde_json::from_value::<Vec<String>>(v.clone()).ok())
@@ -1556,7 +1616,8 @@ impl BrickStore {
             return Err(e);
         }
         lock.check()?;
-        // Publish: the image-label group now points at the new generation.
+        commit.hold(lock);
+        // The image-label group will point at the new generation.
         let mut ms = multiscales(
             name,
             self.info.levels.len(),
@@ -1572,33 +1633,25 @@ impl BrickStore {
             let p = d["path"].as_str().unwrap_or("0").to_string();
             d["path"] = json!(format!("{gen}/{p}"));
         }
-        let mut g = GroupBuilder::new();
-        g.attributes(json!({"ome": {"version": "0.5", "multiscales": ms, "image-label": {
+        let attrs = |v: Value| v.as_object().cloned().unwrap_or_default();
+        commit.write(&node, group_doc(attrs(json!({"ome": {"version": "0.5", "multiscales": ms, "image-label": {
             "version": "0.5",
             "source": {"image": "../../"},
             "colors": classes.iter().map(|c| json!({"label-value": c.id, "rgba": [c.color[0], c.color[1], c.color[2], 255]})).collect::<Vec<_>>(),
             "properties": classes.iter().map(|c| json!({"label-value": c.id, "name": c.name})).collect::<Vec<_>>()
-        }}}).as_object().cloned().unwrap_or_default());
-        g.build(self.storage.clone(), &format!("/{node}"))
-            .map_err(|e| BrickError::zarr(&self.root, e))?
-            .store_metadata()
-            .map_err(|e| BrickError::zarr(&self.root, e))?;
-        drop_other_generations(&self.backend, &node, &gen)?;
+        }}}))));
+        commit.keep_only(&node, &gen);
         if !self.info.labels.iter().any(|l| l == name) {
             self.info.labels.push(name.to_string());
         }
-        let mut g = GroupBuilder::new();
-        g.attributes(
-            json!({"ome": {"version": "0.5", "labels": self.info.labels}})
-                .as_object()
-                .cloned()
-                .unwrap_or_default(),
+        commit.write(
+            "labels",
+            group_doc(attrs(
+                json!({"ome": {"version": "0.5", "labels": self.info.labels}}),
+            )),
         );
-        g.build(self.storage.clone(), "/labels")
-            .map_err(|e| BrickError::zarr(&self.root, e))?
-            .store_metadata()
-            .map_err(|e| BrickError::zarr(&self.root, e))?;
-        write_root_attrs(&self.storage, &self.root, &self.info)
+        commit.write("", group_doc(root_attrs(&self.root, &self.info)?));
+        Ok(())
     }
 
     /// Writes the pyramid of a label image as generation `gen` of `labels/NAME`.
@@ -1694,7 +1747,7 @@ impl BrickStore {
     /// The class table stored with label image `name` (empty if none was given).
     pub fn label_classes(&self, name: &str) -> Result<Vec<crate::synth::ClassInfo>> {
         check_name("label", name)?;
-        let node = read_node(&self.backend, &format!("labels/{name}"))?;
+        let node = crate::commit::read_committed_node(&self.backend, &format!("labels/{name}"))?;
         let il = node
             .pointer("/attributes/ome/image-label")
             .cloned()
@@ -1749,7 +1802,7 @@ impl BrickStore {
                 )));
             }
         }
-        let node = read_node(&self.backend, &format!("labels/{name}"))?;
+        let node = crate::commit::read_committed_node(&self.backend, &format!("labels/{name}"))?;
         let level0 = node
             .pointer("/attributes/ome/multiscales/0/datasets/0/path")
             .and_then(Value::as_str)
@@ -1854,12 +1907,17 @@ impl BrickStore {
     /// generations), `None` if there is none.
     fn current_vectors(&self, name: &str) -> Result<Option<String>> {
         let node = format!("neuvolex/vectors/{name}");
-        let Some(bytes) = self.backend.get(&format!("{node}/zarr.json"))? else {
-            return Ok(None);
+        let v: Value = match crate::commit::committed_doc(&self.backend, &node)? {
+            Some(v) => v,
+            None => {
+                let Some(bytes) = self.backend.get(&format!("{node}/zarr.json"))? else {
+                    return Ok(None);
+                };
+                serde_json::from_slice(&bytes).map_err(|e| {
+                    BrickError::corrupt(self.backend.key_path(&node), format!("zarr.json: {e}"))
+                })?
+            }
         };
-        let v: Value = serde_json::from_slice(&bytes).map_err(|e| {
-            BrickError::corrupt(self.backend.key_path(&node), format!("zarr.json: {e}"))
-        })?;
         if v.get("node_type").and_then(Value::as_str) == Some("array") {
             return Ok(Some(String::new()));
         }
@@ -2027,6 +2085,12 @@ impl BrickStore {
         })
     }
 
+    /// True if the store has a published vector array `name`.
+    pub fn has_vectors(&self, name: &str) -> Result<bool> {
+        check_name("vector", name)?;
+        Ok(self.current_vectors(name)?.is_some())
+    }
+
     /// Opens the published vector array `name` (its current generation).
     pub fn open_vectors(&self, name: &str) -> Result<VectorArray> {
         check_name("vector", name)?;
@@ -2064,7 +2128,7 @@ fn next_generation(backend: &Backend, node: &str) -> Result<String> {
 /// Deletes every child of `node` except its `zarr.json` and generation `keep`: older
 /// generations, abandoned pending ones, their markers, and the arrays of the layout before
 /// generations.
-fn drop_other_generations(backend: &Backend, node: &str, keep: &str) -> Result<()> {
+pub(crate) fn drop_other_generations(backend: &Backend, node: &str, keep: &str) -> Result<()> {
     for child in backend.list_dir(node)? {
         if child == "zarr.json" || (!keep.is_empty() && child == keep) || child.starts_with('.') {
             continue;
@@ -2230,12 +2294,19 @@ impl VectorArray {
         self.need_markers()?.pending(bricks)
     }
 
-    /// Marks the array complete and publishes it: one atomic write of the array's node
-    /// metadata makes this generation the current one, then the previous generation and the
-    /// done markers are deleted and the writer lock is released. Only the writer that holds
-    /// the lock (from [`BrickStore::create_vectors`] or [`BrickStore::resume_vectors`]) can
-    /// publish.
+    /// Marks the array complete and publishes it: one commit makes this generation the
+    /// current one, then the previous generation and the done markers are deleted and the
+    /// writer lock is released. Only the writer that holds the lock (from
+    /// [`BrickStore::create_vectors`] or [`BrickStore::resume_vectors`]) can publish.
     pub fn finish(&mut self) -> Result<()> {
+        let mut commit = Commit::new();
+        self.finish_into(&mut commit)?;
+        commit.publish(&self.backend)
+    }
+
+    /// Marks the array complete and adds its publication to `commit` (with the writer lock),
+    /// so it appears together with the step's other outputs when the commit is published.
+    pub fn finish_into(&mut self, commit: &mut Commit) -> Result<()> {
         let Some(lock) = self.lock.take() else {
             return Err(BrickError::InvalidArgument(format!(
                 "{}: vector array '{}' was opened for reading or as a worker; only its                  writer publishes it",
@@ -2253,20 +2324,20 @@ impl VectorArray {
             .store_metadata()
             .map_err(|e| BrickError::zarr(&self.root, e))?;
         lock.check()?;
+        commit.hold(lock);
         let node = format!("neuvolex/vectors/{}", self.name);
-        let mut g = GroupBuilder::new();
-        g.attributes(
-            json!({"neuvolex": {"current": self.generation}})
-                .as_object()
-                .cloned()
-                .unwrap_or_default(),
+        commit.write(
+            &node,
+            group_doc(
+                json!({"neuvolex": {"current": self.generation}})
+                    .as_object()
+                    .cloned()
+                    .unwrap_or_default(),
+            ),
         );
-        g.build(self.backend.zarr(), &format!("/{node}"))
-            .map_err(|e| BrickError::zarr(&self.root, e))?
-            .store_metadata()
-            .map_err(|e| BrickError::zarr(&self.root, e))?;
+        commit.keep_only(&node, &self.generation);
         self.done = None;
-        drop_other_generations(&self.backend, &node, &self.generation)
+        Ok(())
     }
 }
 

@@ -610,10 +610,14 @@ pub fn classify<E: Executor + ?Sized>(
             "features": set.to_string(),
             "identity": stage.params.identity,
         }));
-        proba_w.finish()?;
-        labels_w.finish()?;
+        // The probabilities, the label vectors and the OME label image appear together: a
+        // reader (or a kill) sees all three from before or all three from this run.
+        let mut commit = neuvolex_bricks::Commit::new();
+        proba_w.finish_into(&mut commit)?;
+        labels_w.finish_into(&mut commit)?;
         let mut lv = label_volume(&store, &labels);
-        store.add_labels("classified", &mut lv, &classes, &mut |_| {})?;
+        store.stage_labels(&mut commit, "classified", &mut lv, &classes, &mut |_| {})?;
+        commit.publish(store.backend())?;
         if let Some(o) = &req.out {
             neuvolex_bricks::nifti::write_nifti(o, &mut lv, 64)?;
         }

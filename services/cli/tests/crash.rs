@@ -7,10 +7,16 @@
 //!   with SIGKILL at a time drawn from a seeded RNG (`NEUVOLEX_CRASH_SEED`) over that duration
 //!   (+10 %, so some kills land after the end). After each kill every node of the store (image,
 //!   each label image, each vector array, the model) must read as its state before the
-//!   interrupted step or after it (and the store as a whole as one of them with
-//!   `NEUVOLEX_CRASH_STRICT=1`); then `--resume`
+//!   interrupted step or after it, and the store as a whole as one of them (a step's
+//!   outputs are one commit; `NEUVOLEX_CRASH_STRICT=0` only counts a mix); then `--resume`
 //!   (training with a checkpoint) or a re-run must complete and give the reference result bit
 //!   for bit, leaving no debris (temporary folders, unpublished generations).
+//! - **SIGKILL in the server** (`neuvolex serve`): the OME-Zarr export (a label image and a
+//!   probability array written into the store) and the session save (the session file
+//!   written when a session closes) are killed the same way, at seeded offsets over the
+//!   step's duration, on a fresh server brought to the step each time; then the store or
+//!   the session file must read as before or after, and a re-run on a new server must give the
+//!   uninterrupted result with no debris.
 //! - **Disk full**: the same stages on a small tmpfs (mounted by the test, unmounted after)
 //!   filled to a few KiB: a clear error naming a path on it, the previous store intact, and a
 //!   re-run after space is freed completes. Skips visibly where mounting is not permitted
@@ -26,6 +32,10 @@ use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
 use neuvolex_bricks::BrickStore;
+use serde_json::{json, Value};
+use support::{http, try_http, Server};
+
+mod support;
 
 const BIN: &str = env!("CARGO_BIN_EXE_neuvolex");
 
@@ -123,11 +133,17 @@ fn digest(store: &Path) -> State {
         };
         m.insert(format!("labels/{l}"), v);
     }
-    for name in ["inr_hidden", "classes_proba"] {
-        let node = store.join("neuvolex/vectors").join(name);
-        if !node.join("zarr.json").exists() {
-            m.insert(format!("vectors/{name}"), "absent".into());
-            continue;
+    for name in ["inr_hidden", "classes_proba", "classes_labels", "nx_proba"] {
+        match s.has_vectors(name) {
+            Ok(true) => {}
+            Ok(false) => {
+                m.insert(format!("vectors/{name}"), "absent".into());
+                continue;
+            }
+            Err(e) => {
+                m.insert(format!("vectors/{name}"), format!("error: {e}"));
+                continue;
+            }
         }
         let v = match s.open_vectors(name) {
             Ok(va) => {
@@ -428,14 +444,14 @@ fn kill_stage(stage: &Stage, setup: &[Vec<String>], kills: usize, rng: &mut Rng)
             t.saw_before += 1;
         } else if seen == states[k + 1] {
             t.saw_after += 1;
-        } else if std::env::var("NEUVOLEX_CRASH_STRICT").as_deref() != Ok("1")
+        } else if std::env::var("NEUVOLEX_CRASH_STRICT").as_deref() == Ok("0")
             && seen
                 .iter()
                 .all(|(n, v)| states[k].get(n) == Some(v) || states[k + 1].get(n) == Some(v))
         {
-            // Every node is complete (old or new), but not all from one state: `classify`
-            // publishes its probabilities and its label image one after the other. Counted,
-            // and an error with NEUVOLEX_CRASH_STRICT=1 (open: a store-level commit).
+            // Every node is complete (old or new), but not all from one state. Counted and
+            // tolerated only with NEUVOLEX_CRASH_STRICT=0 (steps publish their outputs in one
+            // commit, so by default this is a failure).
             t.mixed_nodes += 1;
         } else {
             let diff: Vec<String> = seen
@@ -514,6 +530,309 @@ fn sigkill_at_random_points_leaves_a_complete_store_and_resumes_to_the_same_resu
             continue;
         }
         let t = kill_stage(&stage, &setup, kills, &mut rng);
+        failures.extend(t.failures.iter().map(|f| format!("{}: {f}", stage.name)));
+    }
+    assert!(failures.is_empty(), "{}", failures.join("\n"));
+}
+
+/// The strokes of the server stages' earlier state (the step sends [`support::phantom_strokes`]).
+fn earlier_strokes() -> Value {
+    json!([
+        {"class": 1, "axis": "z", "slice": 20, "points": [[22, 29], [26, 31]], "radius": 2.0},
+        {"class": 255, "axis": "z", "slice": 20, "points": [[3, 3], [12, 3]], "radius": 2.0}
+    ])
+}
+
+/// Opens `phantom.zarr` on `srv` (restoring its saved session when asked); the session id.
+fn open_session(srv: &Server, restore: bool) -> String {
+    let (st, body) = http(
+        &srv.addr,
+        "POST",
+        "/api/sessions",
+        &[],
+        Some(&json!({"volume": "phantom.zarr", "restore": restore})),
+    );
+    assert_eq!(st, 201, "{body}");
+    serde_json::from_str::<Value>(&body).unwrap()["id"]
+        .as_str()
+        .unwrap()
+        .to_string()
+}
+
+/// Sends `strokes` to session `id` and waits until their classification is done.
+fn classify_strokes(srv: &Server, id: &str, strokes: &Value) {
+    let (st, body) = http(
+        &srv.addr,
+        "PUT",
+        &format!("/api/sessions/{id}/strokes"),
+        &[],
+        Some(strokes),
+    );
+    assert_eq!(st, 202, "{body}");
+    let t = Instant::now();
+    loop {
+        let (_, body) = http(&srv.addr, "GET", &format!("/api/sessions/{id}"), &[], None);
+        let v: Value = serde_json::from_str(&body).unwrap();
+        if v["status"]["state"] == "done" && v["status"]["generation"] == v["generation"] {
+            return;
+        }
+        assert!(
+            v["status"]["state"] != "failed" && t.elapsed() < Duration::from_secs(120),
+            "classification did not finish: {v}"
+        );
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+/// A step run in `neuvolex serve`. Each run starts from a fresh copy of the stage's base
+/// folder (`data/phantom.zarr` and the server's `work/`).
+struct ServerStage {
+    name: &'static str,
+    /// Brings a fresh server to the start of the step; the session id.
+    prepare: fn(&Server) -> String,
+    /// The step's requests; true when every one succeeded.
+    step: fn(&str, &str) -> bool,
+    /// What a reader sees in the run's folder.
+    digest: fn(&Path) -> State,
+    /// The folder (in the run's folder) checked for debris.
+    files_under: &'static str,
+}
+
+fn export_prepare(srv: &Server) -> String {
+    let id = open_session(srv, false);
+    classify_strokes(srv, &id, &support::phantom_strokes());
+    id
+}
+
+fn export_step(addr: &str, id: &str) -> bool {
+    let r = try_http(
+        addr,
+        "POST",
+        &format!("/api/sessions/{id}/export/zarr"),
+        &[],
+        Some(&json!({"name": "nx"})),
+    );
+    matches!(r, Ok((200, _)))
+}
+
+fn export_digest(run: &Path) -> State {
+    digest(&run.join("data/phantom.zarr"))
+}
+
+fn save_prepare(srv: &Server) -> String {
+    open_session(srv, true)
+}
+
+fn save_step(addr: &str, id: &str) -> bool {
+    let put = try_http(
+        addr,
+        "PUT",
+        &format!("/api/sessions/{id}/strokes"),
+        &[],
+        Some(&support::phantom_strokes()),
+    );
+    let del = try_http(addr, "DELETE", &format!("/api/sessions/{id}"), &[], None);
+    matches!(put, Ok((202, _))) && matches!(del, Ok((204, _)))
+}
+
+fn save_digest(run: &Path) -> State {
+    let p = run.join("work/sessions/phantom.zarr.json");
+    let v = match std::fs::read(&p) {
+        Err(_) => "absent".to_string(),
+        Ok(b) => match serde_json::from_slice::<Value>(&b) {
+            Ok(v) => v.to_string(),
+            Err(e) => format!("unreadable: {e}"),
+        },
+    };
+    State::from([("session".to_string(), v)])
+}
+
+/// The server stages and how their base folder is made: the export over an earlier export of
+/// other strokes (`labels/nx`, `nx_proba`), the session save over a saved session of other
+/// strokes.
+fn server_stages() -> Vec<(ServerStage, fn(&Server))> {
+    fn earlier_export(srv: &Server) {
+        let id = open_session(srv, false);
+        classify_strokes(srv, &id, &earlier_strokes());
+        assert!(export_step(&srv.addr, &id));
+    }
+    fn earlier_save(srv: &Server) {
+        let id = open_session(srv, false);
+        let (st, _) = http(
+            &srv.addr,
+            "PUT",
+            &format!("/api/sessions/{id}/strokes"),
+            &[],
+            Some(&earlier_strokes()),
+        );
+        assert_eq!(st, 202);
+        let (st, _) = http(
+            &srv.addr,
+            "DELETE",
+            &format!("/api/sessions/{id}"),
+            &[],
+            None,
+        );
+        assert_eq!(st, 204);
+    }
+    vec![
+        (
+            ServerStage {
+                name: "OME-Zarr export",
+                prepare: export_prepare,
+                step: export_step,
+                digest: export_digest,
+                files_under: "data/phantom.zarr",
+            },
+            earlier_export as fn(&Server),
+        ),
+        (
+            ServerStage {
+                name: "session save",
+                prepare: save_prepare,
+                step: save_step,
+                digest: save_digest,
+                files_under: "work/sessions",
+            },
+            earlier_save as fn(&Server),
+        ),
+    ]
+}
+
+fn kill_server_stage(
+    stage: &ServerStage,
+    setup: fn(&Server),
+    kills: usize,
+    rng: &mut Rng,
+) -> Tally {
+    let root = tempfile::tempdir().unwrap();
+    let base = root.path().join("base");
+    let run = root.path().join("run");
+    std::fs::create_dir_all(&base).unwrap();
+    let data = support::data_root(&base);
+    {
+        let srv = Server::start(&base, &data, &[], &[]);
+        setup(&srv);
+    }
+    for e in std::fs::read_dir(&base).unwrap().flatten() {
+        if e.file_name().to_string_lossy().ends_with(".log") {
+            std::fs::remove_file(e.path()).unwrap();
+        }
+    }
+    let start = |dir: &Path| Server::start(dir, &dir.join("data"), &[], &[]);
+    // The reference: the step uninterrupted, its duration and the state before and after.
+    copy_dir(&base, &run);
+    let before = (stage.digest)(&run);
+    let total = {
+        let srv = start(&run);
+        let id = (stage.prepare)(&srv);
+        let t = Instant::now();
+        assert!(
+            (stage.step)(&srv.addr, &id),
+            "{}: the step failed",
+            stage.name
+        );
+        t.elapsed().as_secs_f64()
+    };
+    let after = (stage.digest)(&run);
+    assert_ne!(
+        before, after,
+        "{}: the step must change the state",
+        stage.name
+    );
+    let final_files = shape(&files(&run.join(stage.files_under)));
+    let mut t = Tally::default();
+    for i in 0..kills {
+        copy_dir(&base, &run);
+        let at = rng.unit() * total * 1.1;
+        {
+            let mut srv = start(&run);
+            let id = (stage.prepare)(&srv);
+            let (addr, step) = (srv.addr.clone(), stage.step);
+            let h = std::thread::spawn(move || step(&addr, &id));
+            std::thread::sleep(Duration::from_secs_f64(at));
+            if !h.is_finished() {
+                t.killed_running += 1;
+            }
+            let _ = srv.child.kill(); // SIGKILL
+            let _ = srv.child.wait();
+            let _ = h.join();
+        }
+        t.kills += 1;
+        let seen = (stage.digest)(&run);
+        if seen == before {
+            t.saw_before += 1;
+        } else if seen == after {
+            t.saw_after += 1;
+        } else {
+            let diff: Vec<String> = seen
+                .iter()
+                .filter(|(n, v)| before.get(*n) != Some(v) && after.get(*n) != Some(v))
+                .map(|(n, v)| format!("{n}={v}"))
+                .collect();
+            t.failures.push(format!(
+                "kill {i} at {at:.3} s: neither the state before nor after: {diff:?} (nodes in neither), whole {seen:?}"
+            ));
+            continue;
+        }
+        // A re-run on a new server.
+        {
+            let srv = start(&run);
+            let id = (stage.prepare)(&srv);
+            if !(stage.step)(&srv.addr, &id) {
+                t.failures
+                    .push(format!("kill {i} at {at:.3} s: the re-run failed"));
+                continue;
+            }
+        }
+        let end = (stage.digest)(&run);
+        if end != after {
+            t.failures.push(format!(
+                "kill {i} at {at:.3} s: the re-run's result differs from the uninterrupted run: {end:?} vs {after:?}"
+            ));
+            continue;
+        }
+        let left = shape(&files(&run.join(stage.files_under)));
+        if left != final_files {
+            let extra: Vec<&String> = left.iter().filter(|f| !final_files.contains(f)).collect();
+            let missing: Vec<&String> = final_files.iter().filter(|f| !left.contains(f)).collect();
+            t.failures.push(format!(
+                "kill {i} at {at:.3} s: debris after the re-run: extra {extra:?}, missing {missing:?}"
+            ));
+            continue;
+        }
+        t.resumed += 1;
+    }
+    eprintln!(
+        "crash-safety {:<20} {} kills over {:.3} s (seed {}): {} killed while the step ran, read as before {} / after {}, re-run equal to uninterrupted {}/{}, failures {}",
+        stage.name,
+        t.kills,
+        total,
+        env_num("NEUVOLEX_CRASH_SEED", 16),
+        t.killed_running,
+        t.saw_before,
+        t.saw_after,
+        t.resumed,
+        t.kills,
+        t.failures.len()
+    );
+    t
+}
+
+#[test]
+fn sigkill_in_the_server_keeps_exports_and_saved_sessions_whole() {
+    let kills = env_num(
+        "NEUVOLEX_CRASH_SERVER_KILLS",
+        env_num("NEUVOLEX_CRASH_KILLS", 4),
+    ) as usize;
+    let only = std::env::var("NEUVOLEX_CRASH_STAGE").ok();
+    let mut rng = Rng(env_num("NEUVOLEX_CRASH_SEED", 16));
+    let mut failures = Vec::new();
+    for (stage, setup) in server_stages() {
+        if only.as_deref().is_some_and(|o| !stage.name.starts_with(o)) {
+            continue;
+        }
+        let t = kill_server_stage(&stage, setup, kills, &mut rng);
         failures.extend(t.failures.iter().map(|f| format!("{}: {f}", stage.name)));
     }
     assert!(failures.is_empty(), "{}", failures.join("\n"));

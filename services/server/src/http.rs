@@ -274,33 +274,17 @@ pub fn state_path(work: &std::path::Path, volume: &str) -> PathBuf {
 }
 
 /// Writes a session's state atomically (temporary file, fsync, rename): a crash leaves the
-/// previous file or the new one, never a part. Sessions without strokes are not saved.
+/// previous file or the new one, never a part, and the temporaries a killed server left are
+/// removed by the next save. Sessions without strokes are not saved.
 fn save_state(work: &std::path::Path, s: &Session) -> std::io::Result<PathBuf> {
-    use std::io::Write;
     let state = s.state();
     let p = state_path(work, &s.name);
     if state.strokes.is_empty() && state.tf.is_none() {
         return Ok(p);
     }
-    if let Some(d) = p.parent() {
-        std::fs::create_dir_all(d)?;
-    }
-    static SEQ: AtomicU64 = AtomicU64::new(0);
-    let tmp = p.with_extension(format!(
-        "json.partial-{}-{}",
-        std::process::id(),
-        SEQ.fetch_add(1, Ordering::SeqCst)
-    ));
-    let r = (|| {
-        let mut f = std::fs::File::create(&tmp)?;
-        f.write_all(state.to_json().as_bytes())?;
-        f.sync_all()?;
-        std::fs::rename(&tmp, &p)
-    })();
-    if r.is_err() {
-        let _ = std::fs::remove_file(&tmp);
-    }
-    r.map(|()| p)
+    neuvolex_bricks::store::replace_file(&p, state.to_json().as_bytes())
+        .map_err(std::io::Error::other)?;
+    Ok(p)
 }
 
 /// Runs blocking work (store reads, classification, encoding) off the async workers.
@@ -1072,8 +1056,11 @@ async fn export_zarr(
     let out = blocking(move || -> ApiResult<serde_json::Value> {
         let mut vol = u8_volume(&s, label_voxels(&s)?, "labels");
         let classes = s.classes.read().unwrap_or_else(|p| p.into_inner()).clone();
-        let mut w = BrickStore::open(s.store.root())?;
-        w.add_labels(&name, &mut vol, &classes, &mut |_| {})?;
+        // The label image and the probabilities are published together (one commit): a
+        // reader, or a kill, sees both from before the export or both from it.
+        let mut commit = neuvolex_bricks::Commit::new();
+        let mut w = BrickStore::open(s.store.location().clone())?;
+        w.stage_labels(&mut commit, &name, &mut vol, &classes, &mut |_| {})?;
         drop(vol);
         let p = complete_probs(&s)?;
         let c = p.ids.len();
@@ -1099,7 +1086,8 @@ async fn export_zarr(
             let f: Vec<f32> = v.iter().map(|&u| u as f32 / 255.0).collect();
             va.write_brick(&b, &f)?;
         }
-        va.finish()?;
+        va.finish_into(&mut commit)?;
+        commit.publish(w.backend())?;
         Ok(serde_json::json!({
             "store": s.store.root(),
             "labels": format!("labels/{name}"),
