@@ -13,6 +13,8 @@
 #                                  workspace's target folder (sharing its compiled dependencies),
 #                                  write the seeds and run every target over every seed and every
 #                                  saved finding (fuzz/regressions/); fails on any panic or abort
+#   fuzz/run.sh lock               re-pin fuzz/Cargo.lock to the workspace's Cargo.lock (after a
+#                                  dependency change; replay refuses a lock that drifted)
 #   fuzz/run.sh long [RUNS] [T..]  RUNS executions (default 10000000) of each target (or the
 #                                  ones named), one at a time at nice 19; logs and a summary in
 #                                  fuzz/runs/
@@ -84,13 +86,24 @@ run() {
     -print_final_stats=1 "$@"
 }
 
+# lock: fuzz/Cargo.lock = the workspace's Cargo.lock plus the fuzzing crates, resolved offline,
+# so the fuzz build uses the workspace's versions (and, in replay, its compiled dependencies).
+lock() {
+  cp ../Cargo.lock Cargo.lock
+  cargo tree --offline -q -e normal >/dev/null
+  echo "fuzz/Cargo.lock re-pinned to ../Cargo.lock"
+}
+
 # replay: every target over its seeds and saved findings, no instrumentation needed (libFuzzer
 # runs the files named on its command line once each and stops at the first crash).
 replay() {
   local tdir bins start
   start=$(date +%s)
   tdir="$(cd .. && pwd)/target"
-  cargo build --release --locked --target-dir "$tdir" --bins
+  if ! cargo build --release --locked --target-dir "$tdir" --bins; then
+    echo "fuzz replay: the build failed; if fuzz/Cargo.lock drifted from ../Cargo.lock, run fuzz/run.sh lock and commit it" >&2
+    exit 1
+  fi
   bins="$tdir/release"
   local data="${NVX_DATA:-../../shared/data}"
   if [ ! -d "$data" ] && [ "${CI:-}" = "true" ]; then
@@ -119,6 +132,7 @@ replay() {
 
 case "${1:-ci}" in
   build) build ;;
+  lock) lock ;;
   replay) replay ;;
   seeds) seeds ;;
   ci)
@@ -164,7 +178,7 @@ case "${1:-ci}" in
     done
     ;;
   *)
-    echo "usage: fuzz/run.sh build|seeds|replay|ci [SECONDS]|long [RUNS] [TARGET...]" >&2
+    echo "usage: fuzz/run.sh build|seeds|lock|replay|ci [SECONDS]|long [RUNS] [TARGET...]" >&2
     exit 2
     ;;
 esac
