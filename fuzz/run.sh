@@ -1,20 +1,17 @@
 #!/usr/bin/env bash
 # The fuzzers (cargo-fuzz / libFuzzer) on the stable toolchain. cargo-fuzz passes nightly-only
-# flags (-Zsanitizer=address, sanitizer coverage); RUSTC_BOOTSTRAP=1 lets the stable compiler
-# accept them. cargo-fuzz itself is installed from crates.io when missing.
+# flags (-Zsanitizer=address, sanitizer coverage); RUSTC_BOOTSTRAP=1 (set for cargo fuzz only)
+# lets the stable compiler accept them. cargo-fuzz itself is installed from crates.io when missing.
 #
 #   fuzz/run.sh build              build every target (release, debug assertions, ASan)
 #   fuzz/run.sh seeds              write the seed corpora into fuzz/corpus/ (from ../shared/data
 #                                  and files the project writes; never committed)
 #   fuzz/run.sh ci [SECONDS]       build, seed, run every target SECONDS (default 15); fails on
 #                                  any crash, leak, out-of-memory or timeout
-#   fuzz/run.sh replay             without cargo-fuzz, nightly or sanitizers (what CI runs): build
-#                                  the targets with plain `cargo build --release` into the
-#                                  workspace's target folder (sharing its compiled dependencies),
-#                                  write the seeds and run every target over every seed and every
-#                                  saved finding (fuzz/regressions/); fails on any panic or abort
-#   fuzz/run.sh lock               re-pin fuzz/Cargo.lock to the workspace's Cargo.lock (after a
-#                                  dependency change; replay refuses a lock that drifted)
+#   fuzz/run.sh replay             without cargo-fuzz, nightly or sanitizers (what CI runs, inside
+#                                  `cargo test --workspace`): the crate's `replay` test writes the
+#                                  seeds and runs every target over every seed and every saved
+#                                  finding (fuzz/regressions/); fails on any panic
 #   fuzz/run.sh long [RUNS] [T..]  RUNS executions (default 10000000) of each target (or the
 #                                  ones named), one at a time at nice 19; logs and a summary in
 #                                  fuzz/runs/
@@ -23,7 +20,6 @@
 # claimed size (before it is checked against the file) fails the run.
 set -euo pipefail
 cd "$(dirname "$0")"
-export RUSTC_BOOTSTRAP=1
 export CARGO_TERM_COLOR=never
 TARGETS=(nifti nifti_gz nrrd raw omezarr strokes tf classes session checkpoint)
 CARGO_FUZZ_VERSION=0.13.2
@@ -57,7 +53,11 @@ ensure_cargo_fuzz() {
 build() {
   ensure_cargo_fuzz
   # -O: optimised; -a: debug assertions and overflow checks; ASan (the default sanitizer).
-  cargo fuzz build -O -a
+  # RUSTC_BOOTSTRAP only here: build scripts (proc-macro2's) watch it, so it must not reach the
+  # workspace's target folder (it would rebuild, then thrash, the compiled dependencies there).
+  # The libFuzzer binaries need the `fuzzing` feature; their own target folder (fuzz/target)
+  # keeps the sanitizer builds apart from the workspace's.
+  RUSTC_BOOTSTRAP=1 cargo fuzz build -O -a --features fuzzing --target-dir target
 }
 
 bin_dir() {
@@ -86,53 +86,15 @@ run() {
     -print_final_stats=1 "$@"
 }
 
-# lock: fuzz/Cargo.lock = the workspace's Cargo.lock plus the fuzzing crates, resolved offline,
-# so the fuzz build uses the workspace's versions (and, in replay, its compiled dependencies).
-lock() {
-  cp ../Cargo.lock Cargo.lock
-  cargo tree --offline -q -e normal >/dev/null
-  echo "fuzz/Cargo.lock re-pinned to ../Cargo.lock"
-}
-
-# replay: every target over its seeds and saved findings, no instrumentation needed (libFuzzer
-# runs the files named on its command line once each and stops at the first crash).
+# replay: every target over its seeds and saved findings, without libFuzzer, nightly or
+# sanitizers: the `replay` test of this crate, a workspace member, so it shares the workspace's
+# compiled dependencies (deploy/test.sh runs it with the rest of the suite).
 replay() {
-  local tdir bins start
-  start=$(date +%s)
-  tdir="$(cd .. && pwd)/target"
-  if ! cargo build --release --locked --target-dir "$tdir" --bins; then
-    echo "fuzz replay: the build failed; if fuzz/Cargo.lock drifted from ../Cargo.lock, run fuzz/run.sh lock and commit it" >&2
-    exit 1
-  fi
-  bins="$tdir/release"
-  local data="${NVX_DATA:-../../shared/data}"
-  if [ ! -d "$data" ] && [ "${CI:-}" = "true" ]; then
-    echo "fuzz seeds: $data is missing (CI=true requires the real volumes)" >&2
-    exit 1
-  fi
-  local corpus="$tdir/fuzz-replay"
-  rm -rf "$corpus"
-  "$bins/seeds" "$data" "$corpus"
-  for t in "${TARGETS[@]}"; do
-    mkdir -p "$corpus/$t"
-    [ -d "regressions/$t" ] && cp regressions/"$t"/* "$corpus/$t/" 2>/dev/null || true
-    local n
-    n=$(find "$corpus/$t" -type f | wc -l)
-    if ! find "$corpus/$t" -type f -print0 |
-      xargs -0 -r -n 200 "$bins/$t" -malloc_limit_mb=512 -rss_limit_mb=2048 -timeout=10 \
-        >"$corpus/$t.log" 2>&1; then
-      tail -40 "$corpus/$t.log" >&2
-      echo "fuzz replay $t: FAILED" >&2
-      exit 1
-    fi
-    echo "fuzz replay $t: $n inputs, no finding"
-  done
-  echo "fuzz replay: every target over its seeds in $(($(date +%s) - start)) s"
+  (cd .. && cargo test --release -p neuvolex-fuzz --test replay -- --nocapture)
 }
 
 case "${1:-ci}" in
   build) build ;;
-  lock) lock ;;
   replay) replay ;;
   seeds) seeds ;;
   ci)
@@ -178,7 +140,7 @@ case "${1:-ci}" in
     done
     ;;
   *)
-    echo "usage: fuzz/run.sh build|seeds|lock|replay|ci [SECONDS]|long [RUNS] [TARGET...]" >&2
+    echo "usage: fuzz/run.sh build|seeds|replay|ci [SECONDS]|long [RUNS] [TARGET...]" >&2
     exit 2
     ;;
 esac

@@ -5,6 +5,8 @@
 //! A target returns normally on any `Err`: only a panic, an abort, a leak past
 //! `-rss_limit_mb`, an allocation past `-malloc_limit_mb` or a timeout is a finding.
 
+pub mod targets;
+
 use neuvolex_bricks::VolumeSource;
 use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
@@ -23,6 +25,11 @@ pub fn scratch() -> &'static Path {
         std::fs::create_dir_all(&d).expect("scratch folder");
         d
     })
+}
+
+/// Removes this process's scratch folder (the replay test calls it when done).
+pub fn remove_scratch() {
+    let _ = std::fs::remove_dir_all(scratch());
 }
 
 /// An empty folder `name` inside the scratch folder (its previous content removed).

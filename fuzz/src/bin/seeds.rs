@@ -81,7 +81,11 @@ fn tree(dir: &Path) -> Vec<(String, Vec<u8>)> {
             if p.is_dir() {
                 walk(root, &p, out);
             } else {
-                let rel = p.strip_prefix(root).expect("prefix").to_string_lossy().into_owned();
+                let rel = p
+                    .strip_prefix(root)
+                    .expect("prefix")
+                    .to_string_lossy()
+                    .into_owned();
                 out.push((rel, file_bytes(&p)));
             }
         }
@@ -149,18 +153,28 @@ fn main() {
         c.put(
             "nrrd",
             "tooth_crop",
-            &pack(&[("v.nhdr".into(), small.clone().into_bytes()), ("tooth.raw".into(), be.clone())]),
+            &pack(&[
+                ("v.nhdr".into(), small.clone().into_bytes()),
+                ("tooth.raw".into(), be.clone()),
+            ]),
         );
         c.put(
             "nrrd",
             "tooth_header_truncated_data",
-            &pack(&[("v.nhdr".into(), text.into_bytes()), ("tooth.raw".into(), be[..8].to_vec())]),
+            &pack(&[
+                ("v.nhdr".into(), text.into_bytes()),
+                ("tooth.raw".into(), be[..8].to_vec()),
+            ]),
         );
         let attached = small.replace("data file: ./tooth.raw\n", "");
         let mut a = attached.into_bytes();
         a.push(b'\n');
         a.extend_from_slice(&be);
-        c.put("nrrd", "tooth_crop_attached", &pack(&[("v.nrrd".into(), a)]));
+        c.put(
+            "nrrd",
+            "tooth_crop_attached",
+            &pack(&[("v.nrrd".into(), a)]),
+        );
         crops.push(("tooth_7x6x3".into(), v));
     }
     for (rel, dtype) in [
@@ -173,7 +187,11 @@ fn main() {
         }
         let mut src = neuvolex_bricks::open_volume(&p, None).expect("raw opens");
         let v = crop(src.as_mut(), 8, 8, 4);
-        let stem = Path::new(rel).file_stem().unwrap().to_string_lossy().into_owned();
+        let stem = Path::new(rel)
+            .file_stem()
+            .unwrap()
+            .to_string_lossy()
+            .into_owned();
         let base = stem.split('_').next().unwrap_or("v").to_string();
         c.put(
             "raw",
@@ -196,7 +214,10 @@ fn main() {
     // NRRD (raw and gzip, both byte orders, attached and detached), raw with sidecars.
     for (tag, ch) in [
         ("phantom", neuvolex_bricks::synth::PhantomChannel::Image),
-        ("phantom_labels", neuvolex_bricks::synth::PhantomChannel::Labels),
+        (
+            "phantom_labels",
+            neuvolex_bricks::synth::PhantomChannel::Labels,
+        ),
     ] {
         let mut ph = neuvolex_bricks::synth::Phantom::new(
             neuvolex_bricks::synth::PhantomParams::with_size(8, 0),
@@ -225,7 +246,11 @@ fn main() {
             if let Some(df) = det {
                 files.push((df.to_string(), file_bytes(&d.join(df))));
             }
-            c.put("nrrd", &format!("{tag}_{enc}_{endian:?}_{}", det.is_some()), &pack(&files));
+            c.put(
+                "nrrd",
+                &format!("{tag}_{enc}_{endian:?}_{}", det.is_some()),
+                &pack(&files),
+            );
         }
         let spec = neuvolex_bricks::RawSpec {
             dims: v.meta.dims,
@@ -239,7 +264,10 @@ fn main() {
             &format!("{tag}_spec"),
             &pack(&[
                 ("v.raw".into(), v.bytes.clone()),
-                ("v.raw.json".into(), serde_json::to_vec(&spec).expect("json")),
+                (
+                    "v.raw.json".into(),
+                    serde_json::to_vec(&spec).expect("json"),
+                ),
             ]),
         );
     }
@@ -271,8 +299,16 @@ fn main() {
             classes: classes.clone(),
             background: 255,
         };
-        c.put("classes", &format!("{l}_table"), &serde_json::to_vec_pretty(&table).unwrap());
-        c.put("classes", &format!("{l}_list"), &serde_json::to_vec(&classes).unwrap());
+        c.put(
+            "classes",
+            &format!("{l}_table"),
+            &serde_json::to_vec_pretty(&table).unwrap(),
+        );
+        c.put(
+            "classes",
+            &format!("{l}_list"),
+            &serde_json::to_vec(&classes).unwrap(),
+        );
     }
     if let Some((_, v)) = crops.iter().find(|(t, _)| t.starts_with("abdomen_ct_ct")) {
         for shard in [None, Some(2)] {
@@ -289,7 +325,11 @@ fn main() {
                 &mut |_| {},
             )
             .expect("ingest crop");
-            c.put("omezarr", &format!("ct_crop_shard{}", shard.is_some()), &pack(&tree(&p)));
+            c.put(
+                "omezarr",
+                &format!("ct_crop_shard{}", shard.is_some()),
+                &pack(&tree(&p)),
+            );
         }
     }
     let lm = data.join("abdomen_ct/totalseg_labelmap.json");
@@ -335,8 +375,13 @@ fn main() {
     );
 
     // Sessions: what the UI saves.
-    let classes = store.label_classes(&store.info().labels[0]).unwrap_or_default();
-    let classes: Vec<_> = classes.into_iter().filter(|c| c.id != 0 && c.id != 255).collect();
+    let classes = store
+        .label_classes(&store.info().labels[0])
+        .unwrap_or_default();
+    let classes: Vec<_> = classes
+        .into_iter()
+        .filter(|c| c.id != 0 && c.id != 255)
+        .collect();
     let preset: serde_json::Value =
         serde_json::from_str(neuvolex_render::tf::PRESETS[0].1).expect("preset json");
     for (i, strokes) in stroke_sets.iter().enumerate() {
@@ -344,7 +389,11 @@ fn main() {
             "volume": "abdomen_ct/ct.nii.gz", "classes": classes, "strokes": strokes,
             "tf": preset, "view": {"az": 30.0, "el": 20.0, "mode": "prob"}});
         // Simulated labels may use ids the phantom lacks: list them.
-        let mut ids: Vec<u32> = strokes.iter().map(|s| s.class).filter(|&c| c != 255).collect();
+        let mut ids: Vec<u32> = strokes
+            .iter()
+            .map(|s| s.class)
+            .filter(|&c| c != 255)
+            .collect();
         ids.sort_unstable();
         ids.dedup();
         s["classes"] = serde_json::Value::Array(
@@ -352,7 +401,11 @@ fn main() {
                 .map(|&id| serde_json::json!({"id": id, "name": format!("class {id}"), "color": [200, 100, 50]}))
                 .collect(),
         );
-        c.put("session", &format!("simulated{i}"), s.to_string().as_bytes());
+        c.put(
+            "session",
+            &format!("simulated{i}"),
+            s.to_string().as_bytes(),
+        );
     }
     c.put(
         "session",
