@@ -389,6 +389,23 @@ struct Tally {
     failures: Vec<String>,
 }
 
+impl Tally {
+    /// The last check of a kill whose re-run gave the uninterrupted result: the files left
+    /// (`left`) must be the uninterrupted run's (`want`); counts it resumed, or records the
+    /// debris.
+    fn settle(&mut self, i: usize, at: f64, left: &[String], want: &[String]) {
+        if left == want {
+            self.resumed += 1;
+            return;
+        }
+        let extra: Vec<&String> = left.iter().filter(|f| !want.contains(f)).collect();
+        let missing: Vec<&String> = want.iter().filter(|f| !left.contains(f)).collect();
+        self.failures.push(format!(
+            "kill {i} at {at:.3} s: debris after the re-run: extra {extra:?}, missing {missing:?}"
+        ));
+    }
+}
+
 fn kill_stage(stage: &Stage, setup: &[Vec<String>], kills: usize, rng: &mut Rng) -> Tally {
     let root = tempfile::tempdir().unwrap();
     let base = root.path().join("base");
@@ -490,16 +507,7 @@ fn kill_stage(stage: &Stage, setup: &[Vec<String>], kills: usize, rng: &mut Rng)
             ));
             continue;
         }
-        let left = shape(&files(&work));
-        if left != final_files {
-            let extra: Vec<&String> = left.iter().filter(|f| !final_files.contains(f)).collect();
-            let missing: Vec<&String> = final_files.iter().filter(|f| !left.contains(f)).collect();
-            t.failures.push(format!(
-                "kill {i} at {at:.3} s: debris after the re-run: extra {extra:?}, missing {missing:?}"
-            ));
-            continue;
-        }
-        t.resumed += 1;
+        t.settle(i, at, &shape(&files(&work)), &final_files);
     }
     eprintln!(
         "crash-safety {:<20} {} kills over {:.2} s (seed {}): {} killed while running, store read as before {} / after {} / complete nodes from both {}, re-run equal to uninterrupted {}/{}, failures {}",
@@ -792,16 +800,12 @@ fn kill_server_stage(
             ));
             continue;
         }
-        let left = shape(&files(&run.join(stage.files_under)));
-        if left != final_files {
-            let extra: Vec<&String> = left.iter().filter(|f| !final_files.contains(f)).collect();
-            let missing: Vec<&String> = final_files.iter().filter(|f| !left.contains(f)).collect();
-            t.failures.push(format!(
-                "kill {i} at {at:.3} s: debris after the re-run: extra {extra:?}, missing {missing:?}"
-            ));
-            continue;
-        }
-        t.resumed += 1;
+        t.settle(
+            i,
+            at,
+            &shape(&files(&run.join(stage.files_under))),
+            &final_files,
+        );
     }
     eprintln!(
         "crash-safety {:<20} {} kills over {:.3} s (seed {}): {} killed while the step ran, read as before {} / after {}, re-run equal to uninterrupted {}/{}, failures {}",

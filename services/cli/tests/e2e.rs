@@ -6,6 +6,8 @@
 //! Needs Debian's chromium, node, and playwright-core under `target/e2e/node_modules`; `.ci/run`
 //! installs them. Skips where they are absent, and fails under CI=true.
 
+mod support;
+
 use std::io::{BufRead, BufReader};
 use std::path::PathBuf;
 use std::process::{Command, Stdio};
@@ -33,16 +35,7 @@ fn browser_scribbles_classify_and_update_the_views() {
     }
     let bin = env!("CARGO_BIN_EXE_neuvolex");
     let d = tempfile::tempdir().unwrap();
-    let data = d.path().join("data");
-    std::fs::create_dir_all(&data).unwrap();
-    let st = Command::new(bin)
-        .args([
-            "synth", "phantom", "--size", "48", "--brick", "16", "--quiet", "--out",
-        ])
-        .arg(data.join("phantom.zarr"))
-        .status()
-        .unwrap();
-    assert!(st.success());
+    let data = support::data_root(d.path());
     let mut server = Command::new(bin)
         .args(["serve", "--port", "0", "--data-root"])
         .arg(&data)

@@ -1,6 +1,6 @@
 //! Helpers shared by the tests that drive `neuvolex serve` as a real process (`serve.rs`,
-//! `crash.rs`): a phantom data root, the server process, plain HTTP/1.1 requests and event
-//! streams.
+//! `e2e.rs`, `crash.rs`): a phantom data root, the server process, plain HTTP/1.1 requests and
+//! event streams.
 #![allow(dead_code)]
 
 use serde_json::{json, Value};
