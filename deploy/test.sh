@@ -1,6 +1,8 @@
 #!/usr/bin/env bash
 # The tests: every crate, release mode, with the wgpu renderer compared against the CPU one and
-# the browser UI driven in headless Chromium, and the store on a real S3-protocol server.
+# the browser UI driven in headless Chromium, the store on a real S3-protocol server, and every
+# fuzz target over its seeds and saved findings (fuzz/tests/replay.rs; the fuzz crate is a
+# workspace member).
 # The GPU test needs a Vulkan driver; on a machine without a GPU, Mesa's lavapipe (a software
 # Vulkan) serves, so this installs it where it is missing and apt is usable. Without any adapter
 # the GPU test skips (and fails under CI=true).
