@@ -198,8 +198,11 @@ pub fn checkpoint(data: &[u8]) {
     }
 }
 
+/// A fuzz target: the function libFuzzer's input is handed to.
+pub type Target = fn(&[u8]);
+
 /// Every target by name, in the order `run.sh` lists them.
-pub const ALL: [(&str, fn(&[u8])); 10] = [
+pub const ALL: [(&str, Target); 10] = [
     ("nifti", nifti),
     ("nifti_gz", nifti_gz),
     ("nrrd", nrrd),
