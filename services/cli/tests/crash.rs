@@ -596,6 +596,8 @@ fn classify_strokes(srv: &Server, id: &str, strokes: &Value) {
 /// folder (`data/phantom.zarr` and the server's `work/`).
 struct ServerStage {
     name: &'static str,
+    /// Makes the stage's base folder: the state the step replaces.
+    setup: fn(&Server),
     /// Brings a fresh server to the start of the step; the session id.
     prepare: fn(&Server) -> String,
     /// The step's requests; true when every one succeeded.
@@ -658,7 +660,7 @@ fn save_digest(run: &Path) -> State {
 /// The server stages and how their base folder is made: the export over an earlier export of
 /// other strokes (`labels/nx`, `nx_proba`), the session save over a saved session of other
 /// strokes.
-fn server_stages() -> Vec<(ServerStage, fn(&Server))> {
+fn server_stages() -> Vec<ServerStage> {
     fn earlier_export(srv: &Server) {
         let id = open_session(srv, false);
         classify_strokes(srv, &id, &earlier_strokes());
@@ -684,35 +686,26 @@ fn server_stages() -> Vec<(ServerStage, fn(&Server))> {
         assert_eq!(st, 204);
     }
     vec![
-        (
-            ServerStage {
-                name: "OME-Zarr export",
-                prepare: export_prepare,
-                step: export_step,
-                digest: export_digest,
-                files_under: "data/phantom.zarr",
-            },
-            earlier_export as fn(&Server),
-        ),
-        (
-            ServerStage {
-                name: "session save",
-                prepare: save_prepare,
-                step: save_step,
-                digest: save_digest,
-                files_under: "work/sessions",
-            },
-            earlier_save as fn(&Server),
-        ),
+        ServerStage {
+            name: "OME-Zarr export",
+            setup: earlier_export,
+            prepare: export_prepare,
+            step: export_step,
+            digest: export_digest,
+            files_under: "data/phantom.zarr",
+        },
+        ServerStage {
+            name: "session save",
+            setup: earlier_save,
+            prepare: save_prepare,
+            step: save_step,
+            digest: save_digest,
+            files_under: "work/sessions",
+        },
     ]
 }
 
-fn kill_server_stage(
-    stage: &ServerStage,
-    setup: fn(&Server),
-    kills: usize,
-    rng: &mut Rng,
-) -> Tally {
+fn kill_server_stage(stage: &ServerStage, kills: usize, rng: &mut Rng) -> Tally {
     let root = tempfile::tempdir().unwrap();
     let base = root.path().join("base");
     let run = root.path().join("run");
@@ -720,7 +713,7 @@ fn kill_server_stage(
     let data = support::data_root(&base);
     {
         let srv = Server::start(&base, &data, &[], &[]);
-        setup(&srv);
+        (stage.setup)(&srv);
     }
     for e in std::fs::read_dir(&base).unwrap().flatten() {
         if e.file_name().to_string_lossy().ends_with(".log") {
@@ -832,11 +825,11 @@ fn sigkill_in_the_server_keeps_exports_and_saved_sessions_whole() {
     let only = std::env::var("NEUVOLEX_CRASH_STAGE").ok();
     let mut rng = Rng(env_num("NEUVOLEX_CRASH_SEED", 16));
     let mut failures = Vec::new();
-    for (stage, setup) in server_stages() {
+    for stage in server_stages() {
         if only.as_deref().is_some_and(|o| !stage.name.starts_with(o)) {
             continue;
         }
-        let t = kill_server_stage(&stage, setup, kills, &mut rng);
+        let t = kill_server_stage(&stage, kills, &mut rng);
         failures.extend(t.failures.iter().map(|f| format!("{}: {f}", stage.name)));
     }
     assert!(failures.is_empty(), "{}", failures.join("\n"));
