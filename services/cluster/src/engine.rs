@@ -241,6 +241,17 @@ impl Engine {
         Ok(())
     }
 
+    /// Deletes the blob under `key` (a result read once); a failure is only logged.
+    pub async fn delete_blob(&self, key: &str) {
+        let r = match self.blobs().await {
+            Ok(b) => b.delete(key).await.map_err(|e| e.to_string()),
+            Err(e) => Err(e.to_string()),
+        };
+        if let Err(e) = r {
+            tracing::debug!("cannot delete blob '{key}': {e}");
+        }
+    }
+
     /// The blob stored under `key`.
     pub async fn get_blob(&self, key: &str) -> Result<Vec<u8>> {
         use tokio::io::AsyncReadExt;
