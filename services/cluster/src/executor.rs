@@ -361,4 +361,13 @@ impl Executor for ClusterExecutor {
     ) -> neuvolex_tasks::Result<RunReport> {
         Ok(self.block_on(self.run(stage, tasks, on))?)
     }
+
+    fn forget_blobs(&self, keys: &[String]) {
+        let e = self.engine();
+        self.block_on(async {
+            for k in keys {
+                e.delete_blob(k).await;
+            }
+        });
+    }
 }

@@ -559,6 +559,8 @@ pub fn train_on<E: Executor + ?Sized>(
             return Err(FeatureError::Cancelled);
         }
         let ups: Vec<ReplicaUpdate> = outs.into_iter().flatten().collect();
+        // The round's model is superseded: its blob would only fill the store.
+        exec.forget_blobs(&[stage.params.blob.clone()]);
         drop(stage);
         let st = Arc::try_unwrap(st).unwrap_or_else(|a| State {
             model: a.model.clone(),
