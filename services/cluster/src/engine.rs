@@ -233,7 +233,8 @@ impl Engine {
     /// Publishes `bytes` under `key` unless the blob store already holds it.
     pub async fn put_blob(&self, key: &str, bytes: &[u8]) -> Result<()> {
         let b = self.blobs().await?;
-        if b.info(key).await.is_ok() {
+        // A deleted object keeps an info record (`deleted`): it is published again.
+        if b.info(key).await.is_ok_and(|i| !i.deleted) {
             return Ok(());
         }
         let mut r = bytes;
