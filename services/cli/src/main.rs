@@ -395,6 +395,23 @@ impl TrainArgs {
     }
 }
 
+/// The training progress bar (samples against the budget), hidden when `quiet`.
+fn train_bar(quiet: bool) -> ProgressBar {
+    let bar = if quiet {
+        ProgressBar::hidden()
+    } else {
+        ProgressBar::new(0)
+    };
+    bar.set_style(
+        ProgressStyle::with_template(
+            "train [{bar:40}] {pos}/{len} samples {msg} {elapsed} eta {eta}",
+        )
+        .unwrap_or_else(|_| ProgressStyle::default_bar())
+        .progress_chars("=> "),
+    );
+    bar
+}
+
 fn run_train(store_path: &Path, args: &TrainArgs, quiet: bool) -> Result<()> {
     use neuvolex_features::{checkpoint, TrainEvent};
     let store = BrickStore::open(store_path)?;
@@ -415,18 +432,7 @@ fn run_train(store_path: &Path, args: &TrainArgs, quiet: bool) -> Result<()> {
     };
     let engine = backend::Engine::pick(&args.backend)?;
     let cancel = std::sync::atomic::AtomicBool::new(false);
-    let bar = if quiet {
-        ProgressBar::hidden()
-    } else {
-        ProgressBar::new(0)
-    };
-    bar.set_style(
-        ProgressStyle::with_template(
-            "train [{bar:40}] {pos}/{len} samples {msg} {elapsed} eta {eta}",
-        )
-        .unwrap_or_else(|_| ProgressStyle::default_bar())
-        .progress_chars("=> "),
-    );
+    let bar = train_bar(quiet);
     let mut on_event = |e: TrainEvent| match &e {
         TrainEvent::Started {
             bricks,
@@ -524,18 +530,7 @@ fn run_train_distributed(
     let store = BrickStore::open(store_path)?;
     let exec = cl.executor()?;
     let _lock = store.writer_lock("train")?;
-    let bar = if quiet {
-        ProgressBar::hidden()
-    } else {
-        ProgressBar::new(0)
-    };
-    bar.set_style(
-        ProgressStyle::with_template(
-            "train [{bar:40}] {pos}/{len} samples {msg} {elapsed} eta {eta}",
-        )
-        .unwrap_or_else(|_| ProgressStyle::default_bar())
-        .progress_chars("=> "),
-    );
+    let bar = train_bar(quiet);
     let per_worker = std::cell::RefCell::new(std::collections::BTreeMap::<String, u64>::new());
     let mut progress = |e: neuvolex_tasks::RunEvent| match e {
         neuvolex_tasks::RunEvent::Task { worker, .. } => {

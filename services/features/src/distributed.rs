@@ -169,7 +169,9 @@ pub struct RoundStage {
 /// Tile groups a worker process loaded, with their sample order (the next round usually
 /// continues in the same group).
 type GroupKey = (String, u64, u64, usize, usize, String);
-static GROUPS: Mutex<Vec<(GroupKey, Arc<(Vec<Tile>, Vec<(u32, u32)>)>)>> = Mutex::new(Vec::new());
+/// A loaded tile group and its seeded sample order.
+type Group = Arc<(Vec<Tile>, Vec<(u32, u32)>)>;
+static GROUPS: Mutex<Vec<(GroupKey, Group)>> = Mutex::new(Vec::new());
 
 fn blob_key(model: &InrModel, adam: &Adam) -> String {
     let mut h = crc32fast::Hasher::new();
@@ -236,7 +238,7 @@ impl RoundStage {
     }
 
     /// The tiles and sample order of group `group` of `epoch` (cached per worker process).
-    fn group(&self, epoch: u64, group: usize) -> Result<Arc<(Vec<Tile>, Vec<(u32, u32)>)>> {
+    fn group(&self, epoch: u64, group: usize) -> Result<Group> {
         let tc = &self.state.tc;
         let key: GroupKey = (
             self.params.store.clone(),
@@ -560,7 +562,7 @@ pub fn train_on<E: Executor + ?Sized>(
         }
         let ups: Vec<ReplicaUpdate> = outs.into_iter().flatten().collect();
         // The round's model is superseded: its blob would only fill the store.
-        exec.forget_blobs(&[stage.params.blob.clone()]);
+        exec.forget_blobs(std::slice::from_ref(&stage.params.blob));
         drop(stage);
         let st = Arc::try_unwrap(st).unwrap_or_else(|a| State {
             model: a.model.clone(),
