@@ -103,6 +103,13 @@ impl Executor for Exec {
             Exec::Cluster(e) => e.execute(stage, tasks, on),
         }
     }
+
+    fn forget_blobs(&self, keys: &[String]) {
+        match self {
+            Exec::Local(e) => e.forget_blobs(keys),
+            Exec::Cluster(e) => e.forget_blobs(keys),
+        }
+    }
 }
 
 /// One progress bar per stage, with the tasks each worker finished.

@@ -206,6 +206,18 @@ enum Cmd {
         store: PathBuf,
         #[command(flatten)]
         args: TrainArgs,
+        /// Data-parallel replicas: each round, every replica trains `--sync-steps` batches of
+        /// the sample stream from the shared model, then the replicas are averaged (hash-table
+        /// entries over the replicas that touched them). The model depends on the seed and
+        /// this count, not on how many workers run the replicas. 1 without --cluster is the
+        /// single-node trainer.
+        #[arg(long, default_value_t = 1)]
+        replicas: u32,
+        /// Optimiser steps each replica takes between synchronisations.
+        #[arg(long, default_value_t = 16)]
+        sync_steps: u64,
+        #[command(flatten)]
+        cluster: cluster::ClusterArgs,
     },
     /// Extract per-voxel INR features of a trained store into it (f16, one chunk per brick).
     Features {
@@ -383,6 +395,23 @@ impl TrainArgs {
     }
 }
 
+/// The training progress bar (samples against the budget), hidden when `quiet`.
+fn train_bar(quiet: bool) -> ProgressBar {
+    let bar = if quiet {
+        ProgressBar::hidden()
+    } else {
+        ProgressBar::new(0)
+    };
+    bar.set_style(
+        ProgressStyle::with_template(
+            "train [{bar:40}] {pos}/{len} samples {msg} {elapsed} eta {eta}",
+        )
+        .unwrap_or_else(|_| ProgressStyle::default_bar())
+        .progress_chars("=> "),
+    );
+    bar
+}
+
 fn run_train(store_path: &Path, args: &TrainArgs, quiet: bool) -> Result<()> {
     use neuvolex_features::{checkpoint, TrainEvent};
     let store = BrickStore::open(store_path)?;
@@ -403,18 +432,7 @@ fn run_train(store_path: &Path, args: &TrainArgs, quiet: bool) -> Result<()> {
     };
     let engine = backend::Engine::pick(&args.backend)?;
     let cancel = std::sync::atomic::AtomicBool::new(false);
-    let bar = if quiet {
-        ProgressBar::hidden()
-    } else {
-        ProgressBar::new(0)
-    };
-    bar.set_style(
-        ProgressStyle::with_template(
-            "train [{bar:40}] {pos}/{len} samples {msg} {elapsed} eta {eta}",
-        )
-        .unwrap_or_else(|_| ProgressStyle::default_bar())
-        .progress_chars("=> "),
-    );
+    let bar = train_bar(quiet);
     let mut on_event = |e: TrainEvent| match &e {
         TrainEvent::Started {
             bricks,
@@ -488,6 +506,93 @@ fn run_train(store_path: &Path, args: &TrainArgs, quiet: bool) -> Result<()> {
         t.state.samples,
         t.state.seconds,
         engine.describe()
+    );
+    Ok(())
+}
+
+/// `neuvolex train --replicas N` / `--cluster URL`: data-parallel training on an executor.
+fn run_train_distributed(
+    store_path: &Path,
+    args: &TrainArgs,
+    replicas: u32,
+    sync_steps: u64,
+    cl: &cluster::ClusterArgs,
+    quiet: bool,
+) -> Result<()> {
+    use neuvolex_features::{checkpoint, distributed, TrainEvent};
+    let (inr, cfg) = args.configs()?;
+    if args.resume {
+        bail!("--resume continues a single-node checkpoint: drop --replicas/--cluster");
+    }
+    if args.backend == "gpu" {
+        bail!("distributed training runs the CPU engine on every worker: use --backend cpu");
+    }
+    let store = BrickStore::open(store_path)?;
+    let exec = cl.executor()?;
+    let _lock = store.writer_lock("train")?;
+    let bar = train_bar(quiet);
+    let per_worker = std::cell::RefCell::new(std::collections::BTreeMap::<String, u64>::new());
+    let mut progress = |e: neuvolex_tasks::RunEvent| match e {
+        neuvolex_tasks::RunEvent::Task { worker, .. } => {
+            *per_worker.borrow_mut().entry(worker).or_default() += 1
+        }
+        neuvolex_tasks::RunEvent::Message(m) => bar.suspend(|| eprintln!("{m}")),
+        _ => {}
+    };
+    let mut on_event = |e: TrainEvent| match e {
+        TrainEvent::Started { budget_samples, .. } => bar.set_length(budget_samples.unwrap_or(0)),
+        TrainEvent::Step {
+            samples,
+            loss,
+            psnr,
+            epoch,
+            ..
+        } => {
+            bar.set_position(samples);
+            let w: Vec<String> = per_worker
+                .borrow()
+                .iter()
+                .map(|(w, n)| format!("{w}:{n}"))
+                .collect();
+            bar.set_message(format!(
+                "epoch {epoch:.2} loss {loss:.3e} PSNR {psnr:.2} dB [{}]",
+                w.join(" ")
+            ));
+        }
+        TrainEvent::Finished { .. } => bar.finish_and_clear(),
+        _ => {}
+    };
+    let (t, report) = distributed::train_on(
+        &exec,
+        &store,
+        &neuvolex_classify::pipeline::store_path_string(store_path),
+        &inr,
+        &cfg,
+        distributed::Replication {
+            replicas,
+            sync_steps,
+        },
+        &mut progress,
+        &mut on_event,
+    )?;
+    let path = neuvolex_features::train::model_path(&store);
+    checkpoint::save(&path, &t.model, None)?;
+    let slice_psnr = match neuvolex_features::train::preview(&store, &t.model, 512)?.event(0) {
+        TrainEvent::Preview { psnr, .. } => psnr,
+        _ => f64::NAN,
+    };
+    println!(
+        "model: {} (PSNR {:.2} dB last round, {:.2} dB middle slice, after {} samples in {:.1} s, \
+         {replicas} replicas x {sync_steps} steps per round on {}: {} tasks, {} redelivered, per worker {:?})",
+        path.display(),
+        t.psnr,
+        slice_psnr,
+        t.state.samples,
+        t.state.seconds,
+        report.executor,
+        report.completed,
+        report.redeliveries,
+        report.per_worker
     );
     Ok(())
 }
@@ -805,7 +910,19 @@ fn main() -> Result<()> {
             let mb = info.stats.voxels as f64 * info.source_dtype.size() as f64 / 1e6;
             tracing::info!(store = %output.display(), dims = ?info.dims, bricks = info.grid().iter().product::<usize>(), seconds = t.elapsed().as_secs_f64(), mb_per_s = mb / t.elapsed().as_secs_f64(), "ingest complete");
         }
-        Cmd::Train { store, args } => run_train(&store, &args, quiet)?,
+        Cmd::Train {
+            store,
+            args,
+            replicas,
+            sync_steps,
+            cluster,
+        } => {
+            if replicas == 1 && cluster.cluster.is_none() {
+                run_train(&store, &args, quiet)?
+            } else {
+                run_train_distributed(&store, &args, replicas, sync_steps, &cluster, quiet)?
+            }
+        }
         Cmd::Classify(a) => classify::run_classify(&a, quiet)?,
         Cmd::Eval(a) => eval::run_eval(&a, quiet)?,
         Cmd::Render(a) => render::run_render(&a, quiet)?,

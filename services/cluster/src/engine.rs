@@ -233,12 +233,24 @@ impl Engine {
     /// Publishes `bytes` under `key` unless the blob store already holds it.
     pub async fn put_blob(&self, key: &str, bytes: &[u8]) -> Result<()> {
         let b = self.blobs().await?;
-        if b.info(key).await.is_ok() {
+        // A deleted object keeps an info record (`deleted`): it is published again.
+        if b.info(key).await.is_ok_and(|i| !i.deleted) {
             return Ok(());
         }
         let mut r = bytes;
         b.put(key, &mut r).await.map_err(|e| js("blob put", e))?;
         Ok(())
+    }
+
+    /// Deletes the blob under `key` (a result read once); a failure is only logged.
+    pub async fn delete_blob(&self, key: &str) {
+        let r = match self.blobs().await {
+            Ok(b) => b.delete(key).await.map_err(|e| e.to_string()),
+            Err(e) => Err(e.to_string()),
+        };
+        if let Err(e) = r {
+            tracing::debug!("cannot delete blob '{key}': {e}");
+        }
     }
 
     /// The blob stored under `key`.

@@ -36,7 +36,13 @@ pub(crate) mod h {
     pub const OVERHEAD: &str = "Nvx-Overhead";
     pub const SKIPPED: &str = "Nvx-Skipped";
     pub const DELIVERED: &str = "Nvx-Delivered";
+    /// A result too large for one message: the key of the blob that holds it.
+    pub const BLOB: &str = "Nvx-Blob";
 }
+
+/// Results larger than this go through the blob store (NATS messages are limited to 1 MiB
+/// by default), the message carrying only the blob's key.
+pub(crate) const INLINE_RESULT_MAX: usize = 256 * 1024;
 
 struct Inner {
     rt: Option<tokio::runtime::Runtime>,
@@ -258,7 +264,15 @@ impl ClusterExecutor {
                             on(Event::Dead(d));
                             continue;
                         }
-                        let output: S::Output = codec::decode(&m.payload)?;
+                        let output: S::Output = match header(&m, h::BLOB) {
+                            Some(key) => {
+                                let b = e.get_blob(key).await?;
+                                report.queue_bytes += b.len() as u64;
+                                e.delete_blob(key).await;
+                                codec::decode(&b)?
+                            }
+                            None => codec::decode(&m.payload)?,
+                        };
                         let work: f64 = header(&m, h::WORK).and_then(|v| v.parse().ok()).unwrap_or(0.0);
                         let overhead: f64 = header(&m, h::OVERHEAD).and_then(|v| v.parse().ok()).unwrap_or(0.0);
                         let skipped: u64 = header(&m, h::SKIPPED).and_then(|v| v.parse().ok()).unwrap_or(0);
@@ -346,5 +360,14 @@ impl Executor for ClusterExecutor {
         on: &mut dyn FnMut(Event<S::Output>),
     ) -> neuvolex_tasks::Result<RunReport> {
         Ok(self.block_on(self.run(stage, tasks, on))?)
+    }
+
+    fn forget_blobs(&self, keys: &[String]) {
+        let e = self.engine();
+        self.block_on(async {
+            for k in keys {
+                e.delete_blob(k).await;
+            }
+        });
     }
 }

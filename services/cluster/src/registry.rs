@@ -18,6 +18,10 @@ pub fn standard_registry() -> Registry {
             neuvolex_features::stage::STAGE,
             neuvolex_features::stage::ExtractStage::build,
         )
+        .with(
+            neuvolex_features::distributed::STAGE,
+            neuvolex_features::distributed::RoundStage::build,
+        )
         .with(vp::SAMPLE, vp::SampleStage::build)
         .with(vp::PASS, vp::PassStage::build)
         .with(vp::VIEWS, vp::ViewStage::build)

@@ -373,7 +373,24 @@ async fn serve_async(
                 hdr.insert(h::OVERHEAD, format!("{overhead:.6}").as_str());
                 hdr.insert(h::SKIPPED, skipped.to_string().as_str());
                 let t_pub = Instant::now();
-                match publish_result(&engine, &subject, hdr, bytes).await {
+                let sent = if bytes.len() > crate::executor::INLINE_RESULT_MAX {
+                    // Too large for a message: the result goes through the blob store.
+                    let key = format!(
+                        "result-{}-{}-{:016x}",
+                        tm.run,
+                        tm.task.index,
+                        neuvolex_tasks::fingerprint(&bytes)
+                    );
+                    hdr.insert(crate::executor::h::BLOB, key.as_str());
+                    engine.put_blob(&key, &bytes).await.map(|_| Vec::new())
+                } else {
+                    Ok(bytes)
+                };
+                let published = match sent {
+                    Ok(payload) => publish_result(&engine, &subject, hdr, payload).await,
+                    Err(e) => Err(e),
+                };
+                match published {
                     Ok(()) => {
                         if let Err(e) = msg.double_ack().await {
                             tracing::warn!("ack of task {}: {e} (it will be redelivered; its result is idempotent)", tm.task.index);

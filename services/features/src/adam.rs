@@ -105,6 +105,19 @@ impl TableGrad {
             });
     }
 
+    /// ORs the entries touched so far into `acc` (one bitset of `t` bits per level, as
+    /// [`TableGrad::empty_marks`] makes).
+    pub fn mark_into(&self, acc: &mut [Vec<u64>]) {
+        for (a, m) in acc.iter_mut().zip(&self.mark) {
+            a.iter_mut().zip(m).for_each(|(a, m)| *a |= m);
+        }
+    }
+
+    /// Empty touched-entry bitsets shaped like this accumulator's.
+    pub fn empty_marks(&self) -> Vec<Vec<u64>> {
+        self.mark.iter().map(|m| vec![0; m.len()]).collect()
+    }
+
     /// Number of touched table parameters.
     pub fn touched_params(&self) -> usize {
         self.mark

@@ -82,6 +82,29 @@ pub fn save(
     model: &InrModel,
     train: Option<(&TrainConfig, &TrainState, &Adam)>,
 ) -> Result<()> {
+    let location = location.into();
+    let out = to_bytes_at(&location.as_path(), model, train)?;
+    let (backend, key) = Backend::for_file(&location)?;
+    backend.put(&key, out)?;
+    // Temporaries of earlier, killed saves into this folder.
+    backend.remove_stale_temporaries();
+    Ok(())
+}
+
+/// The bytes of a model file (a checkpoint with `train`), as [`save`] writes them: what a
+/// cluster coordinator publishes to its workers.
+pub fn to_bytes(
+    model: &InrModel,
+    train: Option<(&TrainConfig, &TrainState, &Adam)>,
+) -> Result<Vec<u8>> {
+    to_bytes_at(Path::new("<model blob>"), model, train)
+}
+
+fn to_bytes_at(
+    path: &Path,
+    model: &InrModel,
+    train: Option<(&TrainConfig, &TrainState, &Adam)>,
+) -> Result<Vec<u8>> {
     let mut arrays: Vec<&[f32]> = vec![&model.table, &model.dense];
     if let Some((_, _, a)) = train {
         arrays.extend([
@@ -91,9 +114,6 @@ pub fn save(
             &a.v_dense[..],
         ]);
     }
-    let location = location.into();
-    let path_buf = location.as_path();
-    let path = path_buf.as_path();
     let mut crc = crc32fast::Hasher::new();
     for a in &arrays {
         crc.update(bytemuck::cast_slice(a));
@@ -124,11 +144,7 @@ pub fn save(
     for a in &arrays {
         out.extend_from_slice(bytemuck::cast_slice(a));
     }
-    let (backend, key) = Backend::for_file(&location)?;
-    backend.put(&key, out)?;
-    // Temporaries of earlier, killed saves into this folder.
-    backend.remove_stale_temporaries();
-    Ok(())
+    Ok(out)
 }
 
 /// The grid a model was built for (stored with it so features are computed on the same grid).
@@ -158,8 +174,18 @@ pub fn load(location: impl Into<StoreLocation>) -> Result<Loaded> {
         path: path.to_path_buf(),
         source: std::io::Error::new(std::io::ErrorKind::NotFound, "no such file"),
     })?;
+    from_bytes_at(path, &bytes)
+}
+
+/// Parses the bytes of a model file or checkpoint ([`to_bytes`]), with [`load`]'s checks;
+/// errors name `what`.
+pub fn from_bytes(what: &str, bytes: &[u8]) -> Result<Loaded> {
+    from_bytes_at(Path::new(what), bytes)
+}
+
+fn from_bytes_at(path: &Path, bytes: &[u8]) -> Result<Loaded> {
     let flen = bytes.len() as u64;
-    let mut f = bytes.as_slice();
+    let mut f = bytes;
     let mut head = [0u8; 16];
     f.read_exact(&mut head)
         .map_err(|_| bad(path, "truncated: shorter than the 16-byte preamble"))?;

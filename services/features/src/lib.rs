@@ -11,6 +11,7 @@
 pub mod adam;
 pub mod checkpoint;
 pub mod config;
+pub mod distributed;
 pub mod error;
 pub mod extract;
 pub mod hashgrid;

@@ -446,6 +446,95 @@ pub fn psnr(mse: f64) -> f64 {
     10.0 * (1.0 / mse.max(1e-12)).log10()
 }
 
+/// The reusable buffers of [`step`]: one gradient lane per [`LANES`], the table gradient and
+/// the dense gradient.
+pub struct StepBuffers {
+    works: Vec<Work>,
+    tg: TableGrad,
+    g_dense: Vec<f32>,
+}
+
+impl StepBuffers {
+    /// Buffers for `model`.
+    pub fn new(model: &InrModel) -> Self {
+        StepBuffers {
+            works: (0..LANES).map(|_| model.work()).collect(),
+            tg: TableGrad::new(model.grid.levels.len(), model.grid.t, model.grid.f),
+            g_dense: vec![0.0f32; model.dense.len()],
+        }
+    }
+}
+
+/// What one optimiser step saw.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct StepStats {
+    /// Batch loss.
+    pub loss: f64,
+    /// Sum of squared errors of the intensity head over the batch.
+    pub sse: f64,
+}
+
+/// One optimiser step on `batch` ((tile, voxel) pairs of `tiles`): gradients in [`LANES`]
+/// fixed lanes summed in lane order (the same for any thread count), then Adam. This is the
+/// step of the single-node trainer ([`train`]) and of every replica of distributed training
+/// ([`crate::distributed`]). `touched`, when given, gets the hash-table entries this step's
+/// gradient touched OR-ed in (one bitset per level). `step_no` names the step in errors.
+#[allow(clippy::too_many_arguments)]
+pub fn step(
+    model: &mut InrModel,
+    adam: &mut Adam,
+    buf: &mut StepBuffers,
+    tiles: &[Tile],
+    batch: &[(u32, u32)],
+    rates: crate::adam::Rates,
+    step_no: u64,
+    touched: Option<&mut [Vec<u64>]>,
+) -> Result<StepStats> {
+    let patch = model.cfg.patch;
+    let len = batch.len();
+    let per = len.div_ceil(LANES);
+    let m = &*model;
+    buf.works.par_iter_mut().enumerate().for_each(|(li, w)| {
+        m.reset(w);
+        let lane = &batch[(li * per).min(len)..((li + 1) * per).min(len)];
+        for chunk in lane.chunks(CHUNK) {
+            m.load_with(w, chunk.len(), |i, x, p, t| {
+                let (ti, v) = chunk[i];
+                tiles[ti as usize].sample(v as usize, patch, x, p, t);
+            });
+            m.forward_backward(w, len);
+        }
+    });
+    buf.g_dense.iter_mut().for_each(|g| *g = 0.0);
+    let (mut loss, mut sse) = (0.0f64, 0.0f64);
+    for w in &buf.works {
+        buf.g_dense
+            .iter_mut()
+            .zip(&w.grad)
+            .for_each(|(a, b)| *a += b);
+        loss += w.loss;
+        sse += w.sse_int;
+    }
+    let lanes: Vec<&Work> = buf.works.iter().collect();
+    buf.tg.scatter(&lanes);
+    if !loss.is_finite() {
+        return Err(FeatureError::Config(format!(
+            "loss became {loss} at step {step_no}; lower the learning rate"
+        )));
+    }
+    if let Some(t) = touched {
+        buf.tg.mark_into(t);
+    }
+    adam.step(
+        &mut model.dense,
+        &buf.g_dense,
+        &mut model.table,
+        &mut buf.tg,
+        rates,
+    );
+    Ok(StepStats { loss, sse })
+}
+
 /// The result of [`train`].
 pub struct Trained {
     /// The trained model.
@@ -478,10 +567,7 @@ pub fn train(
         voxels,
         budget_samples,
     } = run;
-    let patch = model.cfg.patch;
-    let mut works: Vec<Work> = (0..LANES).map(|_| model.work()).collect();
-    let mut tg = TableGrad::new(model.grid.levels.len(), model.grid.t, model.grid.f);
-    let mut g_dense = vec![0.0f32; model.dense.len()];
+    let mut buf = StepBuffers::new(&model);
     let start = Instant::now();
     let seconds0 = state.seconds;
     let mut last_ckpt = Instant::now();
@@ -531,45 +617,15 @@ pub fn train(
                     }
                     let batch = batches[state.batch];
                     let len = batch.len();
-                    let per = len.div_ceil(LANES);
-                    let m = &model;
-                    works.par_iter_mut().enumerate().for_each(|(li, w)| {
-                        m.reset(w);
-                        let lane = &batch[(li * per).min(len)..((li + 1) * per).min(len)];
-                        for chunk in lane.chunks(CHUNK) {
-                            m.load_with(w, chunk.len(), |i, x, p, t| {
-                                let (ti, v) = chunk[i];
-                                tiles[ti as usize].sample(v as usize, patch, x, p, t);
-                            });
-                            m.forward_backward(w, len);
-                        }
-                    });
-                    g_dense.iter_mut().for_each(|g| *g = 0.0);
-                    let (mut loss, mut sse) = (0.0f64, 0.0f64);
-                    for w in &works {
-                        g_dense.iter_mut().zip(&w.grad).for_each(|(a, b)| *a += b);
-                        loss += w.loss;
-                        sse += w.sse_int;
-                    }
-                    let lanes: Vec<&Work> = works.iter().collect();
-                    tg.scatter(&lanes);
-                    if !loss.is_finite() {
-                        return Err(FeatureError::Config(format!(
-                            "loss became {loss} at step {}; lower the learning rate",
-                            state.step
-                        )));
-                    }
-                    adam.step(
-                        &mut model.dense,
-                        &g_dense,
-                        &mut model.table,
-                        &mut tg,
-                        crate::adam::Rates {
-                            lr: tc.lr,
-                            lr_table: tc.lr_table,
-                            mode: tc.table_adam,
-                        },
-                    );
+                    let rates = crate::adam::Rates {
+                        lr: tc.lr,
+                        lr_table: tc.lr_table,
+                        mode: tc.table_adam,
+                    };
+                    let st = step(
+                        &mut model, &mut adam, &mut buf, &tiles, batch, rates, state.step, None,
+                    )?;
+                    let (loss, sse) = (st.loss, st.sse);
                     state.step += 1;
                     state.batch += 1;
                     state.samples += len as u64;

@@ -138,6 +138,10 @@ pub trait Executor: Sync {
         tasks: &[Task],
         on: &mut dyn FnMut(Event<S::Output>),
     ) -> Result<RunReport>;
+
+    /// Drops blobs a finished run published that no later run needs (e.g. the model of a
+    /// training round). Executors without a blob store do nothing.
+    fn forget_blobs(&self, _keys: &[String]) {}
 }
 
 /// Runs `tasks` and returns their outputs in task order (`None` for a dead task), calling
