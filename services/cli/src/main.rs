@@ -412,6 +412,22 @@ fn train_bar(quiet: bool) -> ProgressBar {
     bar
 }
 
+/// Saves a trained model into its store and returns its path with the PSNR of the middle slice
+/// reconstructed by the CPU evaluator: one measure for every engine and executor.
+fn save_model(
+    store: &BrickStore,
+    model: &neuvolex_features::InrModel,
+) -> Result<(neuvolex_bricks::StoreLocation, f64)> {
+    use neuvolex_features::{checkpoint, TrainEvent};
+    let path = neuvolex_features::train::model_path(store);
+    checkpoint::save(&path, model, None)?;
+    let psnr = match neuvolex_features::train::preview(store, model, 512)?.event(0) {
+        TrainEvent::Preview { psnr, .. } => psnr,
+        _ => f64::NAN,
+    };
+    Ok((path, psnr))
+}
+
 fn run_train(store_path: &Path, args: &TrainArgs, quiet: bool) -> Result<()> {
     use neuvolex_features::{checkpoint, TrainEvent};
     let store = BrickStore::open(store_path)?;
@@ -491,13 +507,7 @@ fn run_train(store_path: &Path, args: &TrainArgs, quiet: bool) -> Result<()> {
         &cancel,
         &mut on_event,
     )?;
-    let path = neuvolex_features::train::model_path(&store);
-    checkpoint::save(&path, &t.model, None)?;
-    // The middle slice reconstructed by the CPU evaluator: one measure for every engine.
-    let slice_psnr = match neuvolex_features::train::preview(&store, &t.model, 512)?.event(0) {
-        TrainEvent::Preview { psnr, .. } => psnr,
-        _ => f64::NAN,
-    };
+    let (path, slice_psnr) = save_model(&store, &t.model)?;
     println!(
         "model: {} (PSNR {:.2} dB last batch, {:.2} dB middle slice, after {} samples in {:.1} s, {})",
         path.display(),
@@ -519,7 +529,7 @@ fn run_train_distributed(
     cl: &cluster::ClusterArgs,
     quiet: bool,
 ) -> Result<()> {
-    use neuvolex_features::{checkpoint, distributed, TrainEvent};
+    use neuvolex_features::{distributed, TrainEvent};
     let (inr, cfg) = args.configs()?;
     if args.resume {
         bail!("--resume continues a single-node checkpoint: drop --replicas/--cluster");
@@ -575,12 +585,7 @@ fn run_train_distributed(
         &mut progress,
         &mut on_event,
     )?;
-    let path = neuvolex_features::train::model_path(&store);
-    checkpoint::save(&path, &t.model, None)?;
-    let slice_psnr = match neuvolex_features::train::preview(&store, &t.model, 512)?.event(0) {
-        TrainEvent::Preview { psnr, .. } => psnr,
-        _ => f64::NAN,
-    };
+    let (path, slice_psnr) = save_model(&store, &t.model)?;
     println!(
         "model: {} (PSNR {:.2} dB last round, {:.2} dB middle slice, after {} samples in {:.1} s, \
          {replicas} replicas x {sync_steps} steps per round on {}: {} tasks, {} redelivered, per worker {:?})",
