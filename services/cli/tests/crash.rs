@@ -390,6 +390,23 @@ struct Tally {
 }
 
 impl Tally {
+    /// Prints the stage's line of the record (RELIABILITY.md): kills, how the store read after
+    /// them, and how many re-runs gave the uninterrupted result.
+    fn summarise(&self, stage: &str, total: f64) {
+        eprintln!(
+            "crash-safety {stage:<20} {} kills over {total:.3} s (seed {}): {} killed while the step ran, read as before {} / after {} / complete nodes from both {}, re-run equal to uninterrupted {}/{}, failures {}",
+            self.kills,
+            env_num("NEUVOLEX_CRASH_SEED", 16),
+            self.killed_running,
+            self.saw_before,
+            self.saw_after,
+            self.mixed_nodes,
+            self.resumed,
+            self.kills,
+            self.failures.len()
+        );
+    }
+
     /// The last check of a kill whose re-run gave the uninterrupted result: the files left
     /// (`left`) must be the uninterrupted run's (`want`); counts it resumed, or records the
     /// debris.
@@ -509,20 +526,7 @@ fn kill_stage(stage: &Stage, setup: &[Vec<String>], kills: usize, rng: &mut Rng)
         }
         t.settle(i, at, &shape(&files(&work)), &final_files);
     }
-    eprintln!(
-        "crash-safety {:<20} {} kills over {:.2} s (seed {}): {} killed while running, store read as before {} / after {} / complete nodes from both {}, re-run equal to uninterrupted {}/{}, failures {}",
-        stage.name,
-        t.kills,
-        total,
-        env_num("NEUVOLEX_CRASH_SEED", 16),
-        t.killed_running,
-        t.saw_before,
-        t.saw_after,
-        t.mixed_nodes,
-        t.resumed,
-        t.kills,
-        t.failures.len()
-    );
+    t.summarise(stage.name, total);
     t
 }
 
@@ -800,19 +804,7 @@ fn kill_server_stage(stage: &ServerStage, kills: usize, rng: &mut Rng) -> Tally 
             &final_files,
         );
     }
-    eprintln!(
-        "crash-safety {:<20} {} kills over {:.3} s (seed {}): {} killed while the step ran, read as before {} / after {}, re-run equal to uninterrupted {}/{}, failures {}",
-        stage.name,
-        t.kills,
-        total,
-        env_num("NEUVOLEX_CRASH_SEED", 16),
-        t.killed_running,
-        t.saw_before,
-        t.saw_after,
-        t.resumed,
-        t.kills,
-        t.failures.len()
-    );
+    t.summarise(stage.name, total);
     t
 }
 
