@@ -1,23 +1,28 @@
 //! Milliseconds per frame of the renderer on real volumes, against VTK's ray casters on the same
 //! volume, view and transfer function (`cargo bench -p neuvolex-benches --bench render
-//! [--features gpu] -- [--size 512] [--frames 5] [--only bonsai|abdomen_ct]`).
+//! [--features gpu] -- [--size 512] [--frames 5] [--only bonsai|abdomen_ct] [--no-vtk-gpu]`).
 //!
 //! Volumes: CT-Bonsai (256^3) and the abdomen CT (122x101x112, 3 mm), from ../shared/data.
 //! Reported per volume: the first frame (bricks read and decompressed from the store), then the
-//! median of warm frames (bricks cached), for the intensity mode with shading and, on the
-//! abdomen, the probabilistic mode over its ground-truth labels; the wgpu renderer where built
-//! with `--features gpu`; and VTK's vtkFixedPointVolumeRayCastMapper and vtkGPUVolumeRayCastMapper
-//! where `NEUVOLEX_VTK_PYTHON` (or `python3`) imports vtk and nibabel. Images go to
-//! `target/bench-render/`, with a side-by-side PNG per volume.
+//! warm frames (bricks cached), for the intensity mode with shading and, on the abdomen, the
+//! probabilistic mode over its ground-truth labels; the wgpu renderer where built with
+//! `--features gpu`; and VTK's vtkFixedPointVolumeRayCastMapper and vtkGPUVolumeRayCastMapper
+//! where `NEUVOLEX_VTK_PYTHON` (or `python3`) imports vtk and nibabel. VTK runs in a Python
+//! process that renders a frame per request: the warm frames interleave (one of each renderer per
+//! round), each timed in wall and process CPU time (getrusage here, `time.process_time` there),
+//! and the ratio is taken per round, so a load change on a shared machine hits both sides alike.
+//! Images go to `target/bench-render/`, with a side-by-side PNG per volume.
 
-use neuvolex_benches::{machine, median, shared};
+use neuvolex_benches::{machine, shared};
 use neuvolex_bricks::synth::ClassInfo;
 use neuvolex_bricks::{ingest, open_volume, BrickStore, IngestOptions};
 use neuvolex_render::tf::Space;
 use neuvolex_render::{
     BrickSource, Camera, Image, Mode, RenderParams, Renderer, StoreSource, TfFile,
 };
+use std::io::{BufRead, BufReader, Write};
 use std::path::{Path, PathBuf};
+use std::process::{Child, ChildStdin, ChildStdout, Command, Stdio};
 use std::sync::Arc;
 use std::time::Instant;
 
@@ -58,54 +63,184 @@ fn store(src: &Path, labels: Option<&Path>, dir: &Path) -> Arc<BrickStore> {
     Arc::new(s)
 }
 
-/// Runs the VTK script; returns `(mapper, ms, image path)` rows.
-fn vtk(job: &serde_json::Value, out: &Path) -> Vec<(String, f64, PathBuf)> {
-    let py = std::env::var("NEUVOLEX_VTK_PYTHON").unwrap_or_else(|_| "python3".into());
-    let jp = out.with_extension("job.json");
-    std::fs::write(&jp, job.to_string()).expect("job");
-    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("render_vtk.py");
-    let o = std::process::Command::new(&py)
-        .arg(&script)
-        .arg(&jp)
-        .env("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
-        .output();
-    match o {
-        Ok(o) if o.status.success() => String::from_utf8_lossy(&o.stdout)
-            .lines()
-            .filter_map(|l| serde_json::from_str::<serde_json::Value>(l).ok())
-            .map(|v| {
-                let m = v["mapper"].as_str().unwrap_or("?").to_string();
-                let img = PathBuf::from(format!(
-                    "{}{m}.png",
-                    job["out_prefix"].as_str().unwrap_or("")
-                ));
-                (m, v["ms"].as_f64().unwrap_or(f64::NAN), img)
-            })
-            .collect(),
-        Ok(o) => {
-            eprintln!(
-                "SKIP vtk ({py}): {}",
-                String::from_utf8_lossy(&o.stderr)
-                    .lines()
-                    .last()
-                    .unwrap_or("")
-            );
-            Vec::new()
-        }
-        Err(e) => {
-            eprintln!("SKIP vtk ({py}): {e}");
-            Vec::new()
+/// VTK's mappers in a Python process (`render_vtk.py`) that renders one frame per request, so
+/// that its frames interleave with ours and a load change on the machine hits both sides alike.
+struct Vtk {
+    child: Child,
+    stdin: ChildStdin,
+    out: BufReader<ChildStdout>,
+    /// The mappers set up, by name.
+    mappers: Vec<String>,
+}
+
+impl Vtk {
+    /// Starts the script on `job`; `None` (with the reason on stderr) where Python, VTK or
+    /// nibabel is missing.
+    fn start(job: &serde_json::Value, out: &Path) -> Option<Vtk> {
+        let py = std::env::var("NEUVOLEX_VTK_PYTHON").unwrap_or_else(|_| "python3".into());
+        let jp = out.with_extension("job.json");
+        std::fs::write(&jp, job.to_string()).expect("job");
+        let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("render_vtk.py");
+        let spawned = Command::new(&py)
+            .arg(&script)
+            .arg(&jp)
+            .env("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
+            .stdin(Stdio::piped())
+            .stdout(Stdio::piped())
+            .spawn();
+        let mut child = match spawned {
+            Ok(c) => c,
+            Err(e) => {
+                eprintln!("SKIP vtk ({py}): {e}");
+                return None;
+            }
+        };
+        let stdin = child.stdin.take().expect("piped stdin");
+        let out = BufReader::new(child.stdout.take().expect("piped stdout"));
+        let mut v = Vtk {
+            child,
+            stdin,
+            out,
+            mappers: Vec::new(),
+        };
+        match v.reply() {
+            Some(r) => {
+                v.mappers = r["ready"]
+                    .as_array()
+                    .map(|a| {
+                        a.iter()
+                            .filter_map(|m| m.as_str().map(String::from))
+                            .collect()
+                    })
+                    .unwrap_or_default();
+                Some(v)
+            }
+            None => {
+                eprintln!("SKIP vtk ({py}): the script did not start (its error is above)");
+                let _ = v.child.wait();
+                None
+            }
         }
     }
+
+    /// The next JSON line the script prints.
+    fn reply(&mut self) -> Option<serde_json::Value> {
+        let mut line = String::new();
+        loop {
+            line.clear();
+            if self.out.read_line(&mut line).ok()? == 0 {
+                return None;
+            }
+            if let Ok(v) = serde_json::from_str::<serde_json::Value>(&line) {
+                return Some(v);
+            }
+        }
+    }
+
+    fn send(&mut self, cmd: &str) -> Option<serde_json::Value> {
+        writeln!(self.stdin, "{cmd}").ok()?;
+        self.stdin.flush().ok()?;
+        self.reply()
+    }
+
+    /// One frame of `mapper`: wall and process CPU milliseconds.
+    fn frame(&mut self, mapper: &str) -> Timing {
+        let r = self.send(&format!("frame {mapper}")).expect("vtk frame");
+        Timing {
+            ms: r["ms"].as_f64().unwrap_or(f64::NAN),
+            cpu_ms: r["cpu_ms"].as_f64().unwrap_or(f64::NAN),
+        }
+    }
+
+    /// Writes `mapper`'s last image to `path`.
+    fn save(&mut self, mapper: &str, path: &Path) {
+        self.send(&format!("save {mapper} {}", path.display()));
+    }
+}
+
+impl Drop for Vtk {
+    fn drop(&mut self) {
+        let _ = writeln!(self.stdin, "quit");
+        let _ = self.stdin.flush();
+        let _ = self.child.wait();
+    }
+}
+
+/// Wall and process CPU time of one frame, in milliseconds.
+#[derive(Clone, Copy)]
+struct Timing {
+    ms: f64,
+    cpu_ms: f64,
+}
+
+/// This process's CPU time (user + system, all threads), in milliseconds.
+fn cpu_ms() -> f64 {
+    // SAFETY: getrusage only writes the struct it is given.
+    let mut u: libc::rusage = unsafe { std::mem::zeroed() };
+    unsafe { libc::getrusage(libc::RUSAGE_SELF, &mut u) };
+    let tv = |t: libc::timeval| t.tv_sec as f64 * 1e3 + t.tv_usec as f64 * 1e-3;
+    tv(u.ru_utime) + tv(u.ru_stime)
+}
+
+/// Times `f` in wall and process CPU time.
+fn timed(f: impl FnOnce()) -> Timing {
+    let (c, t) = (cpu_ms(), Instant::now());
+    f();
+    Timing {
+        ms: t.elapsed().as_secs_f64() * 1e3,
+        cpu_ms: cpu_ms() - c,
+    }
+}
+
+/// `median [min-max]` of some values.
+fn spread(v: &[f64]) -> String {
+    let mut s: Vec<f64> = v.iter().copied().filter(|x| x.is_finite()).collect();
+    if s.is_empty() {
+        return "-".into();
+    }
+    s.sort_by(f64::total_cmp);
+    format!("{:.0} [{:.0}-{:.0}]", s[s.len() / 2], s[0], s[s.len() - 1])
+}
+
+/// Median and range of per-round ratios `a[i] / b[i]`.
+fn ratio_spread(a: &[f64], b: &[f64]) -> String {
+    let mut r: Vec<f64> = a
+        .iter()
+        .zip(b)
+        .map(|(x, y)| x / y)
+        .filter(|x| x.is_finite())
+        .collect();
+    if r.is_empty() {
+        return "-".into();
+    }
+    r.sort_by(f64::total_cmp);
+    format!("{:.2}x [{:.2}-{:.2}]", r[r.len() / 2], r[0], r[r.len() - 1])
+}
+
+/// One renderer of ours in the interleaved run.
+struct Entry<'a> {
+    mode: Mode,
+    label: String,
+    render: Box<dyn FnMut() -> Image + 'a>,
+    first: f64,
+    times: Vec<Timing>,
+    image: Image,
 }
 
 fn main() {
     let args: Vec<String> = std::env::args().collect();
     let size = arg(&args, "--size", 512);
     let frames = arg(&args, "--frames", 5);
+    // `--no-vtk-gpu` leaves out VTK's OpenGL mapper (on llvmpipe it takes seconds a frame).
+    let vtk_gpu = !args.iter().any(|a| a == "--no-vtk-gpu");
+    let load = std::fs::read_to_string("/proc/loadavg").unwrap_or_default();
     println!(
-        "machine: {}, {size}x{size}, {frames} warm frames",
-        machine()
+        "machine: {}, {size}x{size}, {frames} warm frames interleaved with VTK's, load average {}",
+        machine(),
+        load.split_whitespace()
+            .take(3)
+            .collect::<Vec<_>>()
+            .join(" ")
     );
     let out = Path::new(env!("CARGO_MANIFEST_DIR")).join("../target/bench-render");
     std::fs::create_dir_all(&out).expect("out dir");
@@ -118,10 +253,11 @@ fn main() {
             "ct-bone",
         ),
     ];
+    println!("Per renderer: median [min-max] over the warm frames; VTK / this: the per-round ratio of VTK fixed-point's frame to this renderer's, median [min-max], in wall and in process CPU time.");
     println!(
-        "| volume | mode | renderer | first frame ms | warm ms/frame | vs VTK fixed-point (CPU) |"
+        "| volume | mode | renderer | first frame ms | warm ms/frame | CPU ms/frame | VTK fixed-point / this (wall) | (CPU time) |"
     );
-    println!("|---|---|---|---|---|---|");
+    println!("|---|---|---|---|---|---|---|---|");
     // `--only NAME` runs one volume (for profiling).
     let only = args
         .iter()
@@ -146,7 +282,6 @@ fn main() {
             },
             ..RenderParams::default()
         };
-        // VTK first, so its ratio sits in each row.
         let source = StoreSource::new(st.clone());
         let norm = source.normaliser();
         let it = tf.intensity.clone().expect("intensity tf");
@@ -165,13 +300,11 @@ fn main() {
             "eye": view.eye, "up": view.up, "fov": params.camera.fov,
             "width": size, "height": size, "step": params.step,
             "shading": params.shading.map(|s| serde_json::json!({"ambient": s.ambient, "diffuse": s.diffuse, "specular": s.specular, "shininess": s.shininess})),
-            "frames": frames, "threads": rayon::current_num_threads(),
-            "out_prefix": prefix.to_string_lossy(),
+            "threads": rayon::current_num_threads(),
+            "gpu": vtk_gpu,
         });
-        let vt = vtk(&job, &out.join(name));
-        let vtk_cpu = vt.iter().find(|v| v.0 == "vtk-fixedpoint-cpu").map(|v| v.1);
-        let ratio = |ms: f64| vtk_cpu.map_or("-".into(), |v| format!("{:.2}x faster", v / ms));
-        let mut images: Vec<Image> = Vec::new();
+        let mut vtk = Vtk::start(&job, &out.join(name));
+        let mut entries: Vec<Entry> = Vec::new();
         for mode in [Mode::Intensity, Mode::Probabilistic] {
             let source = StoreSource::new(st.clone());
             let source = match (mode, labels.is_some()) {
@@ -182,26 +315,20 @@ fn main() {
             let luts = tf.compile(&source.normaliser(), &source.classes());
             let p = RenderParams { mode, ..params };
             let mut r = Renderer::new(source, 2 << 30);
-            let t = Instant::now();
-            let img = r.render(&p, &luts).expect("render");
-            let first = t.elapsed().as_secs_f64() * 1e3;
-            let warm = median(frames, || {
-                r.render(&p, &luts).expect("render");
-            })
-            .as_secs_f64()
-                * 1e3;
+            let mut image = None;
+            let first = timed(|| image = Some(r.render(&p, &luts).expect("render"))).ms;
             let s = r.stats();
-            println!(
-                "| {name} | {mode:?} | CPU ({} of {} bricks marched) | {first:.0} | {warm:.0} | {} |",
-                s.marched,
-                s.bricks,
-                if mode == Mode::Intensity { ratio(warm) } else { "-".into() }
-            );
-            img.save_png(&out.join(format!("{name}-neuvolex-{mode:?}.png")))
-                .expect("png");
-            if mode == Mode::Intensity {
-                images.push(img.clone());
-            }
+            entries.push(Entry {
+                mode,
+                label: format!(
+                    "neuvolex CPU ({} of {} bricks marched)",
+                    s.marched, s.bricks
+                ),
+                render: Box::new(move || r.render(&p, &luts).expect("render")),
+                first,
+                times: Vec::new(),
+                image: image.expect("image"),
+            });
             #[cfg(feature = "gpu")]
             {
                 let source = StoreSource::new(st.clone());
@@ -210,37 +337,106 @@ fn main() {
                 } else {
                     source.with_labels("truth").expect("labels")
                 };
+                let luts = tf.compile(&source.normaliser(), &source.classes());
                 match neuvolex_render::gpu::GpuRenderer::new(source) {
                     Ok(mut g) => {
-                        let t = Instant::now();
-                        let gi = g.render(&p, &luts).expect("gpu render");
-                        let first = t.elapsed().as_secs_f64() * 1e3;
-                        let warm = median(frames, || {
-                            g.render(&p, &luts).expect("gpu render");
-                        })
-                        .as_secs_f64()
-                            * 1e3;
-                        let (max, mean) = gi.diff(&img).unwrap_or((f32::NAN, f32::NAN));
-                        println!(
-                            "| {name} | {mode:?} | wgpu on {} (GPU part {:.0} ms; vs CPU image max {max:.4} mean {mean:.5}) | {first:.0} | {warm:.0} | {} |",
-                            g.adapter(),
-                            g.last_seconds.1 * 1e3,
-                            if mode == Mode::Intensity { ratio(warm) } else { "-".into() }
-                        );
+                        let mut image = None;
+                        let first =
+                            timed(|| image = Some(g.render(&p, &luts).expect("gpu render"))).ms;
+                        entries.push(Entry {
+                            mode,
+                            label: format!("wgpu on {}", g.adapter()),
+                            render: Box::new(move || g.render(&p, &luts).expect("gpu render")),
+                            first,
+                            times: Vec::new(),
+                            image: image.expect("image"),
+                        });
                     }
                     Err(e) => eprintln!("SKIP gpu: {e}"),
                 }
             }
         }
-        for (m, ms, img) in &vt {
+        // Interleaved rounds: one frame of each renderer of ours, then one of each VTK mapper.
+        let mappers = vtk.as_ref().map_or(Vec::new(), |v| v.mappers.clone());
+        let mut vtk_times: Vec<Vec<Timing>> = vec![Vec::new(); mappers.len()];
+        for _ in 0..frames {
+            for e in &mut entries {
+                let mut img = None;
+                e.times.push(timed(|| img = Some((e.render)())));
+                e.image = img.expect("image");
+            }
+            if let Some(v) = vtk.as_mut() {
+                for (m, t) in mappers.iter().zip(&mut vtk_times) {
+                    t.push(v.frame(m));
+                }
+            }
+        }
+        let fixed = mappers
+            .iter()
+            .position(|m| m == "vtk-fixedpoint-cpu")
+            .map(|i| &vtk_times[i]);
+        let ratios = |t: &[Timing]| match fixed {
+            Some(f) => (
+                ratio_spread(
+                    &f.iter().map(|x| x.ms).collect::<Vec<_>>(),
+                    &t.iter().map(|x| x.ms).collect::<Vec<_>>(),
+                ),
+                ratio_spread(
+                    &f.iter().map(|x| x.cpu_ms).collect::<Vec<_>>(),
+                    &t.iter().map(|x| x.cpu_ms).collect::<Vec<_>>(),
+                ),
+            ),
+            None => ("-".into(), "-".into()),
+        };
+        let cpu_image = entries.first().map(|e| e.image.clone());
+        let mut images: Vec<Image> = Vec::new();
+        for e in &entries {
+            let (rw, rc) = if e.mode == Mode::Intensity {
+                ratios(&e.times)
+            } else {
+                ("-".into(), "-".into())
+            };
+            let diff = match (&cpu_image, e.label.starts_with("wgpu")) {
+                (Some(c), true) if e.mode == Mode::Intensity => {
+                    e.image.diff(c).map_or(String::new(), |(max, mean)| {
+                        format!("; vs CPU image max {max:.4} mean {mean:.5}")
+                    })
+                }
+                _ => String::new(),
+            };
             println!(
-                "| {name} | Intensity | {m} | - | {ms:.0} | {} |",
-                ratio(*ms)
+                "| {name} | {:?} | {}{diff} | {:.0} | {} | {} | {rw} | {rc} |",
+                e.mode,
+                e.label,
+                e.first,
+                spread(&e.times.iter().map(|t| t.ms).collect::<Vec<_>>()),
+                spread(&e.times.iter().map(|t| t.cpu_ms).collect::<Vec<_>>()),
             );
-            if let Ok(i) = Image::load_png(img) {
+            if !e.label.starts_with("wgpu") {
+                e.image
+                    .save_png(&out.join(format!("{name}-neuvolex-{:?}.png", e.mode)))
+                    .expect("png");
+                if e.mode == Mode::Intensity {
+                    images.push(e.image.clone());
+                }
+            }
+        }
+        for (m, t) in mappers.iter().zip(&vtk_times) {
+            let (rw, rc) = ratios(t);
+            println!(
+                "| {name} | Intensity | {m} | - | {} | {} | {rw} | {rc} |",
+                spread(&t.iter().map(|t| t.ms).collect::<Vec<_>>()),
+                spread(&t.iter().map(|t| t.cpu_ms).collect::<Vec<_>>()),
+            );
+            let png = PathBuf::from(format!("{}{m}.png", prefix.display()));
+            if let Some(v) = vtk.as_mut() {
+                v.save(m, &png);
+            }
+            if let Ok(i) = Image::load_png(&png) {
                 images.push(i);
             }
         }
+        drop(vtk);
         if images.len() > 1 {
             let refs: Vec<&Image> = images.iter().collect();
             if let Ok(s) = Image::side_by_side(&refs) {
