@@ -698,6 +698,7 @@ impl<'a> Frame<'a> {
         let (ncx, ncxy) = (b.cells[0], b.cells[0] * b.cells[1]);
         let last = [b.cells[0] - 1, b.cells[1] - 1, b.cells[2] - 1];
         let (dt, ert) = (self.dt, self.params.ert);
+        let inv_dt = 1.0 / dt;
         let mut samples = 0;
         for i in xs {
             let px = &mut row[i];
@@ -720,6 +721,8 @@ impl<'a> Frame<'a> {
             let k0 = ceil_index((ta - t0) / dt - 0.5);
             let k1 = ceil_index((tb - t0) / dt - 0.5);
             let ol = [o[0] - base[0], o[1] - base[1], o[2] - base[2]];
+            // The far face of a cell along each axis: one cell on when the ray goes up.
+            let exit = [0, 1, 2].map(|a| if d[a] > 0.0 { CELL as f32 } else { 0.0 });
             let pos = |k: u64| {
                 let t = t0 + (k as f32 + 0.5) * dt;
                 [
@@ -733,20 +736,20 @@ impl<'a> Frame<'a> {
                 // The cell of sample k, and the first sample past the cell's exit.
                 let p = pos(k);
                 // max then min (not clamp): a NaN coordinate goes to cell 0 as before.
-                #[allow(clippy::manual_clamp)]
-                let cc = [0, 1, 2].map(|a| {
-                    (floor_index((p[a] - APRON as f32 + 0.5).max(0.0).min(1e9)) / CELL).min(last[a])
-                });
+                let mut cc = [0usize; 3];
                 let mut te = f32::INFINITY;
                 for a in 0..3 {
-                    let face = if d[a] > 0.0 {
-                        ((cc[a] + 1) * CELL + APRON) as f32 - 0.5
-                    } else {
-                        (cc[a] * CELL + APRON) as f32 - 0.5
-                    };
+                    #[allow(clippy::manual_clamp)]
+                    let c = (floor_index((p[a] - APRON as f32 + 0.5).max(0.0).min(1e9)) / CELL)
+                        .min(last[a]);
+                    cc[a] = c;
+                    let face = (c * CELL + APRON) as f32 - 0.5 + exit[a];
                     te = te.min((face - ol[a]) * r.inv[a]);
                 }
-                let next = ceil_index((te - t0) / dt - 0.5);
+                // A sample off by one at the cell's exit still reads only the voxels the
+                // cell's range covers (one voxel beyond it each side), so the reciprocal of
+                // `dt` may stand for the division here.
+                let next = ceil_index((te - t0) * inv_dt - 0.5);
                 let end = if next > k { next.min(k1) } else { k + 1 };
                 if !cells[cc[2] * ncxy + cc[1] * ncx + cc[0]] {
                     samples += 1;

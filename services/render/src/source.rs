@@ -119,7 +119,7 @@ impl<T> PartialEq for Derived<T> {
 }
 
 /// Edge of the cells inside a brick used for fine empty-space skipping.
-pub const CELL: usize = 8;
+pub const CELL: usize = 4;
 
 impl RenderBrick {
     /// Builds a brick from padded arrays, computing its ranges.
