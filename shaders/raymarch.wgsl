@@ -48,7 +48,8 @@ struct Entry {
 @group(0) @binding(6) var<storage, read_write> acc: array<vec4<f32>>;
 @group(0) @binding(7) var<storage, read> cellvis: array<u32>;
 
-const CELL: u32 = 8u;
+// Must equal `source::CELL` (a unit test of neuvolex-render checks it).
+const CELL: u32 = 4u;
 
 fn lut(base: u32, lo: f32, scale: f32, x: f32) -> vec4<f32> {
     let n = P.cfg.w;

@@ -71,3 +71,17 @@ pub enum RenderError {
 
 /// Result with [`RenderError`].
 pub type Result<T, E = RenderError> = std::result::Result<T, E>;
+
+#[cfg(test)]
+mod tests {
+    /// The shader skips the same cells the CPU marcher does: its cell edge is `source::CELL`.
+    #[test]
+    fn shader_cell_matches() {
+        let shader = include_str!("../../../shaders/raymarch.wgsl");
+        let want = format!("const CELL: u32 = {}u;", crate::source::CELL);
+        assert!(
+            shader.contains(&want),
+            "shaders/raymarch.wgsl lacks `{want}`"
+        );
+    }
+}
