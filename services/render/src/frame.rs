@@ -255,6 +255,8 @@ impl<S: BrickSource> Renderer<S> {
                 .par_iter()
                 .map(|(i, _)| self.load(*i, probs, shaded))
                 .collect();
+            // The batch's visible bricks, front to back, with their footprints and cells.
+            let mut batch = Vec::with_capacity(queue.len());
             for ((_, r), b) in queue.iter().zip(loaded) {
                 let b = b?;
                 if !frame.visible(&b) {
@@ -263,17 +265,33 @@ impl<S: BrickSource> Renderer<S> {
                 }
                 stats.marched += 1;
                 let cells = frame.cell_visibility(&b);
-                let rows = &mut acc[r[2] * w..r[3] * w];
-                rows.par_chunks_mut(w)
-                    .enumerate()
-                    .with_min_len(4)
-                    .for_each(|(n, row)| {
-                        let j = r[2] + n;
-                        let m = mask.map(|m| &m[j * w..(j + 1) * w]);
-                        let s = frame.march_row(&b, j, r[0]..r[1], row, m, &cells);
-                        samples.fetch_add(s, Ordering::Relaxed);
-                    });
+                batch.push((*r, b, cells));
             }
+            // One parallel pass over the rows the batch covers: each row marches the bricks
+            // whose footprint holds it, in the batch's order, so every pixel composites its
+            // bricks front to back as brick-by-brick passes would (the same sums in the same
+            // order), with one join per batch instead of one per brick.
+            let (Some(top), Some(bottom)) = (
+                batch.iter().map(|(r, _, _)| r[2]).min(),
+                batch.iter().map(|(r, _, _)| r[3]).max(),
+            ) else {
+                continue;
+            };
+            acc[top * w..bottom * w]
+                .par_chunks_mut(w)
+                .enumerate()
+                .with_min_len(2)
+                .for_each(|(n, row)| {
+                    let j = top + n;
+                    let m = mask.map(|m| &m[j * w..(j + 1) * w]);
+                    let mut s = 0;
+                    for (r, b, cells) in &batch {
+                        if (r[2]..r[3]).contains(&j) {
+                            s += frame.march_row(b, j, r[0]..r[1], row, m, cells);
+                        }
+                    }
+                    samples.fetch_add(s, Ordering::Relaxed);
+                });
         }
         stats.samples = samples.into_inner();
         stats.seconds = t.elapsed().as_secs_f64();
