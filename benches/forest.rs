@@ -157,13 +157,6 @@ fn main() {
     let coded = f.predict_proba(&xte).expect("predict");
     let same = p32 == coded;
     println!("| neuvolex f32 walk (before coding) | predict {walk:.2} s | coded / f32 walk {:.2}x | identical probabilities: {same} |", walk / predict);
-    // The scalar coded walk (where the default is the AVX2 walk), once, for the step's gain.
-    std::env::set_var("NEUVOLEX_FOREST_WALK", "scalar");
-    let t = Instant::now();
-    let scalar = f.predict_proba(&xte).expect("predict");
-    let walk = t.elapsed().as_secs_f64();
-    std::env::remove_var("NEUVOLEX_FOREST_WALK");
-    println!("| neuvolex scalar coded walk | predict {walk:.2} s | default / scalar {:.2}x | identical probabilities: {} |", walk / predict, scalar == coded);
     let (f1, per) = f1_mean(&pred, &yte, classes);
     println!("| neuvolex forest | fit {fit:.1} s | predict {nte} rows {predict:.2} s [{range}] ({:.0} k rows/s) | mean F1 {f1:.3} {per:.3?} | {} nodes |", nte as f64 / predict / 1e3, f.nodes());
     // scikit-learn on the same arrays.

@@ -809,16 +809,6 @@ mod tests {
         let got = f.predict_proba(&probe).unwrap();
         let bits = |v: &[f32]| v.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
         assert_eq!(bits(&got), bits(&want));
-        // The scalar walk and (where the CPU has it) the AVX2 walk, each on its own.
-        for avx2 in [false, crate::packed::avx2()] {
-            let mut o = vec![0.0f32; want.len()];
-            f.packed().unwrap().predict_with(&probe, &mut o, 1.0 / 25.0, avx2);
-            assert_eq!(bits(&o), bits(&want), "avx2 {avx2}");
-            // Fewer rows than lanes.
-            let mut o = vec![0.0f32; 3 * c];
-            f.packed().unwrap().predict_with(&probe[..3 * d], &mut o, 1.0 / 25.0, avx2);
-            assert_eq!(bits(&o), bits(&want[..3 * c]), "avx2 {avx2}, 3 rows");
-        }
     }
 
     #[test]

@@ -174,173 +174,93 @@ impl Packed {
     /// Mean class fractions over the trees of every row of `x`, added into `out`
     /// (`rows x classes`, zeroed by the caller), scaled by `inv`.
     pub(crate) fn predict_into(&self, x: &[f32], out: &mut [f32], inv: f32) {
-        self.predict_with(x, out, inv, avx2());
-    }
-
-    /// [`Packed::predict_into`], by the vector walk where `avx2` (the CPU must have AVX2).
-    pub(crate) fn predict_with(&self, x: &[f32], out: &mut [f32], inv: f32, avx2: bool) {
+        const BLOCK: usize = 1024;
         let (d, c) = (self.d, self.classes);
         out.par_chunks_mut(BLOCK * c)
             .zip(x.par_chunks(BLOCK * d))
             .for_each_init(
-                // One spare row of codes and of leaves: the rows that lanes walk once every
-                // real row of the block is handed out.
-                // (and one more code: the vector walk reads codes as 4-byte words).
-                || (vec![0u16; (BLOCK + 1) * d + 1], vec![0u32; BLOCK + 1]),
-                |(codes, hit), (o, xb)| {
+                || vec![0u16; BLOCK * d],
+                |codes, (o, xb)| {
                     let nr = xb.len() / d;
-                    self.code_rows(xb, &mut codes[..nr * d]);
+                    let codes = &mut codes[..nr * d];
+                    self.code_rows(xb, codes);
                     for (ti, &(start, _)) in self.trees.iter().enumerate() {
                         self.prefetch(ti + 1);
-                        self.walk(avx2, start, codes, nr, hit);
-                        // Add the tree's leaves in row order: every row sums its trees in
-                        // tree order, as the f32 walk does, so the sums are bit-identical.
-                        for (r, &leaf) in hit[..nr].iter().enumerate() {
-                            let p = self.leaf_at[leaf as usize] as usize;
-                            o[r * c..(r + 1) * c]
-                                .iter_mut()
-                                .zip(&self.probs[p..p + c])
-                                .for_each(|(a, b)| *a += b);
-                        }
+                        self.walk_tree(start, codes, nr, o);
                     }
                     o.iter_mut().for_each(|v| *v *= inv);
                 },
             );
     }
 
-    /// [`Packed::walk_tree`], by AVX2 gathers where `avx2` (both record the same leaves).
+    /// Walks the `nr` coded rows of `codes` through the tree starting at node `start`, adding
+    /// each row's leaf fractions into `o`. `LANES` rows walk at once (their independent loads
+    /// overlap); a lane that reaches its leaf takes the next row at once, so no lane idles
+    /// while another walks a deeper path.
     #[inline(always)]
-    fn walk(&self, avx2: bool, start: u32, codes: &[u16], nr: usize, hit: &mut [u32]) {
-        #[cfg(target_arch = "x86_64")]
-        if avx2 {
-            // SAFETY: `avx2` is true only where the CPU has AVX2.
-            unsafe { self.walk_tree_avx2(start, codes, nr, hit) };
-            return;
-        }
-        let _ = avx2;
-        self.walk_tree(start, codes, nr, hit);
-    }
-
-    /// [`Packed::walk_tree`] with 32 lanes in four AVX2 vectors: each step gathers the lanes'
-    /// nodes and codes (8 lanes per gather) and selects the child without a branch; every
-    /// `STEPS` steps the lanes on a leaf record it and take the next row, as in the scalar walk.
-    ///
-    /// # Safety
-    /// The CPU must have AVX2.
-    #[cfg(target_arch = "x86_64")]
-    #[target_feature(enable = "avx2")]
-    unsafe fn walk_tree_avx2(&self, start: u32, codes: &[u16], nr: usize, hit: &mut [u32]) {
-        use std::arch::x86_64::*;
-        const V: usize = 4;
-        const LANES: usize = 8 * V;
-        const STEPS: usize = 4;
-        let d = self.d;
-        // Every gather below stays inside these: node indices are valid (children and
-        // self-looping leaves lie in `nodes`), rows are at most `nr` and features below `d`,
-        // and a code is read as the 4-byte word at its offset (one spare code at the end).
-        assert!(codes.len() > (nr + 1) * d && hit.len() > nr);
-        assert!(self.nodes.len() < (i32::MAX / 8) as usize);
-        let np = self.nodes.as_ptr() as *const i32;
-        let cp = codes.as_ptr() as *const i32;
-        let mut at = [start; LANES];
-        let mut row = [nr; LANES];
-        for (l, r) in row.iter_mut().enumerate().take(nr) {
-            *r = l;
-        }
-        let mut off = [0i32; LANES];
-        let mut next = LANES.min(nr);
-        let mut done = 0;
-        let low = _mm256_set1_epi32(0xFFFF);
-        while done < nr {
-            for (o, &r) in off.iter_mut().zip(&row) {
-                *o = (r * d) as i32;
-            }
-            let mut a = [_mm256_setzero_si256(); V];
-            let mut ro = [_mm256_setzero_si256(); V];
-            for v in 0..V {
-                a[v] = _mm256_loadu_si256(at.as_ptr().add(8 * v) as *const __m256i);
-                ro[v] = _mm256_loadu_si256(off.as_ptr().add(8 * v) as *const __m256i);
-            }
-            for _ in 0..STEPS {
-                for v in 0..V {
-                    // Node word 0: code | feature << 16; word 1: left.
-                    let w = _mm256_i32gather_epi32::<8>(np, a[v]);
-                    let left = _mm256_i32gather_epi32::<8>(np.add(1), a[v]);
-                    let code = _mm256_and_si256(w, low);
-                    let f = _mm256_add_epi32(ro[v], _mm256_srli_epi32::<16>(w));
-                    let x = _mm256_and_si256(_mm256_i32gather_epi32::<2>(cp, f), low);
-                    a[v] = _mm256_sub_epi32(left, _mm256_cmpgt_epi32(x, code));
-                }
-            }
-            for v in 0..V {
-                _mm256_storeu_si256(at.as_mut_ptr().add(8 * v) as *mut __m256i, a[v]);
-            }
-            for l in 0..LANES {
-                let leaf = self.nodes[at[l] as usize].code == LEAF_CODE;
-                hit[row[l]] = at[l];
-                done += (leaf & (row[l] < nr)) as usize;
-                row[l] = if leaf { next.min(nr) } else { row[l] };
-                at[l] = if leaf { start } else { at[l] };
-                next += leaf as usize;
-            }
-        }
-    }
-
-    /// Walks the `nr` coded rows of `codes` through the tree starting at node `start`, writing
-    /// each row's leaf node into `hit[row]`. `LANES` rows walk at once (their independent
-    /// loads overlap) without a data-dependent branch: every lane takes `STEPS` steps (a lane
-    /// on a leaf stays there), then each lane on a leaf records it and takes the next row, by
-    /// selects, so no mispredicted branch flushes the lanes' loads in flight. Once every row
-    /// is handed out, finished lanes walk the spare row `nr` until the last real row is done.
-    #[inline(always)]
-    fn walk_tree(&self, start: u32, codes: &[u16], nr: usize, hit: &mut [u32]) {
+    fn walk_tree(&self, start: u32, codes: &[u16], nr: usize, o: &mut [f32]) {
         const LANES: usize = 16;
-        const STEPS: usize = 2;
-        let d = self.d;
+        let (d, c) = (self.d, self.classes);
         let nodes = &self.nodes[..];
-        let codes = &codes[..(nr + 1) * d];
-        let hit = &mut hit[..nr + 1];
         let mut at = [start; LANES];
-        // Each lane's row.
-        let mut row = [nr; LANES];
-        for (l, r) in row.iter_mut().enumerate().take(nr) {
-            *r = l;
+        // Each lane's row offset into `codes`.
+        let mut row = [0usize; LANES];
+        let mut live = LANES.min(nr);
+        for (l, r) in row.iter_mut().enumerate().take(live) {
+            *r = l * d;
         }
-        let mut next = LANES.min(nr);
-        let mut done = 0;
-        while done < nr {
-            for _ in 0..STEPS {
-                for l in 0..LANES {
-                    let nd = nodes[at[l] as usize];
-                    at[l] = nd.left + (codes[row[l] * d + nd.feature as usize] > nd.code) as u32;
-                }
-            }
+        let mut next = live;
+        let add = |o: &mut [f32], r: usize, node: u32| {
+            let p = self.leaf_at[node as usize] as usize;
+            let r = r / d;
+            o[r * c..(r + 1) * c]
+                .iter_mut()
+                .zip(&self.probs[p..p + c])
+                .for_each(|(a, b)| *a += b);
+        };
+        while live == LANES {
             for l in 0..LANES {
-                let leaf = nodes[at[l] as usize].code == LEAF_CODE;
-                hit[row[l]] = at[l];
-                done += (leaf & (row[l] < nr)) as usize;
-                row[l] = if leaf { next.min(nr) } else { row[l] };
-                at[l] = if leaf { start } else { at[l] };
-                next += leaf as usize;
+                let nd = nodes[at[l] as usize];
+                if nd.code == LEAF_CODE {
+                    add(o, row[l], at[l]);
+                    if next < nr {
+                        row[l] = next * d;
+                        at[l] = start;
+                        next += 1;
+                    } else {
+                        // Park the lane on its leaf; the tail loop below finishes the rest.
+                        live -= 1;
+                        at[l] = u32::MAX;
+                    }
+                    continue;
+                }
+                at[l] = nd.left + (codes[row[l] + nd.feature as usize] > nd.code) as u32;
+            }
+        }
+        // The last lanes (fewer than LANES rows left): compacted, walked to their leaves.
+        let mut m = 0;
+        for l in 0..LANES.min(nr) {
+            if at[l] != u32::MAX {
+                (at[m], row[m]) = (at[l], row[l]);
+                m += 1;
+            }
+        }
+        while m > 0 {
+            let mut l = 0;
+            while l < m {
+                let nd = nodes[at[l] as usize];
+                if nd.code == LEAF_CODE {
+                    add(o, row[l], at[l]);
+                    m -= 1;
+                    (at[l], row[l]) = (at[m], row[m]);
+                    continue;
+                }
+                at[l] = nd.left + (codes[row[l] + nd.feature as usize] > nd.code) as u32;
+                l += 1;
             }
         }
     }
 }
-
-/// Whether the vector walk runs here: the CPU has AVX2 and `NEUVOLEX_FOREST_WALK` is not
-/// `scalar` (which benchmarks set to time the scalar walk).
-pub(crate) fn avx2() -> bool {
-    #[cfg(target_arch = "x86_64")]
-    {
-        std::is_x86_feature_detected!("avx2")
-            && std::env::var("NEUVOLEX_FOREST_WALK").as_deref() != Ok("scalar")
-    }
-    #[cfg(not(target_arch = "x86_64"))]
-    false
-}
-
-/// Rows coded and walked together: their codes stay in L2 while every tree walks them.
-const BLOCK: usize = 1024;
 
 #[cfg(test)]
 mod tests {
