@@ -131,6 +131,17 @@ fn main() {
     )
     .expect("fit");
     let fit = t.elapsed().as_secs_f64();
+    let mut depths = f.depths();
+    depths.sort_unstable();
+    println!(
+        "forest shape: {} nodes ({:.0} per tree, {:.1} MB as 8-byte nodes), deepest leaf per tree: median {}, range {}–{}",
+        f.nodes(),
+        f.nodes() as f64 / trees as f64,
+        f.nodes() as f64 * 8.0 / 1e6,
+        depths[depths.len() / 2],
+        depths[0],
+        depths[depths.len() - 1]
+    );
     let mut times = Vec::new();
     let mut pred = Vec::new();
     for _ in 0..repeat {
@@ -143,7 +154,8 @@ fn main() {
     let t = Instant::now();
     let p32 = f.predict_proba_f32(&xte).expect("predict");
     let walk = t.elapsed().as_secs_f64();
-    let same = p32 == f.predict_proba(&xte).expect("predict");
+    let coded = f.predict_proba(&xte).expect("predict");
+    let same = p32 == coded;
     println!("| neuvolex f32 walk (before coding) | predict {walk:.2} s | coded / f32 walk {:.2}x | identical probabilities: {same} |", walk / predict);
     let (f1, per) = f1_mean(&pred, &yte, classes);
     println!("| neuvolex forest | fit {fit:.1} s | predict {nte} rows {predict:.2} s [{range}] ({:.0} k rows/s) | mean F1 {f1:.3} {per:.3?} | {} nodes |", nte as f64 / predict / 1e3, f.nodes());

@@ -474,6 +474,11 @@ impl Forest {
             .as_ref()
     }
 
+    /// Depth of each tree's deepest leaf, in tree order.
+    pub fn depths(&self) -> Vec<u32> {
+        self.trees.iter().map(|t| t.depth).collect()
+    }
+
     /// Total nodes in the forest.
     pub fn nodes(&self) -> usize {
         self.trees.iter().map(|t| t.nodes.len()).sum()
@@ -802,10 +807,8 @@ mod tests {
             o
         };
         let got = f.predict_proba(&probe).unwrap();
-        assert_eq!(
-            got.iter().map(|v| v.to_bits()).collect::<Vec<_>>(),
-            want.iter().map(|v| v.to_bits()).collect::<Vec<_>>()
-        );
+        let bits = |v: &[f32]| v.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
+        assert_eq!(bits(&got), bits(&want));
     }
 
     #[test]
