@@ -155,6 +155,7 @@ fn stages<E: Executor>(
             ..ClassifyConfig::default()
         },
         bricks_per_task: 1,
+        prior: None,
     };
     let t = Instant::now();
     let o = classify(&req, exec, &mut |_| {}).expect("classify");

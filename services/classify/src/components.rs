@@ -326,10 +326,20 @@ pub fn filter_brick(
     cleared
 }
 
+/// What [`apply_in_memory`] did.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+pub struct PriorVerdict {
+    /// Connected components of the labels.
+    pub components: usize,
+    /// Of which kept.
+    pub kept: usize,
+    /// Voxels set to 0.
+    pub cleared: u64,
+}
+
 /// Applies the prior to a whole label volume held in memory (`dims`, x fastest), brick by
 /// brick (`brick` edge) with rayon: label, merge, filter. `proba` gives each voxel's
-/// probability of its label; `seeds` are the scribbles (voxel index, label). Returns the
-/// voxels cleared.
+/// probability of its label; `seeds` are the scribbles (voxel index, label).
 pub fn apply_in_memory(
     labels: &mut [u16],
     dims: [usize; 3],
@@ -337,7 +347,7 @@ pub fn apply_in_memory(
     proba: Option<&[f32]>,
     seeds: &[(u64, u16)],
     cfg: &PriorConfig,
-) -> u64 {
+) -> PriorVerdict {
     use rayon::prelude::*;
     let grid = dims.map(|d| d.div_ceil(brick));
     let mut per_brick: BTreeMap<[usize; 3], Vec<(usize, u16)>> = BTreeMap::new();
@@ -403,7 +413,11 @@ pub fn apply_in_memory(
             cleared += c;
         }
     }
-    cleared
+    PriorVerdict {
+        components: keep.len(),
+        kept: keep.iter().filter(|&&k| k).count(),
+        cleared,
+    }
 }
 
 #[cfg(test)]
@@ -588,7 +602,8 @@ mod tests {
         labels[at(3, 8, 7)] = 2;
         let before = labels.clone();
         let seeds = [(at(2, 2, 2) as u64, 1u16), (at(5, 8, 2) as u64, 2)];
-        let cleared = apply_in_memory(&mut labels, d, 8, None, &seeds, &PriorConfig::default());
+        let cleared =
+            apply_in_memory(&mut labels, d, 8, None, &seeds, &PriorConfig::default()).cleared;
         assert_eq!(cleared, 3, "the speck and the 2-voxel blob");
         assert_eq!(labels[at(12, 2, 2)], 1, "the unscribbled twin stays");
         assert_eq!(labels[at(18, 8, 8)], 0);

@@ -5,6 +5,7 @@
 //! optional NIfTI are assembled from the stored label bricks, so in-process and cluster runs
 //! give the same bytes.
 
+use crate::components::{apply_in_memory, PriorConfig};
 use crate::features::{BrickFeatures, FeatureSet};
 use crate::forest::Forest;
 use crate::scribble::load_scribbles;
@@ -338,6 +339,24 @@ pub struct ClassifyRequest {
     pub config: ClassifyConfig,
     /// Bricks per task.
     pub bricks_per_task: usize,
+    /// The spatial prior applied to the label image (`None`: the forest's labels as they
+    /// are). The probabilities and the per-brick label vectors stay raw either way.
+    pub prior: Option<PriorConfig>,
+}
+
+/// What the spatial prior did to the label image.
+#[derive(Debug, Clone, Copy, Serialize)]
+pub struct PriorReport {
+    /// Its settings.
+    pub config: PriorConfig,
+    /// Connected components of the raw labels.
+    pub components: usize,
+    /// Of which kept.
+    pub kept: usize,
+    /// Voxels it set to background.
+    pub voxels_cleared: u64,
+    /// Seconds it took.
+    pub seconds: f64,
 }
 
 /// What `classify` did (the JSON report).
@@ -373,8 +392,10 @@ pub struct ClassifyReport {
     pub seconds_classify: f64,
     /// Voxels per second of prediction.
     pub voxels_per_second: f64,
-    /// Voxels per output label.
+    /// Voxels per output label (after the prior).
     pub counts: Vec<(u16, u64)>,
+    /// The spatial prior's effect (absent when it was off or the run did not finish).
+    pub prior: Option<PriorReport>,
     /// How the stage ran.
     pub run: RunReport,
 }
@@ -598,8 +619,28 @@ pub fn classify<E: Executor + ?Sized>(
     };
     let mut counts = BTreeMap::<u16, u64>::new();
     let dead = run.dead.clone();
+    let mut prior_report = None;
     if dead.is_empty() && !run.cancelled {
-        let labels = assemble_labels(&store_arc, &stage.labels)?;
+        let mut labels = assemble_labels(&store_arc, &stage.labels)?;
+        if let Some(pc) = &req.prior {
+            let t = Instant::now();
+            let conf = assemble_confidence(&store_arc, &stage.proba)?;
+            let seeds: Vec<(u64, u16)> = scr
+                .voxels
+                .iter()
+                .filter(|&&(_, l)| l != cfg.background)
+                .map(|&(i, l)| (i, l.min(u16::MAX as u32) as u16))
+                .collect();
+            let info = store_arc.info();
+            let v = apply_in_memory(&mut labels, info.dims, info.brick, Some(&conf), &seeds, pc);
+            prior_report = Some(PriorReport {
+                config: *pc,
+                components: v.components,
+                kept: v.kept,
+                voxels_cleared: v.cleared,
+                seconds: t.elapsed().as_secs_f64(),
+            });
+        }
         labels
             .iter()
             .for_each(|&l| *counts.entry(l).or_default() += 1);
@@ -609,6 +650,7 @@ pub fn classify<E: Executor + ?Sized>(
             "background": cfg.background,
             "features": set.to_string(),
             "identity": stage.params.identity,
+            "prior": prior_report,
         }));
         // The probabilities, the label vectors and the OME label image appear together: a
         // reader (or a kill) sees all three from before or all three from this run.
@@ -640,6 +682,7 @@ pub fn classify<E: Executor + ?Sized>(
             seconds_classify: seconds,
             voxels_per_second: sum.voxels as f64 / seconds.max(1e-9),
             counts: counts.into_iter().collect(),
+            prior: prior_report,
             run,
         },
         classes,
@@ -678,6 +721,27 @@ fn assemble_labels(store: &BrickStore, va: &VectorArray) -> Result<Vec<u16>, Cla
                     *o = v.round() as u16;
                 }
                 k += b.size[0];
+            }
+        }
+    }
+    Ok(out)
+}
+
+/// Reads every probability brick into each voxel's largest class probability (x fastest).
+fn assemble_confidence(store: &BrickStore, va: &VectorArray) -> Result<Vec<f32>, ClassifyError> {
+    let dims = store.info().dims;
+    let c = va.info().channels.max(1);
+    let mut out = vec![1.0f32; dims.iter().product()];
+    for b in store.bricks() {
+        let p = va.read_brick(&b)?;
+        let mut k = 0;
+        for z in 0..b.size[2] {
+            for y in 0..b.size[1] {
+                let row = ((b.origin[2] + z) * dims[1] + b.origin[1] + y) * dims[0] + b.origin[0];
+                for o in &mut out[row..row + b.size[0]] {
+                    *o = p[k * c..(k + 1) * c].iter().fold(0.0f32, |a, &v| a.max(v));
+                    k += 1;
+                }
             }
         }
     }

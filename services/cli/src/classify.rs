@@ -107,10 +107,21 @@ pub struct ClassifyArgs {
     /// Scribbles: a sparse label volume (NIfTI, NRRD, Zarr; 0 = unlabelled) or strokes (.json).
     #[arg(long)]
     pub scribbles: PathBuf,
-    /// Feature set: inr (default: learned + local), paper (the last hidden layer), intensity,
-    /// local, filters, or a '+' list of intensity, local, filters, xyz, hidden, pos, mod, concat.
-    #[arg(long, default_value = "inr")]
+    /// Feature set: filters+xyz (default: the filter bank and position), inr (learned + local),
+    /// paper (the last hidden layer), intensity, local, filters, or a '+' list of intensity,
+    /// local, filters, xyz, ctxp, hidden, pos, mod, concat.
+    #[arg(long, default_value = "filters+xyz")]
     pub features: String,
+    /// Turn the spatial prior off: the label image is the forest's labels as they are. By
+    /// default each class keeps only the connected parts a scribble of it touches, and
+    /// unscribbled parts whose probability mass is comparable (see --prior-mass); the
+    /// probabilities and the per-brick label vectors stay raw either way.
+    #[arg(long)]
+    pub no_prior: bool,
+    /// The prior keeps an unscribbled part whose probability mass is at least this fraction
+    /// of its class's largest scribbled part.
+    #[arg(long, default_value_t = neuvolex_classify::PriorConfig::default().relative_mass)]
+    pub prior_mass: f64,
     /// Class table JSON ({"classes": [{"id", "name", "color"}], "background": 255}).
     #[arg(long)]
     pub classes: Option<PathBuf>,
@@ -132,6 +143,16 @@ pub struct ClassifyArgs {
     pub cluster: crate::cluster::ClusterArgs,
 }
 
+/// The prior's settings from the flags (`None` when turned off).
+fn prior_config(off: bool, mass: f64) -> Result<Option<neuvolex_classify::PriorConfig>> {
+    if !(0.0..=1.0).contains(&mass) {
+        bail!("--prior-mass {mass}: must be within 0..=1");
+    }
+    Ok((!off).then_some(neuvolex_classify::PriorConfig {
+        relative_mass: mass,
+    }))
+}
+
 /// `neuvolex classify`: parses, chooses the executor, shows progress, prints.
 pub fn run_classify(a: &ClassifyArgs, quiet: bool) -> Result<()> {
     let req = ClassifyRequest {
@@ -144,6 +165,7 @@ pub fn run_classify(a: &ClassifyArgs, quiet: bool) -> Result<()> {
         stored_features: a.stored_features,
         config: a.forest.config()?,
         bricks_per_task: a.cluster.bricks_per_task,
+        prior: prior_config(a.no_prior, a.prior_mass)?,
     };
     let exec = a.cluster.executor()?;
     let mut bar = crate::cluster::StageBar::new(quiet);
@@ -194,6 +216,13 @@ pub fn run_classify(a: &ClassifyArgs, quiet: bool) -> Result<()> {
             .collect();
         println!("  tasks per worker: {}", w.join(", "));
     }
+    match &r.prior {
+        Some(p) => println!(
+            "  spatial prior: kept {} of {} connected parts, {} voxels set to background ({:.2} s;              --no-prior turns it off)",
+            p.kept, p.components, p.voxels_cleared, p.seconds
+        ),
+        None => println!("  spatial prior: off"),
+    }
     for (l, n) in &r.counts {
         let name = o
             .classes
@@ -203,7 +232,8 @@ pub fn run_classify(a: &ClassifyArgs, quiet: bool) -> Result<()> {
         println!("  label {l:>3} {name:<16} {n:>12} voxels");
     }
     println!(
-        "  probabilities: {}/neuvolex/vectors/classes_proba (u8); labels: {}/labels/classified",
+        "  probabilities (raw): {}/neuvolex/vectors/classes_proba (u8); labels: \
+         {}/labels/classified",
         a.store.display(),
         a.store.display()
     );

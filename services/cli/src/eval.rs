@@ -49,7 +49,7 @@ pub struct EvalArgs {
     /// Feature precision: f32 (recomputed), f16 (cached, default), u8.
     #[arg(long, value_delimiter = ',', default_value = "f16")]
     pub quantise: Vec<String>,
-    /// The interactive protocol: a robot user corrects the S1 result stroke by stroke.
+    /// The interactive protocol: a robot user corrects the S1 result slice by slice.
     #[arg(long)]
     pub interactive: bool,
     /// Robot rounds after the S1 start.
@@ -253,8 +253,18 @@ impl Progress {
                         .join(" "),
                     r.scribbled,
                     r.seconds,
-                    r.stroke
-                        .map(|s| format!(", stroke class {} on z {}", s.class, s.slice))
+                    r.strokes
+                        .first()
+                        .map(|s| format!(
+                            ", {} stroke(s) on z {} (classes {})",
+                            r.strokes.len(),
+                            s.slice,
+                            r.strokes
+                                .iter()
+                                .map(|s| s.class.to_string())
+                                .collect::<Vec<_>>()
+                                .join(",")
+                        ))
                         .unwrap_or_default()
                 );
             }

@@ -6,11 +6,11 @@
 //! - **one-shot** ([`oneshot`]): scribbles simulated at the paper's levels S1–S4 (1, 3, 9, 27
 //!   axial slices), every feature set, mean F1 over the ROI classes, seeds, forest sizes, INR
 //!   ablations and budgets, feature precision, with and without the spatial prior;
-//! - **interactive** ([`robot`]): a robot user starts from S1 and, each round, adds one stroke
-//!   of the true class where the prediction is wrong (in the largest connected error region, on
-//!   the axial slice where it is largest; or on the suggested slice; or on a random one),
-//!   retrains and predicts with warm caches; F1 after every round, rounds to reach 0.7 and 0.8,
-//!   and the time per round.
+//! - **interactive** ([`robot`]): a robot user starts from S1 and, each round, visits one
+//!   axial slice (where the largest connected error region is largest; or the suggested slice;
+//!   or a random one) and draws one stroke of the true class in the largest wrong region of
+//!   each class there, retrains and predicts with warm caches; F1 after every round, rounds to
+//!   reach 0.7 and 0.8, and the time per round.
 //!
 //! Both run the product's pipeline (brick store, [`neuvolex_classify`] feature sets, forest,
 //! per-brick prediction, the [`neuvolex_classify::components`] prior) with features cached per

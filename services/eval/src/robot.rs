@@ -1,16 +1,19 @@
-//! The interactive protocol: a robot user that corrects the prediction one stroke at a time,
-//! as interactive segmentation is evaluated (strokes or clicks to reach a target score).
+//! The interactive protocol: a robot user that corrects the prediction slice by slice, as
+//! interactive segmentation is evaluated (interactions to reach a target score).
 //!
-//! It starts from the S1 scribbles. Each round it adds one axial stroke of the true class on
-//! voxels the prediction gets wrong, retrains the forest and predicts the volume again (the
-//! features come from the warm cache, as in the service), and scores the result. Where the
-//! stroke goes is the [`Placement`]:
+//! It starts from the S1 scribbles. Each round is one slice visit: on one axial slice it
+//! draws, for each true class with wrong voxels there (background included), one stroke of
+//! that class inside the largest wrong region of that class on the slice, as a user corrects
+//! what the slice shows (the simulator likewise scribbles every class a slice shows, so a round
+//! is worth one S-level slice). Then the forest is retrained and the volume predicted again
+//! (the features come from the warm cache, as in the service), and the result is scored. Which
+//! slice is the [`Placement`]:
 //!
-//! - [`Placement::Largest`]: inside the largest 6-connected region of wrong voxels of one true
-//!   class (missed or wrongly claimed), on the axial slice where that region is largest;
-//! - [`Placement::Suggested`]: on the slice the product suggests (the largest uncertainty
-//!   mass, [`neuvolex_classify::suggest`]), inside the largest wrong region of that slice;
-//! - [`Placement::Random`]: the same on a random slice that shows a class.
+//! - [`Placement::Largest`]: the axial slice where the largest 6-connected region of wrong
+//!   voxels of one true class (missed or wrongly claimed) has the most voxels;
+//! - [`Placement::Suggested`]: the slice the product suggests (the largest uncertainty mass,
+//!   [`neuvolex_classify::suggest`]);
+//! - [`Placement::Random`]: a random slice that shows a class.
 //!
 //! A stroke is straight, through the deepest pixel of the region's cross-section, along the
 //! longest of 8 directions, half the region's diameter long each way at most, with the
@@ -103,8 +106,8 @@ pub struct RoundRow {
     pub seed: u64,
     /// Round (0 = the S1 start).
     pub round: usize,
-    /// The stroke added this round (none at round 0, or when nothing is wrong).
-    pub stroke: Option<Stroke>,
+    /// The strokes this round added (one slice visit; none at round 0).
+    pub strokes: Vec<Stroke>,
     /// F1 per ROI class.
     pub f1: Vec<F1>,
     /// Mean F1 over the ROI classes.
@@ -210,12 +213,18 @@ pub fn largest_region(
     Some((c.label, z, mask))
 }
 
-/// The largest 4-connected region of one label on an axial slice of error labels (`w x h`).
-pub fn largest_on_slice(err: &[u16], w: usize, h: usize) -> Option<(u16, Vec<bool>)> {
+/// The largest 4-connected region of one label on an axial slice of error labels (`w x h`),
+/// of any label or of `only` that one.
+pub fn largest_on_slice(
+    err: &[u16],
+    w: usize,
+    h: usize,
+    only: Option<u16>,
+) -> Option<(u16, Vec<bool>)> {
     let mut seen = vec![false; w * h];
     let mut best: Option<(usize, u16, Vec<usize>)> = None;
     for s in 0..w * h {
-        if err[s] == 0 || seen[s] {
+        if err[s] == 0 || seen[s] || only.is_some_and(|o| err[s] != o) {
             continue;
         }
         let l = err[s];
@@ -331,9 +340,35 @@ pub fn stroke_in(
     None
 }
 
-/// The robot's next stroke for a prediction, or `None` when nothing is wrong.
+/// A slice visit: on axial slice `z` of the error labels, one stroke of the true class in the
+/// largest wrong region of each true class there (background included), as a user corrects
+/// what they see on the slice, the way the simulator scribbles every class a slice shows.
+pub fn slice_strokes(
+    err: &[u16],
+    dims: [usize; 3],
+    z: usize,
+    background: u32,
+    radius: f32,
+) -> Vec<Stroke> {
+    let (w, h) = (dims[0], dims[1]);
+    let plane = &err[z * w * h..(z + 1) * w * h];
+    let mut present: Vec<u16> = plane.iter().copied().filter(|&l| l != 0).collect();
+    present.sort_unstable();
+    present.dedup();
+    present
+        .into_iter()
+        .filter_map(|l| {
+            let (_, mask) = largest_on_slice(plane, w, h, Some(l))?;
+            let class = if l == 1 { background } else { l as u32 - 1 };
+            stroke_in(&mask, w, h, z, class, radius)
+        })
+        .collect()
+}
+
+/// The robot's next round for a prediction: the strokes of one slice visit
+/// ([`slice_strokes`]) on the slice the [`Placement`] picks, or none when nothing is wrong.
 #[allow(clippy::too_many_arguments)]
-pub fn next_stroke(
+pub fn next_strokes(
     truth: &[u32],
     pred: &[u16],
     dims: [usize; 3],
@@ -344,37 +379,30 @@ pub fn next_stroke(
     rng: &mut Rng,
     background: u32,
     radius: f32,
-) -> Option<Stroke> {
+) -> Vec<Stroke> {
     let err = error_labels(truth, pred);
-    let (w, h) = (dims[0], dims[1]);
-    let class_of = |l: u16| {
-        if l == 1 {
-            background
-        } else {
-            l as u32 - 1
-        }
+    let visit = |z: usize| -> Option<Vec<Stroke>> {
+        let s = slice_strokes(&err, dims, z, background, radius);
+        (!s.is_empty()).then_some(s)
     };
-    let on_slice = |z: usize| -> Option<Stroke> {
-        let (l, mask) = largest_on_slice(&err[z * w * h..(z + 1) * w * h], w, h)?;
-        stroke_in(&mask, w, h, z, class_of(l), radius)
-    };
-    match placement {
-        Placement::Largest => {
-            let (l, z, mask) = largest_region(&err, dims, brick)?;
-            stroke_in(&mask, w, h, z, class_of(l), radius).or_else(|| on_slice(z))
-        }
+    let order: Vec<usize> = match placement {
+        Placement::Largest => match largest_region(&err, dims, brick) {
+            Some((_, z, _)) => vec![z],
+            None => Vec::new(),
+        },
         Placement::Suggested => {
             let m = &slices.axes[2];
             let mut order: Vec<usize> = (0..dims[2]).collect();
             order.sort_by(|&a, &b| m[b].total_cmp(&m[a]).then(a.cmp(&b)));
-            order.into_iter().find_map(on_slice)
+            order
         }
         Placement::Random => {
             let mut order = fg_slices.to_vec();
             rng.shuffle(&mut order);
-            order.into_iter().find_map(on_slice)
+            order
         }
-    }
+    };
+    order.into_iter().find_map(visit).unwrap_or_default()
 }
 
 /// Axial slices showing a class in the truth.
@@ -438,7 +466,7 @@ pub fn run(cfg: &EvalConfig, rc: &RobotConfig, events: Events) -> Result<Vec<Rou
                                 },
                             )?;
                             let mut rng = Rng::new(seed ^ 0x0B07_u64);
-                            let mut added: Option<Stroke> = None;
+                            let mut added: Vec<Stroke> = Vec::new();
                             for round in 0..=rc.rounds {
                                 let scr = rasterise(&strokes, dims)?;
                                 let t0 = Instant::now();
@@ -467,7 +495,7 @@ pub fn run(cfg: &EvalConfig, rc: &RobotConfig, events: Events) -> Result<Vec<Rou
                                     placement,
                                     seed,
                                     round,
-                                    stroke: added.take(),
+                                    strokes: std::mem::take(&mut added),
                                     f1,
                                     mean_f1,
                                     scribbled: scr.voxels.len(),
@@ -481,7 +509,7 @@ pub fn run(cfg: &EvalConfig, rc: &RobotConfig, events: Events) -> Result<Vec<Rou
                                 if round == rc.rounds {
                                     break;
                                 }
-                                match next_stroke(
+                                added = next_strokes(
                                     &ds.truth,
                                     &labels,
                                     dims,
@@ -492,13 +520,11 @@ pub fn run(cfg: &EvalConfig, rc: &RobotConfig, events: Events) -> Result<Vec<Rou
                                     &mut rng,
                                     cfg.classify.background,
                                     radius,
-                                ) {
-                                    Some(s) => {
-                                        strokes.push(s.clone());
-                                        added = Some(s);
-                                    }
-                                    None => break,
+                                );
+                                if added.is_empty() {
+                                    break;
                                 }
+                                strokes.extend(added.iter().cloned());
                             }
                         }
                     }
@@ -661,7 +687,7 @@ mod tests {
         }
         let slices = SliceMass::zeros(d);
         let mut rng = Rng::new(1);
-        let s = next_stroke(
+        let s = next_strokes(
             &truth,
             &pred,
             d,
@@ -672,12 +698,16 @@ mod tests {
             &mut rng,
             255,
             1.0,
-        )
-        .unwrap();
-        assert_eq!((s.class, s.slice), (1, 7));
+        );
+        assert_eq!(s.len(), 1, "one wrong class on slice 7: {s:?}");
+        assert_eq!((s[0].class, s[0].slice), (1, 7));
+        // A slice with a missed part and a false blob gets a stroke for each.
+        let s3 = slice_strokes(&err, d, 3, 255, 0.0);
+        let classes: Vec<u32> = s3.iter().map(|s| s.class).collect();
+        assert_eq!(classes, vec![255, 1], "{s3:?}");
         // Nothing wrong: no stroke.
         let t16: Vec<u16> = truth.iter().map(|&t| t as u16).collect();
-        assert!(next_stroke(
+        assert!(next_strokes(
             &truth,
             &t16,
             d,
@@ -689,6 +719,6 @@ mod tests {
             255,
             1.0
         )
-        .is_none());
+        .is_empty());
     }
 }

@@ -23,6 +23,11 @@ use crate::cache::{FeatureCache, SessionFeatures};
 use neuvolex_features::InrModel;
 use neuvolex_session::SessionFile;
 
+
+/// The feature set the service classifies with (`neuvolex classify --features` defaults to
+/// the same).
+pub const DEFAULT_FEATURES: &str = "filters+xyz";
+
 /// A model and its version in a session (bumped by every snapshot).
 pub type VersionedModel = (u64, Arc<InrModel>);
 
@@ -309,13 +314,16 @@ impl Session {
         self.model.read().unwrap_or_else(|p| p.into_inner()).clone()
     }
 
-    /// The feature set interactive work uses: `inr` (learned + local) once a model exists,
-    /// else `local`; with the model version it is computed from.
+    /// The feature set interactive work uses, [`DEFAULT_FEATURES`] (the filter bank and
+    /// position, which beat the learned features under sparse scribbles on both dev volumes),
+    /// with the model it needs (none for the default).
     pub fn feature_source(&self) -> ApiResult<(FeatureSet, Option<VersionedModel>)> {
-        let model = self.current_model();
-        let set: FeatureSet = if model.is_some() { "inr" } else { "local" }
-            .parse()
-            .map_err(ApiError::Internal)?;
+        let set: FeatureSet = DEFAULT_FEATURES.parse().map_err(ApiError::Internal)?;
+        let model = if set.needs_model() {
+            self.current_model()
+        } else {
+            None
+        };
         Ok((set, model))
     }
 

@@ -614,7 +614,7 @@ async fn training_streams_previews_and_refreshes_the_classification() {
     let id = open_session(&app).await;
     let g = put_strokes(&app, &id, 0).await;
     let v = wait_done(&app, &id, g).await;
-    assert_eq!(v["status"]["features"], "local", "no model yet: {v}");
+    assert_eq!(v["status"]["features"], "filters+xyz", "the default: {v}");
     let mut sse = Sse::open(&app, &format!("?session={id}")).await;
     let req = test::TestRequest::post()
         .uri(&format!("/api/sessions/{id}/train"))
@@ -632,7 +632,7 @@ async fn training_streams_previews_and_refreshes_the_classification() {
     .await;
     assert_eq!(r.status(), 200);
     assert_eq!(&test::read_body(r).await[1..4], b"PNG");
-    // A snapshot mid-training refreshes the classification with learned features.
+    // A snapshot mid-training refreshes the classification.
     sse.next("training", |v| v["data"]["state"] == "snapshot")
         .await;
     let saved = sse
@@ -651,8 +651,8 @@ async fn training_streams_previews_and_refreshes_the_classification() {
     assert!(g > 1, "{saved}");
     let v = wait_done(&app, &id, g).await;
     assert_eq!(
-        v["status"]["features"], "concat+local",
-        "learned features: {v}"
+        v["status"]["features"], "filters+xyz",
+        "the default stays the filter bank with a model: {v}"
     );
     assert_eq!(v["status"]["state"], "done", "{v}");
     // Stopping when nothing runs is a conflict.
