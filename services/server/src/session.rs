@@ -23,7 +23,6 @@ use crate::cache::{FeatureCache, SessionFeatures};
 use neuvolex_features::InrModel;
 use neuvolex_session::SessionFile;
 
-
 /// The feature set the service classifies with (`neuvolex classify --features` defaults to
 /// the same).
 pub const DEFAULT_FEATURES: &str = "filters+xyz";
