@@ -435,8 +435,26 @@ fn classify_and_eval_on_the_phantom() {
         "exists",
     );
     fails(
-        &["classify", &p("s.zarr"), "--scribbles", &p("scr.nii.gz")],
+        &[
+            "classify",
+            &p("s.zarr"),
+            "--scribbles",
+            &p("scr.nii.gz"),
+            "--features",
+            "inr",
+        ],
         "need a trained INR",
+    );
+    fails(
+        &[
+            "classify",
+            &p("s.zarr"),
+            "--scribbles",
+            &p("scr.nii.gz"),
+            "--prior-mass",
+            "2",
+        ],
+        "--prior-mass 2: must be within 0..=1",
     );
     fails(
         &[
