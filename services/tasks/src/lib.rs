@@ -29,7 +29,7 @@ pub use executor::{
     execute_ordered, DeadTask, Done, Event, Executor, LocalExecutor, RunEvent, RunReport,
 };
 pub use registry::{Blob, Blobs, Build, NoBlobs, Registry};
-pub use task::{plan, DynStage, Stage, Task, TaskCtx};
+pub use task::{adapt_per_task, plan, DynStage, Stage, Task, TaskCtx, MAX_QUEUE_SHARE};
 
 /// Errors of tasks and executors.
 #[derive(Debug, thiserror::Error)]

@@ -29,6 +29,38 @@ pub fn plan(bricks: &[[usize; 3]], per_task: usize, round: u32) -> Vec<Task> {
         .collect()
 }
 
+/// Largest share of a task's time the queue's round trip may take in an iterative stage before
+/// [`adapt_per_task`] batches more bricks per task (half the 5 % bound, for headroom).
+pub const MAX_QUEUE_SHARE: f64 = 0.025;
+
+/// Bricks per task for the next round of an iterative stage (k-means passes), from the last
+/// round's report over `bricks` bricks: the smallest batch whose measured queue overhead per
+/// task is at most [`MAX_QUEUE_SHARE`] of its work, but never fewer than `current` and never so
+/// many that a worker seen in the last round would get fewer than two tasks. A report without
+/// queue time (the in-process executor) keeps `current`. Tasks stay runs of bricks in order,
+/// so outputs merged in task order are the same whatever the batch.
+pub fn adapt_per_task(current: usize, last: &crate::RunReport, bricks: usize) -> usize {
+    let current = current.max(1);
+    if bricks == 0
+        || last.completed == 0
+        || !(last.queue_seconds > 0.0 && last.work_seconds > 0.0)
+        || !(last.queue_seconds.is_finite() && last.work_seconds.is_finite())
+    {
+        return current;
+    }
+    let queue_per_task = last.queue_seconds / last.completed as f64;
+    let work_per_brick = last.work_seconds / bricks as f64;
+    let want = (queue_per_task / (MAX_QUEUE_SHARE * work_per_brick)).ceil();
+    let workers = last.per_worker.len().max(1);
+    let cap = bricks.div_ceil(2 * workers).max(1);
+    let want = if want.is_finite() && want > 0.0 {
+        (want as usize).min(cap)
+    } else {
+        current
+    };
+    current.max(want)
+}
+
 /// What a running task can see: whether its run was cancelled, and a counter of bricks it
 /// skipped because their done marker was set.
 pub struct TaskCtx<'a> {
@@ -99,5 +131,50 @@ impl<S: Stage> DynStage for S {
 
     fn run_encoded(&self, task: &Task, ctx: &TaskCtx<'_>) -> Result<Vec<u8>> {
         codec::encode(&self.run(task, ctx)?)
+    }
+}
+
+#[cfg(test)]
+mod adapt_tests {
+    use super::*;
+    use crate::RunReport;
+
+    fn report(tasks: usize, work: f64, queue: f64, workers: usize) -> RunReport {
+        RunReport {
+            completed: tasks,
+            tasks,
+            work_seconds: work,
+            queue_seconds: queue,
+            per_worker: (0..workers).map(|w| (format!("w{w}"), 1)).collect(),
+            ..RunReport::default()
+        }
+    }
+
+    #[test]
+    fn batches_grow_until_the_queue_is_a_small_share() {
+        // 512 one-brick tasks of 10 ms with a 1.2 ms round trip (12 %): 5 bricks a task bring
+        // it to 2.4 %.
+        let r = report(512, 5.12, 512.0 * 1.2e-3, 4);
+        assert_eq!(adapt_per_task(1, &r, 512), 5);
+        // Already batched enough: kept.
+        assert_eq!(adapt_per_task(8, &r, 512), 8);
+    }
+
+    #[test]
+    fn batches_keep_two_tasks_per_worker() {
+        // 8 bricks on 2 workers: at most 2 bricks a task, whatever the overhead.
+        let r = report(8, 0.08, 8.0 * 5e-3, 2);
+        assert_eq!(adapt_per_task(1, &r, 8), 2);
+        // One brick per worker pair or fewer: unbatched.
+        let r = report(8, 0.08, 8.0 * 5e-3, 4);
+        assert_eq!(adapt_per_task(1, &r, 8), 1);
+    }
+
+    #[test]
+    fn in_process_and_degenerate_reports_keep_the_batch() {
+        assert_eq!(adapt_per_task(3, &report(8, 1.0, 0.0, 1), 8), 3);
+        assert_eq!(adapt_per_task(0, &report(0, 0.0, 0.0, 0), 8), 1);
+        assert_eq!(adapt_per_task(2, &report(8, f64::NAN, 1.0, 1), 8), 2);
+        assert_eq!(adapt_per_task(2, &report(8, 1.0, 1.0, 1), 0), 2);
     }
 }

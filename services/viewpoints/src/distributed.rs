@@ -361,8 +361,10 @@ pub fn recommend_on<E: Executor + ?Sized>(
     }
     let src = sample_stage.src;
     let (km, tol) = KMeans::seed(&sample, dim, kc, &mut rng);
-    // 2. Lloyd passes: per-brick partials merged in brick order.
-    let tasks = neuvolex_tasks::plan(&bricks, bricks_per_task, 0);
+    // 2. Lloyd passes: per-brick partials merged in brick order. On a cluster, passes batch
+    // more bricks per task when the queue's round trip is a large share of a task's work
+    // (`adapt_per_task`); tasks stay runs of bricks in order, so the merge is the same.
+    let mut per_task = bricks_per_task.max(1);
     let mut round = 0u32;
     let km = km.lloyd_iterations(&sample, tol, kc, &mut |km: &KMeans| {
         round += 1;
@@ -377,9 +379,10 @@ pub fn recommend_on<E: Executor + ?Sized>(
             km: km.clone(),
             blob: Some(blob),
         };
-        let t: Vec<Task> = tasks.iter().map(|t| Task { round, ..t.clone() }).collect();
+        let t = neuvolex_tasks::plan(&bricks, per_task, round);
         let (outs, rep) = execute_ordered(exec, &stage, &t, progress).map_err(err)?;
         check(&rep)?;
+        per_task = neuvolex_tasks::adapt_per_task(per_task, &rep, bricks.len());
         let mut total = Partial::new(km.k(), dim);
         for p in outs.into_iter().flatten().flatten() {
             total.merge(&p);
@@ -402,13 +405,7 @@ pub fn recommend_on<E: Executor + ?Sized>(
     });
     let mut agg = Aggregator::new(km.k());
     let mut arrived = 0usize;
-    let tasks: Vec<Task> = tasks
-        .iter()
-        .map(|t| Task {
-            round: round + 1,
-            ..t.clone()
-        })
-        .collect();
+    let tasks: Vec<Task> = neuvolex_tasks::plan(&bricks, per_task, round + 1);
     let mut per: Vec<Option<Vec<(Partial, ClusterPartial)>>> = vec![None; tasks.len()];
     let rep = exec
         .execute(&stage, &tasks, &mut |e| {
