@@ -261,8 +261,10 @@ where
 #[actix_web::test]
 async fn the_feature_cache_is_bounded_across_sessions() {
     let (_d, mut cfg) = data();
-    // About 4 feature bricks (16^3 voxels x 12 local features x 2 bytes = 96 KiB each).
-    cfg.feature_cache_bytes = 400 << 10;
+    // About 4 feature bricks of the default set (16^3 voxels x 53 `filters+xyz` channels x 2
+    // bytes = 424 KiB each); every session's features are many times that.
+    let budget = 4 * 16 * 16 * 16 * 53 * 2 + (16 << 10);
+    cfg.feature_cache_bytes = budget;
     let app = app!(cfg);
     let mut ids = Vec::new();
     for _ in 0..4 {
@@ -273,7 +275,7 @@ async fn the_feature_cache_is_bounded_across_sessions() {
         let s = server_status(&app).await;
         let used = s["feature_cache"]["used"].as_u64().unwrap();
         assert!(used > 0, "{s}");
-        assert!(used <= 400 << 10, "one budget for all sessions: {s}");
+        assert!(used <= budget as u64, "one budget for all sessions: {s}");
         ids.push(id);
     }
     // Closing sessions drops their features.
