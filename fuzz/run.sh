@@ -149,6 +149,7 @@ case "${1:-ci}" in
     [ "$#" -gt 0 ] && TARGETS=("$@")
     mkdir -p runs
     for t in "${TARGETS[@]}"; do
+      mkdir -p "corpus/$t" "artifacts/$t"
       log="runs/$t.log"
       start=$(date +%s)
       set +e
@@ -159,9 +160,9 @@ case "${1:-ci}" in
       rc=$?
       set -e
       end=$(date +%s)
-      execs=$(sed -n 's/^stat::number_of_executed_units: *//p' "$log" | tail -1)
-      peak=$(sed -n 's/^stat::peak_rss_mb: *//p' "$log" | tail -1)
-      cov=$(grep -Eo 'cov: [0-9]+' "$log" | tail -1 | awk '{print $2}')
+      execs=$(sed -n 's/^stat::number_of_executed_units: *//p' "$log" | tail -1 || true)
+      peak=$(sed -n 's/^stat::peak_rss_mb: *//p' "$log" | tail -1 || true)
+      cov=$(grep -Eo 'cov: [0-9]+' "$log" | tail -1 | awk '{print $2}' || true)
       echo "$t sanitizer=$SANITIZER runs=${execs:-?} seconds=$((end - start)) exit=$rc peak_rss_mb=${peak:-?} cov=${cov:-?} $(date -u +%FT%TZ)" | tee -a runs/summary.txt
     done
     ;;
