@@ -7,6 +7,9 @@
 
 pub mod targets;
 
+#[cfg(feature = "fuzzing")]
+pub mod alloc_limit;
+
 use neuvolex_bricks::VolumeSource;
 use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
