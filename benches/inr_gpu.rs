@@ -305,7 +305,7 @@ fn profile(ctx: &Arc<GpuContext>, store: &BrickStore) -> Value {
 
 #[cfg(feature = "gpu")]
 fn renderer() -> Vec<Value> {
-    use neuvolex_render::{BrickSource, Camera, RenderParams, Renderer, StoreSource, TfFile};
+    use neuvolex_render::{BrickSource, RenderParams, Renderer, StoreSource, TfFile};
     let mut out = Vec::new();
     println!("\n| volume | size | CPU ms/frame | wgpu ms/frame | ratio |\n|---|---|---|---|---|");
     for (name, rel, preset) in [
@@ -317,16 +317,7 @@ fn renderer() -> Vec<Value> {
         let st = Arc::new(store_for(&src, dir.path()));
         let tf = TfFile::preset(preset).expect("preset");
         for size in [512usize, 1024] {
-            let p = RenderParams {
-                width: size,
-                height: size,
-                camera: Camera {
-                    azimuth: 30.0,
-                    elevation: 15.0,
-                    ..Camera::default()
-                },
-                ..RenderParams::default()
-            };
+            let p = RenderParams::bench_view(size);
             let source = StoreSource::new(st.clone());
             let luts = tf.compile(&source.normaliser(), &source.classes());
             let mut c = Renderer::new(source, 2 << 30);

@@ -17,9 +17,7 @@ use neuvolex_benches::{machine, shared};
 use neuvolex_bricks::synth::ClassInfo;
 use neuvolex_bricks::{ingest, open_volume, BrickStore, IngestOptions};
 use neuvolex_render::tf::Space;
-use neuvolex_render::{
-    BrickSource, Camera, Image, Mode, RenderParams, Renderer, StoreSource, TfFile,
-};
+use neuvolex_render::{BrickSource, Image, Mode, RenderParams, Renderer, StoreSource, TfFile};
 use std::io::{BufRead, BufReader, Write};
 use std::path::{Path, PathBuf};
 use std::process::{Child, ChildStdin, ChildStdout, Command, Stdio};
@@ -272,16 +270,7 @@ fn main() {
         let dir = tempfile::tempdir().expect("tmp");
         let st = store(&src, labels.as_deref(), dir.path());
         let tf = TfFile::preset(preset).expect("preset");
-        let params = RenderParams {
-            width: size,
-            height: size,
-            camera: Camera {
-                azimuth: 30.0,
-                elevation: 15.0,
-                ..Camera::default()
-            },
-            ..RenderParams::default()
-        };
+        let params = RenderParams::bench_view(size);
         let source = StoreSource::new(st.clone());
         let norm = source.normaliser();
         let it = tf.intensity.clone().expect("intensity tf");

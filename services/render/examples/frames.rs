@@ -6,7 +6,7 @@
 //! the milliseconds of each and a checksum of the last image.
 
 use neuvolex_bricks::{ingest, open_volume, BrickStore, IngestOptions};
-use neuvolex_render::{BrickSource, Camera, RenderParams, Renderer, StoreSource, TfFile};
+use neuvolex_render::{BrickSource, RenderParams, Renderer, StoreSource, TfFile};
 use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::Instant;
@@ -33,16 +33,7 @@ fn main() {
     let source = StoreSource::new(st);
     let tf = TfFile::preset(&a[2]).expect("preset");
     let luts = tf.compile(&source.normaliser(), &source.classes());
-    let p = RenderParams {
-        width: size,
-        height: size,
-        camera: Camera {
-            azimuth: 30.0,
-            elevation: 15.0,
-            ..Camera::default()
-        },
-        ..RenderParams::default()
-    };
+    let p = RenderParams::bench_view(size);
     let mut r = Renderer::new(source, 2 << 30);
     let t = Instant::now();
     r.render(&p, &luts).expect("render");

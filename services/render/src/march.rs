@@ -78,6 +78,23 @@ pub struct RenderParams {
     pub ert: f32,
 }
 
+impl RenderParams {
+    /// The view every benchmark and profile renders: a `size` x `size` image, the default
+    /// camera turned to azimuth 30 and elevation 15 degrees, default sampling and shading.
+    pub fn bench_view(size: usize) -> Self {
+        RenderParams {
+            width: size,
+            height: size,
+            camera: Camera {
+                azimuth: 30.0,
+                elevation: 15.0,
+                ..Camera::default()
+            },
+            ..RenderParams::default()
+        }
+    }
+}
+
 impl Default for RenderParams {
     fn default() -> Self {
         RenderParams {
