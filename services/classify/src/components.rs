@@ -31,6 +31,17 @@ pub struct PriorConfig {
     pub relative_mass: f64,
 }
 
+impl PriorConfig {
+    /// Settings with `relative_mass` checked: a fraction within 0..=1 (NaN refused).
+    pub fn new(relative_mass: f64) -> Result<Self, String> {
+        if (0.0..=1.0).contains(&relative_mass) {
+            Ok(PriorConfig { relative_mass })
+        } else {
+            Err("must be within 0..=1".into())
+        }
+    }
+}
+
 impl Default for PriorConfig {
     fn default() -> Self {
         PriorConfig { relative_mass: 0.5 }
@@ -574,6 +585,14 @@ mod tests {
                     assert_eq!(c.mass, c.voxels as f64);
                 }
             }
+        }
+    }
+
+    #[test]
+    fn the_relative_mass_is_a_fraction() {
+        assert_eq!(PriorConfig::new(0.25).unwrap().relative_mass, 0.25);
+        for bad in [-0.1, 1.5, f64::NAN, f64::INFINITY] {
+            assert_eq!(PriorConfig::new(bad).unwrap_err(), "must be within 0..=1");
         }
     }
 

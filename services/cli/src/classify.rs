@@ -145,12 +145,9 @@ pub struct ClassifyArgs {
 
 /// The prior's settings from the flags (`None` when turned off).
 fn prior_config(off: bool, mass: f64) -> Result<Option<neuvolex_classify::PriorConfig>> {
-    if !(0.0..=1.0).contains(&mass) {
-        bail!("--prior-mass {mass}: must be within 0..=1");
-    }
-    Ok((!off).then_some(neuvolex_classify::PriorConfig {
-        relative_mass: mass,
-    }))
+    let cfg = neuvolex_classify::PriorConfig::new(mass)
+        .map_err(|e| anyhow::anyhow!("--prior-mass {mass}: {e}"))?;
+    Ok((!off).then_some(cfg))
 }
 
 /// `neuvolex classify`: parses, chooses the executor, shows progress, prints.
@@ -218,7 +215,8 @@ pub fn run_classify(a: &ClassifyArgs, quiet: bool) -> Result<()> {
     }
     match &r.prior {
         Some(p) => println!(
-            "  spatial prior: kept {} of {} connected parts, {} voxels set to background ({:.2} s;              --no-prior turns it off)",
+            "  spatial prior: kept {} of {} connected parts, {} voxels set to background \
+             ({:.2} s; --no-prior turns it off)",
             p.kept, p.components, p.voxels_cleared, p.seconds
         ),
         None => println!("  spatial prior: off"),

@@ -119,12 +119,8 @@ impl EvalArgs {
                 }
             }
         }
-        if !(self.prior_mass.is_finite() && self.prior_mass >= 0.0) {
-            anyhow::bail!(
-                "--prior-mass {} must be a non-negative number",
-                self.prior_mass
-            );
-        }
+        let prior = neuvolex_classify::PriorConfig::new(self.prior_mass)
+            .map_err(|e| anyhow::anyhow!("--prior-mass {}: {e}", self.prior_mass))?;
         Ok(EvalConfig {
             datasets: self.datasets.clone(),
             data: self.data.clone(),
@@ -135,9 +131,7 @@ impl EvalArgs {
             methods,
             seeds: self.seeds,
             classify: self.forest.config()?,
-            prior: neuvolex_classify::PriorConfig {
-                relative_mass: self.prior_mass,
-            },
+            prior,
             inr,
             cache_bytes: self.cache_mib << 20,
         })
