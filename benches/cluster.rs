@@ -1,5 +1,6 @@
-//! Scaling of the distributed stages on NATS JetStream: classification (prediction into the
-//! store), feature extraction, and Lloyd k-means with view partials, in one process and on
+//! Scaling of the distributed stages on NATS JetStream: ingest (slab tasks reading a shared
+//! file), classification (prediction into the store), feature extraction, and Lloyd k-means
+//! with view partials, in one process and on
 //! 1, 2 and 4 worker processes, on the abdomen CT and a 512x512x452 volume (the CT-like
 //! phantom at CTA scale). Per stage and worker count: wall time, mean work per task, queue
 //! overhead per task (the worker's fetch, decode, result publish and ack around the work), bytes
@@ -8,7 +9,8 @@
 //! `cargo bench -p neuvolex-benches --bench cluster` (needs nats-server, which
 //! deploy/test.sh or deploy/cluster.sh install). `NEUVOLEX_BENCH_BIG=0` skips the large volume.
 //! Workers are this binary re-executed with `--worker`, one process each. Results also go to
-//! `benches/results/cluster.json`.
+//! `benches/results/cluster.json`. `NEUVOLEX_BENCH_WORKERS=1,2` picks the worker counts
+//! (default 1,2,4).
 
 use neuvolex_bricks::{BrickStore, IngestOptions};
 use neuvolex_classify::pipeline::{classify, ClassifyRequest, FeatureSpec, OpenedFeatures};
@@ -117,6 +119,36 @@ fn row(volume: &str, stage: &str, workers: usize, r: &RunReport, wall: f64, writ
         row.store_written as f64 / 1e6,
     );
     row
+}
+
+/// Ingest of `source` into a fresh store beside `store` (slab tasks; default options).
+fn ingest_stage<E: Executor>(
+    exec: &E,
+    workers: usize,
+    volume: &str,
+    source: &Path,
+    store: &Path,
+    rows: &mut Vec<Row>,
+) {
+    let out = store.with_extension("ingest.zarr");
+    let t = Instant::now();
+    let (_, r) = neuvolex_ingest::ingest_on(
+        exec,
+        source,
+        None,
+        None,
+        &neuvolex_bricks::StoreLocation::from(&out),
+        &IngestOptions {
+            overwrite: true,
+            ..IngestOptions::default()
+        },
+        1,
+        &mut |_| {},
+    )
+    .expect("ingest");
+    let wall = t.elapsed().as_secs_f64();
+    rows.push(row(volume, "ingest", workers, &r, wall, dir_bytes(&out)));
+    let _ = std::fs::remove_dir_all(&out);
 }
 
 #[allow(clippy::too_many_arguments)]
@@ -281,7 +313,9 @@ fn main() {
         "\n| volume | stage | workers | tasks | wall s | work ms/task | queue ms/task (share) | queue MB | store written MB |"
     );
     println!("|---|---|---|---|---|---|---|---|---|");
-    let mut vols: Vec<(String, PathBuf, PathBuf, bool, bool)> = Vec::new();
+    // (name, store, scribbles, features, big, source file for the ingest stage)
+    type Vol = (String, PathBuf, PathBuf, bool, bool, PathBuf);
+    let mut vols: Vec<Vol> = Vec::new();
     if let (Some(ct), Some(lab)) = (
         neuvolex_benches::shared("abdomen_ct/ct.nii.gz"),
         neuvolex_benches::shared("abdomen_ct/labels.nii.gz"),
@@ -300,6 +334,7 @@ fn main() {
             scribbles(&lab, tmp.path(), "ct"),
             true,
             false,
+            ct.clone(),
         ));
     }
     if std::env::var("NEUVOLEX_BENCH_BIG")
@@ -314,29 +349,40 @@ fn main() {
         neuvolex_bricks::synth::phantom_store(&p, params, &IngestOptions::default(), &mut |_| {})
             .expect("phantom");
         let lab = p.join("labels/ground_truth");
+        // The ingest stage reads the phantom as an uncompressed NIfTI (memory-mapped).
+        let nii = tmp.path().join("big.nii");
+        neuvolex_bricks::nifti::write_nifti(
+            &nii,
+            &mut neuvolex_bricks::synth::Phantom::new(
+                params,
+                neuvolex_bricks::synth::PhantomChannel::Image,
+            ),
+            16,
+        )
+        .expect("phantom NIfTI");
         vols.push((
             "phantom 512x512x452".into(),
             p.clone(),
             scribbles(&lab, tmp.path(), "big"),
             false,
             true,
+            nii,
         ));
     }
+    let counts: Vec<usize> = std::env::var("NEUVOLEX_BENCH_WORKERS")
+        .ok()
+        .map(|v| v.split(',').filter_map(|w| w.trim().parse().ok()).collect())
+        .filter(|v: &Vec<usize>| !v.is_empty())
+        .unwrap_or_else(|| vec![1, 2, 4]);
     let mut rows = Vec::new();
-    for (name, store, scr, features, big) in &vols {
-        stages(
-            &LocalExecutor::new(),
-            0,
-            name,
-            store,
-            scr,
-            *features,
-            *big,
-            &mut rows,
-        );
-        for w in [1, 2, 4] {
+    for (name, store, scr, features, big, source) in &vols {
+        let local = LocalExecutor::new();
+        ingest_stage(&local, 0, name, source, store, &mut rows);
+        stages(&local, 0, name, store, scr, *features, *big, &mut rows);
+        for &w in &counts {
             let _ws = start_workers(&url, w);
             let ex = ClusterExecutor::connect(EngineConfig::new(&url)).expect("connect");
+            ingest_stage(&ex, w, name, source, store, &mut rows);
             stages(&ex, w, name, store, scr, *features, *big, &mut rows);
         }
     }

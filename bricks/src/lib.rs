@@ -59,6 +59,7 @@ pub use open::{detect_format, open_volume, Format};
 pub use raw::RawSpec;
 pub use stats::VolumeStats;
 pub use store::{
-    ingest, ingest_with_labels, Brick, BrickStore, IngestLabels, IngestOptions, NonFinitePolicy,
-    Progress, StoreInfo, VectorArray, VectorEncoding,
+    first_raw_value, ingest, ingest_with_labels, Brick, BrickStore, IngestLabels, IngestOptions,
+    IngestTarget, NonFinitePolicy, Progress, Scanner, SlabWriter, StoreInfo, VectorArray,
+    VectorEncoding,
 };

@@ -35,8 +35,9 @@ pub struct VolumeStats {
 }
 
 /// One-pass accumulator of count, min, max, mean and variance (shifted sums in f64),
-/// plus exact counts for small integer types.
-#[derive(Debug, Clone)]
+/// plus exact counts for small integer types. Serialisable, so a cluster task can return it as
+/// a partial.
+#[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct StatsAccumulator {
     n: u64,
     min: f64,
@@ -134,6 +135,21 @@ impl StatsAccumulator {
             }
         }
         (self.min, self.max, self.sum, self.sumsq) = (mn, mx, sum, sumsq);
+    }
+
+    /// Takes the shifted sums accumulated so far (leaving zero), so a caller can keep them per
+    /// slice and add them back in a fixed order with [`Self::add_sums`].
+    pub fn take_sums(&mut self) -> (f64, f64) {
+        (
+            std::mem::take(&mut self.sum),
+            std::mem::take(&mut self.sumsq),
+        )
+    }
+
+    /// Adds shifted sums that [`Self::take_sums`] took.
+    pub fn add_sums(&mut self, sum: f64, sumsq: f64) {
+        self.sum += sum;
+        self.sumsq += sumsq;
     }
 
     /// Fixes the shift used for the shifted sums (done once, before forking).
@@ -280,7 +296,8 @@ pub fn bin_of(v: f64, min: f64, max: f64, bins: usize) -> usize {
 /// A 65 536-bin histogram over a known `[min, max]`, for percentiles of wide types. Each bin
 /// also keeps the smallest and largest value it saw, so order statistics are exact whenever a
 /// bin holds one distinct value (integer data) and interpolated inside the bin otherwise.
-#[derive(Debug, Clone)]
+/// Histograms of parts of a volume merge exactly ([`Self::merge`]), in any order.
+#[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct FineHistogram {
     min: f64,
     max: f64,
@@ -312,6 +329,20 @@ impl FineHistogram {
             self.hi[k] = self.hi[k].max(v);
         }
         self.n += values.len() as u64;
+    }
+
+    /// Adds the counts of a histogram over the same range (a part of the volume). Counts add and
+    /// per-bin extremes combine, so the result does not depend on how the volume was split.
+    pub fn merge(&mut self, o: &FineHistogram) {
+        debug_assert!(
+            self.min.to_bits() == o.min.to_bits() && self.max.to_bits() == o.max.to_bits()
+        );
+        for k in 0..self.counts.len().min(o.counts.len()) {
+            self.counts[k] += o.counts[k];
+            self.lo[k] = self.lo[k].min(o.lo[k]);
+            self.hi[k] = self.hi[k].max(o.hi[k]);
+        }
+        self.n += o.n;
     }
 
     /// The `r`-th smallest value (0-based), exact when its bin holds a single distinct value.

@@ -500,6 +500,13 @@ pub fn replace_file(path: &Path, bytes: &[u8]) -> Result<()> {
 }
 
 /// One streaming pass over slabs: statistics, per-brick ranges and the NaN/Inf policy.
+///
+/// Scanners of disjoint parts of a volume merge ([`Scanner::merge`]) into exactly the scanner
+/// of the whole, whatever the split, the order or the thread count: counts, extremes and
+/// per-brick ranges combine exactly, and the shifted f64 sums of wide and float types are kept
+/// per z-slice and added in slice order by [`Scanner::finish`]. This is what lets a cluster
+/// ingest (slab tasks on several workers) write the same statistics as a local one.
+#[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct Scanner {
     meta: VolumeMeta,
     brick: usize,
@@ -507,10 +514,13 @@ pub struct Scanner {
     acc: StatsAccumulator,
     bmin: Vec<f64>,
     bmax: Vec<f64>,
+    /// Shifted (sum, sum of squares) of each z-slice (wide and float types).
+    slice_sums: Vec<[f64; 2]>,
 }
 
 impl Scanner {
-    /// A scanner for a volume of `meta` with bricks of edge `brick`.
+    /// A scanner for a volume of `meta` with bricks of edge `brick`. The shift of the shifted
+    /// sums is the first value of the first slab added.
     pub fn new(meta: &VolumeMeta, brick: usize) -> Self {
         let grid = grid_of(meta.dims, brick);
         let nb = grid.iter().product::<usize>();
@@ -521,7 +531,38 @@ impl Scanner {
             acc: StatsAccumulator::new(meta.dtype, meta.scaling),
             bmin: vec![f64::INFINITY; nb],
             bmax: vec![f64::NEG_INFINITY; nb],
+            slice_sums: vec![[0.0; 2]; meta.dims[2]],
         }
+    }
+
+    /// A scanner for a part of a volume whose first raw value (after the NaN/Inf policy, see
+    /// [`first_raw_value`]) is `first_raw`: every part of one volume must use the same.
+    pub fn with_shift(meta: &VolumeMeta, brick: usize, first_raw: f64) -> Self {
+        let mut s = Scanner::new(meta, brick);
+        s.acc.set_shift_if_unset(first_raw);
+        s
+    }
+
+    /// Adds the scanner of another, disjoint part of the same volume (same grid and shift).
+    pub fn merge(&mut self, o: Scanner) -> Result<()> {
+        if o.meta.dims != self.meta.dims || o.brick != self.brick {
+            return Err(BrickError::InvalidArgument(format!(
+                "statistics of a {:?} volume in {}-voxel bricks cannot merge into those of a {:?} \
+                 volume in {}-voxel bricks",
+                o.meta.dims, o.brick, self.meta.dims, self.brick
+            )));
+        }
+        self.acc.merge(o.acc);
+        for (i, (lo, hi)) in o.bmin.into_iter().zip(o.bmax).enumerate() {
+            self.bmin[i] = self.bmin[i].min(lo);
+            self.bmax[i] = self.bmax[i].max(hi);
+        }
+        // Parts are disjoint in z: a slice's sums come from one part (the other adds 0).
+        for (a, b) in self.slice_sums.iter_mut().zip(o.slice_sums) {
+            a[0] += b[0];
+            a[1] += b[1];
+        }
+        Ok(())
     }
 
     /// Applies the NaN/Inf policy to `slab` (rewriting it for [`NonFinitePolicy::Zero`]) and
@@ -580,7 +621,8 @@ impl Scanner {
         let workers = rayon::current_num_threads().clamp(1, slab.depth);
         let per = slab.depth.div_ceil(workers);
         use rayon::prelude::*;
-        let parts: Vec<(StatsAccumulator, Vec<f64>, Vec<f64>)> = slab
+        type Part = (StatsAccumulator, Vec<f64>, Vec<f64>, Vec<[f64; 2]>);
+        let parts: Vec<Part> = slab
             .bytes
             .par_chunks(per * slice * esize)
             .enumerate()
@@ -588,6 +630,7 @@ impl Scanner {
                 let mut acc = self.acc.fork();
                 let mut lmin = vec![f64::INFINITY; layers * per_layer];
                 let mut lmax = vec![f64::NEG_INFINITY; layers * per_layer];
+                let mut sums = Vec::new();
                 let mut raw = vec![0.0f64; slice];
                 let mut ints = vec![0i32; slice];
                 let small = meta.dtype.is_small_int();
@@ -616,6 +659,9 @@ impl Scanner {
                     } else {
                         crate::dtype::bytes_to_f64(sl, meta.dtype, &mut raw);
                         acc.add_raw(&raw);
+                        // Per-slice sums: added in slice order at the end, whatever the split.
+                        let (a, q) = acc.take_sums();
+                        sums.push([a, q]);
                         for y in 0..meta.dims[1] {
                             let row = &raw[y * meta.dims[0]..(y + 1) * meta.dims[0]];
                             for (bx, seg) in row.chunks(b).enumerate() {
@@ -629,11 +675,14 @@ impl Scanner {
                         }
                     }
                 }
-                (acc, lmin, lmax)
+                (acc, lmin, lmax, sums)
             })
             .collect();
-        for (acc, lmin, lmax) in parts {
+        for (w, (acc, lmin, lmax, sums)) in parts.into_iter().enumerate() {
             self.acc.merge(acc);
+            for (dz, s) in sums.into_iter().enumerate() {
+                self.slice_sums[slab.z0 + w * per + dz] = s;
+            }
             for i in 0..layers * per_layer {
                 if lmin[i] > lmax[i] {
                     continue;
@@ -659,8 +708,28 @@ impl Scanner {
     }
 
     /// Statistics plus per-brick minima and maxima (grid order, x fastest).
-    pub fn finish(self, fine: Option<FineHistogram>) -> (VolumeStats, Vec<f64>, Vec<f64>) {
+    pub fn finish(mut self, fine: Option<FineHistogram>) -> (VolumeStats, Vec<f64>, Vec<f64>) {
+        for [a, q] in &self.slice_sums {
+            self.acc.add_sums(*a, *q);
+        }
         (self.acc.finish(fine), self.bmin, self.bmax)
+    }
+}
+
+/// The first raw value of a volume as [`Scanner::add_slab`] sees it (a NaN or Inf counts as 0,
+/// as the `zero` policy writes it; the `reject` policy fails on it anyway): the shift that
+/// every part's [`Scanner::with_shift`] must use. `slab` is the volume's first slab.
+pub fn first_raw_value(slab: &crate::meta::Slab) -> f64 {
+    let esize = slab.dtype.size();
+    if slab.bytes.len() < esize {
+        return 0.0;
+    }
+    let mut first = [0.0f64];
+    crate::dtype::bytes_to_f64(&slab.bytes[..esize], slab.dtype, &mut first);
+    if first[0].is_finite() {
+        first[0]
+    } else {
+        0.0
     }
 }
 
@@ -813,116 +882,199 @@ pub fn ingest_with_labels(
             .meta()
             .check_same_grid(l.source.meta(), l.source.path())?;
     }
-    let add = |info: StoreInfo,
-               at: &StoreLocation,
-               labels: Option<IngestLabels<'_>>,
-               progress: &mut dyn FnMut(Progress)|
-     -> Result<StoreInfo> {
+    let meta = source.meta().clone();
+    let src_path = source.path().to_path_buf();
+    meta.validate(&src_path)?;
+    let target = IngestTarget::begin(&out, opts)?;
+    let info = (|| {
+        let writer = SlabWriter::create(target.backend(), &meta, opts)?;
+        let mut scanner = Scanner::new(&meta, opts.brick);
+        let nz = meta.dims[2];
+        progress(Progress::Stage {
+            name: "ingest",
+            total: nz as u64,
+        });
+        for (z0, depth) in writer.slabs() {
+            let mut slab = source.read_slab(z0, depth)?;
+            writer.write(&mut scanner, &mut slab, &src_path)?;
+            drop(slab);
+            source.release(z0, depth);
+            progress(Progress::Advance {
+                done: (z0 + depth) as u64,
+            });
+        }
+        // Second pass for percentiles of wide types, over the stored level 0.
+        let fine = if scanner.needs_second_pass() {
+            let mut fine = FineHistogram::new(scanner.range().0, scanner.range().1);
+            progress(Progress::Stage {
+                name: "percentiles",
+                total: nz as u64,
+            });
+            for (z0, depth) in writer.slabs() {
+                fine.merge(&writer.fine_histogram(z0, depth, scanner.range())?);
+                progress(Progress::Advance {
+                    done: (z0 + depth) as u64,
+                });
+            }
+            Some(fine)
+        } else {
+            None
+        };
+        let info = writer.finish(&target, scanner, fine, &src_path)?;
         match labels {
             Some(l) => {
-                let mut store = BrickStore::open(at.clone())?;
+                let mut store = BrickStore::open(target.location().clone())?;
                 store.add_labels(l.name, l.source, l.classes, progress)?;
                 Ok(store.info().clone())
             }
             None => Ok(info),
         }
-    };
-    match &out {
-        StoreLocation::Local(dir) => ingest_local(source, dir, opts, progress, |tmp, info, p| {
-            add(info, &StoreLocation::Local(tmp.to_path_buf()), labels, p)
-        }),
-        StoreLocation::S3(_) => {
-            let info = ingest_remote(source, &out, opts, progress)?;
-            add(info, &out, labels, progress)
-        }
-    }
-}
-
-fn ingest_local(
-    source: &mut dyn VolumeSource,
-    out: &Path,
-    opts: &IngestOptions,
-    progress: &mut dyn FnMut(Progress),
-    before_commit: impl FnOnce(&Path, StoreInfo, &mut dyn FnMut(Progress)) -> Result<StoreInfo>,
-) -> Result<StoreInfo> {
-    if out.exists() && !opts.overwrite {
-        return Err(BrickError::Exists {
-            path: out.to_path_buf(),
-        });
-    }
-    // Replacing a store: no other writer may be working in it meanwhile.
-    let _lock = if out.exists() {
-        Some(WriterLock::acquire(
-            &Backend::open(&StoreLocation::Local(out.to_path_buf()))?,
-            "ingest",
-        )?)
-    } else {
-        None
-    };
-    remove_stale_siblings(out);
-    let tmp = crate::nifti::tmp_name(out);
-    if tmp.exists() {
-        std::fs::remove_dir_all(&tmp).map_err(|e| BrickError::io(&tmp, e))?;
-    }
-    std::fs::create_dir_all(&tmp).map_err(|e| BrickError::io(&tmp, e))?;
-    let backend = Backend::open(&StoreLocation::Local(tmp.clone()))?;
-    let res = ingest_into(source, &backend, None, opts, progress)
-        .and_then(|info| before_commit(&tmp, info, progress))
-        .and_then(|info| {
-            commit_dir(&tmp, out, opts.overwrite)?;
+    })();
+    match info {
+        Ok(info) => {
+            target.commit()?;
             Ok(info)
-        });
-    if res.is_err() {
-        let _ = std::fs::remove_dir_all(&tmp);
-    }
-    res
-}
-
-fn ingest_remote(
-    source: &mut dyn VolumeSource,
-    out: &StoreLocation,
-    opts: &IngestOptions,
-    progress: &mut dyn FnMut(Progress),
-) -> Result<StoreInfo> {
-    let backend = Backend::open(out)?;
-    if !opts.overwrite {
-        if let Some(bytes) = backend.get("zarr.json")? {
-            // A complete store is kept; leftovers of an interrupted ingest are replaced.
-            let complete = serde_json::from_slice::<Value>(&bytes)
-                .ok()
-                .and_then(|v| {
-                    v.pointer("/attributes/neuvolex/complete")
-                        .and_then(Value::as_bool)
-                })
-                .unwrap_or(false);
-            if complete {
-                return Err(BrickError::Exists {
-                    path: out.as_path(),
-                });
-            }
+        }
+        Err(e) => {
+            target.abort();
+            Err(e)
         }
     }
-    let lock = WriterLock::acquire(&backend, "ingest")?;
-    backend.put(
-        "zarr.json",
-        serde_json::to_vec_pretty(&json!({"zarr_format": 3, "node_type": "group",
-            "attributes": {"neuvolex": {"complete": false}}}))
-        .unwrap_or_default(),
-    )?;
-    for name in backend.list_dir("")? {
-        match name.as_str() {
-            "zarr.json" => {}
-            "neuvolex" => {
-                for n in backend.list_dir("neuvolex")? {
-                    if format!("neuvolex/{n}") != crate::lock::LOCK_KEY {
-                        delete_node(&backend, &format!("neuvolex/{n}"))?;
+}
+
+/// Where an ingest writes, from its start to its publication: on a file system a temporary
+/// sibling folder renamed into place by [`IngestTarget::commit`] (an existing store stays
+/// complete until then, and is locked against other writers meanwhile); on S3 the store itself,
+/// marked incomplete and emptied first, whose root metadata is written last.
+///
+/// Every writer of the ingest (this process, or cluster workers given
+/// [`IngestTarget::location`]) writes through it; [`SlabWriter`] does the writing.
+pub struct IngestTarget {
+    out: StoreLocation,
+    at: StoreLocation,
+    backend: Arc<Backend>,
+    tmp: Option<PathBuf>,
+    lock: Option<WriterLock>,
+    overwrite: bool,
+}
+
+impl IngestTarget {
+    /// Prepares `out` for a new store: refuses an existing complete store without
+    /// `opts.overwrite`, takes the writer lock and makes the folder (or S3 prefix) to write in.
+    pub fn begin(out: &StoreLocation, opts: &IngestOptions) -> Result<Self> {
+        out.validate()?;
+        validate_options(&out.as_path(), opts)?;
+        match out {
+            StoreLocation::Local(dir) => {
+                if dir.exists() && !opts.overwrite {
+                    return Err(BrickError::Exists { path: dir.clone() });
+                }
+                // Replacing a store: no other writer may be working in it meanwhile.
+                let lock = if dir.exists() {
+                    Some(WriterLock::acquire(
+                        &Backend::open(&StoreLocation::Local(dir.clone()))?,
+                        "ingest",
+                    )?)
+                } else {
+                    None
+                };
+                remove_stale_siblings(dir);
+                let tmp = crate::nifti::tmp_name(dir);
+                if tmp.exists() {
+                    std::fs::remove_dir_all(&tmp).map_err(|e| BrickError::io(&tmp, e))?;
+                }
+                std::fs::create_dir_all(&tmp).map_err(|e| BrickError::io(&tmp, e))?;
+                let at = StoreLocation::Local(tmp.clone());
+                Ok(IngestTarget {
+                    out: out.clone(),
+                    backend: Backend::open(&at)?,
+                    at,
+                    tmp: Some(tmp),
+                    lock,
+                    overwrite: opts.overwrite,
+                })
+            }
+            StoreLocation::S3(_) => {
+                let backend = Backend::open(out)?;
+                if !opts.overwrite {
+                    if let Some(bytes) = backend.get("zarr.json")? {
+                        // A complete store is kept; leftovers of an interrupted ingest are
+                        // replaced.
+                        let complete = serde_json::from_slice::<Value>(&bytes)
+                            .ok()
+                            .and_then(|v| {
+                                v.pointer("/attributes/neuvolex/complete")
+                                    .and_then(Value::as_bool)
+                            })
+                            .unwrap_or(false);
+                        if complete {
+                            return Err(BrickError::Exists {
+                                path: out.as_path(),
+                            });
+                        }
                     }
                 }
+                let lock = WriterLock::acquire(&backend, "ingest")?;
+                backend.put(
+                    "zarr.json",
+                    serde_json::to_vec_pretty(&json!({"zarr_format": 3, "node_type": "group",
+                        "attributes": {"neuvolex": {"complete": false}}}))
+                    .unwrap_or_default(),
+                )?;
+                for name in backend.list_dir("")? {
+                    match name.as_str() {
+                        "zarr.json" => {}
+                        "neuvolex" => {
+                            for n in backend.list_dir("neuvolex")? {
+                                if format!("neuvolex/{n}") != crate::lock::LOCK_KEY {
+                                    delete_node(&backend, &format!("neuvolex/{n}"))?;
+                                }
+                            }
+                        }
+                        n => delete_node(&backend, n)?,
+                    }
+                }
+                Ok(IngestTarget {
+                    out: out.clone(),
+                    at: out.clone(),
+                    backend,
+                    tmp: None,
+                    lock: Some(lock),
+                    overwrite: opts.overwrite,
+                })
             }
-            n => delete_node(&backend, n)?,
         }
     }
-    ingest_into(source, &backend, Some(&lock), opts, progress)
+
+    /// Where the ingest's writers write (the temporary folder on a file system).
+    pub fn location(&self) -> &StoreLocation {
+        &self.at
+    }
+
+    /// The backend of [`Self::location`].
+    pub fn backend(&self) -> &Arc<Backend> {
+        &self.backend
+    }
+
+    /// Publishes the written store at its final location (a rename on a file system; on S3
+    /// [`SlabWriter::finish`] already wrote the root metadata last) and releases the lock.
+    pub fn commit(self) -> Result<()> {
+        if let Some(tmp) = &self.tmp {
+            let r = commit_dir(tmp, &self.out.as_path(), self.overwrite);
+            if r.is_err() {
+                let _ = std::fs::remove_dir_all(tmp);
+            }
+            r?;
+        }
+        Ok(())
+    }
+
+    /// Gives up: removes the temporary folder (the previous store, if any, is untouched).
+    pub fn abort(self) {
+        if let Some(tmp) = &self.tmp {
+            let _ = std::fs::remove_dir_all(tmp);
+        }
+    }
 }
 
 /// True if `location` (a path or `s3://` URL) holds a neuvolex brick store, complete or not.
@@ -947,70 +1099,136 @@ struct LevelWriter {
     dims: [usize; 3],
 }
 
-fn ingest_into(
-    source: &mut dyn VolumeSource,
-    backend: &Backend,
-    lock: Option<&WriterLock>,
-    opts: &IngestOptions,
-    progress: &mut dyn FnMut(Progress),
-) -> Result<StoreInfo> {
-    let meta: VolumeMeta = source.meta().clone();
-    let src_path = source.path().to_path_buf();
-    meta.validate(&src_path)?;
-    let storage = backend.zarr();
-    let root_path = backend.path();
-    let root = root_path.as_path();
-    let b = opts.brick;
-    let store_dtype = if meta.scaling.is_some() {
-        DType::F32
-    } else {
-        meta.dtype
-    };
-    let nlevels = pick_levels(meta.dims, b, opts.levels);
-    let mut levels = Vec::with_capacity(nlevels);
-    for k in 0..nlevels {
-        let d = level_dims(meta.dims, k);
-        let array = build_array(
-            &storage,
+/// The writer of an ingest's image pyramid: the pure per-slab step that any scheduler runs
+/// (the sequential [`ingest`], or slab tasks on cluster workers, `neuvolex-ingest`).
+///
+/// A slab is one brick (or one shard) of z-slices, so every slab fills whole chunks at every
+/// pyramid level and slabs can be written in any order, by any process, any number of times
+/// (the same bytes each time).
+pub struct SlabWriter {
+    meta: VolumeMeta,
+    opts: IngestOptions,
+    root: PathBuf,
+    storage: ReadableWritableListableStorage,
+    store_dtype: DType,
+    levels: Vec<LevelWriter>,
+}
+
+impl SlabWriter {
+    fn layout(
+        backend: &Backend,
+        meta: &VolumeMeta,
+        opts: &IngestOptions,
+        create: bool,
+    ) -> Result<Self> {
+        let storage = backend.zarr();
+        let root = backend.path();
+        let b = opts.brick;
+        let store_dtype = if meta.scaling.is_some() {
+            DType::F32
+        } else {
+            meta.dtype
+        };
+        let nlevels = pick_levels(meta.dims, b, opts.levels);
+        let mut levels = Vec::with_capacity(nlevels);
+        for k in 0..nlevels {
+            let d = level_dims(meta.dims, k);
+            let array = if create {
+                build_array(
+                    &storage,
+                    &root,
+                    &format!("/{k}"),
+                    vec![d[2] as u64, d[1] as u64, d[0] as u64],
+                    level_chunk(b, k).iter().rev().map(|&c| c as u64).collect(),
+                    if k == 0 { store_dtype } else { DType::F32 },
+                    opts,
+                )?
+            } else {
+                let a = Array::open(storage.clone(), &format!("/{k}"))
+                    .map_err(|e| BrickError::zarr(&root, e))?;
+                let want = vec![d[2] as u64, d[1] as u64, d[0] as u64];
+                if a.shape() != want.as_slice() {
+                    return Err(BrickError::corrupt(
+                        &root,
+                        format!(
+                            "level {k} has shape {:?}, this ingest writes {want:?}",
+                            a.shape()
+                        ),
+                    ));
+                }
+                a
+            };
+            levels.push(LevelWriter { array, dims: d });
+        }
+        Ok(SlabWriter {
+            meta: meta.clone(),
+            opts: opts.clone(),
             root,
-            &format!("/{k}"),
-            vec![d[2] as u64, d[1] as u64, d[0] as u64],
-            level_chunk(b, k).iter().rev().map(|&c| c as u64).collect(),
-            if k == 0 { store_dtype } else { DType::F32 },
-            opts,
-        )?;
-        levels.push(LevelWriter { array, dims: d });
+            storage,
+            store_dtype,
+            levels,
+        })
     }
-    let grid = grid_of(meta.dims, b);
-    let mut scanner = Scanner::new(&meta, b);
-    let nz = meta.dims[2];
-    progress(Progress::Stage {
-        name: "ingest",
-        total: nz as u64,
-    });
-    let mut z0 = 0;
-    while z0 < nz {
-        // One brick (or, when sharded, one shard) deep: every write covers whole chunks.
-        let depth = (b * opts.shard.unwrap_or(1).max(1)).min(nz - z0);
-        let mut slab = source.read_slab(z0, depth)?;
-        scanner.add_slab(&mut slab, opts.non_finite, &src_path)?;
+
+    /// Creates the pyramid's arrays (their metadata) for a volume of `meta` in `backend`.
+    pub fn create(backend: &Backend, meta: &VolumeMeta, opts: &IngestOptions) -> Result<Self> {
+        meta.validate(&backend.path())?;
+        Self::layout(backend, meta, opts, true)
+    }
+
+    /// Opens the arrays [`Self::create`] made (a cluster worker), checking their shapes.
+    pub fn open(backend: &Backend, meta: &VolumeMeta, opts: &IngestOptions) -> Result<Self> {
+        meta.validate(&backend.path())?;
+        Self::layout(backend, meta, opts, false)
+    }
+
+    /// Slices per slab: one brick, or one shard, deep.
+    pub fn slab_depth(&self) -> usize {
+        self.opts.brick * self.opts.shard.unwrap_or(1).max(1)
+    }
+
+    /// The slabs of the volume as `(first z-slice, depth)`, front to back.
+    pub fn slabs(&self) -> Vec<(usize, usize)> {
+        let (nz, d) = (self.meta.dims[2], self.slab_depth());
+        (0..nz).step_by(d).map(|z| (z, d.min(nz - z))).collect()
+    }
+
+    /// Scans one slab into `scanner` (applying the NaN/Inf policy; `path` names the source in
+    /// errors) and writes it at every pyramid level. `slab` must be one of [`Self::slabs`].
+    pub fn write(
+        &self,
+        scanner: &mut Scanner,
+        slab: &mut crate::meta::Slab,
+        path: &Path,
+    ) -> Result<()> {
+        let meta = &self.meta;
+        let (b, z0, depth) = (self.opts.brick, slab.z0, slab.depth);
+        if !self.slabs().contains(&(z0, depth)) {
+            return Err(BrickError::InvalidArgument(format!(
+                "{}: slices {z0}..{} are not one slab of this ingest ({} slices a slab)",
+                path.display(),
+                z0 + depth,
+                self.slab_depth()
+            )));
+        }
+        scanner.add_slab(slab, self.opts.non_finite, path)?;
+        let root = self.root.as_path();
         // Level 1 from pairs of slices of the native slab (no full-slab f32 copy).
-        let mut cur = if levels.len() > 1 {
-            downsample_slab(&slab, &meta)
+        let mut cur = if self.levels.len() > 1 {
+            downsample_slab(slab, meta)
         } else {
             Vec::new()
         };
         // Level 0 in the stored type.
         let level0_bytes = if meta.scaling.is_some() {
-            bytemuck::cast_slice(&slab.to_f32_scaled(&meta)).to_vec()
+            bytemuck::cast_slice(&slab.to_f32_scaled(meta)).to_vec()
         } else {
             std::mem::take(&mut slab.bytes)
         };
-        drop(slab);
         write_slab_chunks(
-            &levels[0].array,
+            &self.levels[0].array,
             &level0_bytes,
-            store_dtype.size(),
+            self.store_dtype.size(),
             [meta.dims[0], meta.dims[1], depth],
             z0,
             level_chunk(b, 0),
@@ -1024,7 +1242,7 @@ fn ingest_into(
             depth.div_ceil(2),
         ];
         let mut cz = z0 / 2;
-        for (k, lvl) in levels.iter().enumerate().skip(1) {
+        for (k, lvl) in self.levels.iter().enumerate().skip(1) {
             if k > 1 {
                 cur = downsample_mean(&cur, cur_dims);
                 cur_dims = [lvl.dims[0], lvl.dims[1], cur_dims[2].div_ceil(2)];
@@ -1040,75 +1258,88 @@ fn ingest_into(
             )
             .map_err(|e| BrickError::zarr(root, e))?;
         }
-        drop(cur);
-        source.release(z0, depth);
-        z0 += depth;
-        progress(Progress::Advance { done: z0 as u64 });
+        Ok(())
     }
-    // Second pass for percentiles of wide types, over the stored level 0.
-    let fine = if scanner.needs_second_pass() {
-        let level0 = &levels[0].array;
-        Some(percentile_pass(
-            nz,
-            b,
-            scanner.range(),
-            progress,
-            |z, d| {
-                let bytes = read_bytes(level0, &zyx([0, 0, z], [meta.dims[0], meta.dims[1], d]))
-                    .map_err(|e| BrickError::zarr(root, e))?;
-                let mut v = vec![0.0f32; bytes.len() / store_dtype.size()];
-                crate::dtype::bytes_to_f32(&bytes, store_dtype, &mut v);
-                Ok(v)
-            },
-        )?)
-    } else {
-        None
-    };
-    let (stats, bmin, bmax) = scanner.finish(fine);
-    // Per-brick ranges.
-    for (name, vals) in [("brick_min", &bmin), ("brick_max", &bmax)] {
-        let a = build_array(
-            &storage,
-            root,
-            &format!("/neuvolex/{name}"),
-            vec![grid[2] as u64, grid[1] as u64, grid[0] as u64],
-            vec![grid[2] as u64, grid[1] as u64, grid[0] as u64],
-            DType::F64,
-            &IngestOptions {
-                shard: None,
-                ..opts.clone()
-            },
-        )?;
-        write_bytes(&a, &zyx([0; 3], grid), bytemuck::cast_slice(vals).to_vec())
+
+    /// The percentile histogram over `range` (the merged scanners' range) of slices
+    /// `z0..z0+depth` of the stored level 0 (the second pass of wide and float types).
+    pub fn fine_histogram(
+        &self,
+        z0: usize,
+        depth: usize,
+        range: (f64, f64),
+    ) -> Result<FineHistogram> {
+        let meta = &self.meta;
+        let bytes = read_bytes(
+            &self.levels[0].array,
+            &zyx([0, 0, z0], [meta.dims[0], meta.dims[1], depth]),
+        )
+        .map_err(|e| BrickError::zarr(&self.root, e))?;
+        let mut v = vec![0.0f32; bytes.len() / self.store_dtype.size()];
+        crate::dtype::bytes_to_f32(&bytes, self.store_dtype, &mut v);
+        let mut fine = FineHistogram::new(range.0, range.1);
+        fine.add(&v);
+        Ok(fine)
+    }
+
+    /// Writes the per-brick ranges and the root metadata (last, `complete: true`) from the
+    /// scanner of the whole volume (merged) and its percentile histogram.
+    pub fn finish(
+        self,
+        target: &IngestTarget,
+        scanner: Scanner,
+        fine: Option<FineHistogram>,
+        src_path: &Path,
+    ) -> Result<StoreInfo> {
+        let (meta, opts, root, storage) = (&self.meta, &self.opts, &self.root, &self.storage);
+        let grid = grid_of(meta.dims, opts.brick);
+        let (stats, bmin, bmax) = scanner.finish(fine);
+        for (name, vals) in [("brick_min", &bmin), ("brick_max", &bmax)] {
+            let a = build_array(
+                storage,
+                root,
+                &format!("/neuvolex/{name}"),
+                vec![grid[2] as u64, grid[1] as u64, grid[0] as u64],
+                vec![grid[2] as u64, grid[1] as u64, grid[0] as u64],
+                DType::F64,
+                &IngestOptions {
+                    shard: None,
+                    ..opts.clone()
+                },
+            )?;
+            write_bytes(&a, &zyx([0; 3], grid), bytemuck::cast_slice(vals).to_vec())
+                .map_err(|e| BrickError::zarr(root, e))?;
+        }
+        GroupBuilder::new()
+            .build(storage.clone(), "/neuvolex")
+            .map_err(|e| BrickError::zarr(root, e))?
+            .store_metadata()
             .map_err(|e| BrickError::zarr(root, e))?;
+        let background = background_threshold(&stats);
+        let info = StoreInfo {
+            version: STORE_VERSION,
+            complete: true,
+            dims: meta.dims,
+            brick: opts.brick,
+            shard: opts.shard,
+            levels: self.levels.iter().map(|l| l.dims).collect(),
+            dtype: self.store_dtype,
+            source_dtype: meta.dtype,
+            source: src_path.display().to_string(),
+            spacing: meta.spacing,
+            affine: meta.affine,
+            stats,
+            background,
+            labels: vec![],
+        };
+        if target.tmp.is_none() {
+            if let Some(l) = &target.lock {
+                l.check()?;
+            }
+        }
+        write_root_attrs(storage, root, &info)?;
+        Ok(info)
     }
-    GroupBuilder::new()
-        .build(storage.clone(), "/neuvolex")
-        .map_err(|e| BrickError::zarr(root, e))?
-        .store_metadata()
-        .map_err(|e| BrickError::zarr(root, e))?;
-    let background = background_threshold(&stats);
-    let info = StoreInfo {
-        version: STORE_VERSION,
-        complete: true,
-        dims: meta.dims,
-        brick: b,
-        shard: opts.shard,
-        levels: levels.iter().map(|l| l.dims).collect(),
-        dtype: store_dtype,
-        source_dtype: meta.dtype,
-        source: src_path.display().to_string(),
-        spacing: meta.spacing,
-        affine: meta.affine,
-        stats,
-        background,
-        labels: vec![],
-    };
-    if let Some(l) = lock {
-        l.check()?;
-    }
-    write_root_attrs(&storage, root, &info)?;
-    Ok(info)
 }
 
 fn write_root_attrs(
@@ -2354,4 +2585,76 @@ pub fn check_name(what: &str, name: &str) -> Result<()> {
         )));
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod scanner_tests {
+    use super::*;
+    use crate::meta::MemVolume;
+
+    fn volume() -> MemVolume {
+        let dims = [23, 17, 41];
+        let v: Vec<f32> = (0..dims.iter().product::<usize>())
+            .map(|i| ((i as f32) * 0.37).sin() * 1e3 + (i % 13) as f32 * 1e-3 + 7.5)
+            .collect();
+        MemVolume::from_f32(dims, &v)
+    }
+
+    /// Scans `parts` (ranges of z-slices, in any order) into separate scanners and merges them.
+    fn scan(src: &mut MemVolume, parts: &[(usize, usize)]) -> (VolumeStats, Vec<f64>, Vec<f64>) {
+        let meta = src.meta.clone();
+        let first = first_raw_value(&src.read_slab(0, 1).unwrap());
+        let mut total = Scanner::with_shift(&meta, 8, first);
+        for &(z0, d) in parts {
+            let mut s = Scanner::with_shift(&meta, 8, first);
+            s.add_slab(
+                &mut src.read_slab(z0, d).unwrap(),
+                NonFinitePolicy::Reject,
+                Path::new("m"),
+            )
+            .unwrap();
+            total.merge(s).unwrap();
+        }
+        let (lo, hi) = total.range();
+        let mut fine = FineHistogram::new(lo, hi);
+        for &(z0, d) in parts.iter().rev() {
+            let mut f = FineHistogram::new(lo, hi);
+            f.add(&src.read_slab(z0, d).unwrap().to_f32_scaled(&meta));
+            fine.merge(&f);
+        }
+        total.finish(Some(fine))
+    }
+
+    #[test]
+    fn merged_parts_equal_one_scan_bit_for_bit() {
+        let mut src = volume();
+        let whole = scan(&mut src, &[(0, 41)]);
+        let split = scan(&mut src, &[(24, 17), (0, 8), (8, 16)]);
+        let bits =
+            |s: &VolumeStats| [s.min, s.max, s.mean, s.std, s.p0_5, s.p99_5].map(f64::to_bits);
+        assert_eq!(bits(&whole.0), bits(&split.0));
+        assert_eq!(whole.0, split.0);
+        assert_eq!(whole.1, split.1);
+        assert_eq!(whole.2, split.2);
+        // The scan through `Scanner::new` (the shift from the first slab) is the same too.
+        let mut s = Scanner::new(&src.meta, 8);
+        s.add_slab(
+            &mut src.read_slab(0, 41).unwrap(),
+            NonFinitePolicy::Reject,
+            Path::new("m"),
+        )
+        .unwrap();
+        let (lo, hi) = s.range();
+        let mut fine = FineHistogram::new(lo, hi);
+        fine.add(&src.read_slab(0, 41).unwrap().to_f32_scaled(&src.meta));
+        assert_eq!(s.finish(Some(fine)).0, whole.0);
+    }
+
+    #[test]
+    fn scanners_of_different_grids_do_not_merge() {
+        let src = volume();
+        let mut a = Scanner::new(&src.meta, 8);
+        let b = Scanner::new(&src.meta, 16);
+        assert!(a.merge(b).is_err());
+    }
 }

@@ -180,6 +180,10 @@ enum Cmd {
         force: bool,
         #[command(flatten)]
         raw: RawArgs,
+        /// With --cluster, slab tasks (one brick of z-slices each, `--bricks-per-task` slabs a
+        /// task) run on the workers, which must read INPUT at the same absolute path.
+        #[command(flatten)]
+        cluster: cluster::ClusterArgs,
     },
     /// Describe a volume file or store: grid, type, spacing, value range, histogram, bricks.
     Info {
@@ -872,6 +876,7 @@ fn main() -> Result<()> {
             classes,
             force,
             raw,
+            cluster,
         } => {
             let classes: Vec<ClassInfo> = match &classes {
                 Some(p) => read_classes(p)?,
@@ -905,13 +910,30 @@ fn main() -> Result<()> {
                 source: l.as_mut(),
                 classes: &classes,
             });
-            let info = neuvolex_bricks::ingest_with_labels(
-                src.as_mut(),
-                labels,
-                &output,
-                &opts,
-                &mut sink,
-            )?;
+            let info = if cluster.cluster.is_some() {
+                let exec = cluster.executor()?;
+                let mut bar = cluster::StageBar::new(quiet);
+                let (info, _) = neuvolex_ingest::ingest_on(
+                    &exec,
+                    &input,
+                    raw.spec()?.as_ref(),
+                    labels,
+                    &neuvolex_bricks::StoreLocation::from(&output),
+                    &opts,
+                    cluster.bricks_per_task,
+                    &mut |e| bar.on(e),
+                )?;
+                bar.finish();
+                info
+            } else {
+                neuvolex_bricks::ingest_with_labels(
+                    src.as_mut(),
+                    labels,
+                    &output,
+                    &opts,
+                    &mut sink,
+                )?
+            };
             let mb = info.stats.voxels as f64 * info.source_dtype.size() as f64 / 1e6;
             tracing::info!(store = %output.display(), dims = ?info.dims, bricks = info.grid().iter().product::<usize>(), seconds = t.elapsed().as_secs_f64(), mb_per_s = mb / t.elapsed().as_secs_f64(), "ingest complete");
         }

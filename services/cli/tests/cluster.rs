@@ -950,3 +950,107 @@ fn distributed_training_is_deterministic_and_close_to_single_node() {
         "2 replicas {psnr_two:.2} dB vs single node at batch 2B {psnr_big:.2} dB"
     );
 }
+
+/// A float raw volume (`name_WxHxD_f32.raw`) of smooth values with fine detail, and a NaN at
+/// `nan` (x fastest) if given.
+fn float_raw(dir: &Path, name: &str, dims: [usize; 3], nan: Option<usize>) -> String {
+    let n = dims.iter().product::<usize>();
+    let mut bytes = Vec::with_capacity(n * 4);
+    for i in 0..n {
+        let (x, y, z) = (
+            i % dims[0],
+            (i / dims[0]) % dims[1],
+            i / (dims[0] * dims[1]),
+        );
+        let v = if Some(i) == nan {
+            f32::NAN
+        } else {
+            1000.0 * ((x as f32 * 0.21).sin() + (y as f32 * 0.13).cos()) + z as f32 * 3.7
+                - 0.001 * (i % 97) as f32
+        };
+        bytes.extend_from_slice(&v.to_le_bytes());
+    }
+    let p = dir.join(format!(
+        "{name}_{}x{}x{}_f32.raw",
+        dims[0], dims[1], dims[2]
+    ));
+    std::fs::write(&p, bytes).expect("write raw");
+    p.to_string_lossy().into_owned()
+}
+
+#[test]
+fn cluster_ingest_on_two_workers_equals_one_process() {
+    let dir = tempfile::tempdir().expect("tmp");
+    let p = |n: &str| dir.path().join(n).to_string_lossy().into_owned();
+    let Some(nats) = Nats::start(dir.path(), "127.0.0.1", &[]) else {
+        return;
+    };
+    let _w = workers(&nats.url(), 2, &[]);
+    // A 16-bit gzipped NIfTI with its labels (exact count statistics), and a float raw file
+    // (shifted sums per slice and the second, percentile round).
+    ok(&["synth", "phantom", "--out", &p("ph.nii.gz"), "--size", "48"]);
+    let float = float_raw(dir.path(), "f", [40, 36, 50], None);
+    let cases: Vec<(String, Vec<String>)> = vec![
+        (
+            p("ph.nii.gz"),
+            [
+                "--labels",
+                &p("ph_labels.nii.gz"),
+                "--classes",
+                &p("ph_classes.json"),
+            ]
+            .map(String::from)
+            .to_vec(),
+        ),
+        (float.clone(), vec![]),
+        (float.clone(), ["--shard", "2"].map(String::from).to_vec()),
+    ];
+    for (i, (src, extra)) in cases.iter().enumerate() {
+        let (local, cluster) = (p(&format!("local{i}.zarr")), p(&format!("cluster{i}.zarr")));
+        let mut a: Vec<String> = ["ingest", src, &local, "--brick", "16"]
+            .map(String::from)
+            .to_vec();
+        a.extend(extra.iter().cloned());
+        ok(&a.iter().map(String::as_str).collect::<Vec<_>>());
+        a[2] = cluster.clone();
+        a.extend(["--cluster", &nats.url(), "--bricks-per-task", "1"].map(String::from));
+        ok(&a.iter().map(String::as_str).collect::<Vec<_>>());
+        // Arrays, statistics, per-brick ranges, labels: every file byte for byte (but the
+        // writer lock, which names its process).
+        same_store(&local, &cluster);
+    }
+    // A NaN in the middle, rejected on a worker: a clear error naming the file and the voxel,
+    // and the store already at the output stays as it was.
+    let bad = float_raw(dir.path(), "bad", [40, 36, 50], Some(40 * 36 * 37 + 5));
+    let keep = p("cluster1.zarr");
+    let before = std::fs::read(Path::new(&keep).join("zarr.json")).unwrap();
+    let o = run(&[
+        "ingest",
+        &bad,
+        &keep,
+        "--brick",
+        "16",
+        "--force",
+        "--cluster",
+        &nats.url(),
+        "--max-deliver",
+        "1",
+    ]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success(), "a NaN must be refused");
+    assert!(err.contains(&bad) && err.contains("z=37"), "{err}");
+    assert_eq!(
+        std::fs::read(Path::new(&keep).join("zarr.json")).unwrap(),
+        before,
+        "the previous store must stay intact"
+    );
+    same_store(&p("local1.zarr"), &keep);
+}
+
+/// Two stores byte for byte, without their writer-lock files (they name their process).
+fn same_store(a: &str, b: &str) {
+    for s in [a, b] {
+        let _ = std::fs::remove_file(Path::new(s).join("neuvolex/writer.lock"));
+    }
+    same_tree(a, b, "");
+}

@@ -6,6 +6,7 @@ use neuvolex_tasks::Registry;
 pub fn standard_registry() -> Registry {
     use neuvolex_viewpoints::distributed as vp;
     Registry::new()
+        .with(neuvolex_ingest::STAGE, neuvolex_ingest::IngestStage::build)
         .with(
             neuvolex_classify::pipeline::STAGE,
             neuvolex_classify::pipeline::PredictStage::build,
