@@ -1,6 +1,6 @@
 //! Scaling of the distributed stages on NATS JetStream: ingest (slab tasks reading a shared
 //! file), classification (prediction into the store), feature extraction, and Lloyd k-means
-//! with view partials, in one process and on
+//! with view partials (both volumes), in one process and on
 //! 1, 2 and 4 worker processes, on the abdomen CT and a 512x512x452 volume (the CT-like
 //! phantom at CTA scale). Per stage and worker count: wall time, mean work per task, queue
 //! overhead per task (the worker's fetch, decode, result publish and ack around the work), bytes
@@ -231,10 +231,8 @@ fn stages<E: Executor>(
             dir_bytes(&store.join("neuvolex/vectors/inr_hidden")),
         ));
     }
-    if big {
-        return;
-    }
-    // Lloyd k-means (k = 16, 10 iterations) and the view partials, on local features.
+    // Lloyd k-means (k = 16, 10 iterations) and the view partials, on local features (both
+    // volumes: on the large one the adaptive batching is not capped by the brick count).
     let set: FeatureSet = "local".parse().unwrap();
     let src = OpenedFeatures {
         store: std::sync::Arc::new(BrickStore::open(store).expect("store")),
