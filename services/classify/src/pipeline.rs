@@ -252,8 +252,7 @@ impl PredictStage {
         v: &serde_json::Value,
         blobs: &dyn Blobs,
     ) -> neuvolex_tasks::Result<Arc<dyn DynStage>> {
-        let p: PredictParams =
-            serde_json::from_value(v.clone()).map_err(|e| TaskError::Codec(e.to_string()))?;
+        let p: PredictParams = neuvolex_tasks::codec::params(v)?;
         let src = p.source.open_with(blobs).map_err(TaskError::failed)?;
         let forest = blobs.get(&p.forest)?;
         Ok(Arc::new(
@@ -818,8 +817,7 @@ impl<'a> ProbaStage<'a> {
         v: &serde_json::Value,
         blobs: &dyn Blobs,
     ) -> neuvolex_tasks::Result<Arc<dyn DynStage>> {
-        let p: ProbaParams =
-            serde_json::from_value(v.clone()).map_err(|e| TaskError::Codec(e.to_string()))?;
+        let p: ProbaParams = neuvolex_tasks::codec::params(v)?;
         let src = p.source.open_with(blobs).map_err(TaskError::failed)?;
         let bytes = blobs.get(&p.forest)?;
         let forest: Forest = codec::decode(&bytes)?;

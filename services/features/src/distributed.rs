@@ -192,8 +192,7 @@ impl RoundStage {
         v: &serde_json::Value,
         blobs: &dyn Blobs,
     ) -> neuvolex_tasks::Result<Arc<dyn DynStage>> {
-        let p: RoundParams =
-            serde_json::from_value(v.clone()).map_err(|e| TaskError::Codec(e.to_string()))?;
+        let p: RoundParams = neuvolex_tasks::codec::params(v)?;
         let bytes = blobs.get(&p.blob)?;
         let l = checkpoint::from_bytes(&format!("blob {}", p.blob), &bytes)
             .map_err(TaskError::failed)?;

@@ -133,8 +133,7 @@ impl ExtractStage {
         v: &serde_json::Value,
         _: &dyn Blobs,
     ) -> neuvolex_tasks::Result<Arc<dyn DynStage>> {
-        let p: ExtractParams =
-            serde_json::from_value(v.clone()).map_err(|e| TaskError::Codec(e.to_string()))?;
+        let p: ExtractParams = neuvolex_tasks::codec::params(v)?;
         let store = Arc::new(BrickStore::open(Path::new(&p.store))?);
         let model = Arc::new(load_model_checked(&store, &p.model).map_err(TaskError::failed)?);
         Ok(Arc::new(

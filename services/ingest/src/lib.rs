@@ -128,8 +128,7 @@ impl IngestStage {
         v: &serde_json::Value,
         _: &dyn Blobs,
     ) -> neuvolex_tasks::Result<Arc<dyn DynStage>> {
-        let p: IngestParams =
-            serde_json::from_value(v.clone()).map_err(|e| TaskError::Codec(e.to_string()))?;
+        let p: IngestParams = neuvolex_tasks::codec::params(v)?;
         Ok(Arc::new(IngestStage::new(p).map_err(TaskError::failed)?))
     }
 
@@ -269,15 +268,20 @@ pub fn ingest_on<E: Executor + ?Sized>(
             range: None,
         };
         let mut report = RunReport::default();
-        let tasks = plan(&slabs, slabs_per_task, 0);
-        let stage = IngestStage::new(params.clone())?;
-        let (outs, r) = execute_ordered(exec, &stage, &tasks, progress)?;
-        report.absorb(&r);
-        if outs.iter().any(Option::is_none) || r.cancelled {
-            return Err(dead_error(&r, &source.display().to_string()));
-        }
+        // One round of slab tasks; every task must complete.
+        let mut round = |params: &IngestParams, n: u32| -> Result<Vec<IngestPartial>> {
+            let tasks = plan(&slabs, slabs_per_task, n);
+            let stage = IngestStage::new(params.clone())?;
+            let (outs, r) = execute_ordered(exec, &stage, &tasks, progress)?;
+            report.absorb(&r);
+            if outs.iter().any(Option::is_none) || r.cancelled {
+                return Err(dead_error(&r, &source.display().to_string()));
+            }
+            Ok(outs.into_iter().flatten().collect())
+        };
+        let outs = round(&params, 0)?;
         let mut scanner = Scanner::with_shift(&meta, opts.brick, first_raw);
-        for o in outs.into_iter().flatten() {
+        for o in outs {
             match o {
                 IngestPartial::Scan(s) => scanner.merge(*s)?,
                 IngestPartial::Fine(_) => {
@@ -289,16 +293,10 @@ pub fn ingest_on<E: Executor + ?Sized>(
         }
         let fine = if scanner.needs_second_pass() {
             params.range = Some(scanner.range());
-            let tasks = plan(&slabs, slabs_per_task, 1);
-            let stage = IngestStage::new(params.clone())?;
-            let (outs, r) = execute_ordered(exec, &stage, &tasks, progress)?;
-            report.absorb(&r);
-            if outs.iter().any(Option::is_none) || r.cancelled {
-                return Err(dead_error(&r, &source.display().to_string()));
-            }
+            let outs = round(&params, 1)?;
             let range = scanner.range();
             let mut fine = FineHistogram::new(range.0, range.1);
-            for o in outs.into_iter().flatten() {
+            for o in outs {
                 match o {
                     IngestPartial::Fine(f) => fine.merge(&f),
                     IngestPartial::Scan(_) => {

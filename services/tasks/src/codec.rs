@@ -12,6 +12,11 @@ pub fn encode<T: Serialize + ?Sized>(v: &T) -> Result<Vec<u8>> {
     zstd::bulk::compress(&raw, 1).map_err(|e| TaskError::Codec(e.to_string()))
 }
 
+/// Decodes a stage's parameters (what [`crate::Stage::params`] gave) when a worker rebuilds it.
+pub fn params<T: DeserializeOwned>(v: &serde_json::Value) -> Result<T> {
+    T::deserialize(v).map_err(|e| TaskError::Codec(format!("stage parameters: {e}")))
+}
+
 /// Decodes what [`encode`] wrote.
 pub fn decode<T: DeserializeOwned>(bytes: &[u8]) -> Result<T> {
     let raw = zstd::stream::decode_all(bytes).map_err(|e| TaskError::Codec(e.to_string()))?;

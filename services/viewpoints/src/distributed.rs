@@ -110,8 +110,7 @@ impl SampleStage {
         v: &serde_json::Value,
         blobs: &dyn Blobs,
     ) -> neuvolex_tasks::Result<Arc<dyn DynStage>> {
-        let params: SampleParams =
-            serde_json::from_value(v.clone()).map_err(|e| TaskError::Codec(e.to_string()))?;
+        let params: SampleParams = neuvolex_tasks::codec::params(v)?;
         let picks: Vec<([usize; 3], Vec<usize>)> = decode_blob(blobs, &params.picks)?;
         let src = params.source.open_with(blobs).map_err(TaskError::failed)?;
         Ok(Arc::new(SampleStage {
@@ -177,8 +176,7 @@ pub struct ViewStage(PassStage);
 
 impl PassStage {
     fn from_params(v: &serde_json::Value, blobs: &dyn Blobs) -> neuvolex_tasks::Result<PassStage> {
-        let params: PassParams =
-            serde_json::from_value(v.clone()).map_err(|e| TaskError::Codec(e.to_string()))?;
+        let params: PassParams = neuvolex_tasks::codec::params(v)?;
         let km: KMeans = decode_blob(blobs, &params.centroids)?;
         let src = params.source.open_with(blobs).map_err(TaskError::failed)?;
         Ok(PassStage {
