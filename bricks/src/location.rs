@@ -390,6 +390,19 @@ impl serde::Serialize for StoreLocation {
     }
 }
 
+/// A path as every node of a cluster should open it: absolute (canonical where it exists), or a
+/// URL (`s3://...`) as given.
+pub fn shared_path_string(p: &Path) -> String {
+    let s = p.to_string_lossy();
+    if s.contains("://") {
+        return s.into_owned();
+    }
+    p.canonicalize()
+        .unwrap_or_else(|_| p.to_path_buf())
+        .display()
+        .to_string()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

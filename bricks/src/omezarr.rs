@@ -112,23 +112,51 @@ pub fn read_bytes(array: &ZArray, subset: &[Range<u64>]) -> std::result::Result<
 
 /// Writes native-endian bytes to a subset. Chunks equal to the fill value are stored too, so a
 /// missing chunk always means damage, never "all zero".
+///
+/// Sharded arrays are written shard by shard (shards in parallel, each shard's inner chunks
+/// encoded in order), so the same data always gives the same bytes: zarrs' concurrent shard
+/// encoder places inner chunks in the order they finish.
 pub fn write_bytes(
     array: &ZArray,
     subset: &[Range<u64>],
     bytes: Vec<u8>,
 ) -> std::result::Result<(), String> {
+    use rayon::prelude::*;
+    use zarrs::array::ArrayShardedExt;
     let mut opts = zarrs::array::CodecOptions::default();
     opts.set_store_empty_chunks(true);
-    array
-        .store_array_subset_opt(&subset.to_vec(), ArrayBytes::from(bytes), &opts)
-        .map_err(|e| e.to_string())
+    let whole = subset.to_vec();
+    if array.subchunk_shape().is_none() {
+        return array
+            .store_array_subset_opt(&whole, ArrayBytes::from(bytes), &opts)
+            .map_err(|e| e.to_string());
+    }
+    opts.set_concurrent_target(1);
+    let whole = zarrs::array::ArraySubset::new_with_ranges(&whole);
+    let shards = array
+        .chunks_in_array_subset(&whole)
+        .map_err(|e| e.to_string())?
+        .ok_or_else(|| format!("{whole:?} is outside the array"))?;
+    let data = ArrayBytes::from(bytes);
+    let shards: Vec<_> = shards.indices().into_iter().collect();
+    shards.into_par_iter().try_for_each(|idx| {
+        let shard = array.chunk_subset(&idx).map_err(|e| e.to_string())?;
+        let part = whole.overlap(&shard).map_err(|e| e.to_string())?;
+        let rel = part.relative_to(whole.start()).map_err(|e| e.to_string())?;
+        let piece = data
+            .extract_array_subset(&rel, whole.shape(), array.data_type())
+            .map_err(|e| e.to_string())?;
+        array
+            .store_array_subset_opt(&part, piece, &opts)
+            .map_err(|e| e.to_string())
+    })
 }
 
 /// Writes a slab of whole chunk layers: `bytes` holds `dims = [x, y, d]` voxels (x fastest) of
 /// `esize`-byte elements starting at z-slice `z0` of a (z, y, x) array whose chunks are
 /// `chunk = [cx, cy, cz]`. `z0` must be a multiple of `cz`, and `d` equal to `cz` except at the end.
-/// Chunks are cut out, padded and encoded in parallel; sharded arrays go through zarrs'
-/// subset writer instead.
+/// Chunks are cut out, padded and encoded in parallel; sharded arrays go through [`write_bytes`]
+/// instead.
 pub fn write_slab_chunks(
     array: &ZArray,
     bytes: &[u8],

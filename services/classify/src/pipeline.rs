@@ -697,17 +697,8 @@ pub fn classify<E: Executor + ?Sized>(
     })
 }
 
-/// The store as workers should open it: an absolute path (or the URL as given).
-pub fn store_path_string(p: &Path) -> String {
-    let s = p.to_string_lossy();
-    if s.contains("://") {
-        return s.into_owned();
-    }
-    p.canonicalize()
-        .unwrap_or_else(|_| p.to_path_buf())
-        .display()
-        .to_string()
-}
+/// The store as workers should open it (see [`neuvolex_bricks::location::shared_path_string`]).
+pub use neuvolex_bricks::location::shared_path_string as store_path_string;
 
 /// Reads every label brick into one volume (x fastest).
 fn assemble_labels(store: &BrickStore, va: &VectorArray) -> Result<Vec<u16>, ClassifyError> {

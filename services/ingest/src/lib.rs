@@ -244,16 +244,7 @@ pub fn ingest_on<E: Executor + ?Sized>(
     }
     let first_raw = first_raw_value(&src.read_slab(0, 1)?);
     drop(src);
-    let shared = |p: &Path| -> String {
-        let s = p.to_string_lossy();
-        if s.contains("://") {
-            return s.into_owned();
-        }
-        p.canonicalize()
-            .unwrap_or_else(|_| p.to_path_buf())
-            .display()
-            .to_string()
-    };
+    let shared = neuvolex_bricks::location::shared_path_string;
     let target = IngestTarget::begin(out, opts)?;
     let res = (|| {
         let writer = SlabWriter::create(target.backend(), &meta, opts)?;
