@@ -10,7 +10,7 @@ use neuvolex_bricks::Brick;
 use neuvolex_classify::cache::SessionFeatures;
 use neuvolex_classify::components::{apply_in_memory, PriorConfig};
 use neuvolex_classify::shard::{fit, predict_brick, training_set_with, TrainingSet};
-use neuvolex_classify::suggest::{uncertainty, SliceMass};
+use neuvolex_classify::suggest::SliceMass;
 use neuvolex_classify::{BrickFeatures, ClassifyConfig, Forest, Quantise, Scribbles, F1};
 use rayon::prelude::*;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -137,7 +137,7 @@ pub fn predict(
                 && !store.is_occupied(b, None)
                 && !ts.roi_bricks.contains(&b.index);
             let r = if skip {
-                (*b, None, SliceMass::zeros(dims))
+                (*b, None, SliceMass::zeros(dims, nc))
             } else {
                 let x = f.brick(b)?;
                 let (p, lab) = predict_brick(forest, &x, &out_labels, cfg.tau)?;
@@ -153,8 +153,7 @@ pub fn predict(
                         k.map_or(0.0, |k| r[k])
                     })
                     .collect();
-                let u = uncertainty(&p, nc);
-                let m = SliceMass::of_brick(dims, b.origin, b.size, &u);
+                let m = SliceMass::of_brick(dims, b.origin, b.size, &p, nc);
                 (*b, Some((lab, conf)), m)
             };
             events(EvalEvent::Bricks {
@@ -166,7 +165,7 @@ pub fn predict(
     let n: usize = dims.iter().product();
     let mut labels = vec![0u16; n];
     let mut confidence = vec![1.0f32; n];
-    let mut slices = SliceMass::zeros(dims);
+    let mut slices = SliceMass::zeros(dims, nc);
     let mut voxels_predicted = 0;
     for (b, r, m) in parts {
         slices.merge(&m);

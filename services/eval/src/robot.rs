@@ -11,8 +11,9 @@
 //!
 //! - [`Placement::Largest`]: the axial slice where the largest 6-connected region of wrong
 //!   voxels of one true class (missed or wrongly claimed) has the most voxels;
-//! - [`Placement::Suggested`]: the slice the product suggests (the largest uncertainty mass,
-//!   [`neuvolex_classify::suggest`]);
+//! - [`Placement::Suggested`]: the slice the product suggests ([`neuvolex_classify::suggest`]:
+//!   the doubtful share of each class's extent, damped near the axial slices already
+//!   scribbled);
 //! - [`Placement::Random`]: a random slice that shows a class.
 //!
 //! A stroke is straight, through the deepest pixel of the region's cross-section, along the
@@ -375,6 +376,7 @@ pub fn next_strokes(
     brick: usize,
     placement: Placement,
     slices: &SliceMass,
+    visited: &[usize],
     fg_slices: &[usize],
     rng: &mut Rng,
     background: u32,
@@ -390,12 +392,11 @@ pub fn next_strokes(
             Some((_, z, _)) => vec![z],
             None => Vec::new(),
         },
-        Placement::Suggested => {
-            let m = &slices.axes[2];
-            let mut order: Vec<usize> = (0..dims[2]).collect();
-            order.sort_by(|&a, &b| m[b].total_cmp(&m[a]).then(a.cmp(&b)));
-            order
-        }
+        Placement::Suggested => slices
+            .ranked(2, visited)
+            .into_iter()
+            .map(|(z, _)| z)
+            .collect(),
         Placement::Random => {
             let mut order = fg_slices.to_vec();
             rng.shuffle(&mut order);
@@ -487,6 +488,11 @@ pub fn run(cfg: &EvalConfig, rc: &RobotConfig, events: Events) -> Result<Vec<Rou
                                     }
                                 };
                                 let seconds = t0.elapsed().as_secs_f64();
+                                let visited: Vec<usize> = strokes
+                                    .iter()
+                                    .filter(|s| s.axis == Axis::Z)
+                                    .map(|s| s.slice)
+                                    .collect();
                                 let (f1, mean_f1) = score(&labels, &ds.truth, &ds.classes);
                                 let row = RoundRow {
                                     dataset: ds.spec.name.clone(),
@@ -499,7 +505,7 @@ pub fn run(cfg: &EvalConfig, rc: &RobotConfig, events: Events) -> Result<Vec<Rou
                                     f1,
                                     mean_f1,
                                     scribbled: scr.voxels.len(),
-                                    suggested_slice: p.slices.suggest(2).map(|s| s.slice),
+                                    suggested_slice: p.slices.suggest(2, &visited).map(|s| s.slice),
                                     seconds,
                                     seconds_fit: t.seconds_fit,
                                     seconds_predict: p.seconds,
@@ -516,6 +522,7 @@ pub fn run(cfg: &EvalConfig, rc: &RobotConfig, events: Events) -> Result<Vec<Rou
                                     brick,
                                     placement,
                                     &p.slices,
+                                    &visited,
                                     &fg,
                                     &mut rng,
                                     cfg.classify.background,
@@ -685,7 +692,7 @@ mod tests {
             assert_eq!((l, z), (2, 7), "brick {bs}");
             assert_eq!(mask.iter().filter(|&&m| m).count(), 4 * 10);
         }
-        let slices = SliceMass::zeros(d);
+        let slices = SliceMass::zeros(d, 2);
         let mut rng = Rng::new(1);
         let s = next_strokes(
             &truth,
@@ -694,6 +701,7 @@ mod tests {
             8,
             Placement::Largest,
             &slices,
+            &[],
             &[],
             &mut rng,
             255,
@@ -714,6 +722,7 @@ mod tests {
             8,
             Placement::Largest,
             &slices,
+            &[],
             &[],
             &mut rng,
             255,

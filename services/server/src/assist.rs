@@ -8,7 +8,7 @@ use crate::error::{ApiError, ApiResult};
 use crate::session::{Probs, Session, BACKGROUND};
 use neuvolex_bricks::BrickStore;
 use neuvolex_classify::components::{label_brick, Partial, PriorConfig};
-use neuvolex_classify::suggest::{uncertainty_u8, SliceMass};
+use neuvolex_classify::suggest::SliceMass;
 use rayon::prelude::*;
 use serde::Serialize;
 use std::collections::{BTreeMap, HashMap};
@@ -193,8 +193,9 @@ pub fn active_prior(s: &Session, probs: &Probs) -> Option<PriorState> {
         .cloned()
 }
 
-/// The slices to scribble next: for each axis, the slice with the largest uncertainty mass
-/// over the bricks classified so far.
+/// The slices to scribble next: for each axis, the slice with the best score
+/// (`neuvolex_classify::suggest`: the doubtful share of each class's extent, damped near the
+/// slices already scribbled) over the bricks classified so far.
 pub fn suggest(s: &Session) -> ApiResult<serde_json::Value> {
     let probs = s.probs.read().unwrap_or_else(|p| p.into_inner());
     if probs.ids.is_empty() || probs.bricks.is_empty() {
@@ -209,27 +210,29 @@ pub fn suggest(s: &Session) -> ApiResult<serde_json::Value> {
         .par_iter()
         .map(|(idx, v)| -> ApiResult<SliceMass> {
             let b = s.store.brick(*idx)?;
-            Ok(SliceMass::of_brick(
-                dims,
-                b.origin,
-                b.size,
-                &uncertainty_u8(v, c),
-            ))
+            Ok(SliceMass::of_brick_u8(dims, b.origin, b.size, v, c))
         })
         .try_reduce(
-            || SliceMass::zeros(dims),
+            || SliceMass::zeros(dims, c),
             |mut a, b| {
                 a.merge(&b);
                 Ok(a)
             },
         )?;
     let total = s.store.bricks().count();
-    let per_axis: Vec<_> = (0..3).filter_map(|a| mass.suggest(a)).collect();
+    // The slices the user already visited, per axis: their neighbourhoods are damped.
+    let mut visited: [Vec<usize>; 3] = Default::default();
+    for st in s.strokes.read().unwrap_or_else(|p| p.into_inner()).iter() {
+        visited[st.axis as usize].push(st.slice);
+    }
+    let per_axis: Vec<_> = (0..3)
+        .filter_map(|a| mass.suggest(a, &visited[a]))
+        .collect();
     Ok(serde_json::json!({
         "generation": probs.generation,
         "bricks": probs.bricks.len(),
         "total_bricks": total,
-        "axial": mass.suggest(2),
+        "axial": mass.suggest(2, &visited[2]),
         "suggestions": per_axis,
     }))
 }
