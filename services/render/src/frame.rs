@@ -264,7 +264,7 @@ impl<S: BrickSource> Renderer<S> {
                     continue;
                 }
                 stats.marched += 1;
-                let cells = frame.cell_visibility(&b);
+                let cells = frame.cell_map(&b);
                 batch.push((*r, b, cells));
             }
             // One parallel pass over the rows the batch covers: each row marches the bricks

@@ -30,7 +30,7 @@ pub mod tf;
 pub use camera::{Camera, Projection};
 pub use frame::{Pass, RenderStats, Renderer};
 pub use image::Image;
-pub use march::{Mode, RenderParams, Shading};
+pub use march::{CellMap, Mode, RenderParams, Shading, COARSE};
 pub use source::{BrickSource, MemSource, ProbSource, RenderBrick, StoreSource, VolumeGeom};
 pub use tf::{Luts, Tf1d, TfFile};
 
