@@ -43,6 +43,24 @@ pub struct Suggestion {
     pub share: f64,
 }
 
+/// A class probability as stored: f32 in 0..1, or u8 with 255 = 1.
+pub trait Probability: Copy {
+    /// The probability as f64 in 0..1.
+    fn value(self) -> f64;
+}
+
+impl Probability for f32 {
+    fn value(self) -> f64 {
+        self as f64
+    }
+}
+
+impl Probability for u8 {
+    fn value(self) -> f64 {
+        self as f64 / 255.0
+    }
+}
+
 /// `1 - max p` of each row of `c` class probabilities.
 pub fn uncertainty(proba: &[f32], c: usize) -> Vec<f32> {
     proba
@@ -75,49 +93,23 @@ impl SliceMass {
     }
 
     /// The mass of one brick at `origin` with `size` voxels in a volume of `dims`, from its
-    /// `classes` probabilities per voxel (x fastest).
-    pub fn of_brick(
+    /// `classes` probabilities per voxel (x fastest; f32, or u8 with 255 = 1).
+    pub fn of_brick<T: Probability>(
         dims: [usize; 3],
         origin: [usize; 3],
         size: [usize; 3],
-        proba: &[f32],
+        proba: &[T],
         classes: usize,
     ) -> Self {
-        Self::of_rows(
-            dims,
-            origin,
-            size,
-            classes,
-            proba.chunks(classes.max(1)),
-            |v| v as f64,
-        )
+        Self::of_rows(dims, origin, size, classes, proba.chunks(classes.max(1)))
     }
 
-    /// [`Self::of_brick`] from probabilities quantised to u8 (255 = 1).
-    pub fn of_brick_u8(
-        dims: [usize; 3],
-        origin: [usize; 3],
-        size: [usize; 3],
-        proba: &[u8],
-        classes: usize,
-    ) -> Self {
-        Self::of_rows(
-            dims,
-            origin,
-            size,
-            classes,
-            proba.chunks(classes.max(1)),
-            |v| v as f64 / 255.0,
-        )
-    }
-
-    fn of_rows<'a, T: Copy + 'a>(
+    fn of_rows<'a, T: Probability + 'a>(
         dims: [usize; 3],
         origin: [usize; 3],
         size: [usize; 3],
         c: usize,
         mut rows: impl Iterator<Item = &'a [T]>,
-        to_p: impl Fn(T) -> f64,
     ) -> Self {
         let mut m = SliceMass::zeros(dims, c);
         let mut p = vec![0.0f64; c];
@@ -131,7 +123,7 @@ impl SliceMass {
                     let Some(r) = rows.next() else { return m };
                     let mut max = 0.0f64;
                     for (pk, &v) in p.iter_mut().zip(r) {
-                        *pk = to_p(v);
+                        *pk = v.value();
                         max = max.max(*pk);
                     }
                     let u = 1.0 - max;
@@ -260,7 +252,7 @@ mod tests {
         assert_eq!(whole.suggest(0, &[]).unwrap().slice, 2);
         // Quantised probabilities give the same answer.
         let u8s: Vec<u8> = p.iter().map(|v| (v * 255.0).round() as u8).collect();
-        let q = SliceMass::of_brick_u8(dims, [0; 3], dims, &u8s, 2);
+        let q = SliceMass::of_brick(dims, [0; 3], dims, &u8s, 2);
         assert_eq!(q.suggest(2, &[]).unwrap().slice, 4);
         assert!(uncertainty(&p, 2)
             .iter()

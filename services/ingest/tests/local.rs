@@ -1,7 +1,7 @@
 //! The ingest stage on the in-process executor writes the same store, byte for byte, as the
 //! sequential ingest, whatever the number of slabs a task; a failed task publishes nothing.
 
-use neuvolex_bricks::{ingest, IngestOptions, StoreLocation};
+use neuvolex_bricks::{ingest, IngestOptions, MemVolume, StoreLocation};
 use neuvolex_tasks::LocalExecutor;
 use std::path::{Path, PathBuf};
 
@@ -108,4 +108,49 @@ fn a_failing_task_publishes_nothing() {
         .filter(|n| n.contains("out.zarr"))
         .collect();
     assert!(left.is_empty(), "{left:?}");
+}
+
+#[test]
+fn sharded_stores_of_the_same_volume_are_byte_identical() {
+    // Many inner chunks of different sizes per shard: zarrs' concurrent shard encoder would lay
+    // them out in the order they finish (seen as a flaky cluster ingest test), so the store
+    // writes shard by shard with the inner chunks in order.
+    let dims = [64, 48, 40];
+    let v: Vec<f32> = (0..dims.iter().product::<usize>())
+        .map(|i| {
+            if (i / 300) % 3 == 0 {
+                0.0
+            } else {
+                ((i as f32) * 0.37).sin() * 1e3
+            }
+        })
+        .collect();
+    let dir = tempfile::tempdir().unwrap();
+    let opts = IngestOptions {
+        brick: 8,
+        shard: Some(4),
+        ..IngestOptions::default()
+    };
+    let mut first = None;
+    for i in 0..12 {
+        let out = dir.path().join(format!("s{i}.zarr"));
+        ingest(
+            &mut MemVolume::from_f32(dims, &v),
+            out.clone(),
+            &opts,
+            &mut |_| {},
+        )
+        .unwrap();
+        let f = tree(&out);
+        match &first {
+            None => first = Some(f),
+            Some(a) => {
+                assert_eq!(a.len(), f.len());
+                for ((pa, ba), (pb, bb)) in a.iter().zip(&f) {
+                    assert_eq!(pa, pb);
+                    assert!(ba == bb, "run {i}: {} differs", pa.display());
+                }
+            }
+        }
+    }
 }

@@ -210,7 +210,7 @@ pub fn suggest(s: &Session) -> ApiResult<serde_json::Value> {
         .par_iter()
         .map(|(idx, v)| -> ApiResult<SliceMass> {
             let b = s.store.brick(*idx)?;
-            Ok(SliceMass::of_brick_u8(dims, b.origin, b.size, v, c))
+            Ok(SliceMass::of_brick(dims, b.origin, b.size, v, c))
         })
         .try_reduce(
             || SliceMass::zeros(dims, c),
