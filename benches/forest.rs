@@ -54,34 +54,17 @@ fn median_range(t: &mut [f64]) -> (f64, String) {
     )
 }
 
-fn main() {
-    let args: Vec<String> = std::env::args().collect();
-    let trees: usize = args
-        .iter()
-        .position(|a| a == "--trees")
-        .and_then(|i| args.get(i + 1))
-        .and_then(|s| s.parse().ok())
-        .unwrap_or(1000);
-    let repeat: usize = args
-        .iter()
-        .position(|a| a == "--repeat")
-        .and_then(|i| args.get(i + 1))
-        .and_then(|s| s.parse().ok())
-        .unwrap_or(1)
-        .max(1);
-    println!("machine: {}, {trees} trees", machine());
-    let (Some(ct), Some(lab)) = (
-        shared("abdomen_ct/ct.nii.gz"),
-        shared("abdomen_ct/labels.nii.gz"),
-    ) else {
-        return;
-    };
-    let dir = tempfile::tempdir().expect("tmp");
-    let sp = dir.path().join("ct.zarr");
-    let mut src = open_volume(&ct, None).expect("ct");
+/// Training and test rows: `(d, classes, x_train, y_train, x_test, y_test)`.
+type Inputs = (usize, usize, Vec<f32>, Vec<u16>, Vec<f32>, Vec<u16>);
+
+/// The bench's inputs from the abdomen CT: ingest into `work`, one INR epoch, 64-D hidden
+/// features of every voxel, 20 000 seeded training rows and 1 000 000 test rows.
+fn make_inputs(ct: &std::path::Path, lab: &std::path::Path, work: &std::path::Path) -> Inputs {
+    let sp = work.join("ct.zarr");
+    let mut src = open_volume(ct, None).expect("ct");
     ingest(src.as_mut(), &sp, &IngestOptions::default(), &mut |_| {}).expect("ingest");
     let mut store = BrickStore::open(&sp).expect("store");
-    let mut l = open_volume(&lab, None).expect("labels");
+    let mut l = open_volume(lab, None).expect("labels");
     store
         .add_labels("gt", l.as_mut(), &[], &mut |_| {})
         .expect("labels");
@@ -115,6 +98,108 @@ fn main() {
     };
     let (xtr, ytr) = gather(&order[..ntr]);
     let (xte, yte) = gather(&order[ntr..ntr + nte]);
+    (d, classes, xtr, ytr, xte, yte)
+}
+
+/// Writes the inputs as raw little-endian arrays and `meta.json` (what `forest_sklearn.py`
+/// reads).
+fn save_inputs(dir: &std::path::Path, (d, classes, xtr, ytr, xte, yte): &Inputs) {
+    std::fs::create_dir_all(dir).expect("inputs folder");
+    let w = |name: &str, bytes: Vec<u8>| std::fs::write(dir.join(name), bytes).expect("write");
+    w(
+        "xtr.f32",
+        xtr.iter().flat_map(|v| v.to_le_bytes()).collect(),
+    );
+    w(
+        "ytr.u16",
+        ytr.iter().flat_map(|v| v.to_le_bytes()).collect(),
+    );
+    w(
+        "xte.f32",
+        xte.iter().flat_map(|v| v.to_le_bytes()).collect(),
+    );
+    w(
+        "yte.u16",
+        yte.iter().flat_map(|v| v.to_le_bytes()).collect(),
+    );
+    w(
+        "meta.json",
+        format!("{{\"d\": {d}, \"classes\": {classes}}}").into_bytes(),
+    );
+}
+
+/// The inputs saved by [`save_inputs`] in `dir`, or `None` where any file is missing or
+/// malformed.
+fn load_inputs(dir: &std::path::Path) -> Option<Inputs> {
+    let meta: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dir.join("meta.json")).ok()?).ok()?;
+    let (d, classes) = (
+        meta["d"].as_u64()? as usize,
+        meta["classes"].as_u64()? as usize,
+    );
+    let f32s = |name: &str| -> Option<Vec<f32>> {
+        let b = std::fs::read(dir.join(name)).ok()?;
+        (b.len() % (4 * d) == 0).then(|| {
+            b.chunks_exact(4)
+                .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+                .collect()
+        })
+    };
+    let u16s = |name: &str| -> Option<Vec<u16>> {
+        let b = std::fs::read(dir.join(name)).ok()?;
+        Some(
+            b.chunks_exact(2)
+                .map(|c| u16::from_le_bytes([c[0], c[1]]))
+                .collect(),
+        )
+    };
+    let (xtr, ytr, xte, yte) = (
+        f32s("xtr.f32")?,
+        u16s("ytr.u16")?,
+        f32s("xte.f32")?,
+        u16s("yte.u16")?,
+    );
+    (xtr.len() == ytr.len() * d && xte.len() == yte.len() * d)
+        .then_some((d, classes, xtr, ytr, xte, yte))
+}
+
+fn main() {
+    let args: Vec<String> = std::env::args().collect();
+    let trees: usize = args
+        .iter()
+        .position(|a| a == "--trees")
+        .and_then(|i| args.get(i + 1))
+        .and_then(|s| s.parse().ok())
+        .unwrap_or(1000);
+    let repeat: usize = args
+        .iter()
+        .position(|a| a == "--repeat")
+        .and_then(|i| args.get(i + 1))
+        .and_then(|s| s.parse().ok())
+        .unwrap_or(1)
+        .max(1);
+    println!("machine: {}, {trees} trees", machine());
+    let (Some(ct), Some(lab)) = (
+        shared("abdomen_ct/ct.nii.gz"),
+        shared("abdomen_ct/labels.nii.gz"),
+    ) else {
+        return;
+    };
+    let dir = tempfile::tempdir().expect("tmp");
+    // `NEUVOLEX_FOREST_INPUTS=DIR`: reuse the inputs saved there by an earlier run (so walks
+    // built from different commits are compared on identical rows), or save them there.
+    let saved = std::env::var_os("NEUVOLEX_FOREST_INPUTS").map(std::path::PathBuf::from);
+    let (d, classes, xtr, ytr, xte, yte) = match saved.as_deref().and_then(load_inputs) {
+        Some(inputs) => inputs,
+        None => {
+            let inputs = make_inputs(&ct, &lab, dir.path());
+            if let Some(s) = &saved {
+                save_inputs(s, &inputs);
+            }
+            inputs
+        }
+    };
+    let nte = yte.len();
     let cfg = ForestConfig {
         trees,
         ..ForestConfig::default()
@@ -142,6 +227,13 @@ fn main() {
         depths[0],
         depths[depths.len() - 1]
     );
+    // A digest of the whole forest (FNV-1a of its JSON), so runs of different commits can show
+    // that they grew the same trees.
+    let json = serde_json::to_vec(&f).expect("forest as JSON");
+    let digest = json.iter().fold(0xcbf2_9ce4_8422_2325u64, |h, &b| {
+        (h ^ b as u64).wrapping_mul(0x100_0000_01b3)
+    });
+    println!("forest digest: {digest:016x}");
     let mut times = Vec::new();
     let mut pred = Vec::new();
     for _ in 0..repeat {
@@ -160,27 +252,7 @@ fn main() {
     let (f1, per) = f1_mean(&pred, &yte, classes);
     println!("| neuvolex forest | fit {fit:.1} s | predict {nte} rows {predict:.2} s [{range}] ({:.0} k rows/s) | mean F1 {f1:.3} {per:.3?} | {} nodes |", nte as f64 / predict / 1e3, f.nodes());
     // scikit-learn on the same arrays.
-    let w = |name: &str, bytes: &[u8]| std::fs::write(dir.path().join(name), bytes).expect("write");
-    w(
-        "xtr.f32",
-        &xtr.iter().flat_map(|v| v.to_le_bytes()).collect::<Vec<_>>(),
-    );
-    w(
-        "ytr.u16",
-        &ytr.iter().flat_map(|v| v.to_le_bytes()).collect::<Vec<_>>(),
-    );
-    w(
-        "xte.f32",
-        &xte.iter().flat_map(|v| v.to_le_bytes()).collect::<Vec<_>>(),
-    );
-    w(
-        "yte.u16",
-        &yte.iter().flat_map(|v| v.to_le_bytes()).collect::<Vec<_>>(),
-    );
-    w(
-        "meta.json",
-        format!("{{\"d\": {d}, \"classes\": {classes}}}").as_bytes(),
-    );
+    save_inputs(dir.path(), &(d, classes, xtr, ytr, xte, yte));
     let py = std::env::var("NEUVOLEX_SKLEARN_PYTHON").unwrap_or_else(|_| "python3".into());
     let script = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("forest_sklearn.py");
     let threads = std::thread::available_parallelism()

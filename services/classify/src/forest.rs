@@ -143,11 +143,66 @@ impl PartialEq for PackedCell {
     }
 }
 
+/// Sorts `v` by the upper 32 bits of each item, keeping the input order of equal keys: a
+/// least-significant-digit radix sort in bytes (digits shared by every key are skipped), or an
+/// stable comparison sort for short slices. `tmp` is scratch.
+fn sort_by_key(v: &mut Vec<u64>, tmp: &mut Vec<u64>) {
+    if v.len() < 128 {
+        v.sort_by_key(|x| x >> 32);
+        return;
+    }
+    let mut hist = [[0usize; 256]; 4];
+    for &x in v.iter() {
+        for (b, h) in hist.iter_mut().enumerate() {
+            h[(x >> (32 + 8 * b)) as usize & 255] += 1;
+        }
+    }
+    tmp.clear();
+    tmp.resize(v.len(), 0);
+    for (b, h) in hist.iter().enumerate() {
+        if h.contains(&v.len()) {
+            continue; // every key has this byte
+        }
+        let mut at = [0usize; 256];
+        let mut sum = 0;
+        for (a, &c) in at.iter_mut().zip(h) {
+            *a = sum;
+            sum += c;
+        }
+        for &x in v.iter() {
+            let k = (x >> (32 + 8 * b)) as usize & 255;
+            tmp[at[k]] = x;
+            at[k] += 1;
+        }
+        std::mem::swap(v, tmp);
+    }
+}
+
+/// `v`'s bits as an unsigned integer in the order of [`f32::total_cmp`].
+#[inline(always)]
+fn order_key(v: f32) -> u32 {
+    let b = v.to_bits();
+    if b >> 31 == 1 {
+        !b
+    } else {
+        b | 1 << 31
+    }
+}
+
+/// The value whose [`order_key`] is `k`.
+#[inline(always)]
+fn from_order_key(k: u32) -> f32 {
+    f32::from_bits(if k >> 31 == 1 { k & !(1 << 31) } else { !k })
+}
+
 /// Values closer than this count as equal when looking for split points (as scikit-learn).
 const FEATURE_EPS: f32 = 1e-7;
 
 struct Builder<'a> {
     data: Dataset<'a>,
+    /// The features column by column (`d x n`): a node's values of one feature are read from
+    /// one column that stays cached, not from `n` rows far apart.
+    cols: Vec<f32>,
     w: &'a [f32],
     cfg: &'a ForestConfig,
     mtry: usize,
@@ -167,26 +222,37 @@ impl Builder<'_> {
         idx: &[u32],
         f: usize,
         total: &[f64],
-        buf: &mut Vec<(f32, u32)>,
+        buf: &mut Vec<u64>,
+        tmp: &mut Vec<u64>,
         left: &mut [f64],
     ) -> Option<(f64, f32)> {
-        let d = self.data.d;
+        let col = &self.cols[f * self.data.y.len()..][..self.data.y.len()];
+        // Each sample as one integer, its value's order key above its index, so the sort
+        // compares plain integers (the order of `f32::total_cmp`; ties, which no split point
+        // separates, fall in index order).
+        // The extremes come first, so a feature constant here (a dead unit) costs no sort.
         buf.clear();
-        buf.extend(idx.iter().map(|&i| (self.data.x[i as usize * d + f], i)));
-        buf.sort_unstable_by(|a, b| a.0.total_cmp(&b.0));
-        if buf[buf.len() - 1].0 <= buf[0].0 + FEATURE_EPS {
+        let (mut lo, mut hi) = (u32::MAX, 0u32);
+        buf.extend(idx.iter().map(|&i| {
+            let k = order_key(col[i as usize]);
+            (lo, hi) = (lo.min(k), hi.max(k));
+            ((k as u64) << 32) | i as u64
+        }));
+        if from_order_key(hi) <= from_order_key(lo) + FEATURE_EPS {
             return None; // constant here
         }
+        sort_by_key(buf, tmp);
+        let at = |p: usize| (from_order_key((buf[p] >> 32) as u32), buf[p] as u32);
         left.iter_mut().for_each(|c| *c = 0.0);
         let wt: f64 = total.iter().sum();
         let mut wl = 0.0f64;
         let mut best: Option<(f64, f32)> = None;
         for p in 0..buf.len() - 1 {
-            let (v, i) = buf[p];
+            let (v, i) = at(p);
             let wi = self.w[i as usize] as f64;
             left[self.data.y[i as usize] as usize] += wi;
             wl += wi;
-            let next = buf[p + 1].0;
+            let next = at(p + 1).0;
             if next <= v + FEATURE_EPS {
                 continue;
             }
@@ -223,6 +289,7 @@ impl Builder<'_> {
         let mut nodes: Vec<Node> = Vec::new();
         let mut probs: Vec<f32> = Vec::new();
         let mut buf = Vec::with_capacity(n);
+        let mut tmp = Vec::with_capacity(n);
         let mut total = vec![0.0f64; c];
         let mut left = vec![0.0f64; c];
         let mut feats: Vec<usize> = (0..d).collect();
@@ -256,7 +323,9 @@ impl Builder<'_> {
                     feats.swap(k, j);
                     let f = feats[k];
                     k += 1;
-                    if let Some((proxy, thr)) = self.best_on(part, f, &total, &mut buf, &mut left) {
+                    if let Some((proxy, thr)) =
+                        self.best_on(part, f, &total, &mut buf, &mut tmp, &mut left)
+                    {
                         tried += 1;
                         if split.is_none_or(|s| proxy > s.0) {
                             split = Some((proxy, f, thr));
@@ -270,7 +339,7 @@ impl Builder<'_> {
                     let part = &mut idx[lo..hi];
                     let mut m = 0;
                     for q in 0..part.len() {
-                        if self.data.x[part[q] as usize * d + f] <= thr {
+                        if self.cols[f * n + part[q] as usize] <= thr {
                             part.swap(m, q);
                             m += 1;
                         }
@@ -406,8 +475,16 @@ impl Forest {
             MaxFeatures::All => data.d,
             MaxFeatures::Count(k) => k.clamp(1, data.d),
         };
+        let n = data.y.len();
+        let mut cols = vec![0.0f32; data.x.len()];
+        for (i, row) in data.x.chunks_exact(data.d).enumerate() {
+            for (f, &v) in row.iter().enumerate() {
+                cols[f * n + i] = v;
+            }
+        }
         let b = Builder {
             data,
+            cols,
             w: &w,
             cfg,
             mtry,
@@ -466,7 +543,6 @@ impl Forest {
                             .collect(),
                         leaf_of: &t.leaf_of,
                         probs: &t.probs,
-                        depth: t.depth,
                     })
                     .collect();
                 Packed::new(self.d, self.classes, &views, LEAF)
@@ -586,6 +662,58 @@ impl Forest {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn radix_sort_equals_a_stable_sort_by_key() {
+        let mut rng = Rng(7);
+        let mut tmp = Vec::new();
+        for (n, spread) in [
+            (0, 1),
+            (5, 3),
+            (127, 1000),
+            (128, 2),
+            (3000, 1 << 30),
+            (5000, 300),
+        ] {
+            // Keys in a narrow range (shared high bytes) and wide ones; many ties.
+            let v: Vec<u64> = (0..n as u64)
+                .map(|i| {
+                    ((order_key(rng.below(spread) as f32 - 7.5) as u64) << 32) | (i * 7919 % 65_536)
+                })
+                .collect();
+            let mut want = v.clone();
+            want.sort_by_key(|x| x >> 32);
+            let mut got = v;
+            sort_by_key(&mut got, &mut tmp);
+            assert_eq!(got, want, "{n} items");
+        }
+    }
+
+    #[test]
+    fn order_keys_sort_as_total_cmp_and_invert() {
+        let mut v = vec![
+            f32::NEG_INFINITY,
+            -3.5,
+            -1e-40,
+            -0.0,
+            0.0,
+            1e-40,
+            1e-7,
+            2.0,
+            f32::MAX,
+            f32::INFINITY,
+            f32::NAN,
+            -f32::NAN,
+        ];
+        for &x in &v {
+            assert_eq!(from_order_key(order_key(x)).to_bits(), x.to_bits());
+        }
+        let mut by_key = v.clone();
+        by_key.sort_by_key(|&x| order_key(x));
+        v.sort_by(f32::total_cmp);
+        let bits = |s: &[f32]| s.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+        assert_eq!(bits(&by_key), bits(&v));
+    }
 
     fn cfg(trees: usize) -> ForestConfig {
         ForestConfig {
@@ -809,6 +937,26 @@ mod tests {
         let got = f.predict_proba(&probe).unwrap();
         let bits = |v: &[f32]| v.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
         assert_eq!(bits(&got), bits(&want));
+        // Several blocks of rows with a partial last one, and fewer rows than lanes.
+        let many: Vec<f32> = x.iter().chain(&x).chain(&x).copied().collect();
+        for rows in [1, 3, 7, 9, 4096, 4097, 3 * n] {
+            let part = &many[..rows * d];
+            let mut want = vec![0.0f32; rows * c];
+            f.predict_f32(part, &mut want, 1.0 / 25.0);
+            assert_eq!(
+                bits(&f.predict_proba(part).unwrap()),
+                bits(&want),
+                "{rows} rows"
+            );
+        }
+        // A forest that is not well formed (as from a damaged file) is never walked unchecked.
+        let mut bad = f.truncated(3);
+        bad.trees[1].nodes[0].feature = d as u32;
+        assert!(bad.packed().is_none());
+        let mut bad = f.truncated(3);
+        let last = bad.trees[2].nodes.len() as u32 - 1;
+        bad.trees[2].nodes[0].left = last;
+        assert!(bad.packed().is_none());
     }
 
     #[test]
