@@ -3,7 +3,7 @@
 //! pixels that changed bricks affect.
 
 use crate::image::Image;
-use crate::march::{Accum, Frame, RenderParams};
+use crate::march::{Accum, CellMap, Frame, RenderParams};
 use crate::source::{BrickSource, RenderBrick, APRON};
 use crate::tf::Luts;
 use crate::Result;
@@ -251,20 +251,25 @@ impl<S: BrickSource> Renderer<S> {
                     break;
                 }
             }
-            let loaded: Vec<Result<Arc<RenderBrick>>> = queue
+            // Loaded in parallel, each with its cells' visibility when it is visible at all.
+            type Loaded = Result<(Arc<RenderBrick>, Option<CellMap>)>;
+            let loaded: Vec<Loaded> = queue
                 .par_iter()
-                .map(|(i, _)| self.load(*i, probs, shaded))
+                .map(|(i, _)| {
+                    let b = self.load(*i, probs, shaded)?;
+                    let cells = frame.visible(&b).then(|| frame.cell_map(&b));
+                    Ok((b, cells))
+                })
                 .collect();
             // The batch's visible bricks, front to back, with their footprints and cells.
             let mut batch = Vec::with_capacity(queue.len());
             for ((_, r), b) in queue.iter().zip(loaded) {
-                let b = b?;
-                if !frame.visible(&b) {
+                let (b, cells) = b?;
+                let Some(cells) = cells else {
                     stats.skipped_empty += 1;
                     continue;
-                }
+                };
                 stats.marched += 1;
-                let cells = frame.cell_map(&b);
                 batch.push((*r, b, cells));
             }
             // One parallel pass over the rows the batch covers: each row marches the bricks

@@ -23,6 +23,7 @@ pub mod frame;
 #[cfg(feature = "gpu")]
 pub mod gpu;
 pub mod image;
+mod kernel;
 pub mod march;
 pub mod source;
 pub mod tf;

@@ -6,8 +6,11 @@
 //! visited; a brick takes the samples inside its box (half-open), so each sample is taken once.
 
 use crate::camera::{dot, Camera, View};
+use crate::kernel::{floor_index, Kernels, Scalar, Steps, Trilinear};
+#[cfg(target_arch = "x86_64")]
+use crate::kernel::{has_avx2, Avx2};
 use crate::source::{RenderBrick, VolumeGeom, APRON, CELL};
-use crate::tf::{Lut, Luts};
+use crate::tf::{Lut, Luts, Visibility};
 use crate::{RenderError, Result};
 use serde::{Deserialize, Serialize};
 use std::sync::OnceLock;
@@ -222,6 +225,31 @@ pub struct Frame<'a> {
     half_inv_spacing: [f32; 3],
     /// Each image row's rays, resolved on first use.
     rays: Vec<OnceLock<Box<[Ray]>>>,
+    /// Which table ranges hold a visible entry (empty-space skipping).
+    visible: Visible,
+}
+
+/// The [`Visibility`] of every table a frame reads.
+struct Visible {
+    intensity: Visibility,
+    /// Per probability channel: its probability table's and its intensity table's.
+    classes: Vec<Option<(Visibility, Visibility)>>,
+}
+
+impl Visible {
+    fn new(luts: &Luts) -> Self {
+        Visible {
+            intensity: luts.intensity.visibility(),
+            classes: luts
+                .classes
+                .iter()
+                .map(|c| {
+                    c.as_ref()
+                        .map(|c| (c.probability.visibility(), c.intensity.visibility()))
+                })
+                .collect(),
+        }
+    }
 }
 
 /// A pixel's ray in voxel coordinates: origin, direction, its reciprocal, the `[t0, tend)` it
@@ -349,43 +377,8 @@ fn lut_get(l: &Lut, x: f32) -> [f32; 4] {
     ]
 }
 
-/// The 8 voxels and weights of a trilinear sample at local continuous voxel coordinates.
-#[inline(always)]
-fn corners(p: [f32; 3], dims: [usize; 3]) -> ([usize; 8], [f32; 8]) {
-    let mut f = [0.0f32; 3];
-    let mut i = [0usize; 3];
-    for k in 0..3 {
-        // Non-negative after the clamp, so truncation is floor (and needs no libm call).
-        let x = p[k].max(0.0).min(dims[k] as f32 - 1.0001);
-        i[k] = floor_index(x);
-        f[k] = x - i[k] as f32;
-    }
-    let (sx, sy) = (1, dims[0]);
-    let sz = dims[0] * dims[1];
-    let b = i[2] * sz + i[1] * sy + i[0];
-    let idx = [
-        b,
-        b + sx,
-        b + sy,
-        b + sy + sx,
-        b + sz,
-        b + sz + sx,
-        b + sz + sy,
-        b + sz + sy + sx,
-    ];
-    let (gx, gy, gz) = (1.0 - f[0], 1.0 - f[1], 1.0 - f[2]);
-    let w = [
-        gx * gy * gz,
-        f[0] * gy * gz,
-        gx * f[1] * gz,
-        f[0] * f[1] * gz,
-        gx * gy * f[2],
-        f[0] * gy * f[2],
-        gx * f[1] * f[2],
-        f[0] * f[1] * f[2],
-    ];
-    (idx, w)
-}
+/// Samples of a ray computed together (the width of [`Kernels::run4`]).
+const RUN: usize = 4;
 
 /// Channels that [`probs_at`] interpolates together.
 const FAST_CH: usize = 16;
@@ -422,23 +415,13 @@ fn probs_n<const N: usize>(probs: &[u8], idx: &[usize; 8], w: &[f32; 8]) -> [f32
     let mut s = [0.0f32; FAST_CH];
     assert!(idx[7] * N + N <= probs.len(), "sample outside the brick");
     for c in 0..8 {
-        // SAFETY: corner c is at most idx[7] (see `corner_values`), in bounds as checked.
+        // SAFETY: corner c is at most idx[7] (`Trilinear::last`), in bounds as checked.
         let q = unsafe { &*(probs.as_ptr().add(idx[c] * N) as *const [u8; N]) };
         for n in 0..N {
             s[n] += q[n] as f32 * w[c];
         }
     }
     s
-}
-
-/// `x` truncated, for `x` from `max(0).min(hi)` with `hi` below 2^31 (so never NaN, negative
-/// or too large): a bare conversion without the saturating checks of `as`.
-#[inline(always)]
-fn floor_index(x: f32) -> usize {
-    debug_assert!((0.0..2147483648.0).contains(&x));
-    // SAFETY: x is finite and within i32 (every caller clamps it with max(0).min(hi), which
-    // also maps NaN to 0).
-    unsafe { x.to_int_unchecked::<i32>() as usize }
 }
 
 /// The smallest whole number at or above `x`, as an index (0 for negative or NaN `x`).
@@ -462,41 +445,6 @@ fn powi_inline(mut x: f32, mut n: u32) -> f32 {
         n >>= 1;
     }
     r
-}
-
-/// The 8 corner values of a sample (from [`corners`]), with one bounds check: the last corner
-/// is the largest index.
-#[inline(always)]
-fn corner_values<T: Copy>(v: &[T], idx: &[usize; 8]) -> [T; 8] {
-    assert!(idx[7] < v.len(), "sample outside the brick");
-    // SAFETY: every corner is `idx[0]` plus a subset of the three strides, so at most
-    // `idx[7]`, which is in bounds (checked above).
-    std::array::from_fn(|c| unsafe { *v.get_unchecked(idx[c]) })
-}
-
-/// Trilinear interpolation of a scalar field.
-#[inline(always)]
-fn interpolate(v: &[f32], idx: &[usize; 8], w: &[f32; 8]) -> f32 {
-    let q = corner_values(v, idx);
-    let mut s = 0.0;
-    for c in 0..8 {
-        s += q[c] * w[c];
-    }
-    s
-}
-
-/// Trilinear interpolation of 4-wide voxels (one SIMD lane each).
-#[inline(always)]
-fn interpolate4(g: &[[f32; 4]], idx: &[usize; 8], w: &[f32; 8]) -> [f32; 4] {
-    let g = corner_values(g, idx);
-    let mut acc = [0.0f32; 4];
-    for c in 0..8 {
-        let q = g[c];
-        for k in 0..4 {
-            acc[k] += q[k] * w[c];
-        }
-    }
-    acc
 }
 
 /// Trilinear probability of channel `n` (of `ch`) from the corners of a sample.
@@ -539,6 +487,7 @@ impl<'a> Frame<'a> {
             corrected,
             half_inv_spacing: inv_spacing.map(|v| 0.5 * v),
             rays: (0..params.height).map(|_| OnceLock::new()).collect(),
+            visible: Visible::new(luts),
         })
     }
 
@@ -642,14 +591,14 @@ impl<'a> Frame<'a> {
     /// False when no sample with normalised intensity in `range` can be visible (intensity and
     /// probability-intensity modes; the probabilistic mode always loads).
     pub fn coarse_visible(&self, range: (f32, f32)) -> bool {
+        let (l, v) = (self.luts, &self.visible);
         match self.params.mode {
-            Mode::Intensity => self.luts.intensity.max_alpha(range.0, range.1) > 0.0,
-            Mode::ProbIntensity => self
-                .luts
-                .classes
-                .iter()
-                .flatten()
-                .any(|c| c.intensity.max_alpha(range.0, range.1) > 0.0),
+            Mode::Intensity => v.intensity.any(&l.intensity, range.0, range.1),
+            Mode::ProbIntensity => l.classes.iter().zip(&v.classes).any(|(c, cv)| {
+                c.as_ref()
+                    .zip(cv.as_ref())
+                    .is_some_and(|(c, cv)| cv.1.any(&c.intensity, range.0, range.1))
+            }),
             Mode::Probabilistic => true,
         }
     }
@@ -678,19 +627,18 @@ impl<'a> Frame<'a> {
     /// False when no sample whose voxels span intensity `range` and probabilities at most
     /// `prob_max` can be visible.
     pub fn range_visible(&self, range: (f32, f32), prob_max: &[u8]) -> bool {
-        let l = self.luts;
-        let b = (range, prob_max);
+        let (l, v) = (self.luts, &self.visible);
+        let classes = || l.classes.iter().zip(&v.classes).zip(prob_max);
         match self.params.mode {
-            Mode::Intensity => l.intensity.max_alpha(b.0 .0, b.0 .1) > 0.0,
-            Mode::Probabilistic => l.classes.iter().zip(b.1).any(|(c, &m)| {
+            Mode::Intensity => v.intensity.any(&l.intensity, range.0, range.1),
+            Mode::Probabilistic => classes().any(|((c, cv), &m)| {
                 c.as_ref()
-                    .is_some_and(|c| m > 0 && c.probability.max_alpha(0.0, m as f32 / 255.0) > 0.0)
+                    .zip(cv.as_ref())
+                    .is_some_and(|(c, cv)| m > 0 && cv.0.any(&c.probability, 0.0, m as f32 / 255.0))
             }),
-            Mode::ProbIntensity => l.classes.iter().zip(b.1).any(|(c, &m)| {
-                c.as_ref().is_some_and(|c| {
-                    m > 0
-                        && m as f32 / 255.0 >= c.tau
-                        && c.intensity.max_alpha(b.0 .0, b.0 .1) > 0.0
+            Mode::ProbIntensity => classes().any(|((c, cv), &m)| {
+                c.as_ref().zip(cv.as_ref()).is_some_and(|(c, cv)| {
+                    m > 0 && m as f32 / 255.0 >= c.tau && cv.1.any(&c.intensity, range.0, range.1)
                 })
             }),
         }
@@ -721,27 +669,68 @@ impl<'a> Frame<'a> {
         mask: Option<&[bool]>,
         cells: &CellMap,
     ) -> u64 {
+        #[cfg(target_arch = "x86_64")]
+        if has_avx2() {
+            // SAFETY: the CPU has the features the function is compiled for.
+            return unsafe { self.march_row_avx2(b, j, xs, row, mask, cells) };
+        }
+        self.march_row_as::<Scalar>(b, j, xs, row, mask, cells)
+    }
+
+    /// [`Self::march_row`] compiled for AVX2 and F16C, with the [`Avx2`] kernels (the same
+    /// arithmetic in the same order, so the same pixels).
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2,f16c")]
+    fn march_row_avx2(
+        &self,
+        b: &RenderBrick,
+        j: usize,
+        xs: std::ops::Range<usize>,
+        row: &mut [Accum],
+        mask: Option<&[bool]>,
+        cells: &CellMap,
+    ) -> u64 {
+        self.march_row_as::<Avx2>(b, j, xs, row, mask, cells)
+    }
+
+    /// [`Self::march_row`] with the kernels `H`.
+    #[inline(always)]
+    fn march_row_as<H: Kernels>(
+        &self,
+        b: &RenderBrick,
+        j: usize,
+        xs: std::ops::Range<usize>,
+        row: &mut [Accum],
+        mask: Option<&[bool]>,
+        cells: &CellMap,
+    ) -> u64 {
         let diffs = self.params.shading.map(|_| b.differences());
         match self.params.mode {
-            Mode::Intensity => self.march_rows_with(b, j, xs, row, mask, cells, |p, light| {
-                self.sample_intensity(b, diffs, p, light)
-            }),
+            Mode::Intensity => {
+                self.march_rows_with(b, j, xs, row, mask, cells, |s, k, n, light| {
+                    self.samples_intensity::<H>(b, diffs, s, k, n, light)
+                })
+            }
             Mode::Probabilistic | Mode::ProbIntensity => {
                 let c = Correction::new(self.alpha_exp);
-                self.march_rows_with(b, j, xs, row, mask, cells, |p, light| {
-                    let mut s = self.sample_with(b, diffs, p, light);
-                    if s[3] > 0.0 {
-                        s[3] = c.apply(s[3]);
+                self.march_rows_with(b, j, xs, row, mask, cells, |s, k, n, light| {
+                    let mut out = [[0.0; 4]; RUN];
+                    for (l, o) in out.iter_mut().enumerate().take(n) {
+                        *o = self.sample_with::<H>(b, diffs, s.pos(k + l as u64), light);
+                        if o[3] > 0.0 {
+                            o[3] = c.apply(o[3]);
+                        }
                     }
-                    s
+                    out
                 })
             }
         }
     }
 
-    /// The march of [`Self::march_row`] with `sample` giving a sample's shaded colour and
-    /// corrected opacity. Samples sit at `t0 + (k + 1/2) dt`; the ray walks the brick's 8^3
-    /// cells in order, leaping over invisible ones whole and sampling visible ones.
+    /// The march of [`Self::march_row`] with `run(steps, k, n, light)` giving the shaded
+    /// colour and corrected opacity of samples `k .. k + n` (`n` at most [`RUN`]) of a ray.
+    /// Samples sit at `t0 + (k + 1/2) dt`; the ray walks the brick's cells in order, leaping
+    /// over invisible ones whole and sampling visible ones, up to [`RUN`] samples at a time.
     #[allow(clippy::too_many_arguments)]
     #[inline(always)]
     fn march_rows_with(
@@ -752,7 +741,7 @@ impl<'a> Frame<'a> {
         row: &mut [Accum],
         mask: Option<&[bool]>,
         map: &CellMap,
-        sample: impl Fn([f32; 3], [f32; 3]) -> [f32; 4],
+        run: impl Fn(&Steps, u64, usize, [f32; 3]) -> [[f32; 4]; RUN],
     ) -> u64 {
         let rays = self.row_rays(j);
         let (lo, hi) = self.brick_bounds(b.index);
@@ -789,15 +778,10 @@ impl<'a> Frame<'a> {
             let k1 = ceil_index((tb - t0) / dt - 0.5);
             let ol = [o[0] - base[0], o[1] - base[1], o[2] - base[2]];
             // The far face of a cell along each axis: one cell on when the ray goes up.
-            let exit = [0, 1, 2].map(|a| if d[a] > 0.0 { CELL as f32 } else { 0.0 });
-            let pos = |k: u64| {
-                let t = t0 + (k as f32 + 0.5) * dt;
-                [
-                    o[0] + d[0] * t - base[0],
-                    o[1] + d[1] * t - base[1],
-                    o[2] + d[2] * t - base[2],
-                ]
-            };
+            let up = |a: usize| if d[a] > 0.0 { CELL as f32 } else { 0.0 };
+            let exit = [up(0), up(1), up(2)];
+            let steps = Steps { o, d, base, t0, dt };
+            let pos = |k: u64| steps.pos(k);
             let mut k = k0;
             'ray: while k < k1 {
                 // The cell of sample k, and the first sample past the cell's exit.
@@ -842,20 +826,22 @@ impl<'a> Frame<'a> {
                     continue;
                 }
                 while k < end {
-                    let p = pos(k);
-                    samples += 1;
-                    k += 1;
-                    let [cr, cg, cb, a] = sample(p, r.light);
-                    if a <= 0.0 {
-                        continue;
-                    }
-                    let wgt = (1.0 - px[3]) * a;
-                    px[0] += wgt * cr;
-                    px[1] += wgt * cg;
-                    px[2] += wgt * cb;
-                    px[3] += wgt;
-                    if px[3] >= ert {
-                        break 'ray;
+                    let n = ((end - k) as usize).min(RUN);
+                    let run = run(&steps, k, n, r.light);
+                    for &[cr, cg, cb, a] in &run[..n] {
+                        samples += 1;
+                        k += 1;
+                        if a <= 0.0 {
+                            continue;
+                        }
+                        let wgt = (1.0 - px[3]) * a;
+                        px[0] += wgt * cr;
+                        px[1] += wgt * cg;
+                        px[2] += wgt * cb;
+                        px[3] += wgt;
+                        if px[3] >= ert {
+                            break 'ray;
+                        }
                     }
                 }
             }
@@ -863,54 +849,61 @@ impl<'a> Frame<'a> {
         samples
     }
 
-    /// Shaded colour and corrected opacity of an intensity-mode sample at local padded
-    /// coordinates `p` (`diffs`: the brick's central differences when shading).
+    /// Shaded colours and corrected opacities of intensity-mode samples `k .. k + n` of a ray
+    /// (`diffs`: the brick's central differences when shading): the four intensities at once,
+    /// then the table, and the gradient for the visible ones only (most samples in a visible
+    /// cell are transparent).
     #[inline(always)]
-    fn sample_intensity(
+    fn samples_intensity<H: Kernels>(
         &self,
         b: &RenderBrick,
-        diffs: Option<&[[f32; 4]]>,
-        p: [f32; 3],
+        diffs: Option<&[[u16; 4]]>,
+        s: &Steps,
+        k: u64,
+        n: usize,
         light: [f32; 3],
-    ) -> [f32; 4] {
-        let (idx, w) = corners(p, b.padded);
-        if let (Some(s), Some(g)) = (self.params.shading, diffs) {
-            // The value first, from the intensity (a quarter of the differences' bytes, so it
-            // stays in cache): most samples in a visible cell are transparent and need no
-            // gradient. Then one 4-wide interpolation gives the gradient (its lane 3, the
-            // value, summed in the same order, is bit for bit the same).
-            let e = lut_get(&self.corrected, interpolate(&b.intensity, &idx, &w));
+    ) -> [[f32; 4]; RUN] {
+        let run = H::run4(&b.intensity, b.padded, s, k);
+        let mut out = [[0.0; 4]; RUN];
+        for (l, o) in out.iter_mut().enumerate().take(n) {
+            let e = lut_get(&self.corrected, run.values[l]);
             if e[3] <= 0.0 {
-                return [0.0; 4];
+                continue;
             }
-            let acc = interpolate4(g, &idx, &w);
-            let rgb = self.shade_grad(acc, [e[0], e[1], e[2]], light, s);
-            return [rgb[0], rgb[1], rgb[2], e[3]];
+            *o = match (self.params.shading, diffs) {
+                (Some(sh), Some(g)) => {
+                    let grad = H::gradient(g, &run.t[l]);
+                    let rgb = self.shade_grad(grad, [e[0], e[1], e[2]], light, sh);
+                    [rgb[0], rgb[1], rgb[2], e[3]]
+                }
+                _ => e,
+            };
         }
-        lut_get(&self.corrected, interpolate(&b.intensity, &idx, &w))
+        out
     }
 
     /// Colour (shaded) and uncorrected opacity of a sample at local padded coordinates `p`.
     #[inline]
     pub fn sample(&self, b: &RenderBrick, p: [f32; 3], light: [f32; 3]) -> [f32; 4] {
         let diffs = self.params.shading.map(|_| b.differences());
-        self.sample_with(b, diffs, p, light)
+        self.sample_with::<Scalar>(b, diffs, p, light)
     }
 
     #[inline(always)]
-    fn sample_with(
+    fn sample_with<H: Kernels>(
         &self,
         b: &RenderBrick,
-        diffs: Option<&[[f32; 4]]>,
+        diffs: Option<&[[u16; 4]]>,
         p: [f32; 3],
         light: [f32; 3],
     ) -> [f32; 4] {
         let dims = b.padded;
         let luts = self.luts;
-        let (idx, w) = corners(p, dims);
+        let t = Trilinear::new(p, dims);
+        let (idx, w) = (t.idx(), t.w8());
         let (rgb, a) = match self.params.mode {
             Mode::Intensity => {
-                let e = luts.intensity.get(interpolate(&b.intensity, &idx, &w));
+                let e = luts.intensity.get(H::value(&b.intensity, &t));
                 ([e[0], e[1], e[2]], e[3])
             }
             Mode::Probabilistic => {
@@ -936,7 +929,7 @@ impl<'a> Frame<'a> {
             }
             Mode::ProbIntensity => {
                 let ch = b.channels;
-                let iv = interpolate(&b.intensity, &idx, &w);
+                let iv = H::value(&b.intensity, &t);
                 let all = (ch <= FAST_CH).then(|| probs_at(&b.probs, &idx, &w, ch));
                 let (mut rgb, mut a, mut wsum) = ([0.0f32; 3], 0.0f32, 0.0f32);
                 for (n, l) in luts.classes.iter().enumerate().take(ch) {
@@ -967,7 +960,7 @@ impl<'a> Frame<'a> {
             return [0.0; 4];
         }
         let rgb = match (self.params.shading, diffs) {
-            (Some(s), Some(g)) => self.shade_at(g, &idx, &w, rgb, light, s),
+            (Some(s), Some(g)) => self.shade_grad(H::gradient(g, &t), rgb, light, s),
             _ => rgb,
         };
         [rgb[0], rgb[1], rgb[2], a]
@@ -975,22 +968,8 @@ impl<'a> Frame<'a> {
 
     /// Blinn-Phong with a headlight, the normal from the intensity gradient (the central
     /// differences of the trilinear field one voxel either side, in world units, read as the
-    /// trilinear interpolation of the voxels' central differences `g`); flat regions stay
-    /// unshaded.
-    #[inline(always)]
-    fn shade_at(
-        &self,
-        g: &[[f32; 4]],
-        idx: &[usize; 8],
-        w: &[f32; 8],
-        rgb: [f32; 3],
-        light: [f32; 3],
-        s: Shading,
-    ) -> [f32; 3] {
-        self.shade_grad(interpolate4(g, idx, w), rgb, light, s)
-    }
-
-    /// [`Self::shade_at`] from the interpolated central differences `acc` (lanes 0-2).
+    /// trilinear interpolation of the voxels' central differences `acc`, lanes 0-2); flat
+    /// regions stay unshaded.
     #[inline(always)]
     fn shade_grad(&self, acc: [f32; 4], rgb: [f32; 3], light: [f32; 3], s: Shading) -> [f32; 3] {
         let h = self.half_inv_spacing;

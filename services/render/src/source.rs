@@ -103,9 +103,9 @@ pub struct RenderBrick {
     pub cell_range: Vec<(f32, f32)>,
     /// Per cell and channel: the largest probability a sample inside the cell reads.
     pub cell_prob_max: Vec<u8>,
-    /// Per padded voxel, the central differences of the intensity along x, y and z, and the
-    /// intensity itself (4-wide loads); made on first use by a shaded frame.
-    differences: Derived<Vec<[f32; 4]>>,
+    /// Per padded voxel, the central differences of the intensity along x, y and z as f16
+    /// bits, and a zero lane (one 8-byte load each); made on first use by a shaded frame.
+    differences: Derived<Vec<[u16; 4]>>,
 }
 
 /// A value derived from a brick's data on first use; equality ignores it.
@@ -195,20 +195,24 @@ impl RenderBrick {
 
     /// Bytes held (with the central differences once they are made).
     pub fn bytes(&self) -> usize {
-        let d = self.differences.0.get().map_or(0, |d| d.len() * 16);
+        let d = self.differences.0.get().map_or(0, |d| d.len() * 8);
         self.intensity.len() * 4 + self.probs.len() + d + 128
     }
 
     /// Central differences of the intensity at every padded voxel, `[I(x+1) - I(x-1), ...]`
     /// per axis (one-sided at the padded edge, which samples inside the core never reach),
-    /// with the intensity as the fourth lane.
+    /// as IEEE half-precision bits, with a zero fourth lane.
     /// The trilinear interpolation of these equals the central difference of the trilinear
-    /// field one voxel either side, the gradient shading uses, at a sixth of the reads.
-    pub fn differences(&self) -> &[[f32; 4]] {
+    /// field one voxel either side, the gradient shading uses, at a sixth of the reads. Half
+    /// precision (a relative error of 2^-11 in each component, so under 0.1 degree in the
+    /// normal) halves the bytes a shaded sample reads, which is what bounds the shaded march
+    /// (a 36^3 padded brick's differences fit in L2 at 373 KB where f32 took 746 KB).
+    pub fn differences(&self) -> &[[u16; 4]] {
         self.differences.0.get_or_init(|| {
             let [nx, ny, nz] = self.padded;
             let v = &self.intensity;
-            let mut out = vec![[0.0f32; 4]; v.len()];
+            let h = |x: f32| half::f16::from_f32(x).to_bits();
+            let mut out = vec![[0u16; 4]; v.len()];
             for z in 0..nz {
                 let (z0, z1) = (z.saturating_sub(1), (z + 1).min(nz - 1));
                 for y in 0..ny {
@@ -219,10 +223,10 @@ impl RenderBrick {
                     for x in 0..nx {
                         let (x0, x1) = (x.saturating_sub(1), (x + 1).min(nx - 1));
                         out[row + x] = [
-                            v[row + x1] - v[row + x0],
-                            v[yp + x] - v[ym + x],
-                            v[zp + x] - v[zm + x],
-                            v[row + x],
+                            h(v[row + x1] - v[row + x0]),
+                            h(v[yp + x] - v[ym + x]),
+                            h(v[zp + x] - v[zm + x]),
+                            0,
                         ];
                     }
                 }

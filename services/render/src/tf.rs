@@ -560,12 +560,48 @@ impl Lut {
         ]
     }
 
+    /// The entries any x in `[a, b]` reads: first and last index, inclusive.
+    #[inline]
+    fn span(&self, a: f32, b: f32) -> (usize, usize) {
+        let (i, j) = (self.pos(a).floor() as usize, self.pos(b).ceil() as usize);
+        (i.min(j), j.max(i).min(self.table.len() - 1))
+    }
+
     /// The largest opacity for any x in `[a, b]` (conservative).
     pub fn max_alpha(&self, a: f32, b: f32) -> f32 {
-        let (i, j) = (self.pos(a).floor() as usize, self.pos(b).ceil() as usize);
-        self.table[i.min(j)..=j.max(i).min(self.table.len() - 1)]
-            .iter()
-            .fold(0.0, |m, e| m.max(e[3]))
+        let (s, e) = self.span(a, b);
+        self.table[s..=e].iter().fold(0.0, |m, e| m.max(e[3]))
+    }
+
+    /// The table's [`Visibility`]: whether any x in a range can be visible, in constant time.
+    pub fn visibility(&self) -> Visibility {
+        let n = self.table.len();
+        let mut next = vec![n as u32; n];
+        let mut at = n as u32;
+        for i in (0..n).rev() {
+            if self.table[i][3] > 0.0 {
+                at = i as u32;
+            }
+            next[i] = at;
+        }
+        Visibility { next }
+    }
+}
+
+/// Per entry of a [`Lut`], the first entry at or after it with an opacity above 0: answers
+/// `max_alpha(a, b) > 0` without scanning the range (empty-space skipping asks it for every
+/// cell of every brick of a frame).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Visibility {
+    next: Vec<u32>,
+}
+
+impl Visibility {
+    /// `lut.max_alpha(a, b) > 0.0`, for the table this was made from.
+    #[inline]
+    pub fn any(&self, lut: &Lut, a: f32, b: f32) -> bool {
+        let (s, e) = lut.span(a, b);
+        self.next[s] as usize <= e
     }
 }
 
@@ -616,6 +652,25 @@ mod tests {
             parse(r#"[{"Name":"x","RGBPoints":[0,0,0,0,1,1,0,0],"Points":[0,0,0.5,0,1,1,0.5,0]}]"#)
                 .unwrap();
         assert_eq!(t.intensity.unwrap().eval(1.0), [1.0, 0.0, 0.0, 1.0]);
+    }
+
+    #[test]
+    fn visibility_answers_as_the_range_scan() {
+        // Opacity 0 below 0.3, a bump around 0.5, 0 again above 0.6, and 1 at the very top.
+        let t =
+            parse(r#"{"intensity":{"opacity":[[0,0],[0.3,0],[0.5,0.4],[0.6,0],[0.99,0],[1,1]]}}"#)
+                .unwrap();
+        let l = t.compile(&Normaliser { lo: 0.0, hi: 1.0 }, &[]).intensity;
+        let v = l.visibility();
+        let xs: Vec<f32> = (-20..=120)
+            .map(|i| i as f32 / 100.0)
+            .chain([f32::NAN, f32::INFINITY, f32::NEG_INFINITY])
+            .collect();
+        for &a in &xs {
+            for &b in &xs {
+                assert_eq!(v.any(&l, a, b), l.max_alpha(a, b) > 0.0, "[{a}, {b}]");
+            }
+        }
     }
 
     #[test]
