@@ -424,13 +424,18 @@ fn probs_n<const N: usize>(probs: &[u8], idx: &[usize; 8], w: &[f32; 8]) -> [f32
     s
 }
 
-/// The smallest whole number at or above `x`, as an index (0 for negative or NaN `x`).
+/// The smallest whole number at or above `x`, as an index: 0 for negative `x`, and about 10^18
+/// (past any ray's last sample) for NaN or larger `x`.
 #[inline(always)]
 fn ceil_index(x: f32) -> u64 {
-    let x = x.min(1e18);
-    // Truncation saturates at 0 for negative and NaN x, and floats above 2^24 are whole.
-    let t = x as u64;
-    t + ((t as f32) < x) as u64
+    // min sends NaN to 10^18, then max sends negatives to 0 (not clamp, which keeps NaN);
+    // floats above 2^24 are whole.
+    #[allow(clippy::manual_clamp)]
+    let x = x.min(1e18).max(0.0);
+    // SAFETY: x is finite and in [0, 10^18], within i64 (a plain conversion, without the
+    // saturating checks of `as u64`).
+    let t = unsafe { x.to_int_unchecked::<i64>() };
+    (t + ((t as f32) < x) as i64) as u64
 }
 
 /// `x^n` by repeated squaring.
@@ -865,19 +870,28 @@ impl<'a> Frame<'a> {
     ) -> [[f32; 4]; RUN] {
         let run = H::run4(&b.intensity, b.padded, s, k);
         let mut out = [[0.0; 4]; RUN];
-        for (l, o) in out.iter_mut().enumerate().take(n) {
-            let e = lut_get(&self.corrected, run.values[l]);
-            if e[3] <= 0.0 {
-                continue;
-            }
-            *o = match (self.params.shading, diffs) {
-                (Some(sh), Some(g)) => {
-                    let grad = H::gradient(g, &run.t[l]);
-                    let rgb = self.shade_grad(grad, [e[0], e[1], e[2]], light, sh);
-                    [rgb[0], rgb[1], rgb[2], e[3]]
+        // The table for every sample first, then the gradients of the visible ones: their
+        // reads (the differences are 8 bytes a voxel, often from L2) are then independent of
+        // each other and overlap.
+        let mut visible = [false; RUN];
+        for l in 0..n {
+            out[l] = lut_get(&self.corrected, run.values[l]);
+            visible[l] = out[l][3] > 0.0;
+        }
+        if let (Some(sh), Some(g)) = (self.params.shading, diffs) {
+            let mut grad = [[0.0; 4]; RUN];
+            for l in 0..n {
+                if visible[l] {
+                    grad[l] = H::gradient(g, &run.t[l]);
                 }
-                _ => e,
-            };
+            }
+            for l in 0..n {
+                if visible[l] {
+                    let e = out[l];
+                    let rgb = self.shade_grad(grad[l], [e[0], e[1], e[2]], light, sh);
+                    out[l] = [rgb[0], rgb[1], rgb[2], e[3]];
+                }
+            }
         }
         out
     }
@@ -1004,6 +1018,39 @@ impl View {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn ceil_index_is_the_saturating_ceiling() {
+        // The saturating conversion it replaces, for every class of input.
+        let reference = |x: f32| {
+            let x = x.min(1e18);
+            let t = x as u64;
+            t + ((t as f32) < x) as u64
+        };
+        for x in [
+            0.0,
+            -0.0,
+            0.5,
+            1.0,
+            1.0001,
+            2.9999,
+            -1.5,
+            16777215.5,
+            16777217.0,
+            3.0e9,
+            1e18,
+            1e19,
+            f32::INFINITY,
+            f32::NEG_INFINITY,
+            f32::NAN,
+            f32::MIN_POSITIVE,
+        ] {
+            assert_eq!(ceil_index(x), reference(x), "{x}");
+        }
+        assert_eq!(ceil_index(2.5), 3);
+        assert_eq!(ceil_index(-3.0), 0);
+        assert_eq!(ceil_index(f32::NAN), 1e18f32 as u64);
+    }
 
     #[test]
     fn a_block_is_visible_exactly_when_one_of_its_cells_is() {
