@@ -198,6 +198,9 @@ fn from_order_key(k: u32) -> f32 {
 /// Values closer than this count as equal when looking for split points (as scikit-learn).
 const FEATURE_EPS: f32 = 1e-7;
 
+/// A feature that does not vary in a node (nor, then, in any node below it).
+struct Constant;
+
 struct Builder<'a> {
     data: Dataset<'a>,
     /// The features column by column (`d x n`): a node's values of one feature are read from
@@ -216,7 +219,8 @@ impl Builder<'_> {
         }
     }
 
-    /// Best split of `idx` on feature `f`: (proxy improvement, threshold), if any.
+    /// Best split of `idx` on feature `f`: (proxy improvement, threshold), if any; or
+    /// [`Constant`] where `f` does not vary in `idx`.
     fn best_on(
         &self,
         idx: &[u32],
@@ -225,7 +229,7 @@ impl Builder<'_> {
         buf: &mut Vec<u64>,
         tmp: &mut Vec<u64>,
         left: &mut [f64],
-    ) -> Option<(f64, f32)> {
+    ) -> Result<Option<(f64, f32)>, Constant> {
         let col = &self.cols[f * self.data.y.len()..][..self.data.y.len()];
         // Each sample as one integer, its value's order key above its index, so the sort
         // compares plain integers (the order of `f32::total_cmp`; ties, which no split point
@@ -239,7 +243,7 @@ impl Builder<'_> {
             ((k as u64) << 32) | i as u64
         }));
         if from_order_key(hi) <= from_order_key(lo) + FEATURE_EPS {
-            return None; // constant here
+            return Err(Constant);
         }
         sort_by_key(buf, tmp);
         let at = |p: usize| (from_order_key((buf[p] >> 32) as u32), buf[p] as u32);
@@ -277,7 +281,7 @@ impl Builder<'_> {
                 best = Some((proxy, thr));
             }
         }
-        best
+        Ok(best)
     }
 
     fn grow(&self, seed: u64) -> Tree {
@@ -300,9 +304,12 @@ impl Builder<'_> {
             left: 0,
             right: 0,
         });
-        let mut stack = vec![(0usize, 0usize, n, 0usize)];
+        // Per node on the stack: the features found constant in an ancestor, as bits (a feature
+        // constant in a node is constant in its subsets, so it is not read again).
+        let words = d.div_ceil(64);
+        let mut stack = vec![(0usize, 0usize, n, 0usize, vec![0u64; words])];
         let mut max_depth = 0usize;
-        while let Some((id, lo, hi, depth)) = stack.pop() {
+        while let Some((id, lo, hi, depth, mut constant)) = stack.pop() {
             max_depth = max_depth.max(depth);
             let part = &idx[lo..hi];
             self.counts(part, &mut total);
@@ -323,13 +330,18 @@ impl Builder<'_> {
                     feats.swap(k, j);
                     let f = feats[k];
                     k += 1;
-                    if let Some((proxy, thr)) =
-                        self.best_on(part, f, &total, &mut buf, &mut tmp, &mut left)
-                    {
-                        tried += 1;
-                        if split.is_none_or(|s| proxy > s.0) {
-                            split = Some((proxy, f, thr));
+                    if constant[f / 64] >> (f % 64) & 1 == 1 {
+                        continue;
+                    }
+                    match self.best_on(part, f, &total, &mut buf, &mut tmp, &mut left) {
+                        Ok(Some((proxy, thr))) => {
+                            tried += 1;
+                            if split.is_none_or(|s| proxy > s.0) {
+                                split = Some((proxy, f, thr));
+                            }
                         }
+                        Ok(None) => {}
+                        Err(Constant) => constant[f / 64] |= 1 << (f % 64),
                     }
                 }
             }
@@ -363,8 +375,8 @@ impl Builder<'_> {
                         left: l as u32,
                         right: l as u32 + 1,
                     };
-                    stack.push((l + 1, lo + m, hi, depth + 1));
-                    stack.push((l, lo, lo + m, depth + 1));
+                    stack.push((l + 1, lo + m, hi, depth + 1, constant.clone()));
+                    stack.push((l, lo, lo + m, depth + 1, constant));
                 }
                 None => {
                     let leaf = probs.len() / c;
