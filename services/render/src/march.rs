@@ -377,6 +377,14 @@ fn lut_get(l: &Lut, x: f32) -> [f32; 4] {
     ]
 }
 
+/// Where a ray's cell walk goes on once its pending samples are taken.
+enum Resume {
+    /// Past an invisible block: at the first sample from this index on (at least one on).
+    Leap(u64),
+    /// Past an invisible cell, or to the ray's end in the brick: at this sample index.
+    Skip(u64),
+}
+
 /// Samples of a ray computed together (the width of [`Kernels::run4`]).
 const RUN: usize = 4;
 
@@ -786,52 +794,98 @@ impl<'a> Frame<'a> {
             let up = |a: usize| if d[a] > 0.0 { CELL as f32 } else { 0.0 };
             let exit = [up(0), up(1), up(2)];
             let steps = Steps { o, d, base, t0, dt };
-            let pos = |k: u64| steps.pos(k);
+            // One cell on along each axis, in the ray's direction (0 where it is parallel).
+            // (Written out per axis: `map` here would be a call.)
+            let sign = |a: usize| (d[a] > 0.0) as i64 - (d[a] < 0.0) as i64;
+            let dir = [sign(0), sign(1), sign(2)];
+            let step = |a: usize| {
+                if dir[a] == 0 {
+                    f32::INFINITY
+                } else {
+                    CELL as f32 * r.inv[a].abs()
+                }
+            };
+            let delta = [step(0), step(1), step(2)];
+            // Samples k .. pend are visible-cell samples not yet taken (adjacent visible
+            // cells make one span, so runs of RUN samples cross cell faces).
             let mut k = k0;
+            let mut pend = k0;
             'ray: while k < k1 {
-                // The cell of sample k, and the first sample past the cell's exit.
-                let p = pos(k);
-                // max then min (not clamp): a NaN coordinate goes to cell 0 as before.
+                // Enter the cell of sample k: its index, and the t of its exit face per axis.
+                let p = steps.pos(k);
                 let mut cc = [0usize; 3];
-                let mut te = f32::INFINITY;
+                let mut tmax = [f32::INFINITY; 3];
                 for a in 0..3 {
+                    // max then min (not clamp): a NaN coordinate goes to cell 0.
                     #[allow(clippy::manual_clamp)]
                     let c = (floor_index((p[a] - APRON as f32 + 0.5).max(0.0).min(1e9)) / CELL)
                         .min(last[a]);
                     cc[a] = c;
-                    let face = (c * CELL + APRON) as f32 - 0.5 + exit[a];
-                    te = te.min((face - ol[a]) * r.inv[a]);
-                }
-                // A sample off by one at the cell's exit still reads only the voxels the
-                // cell's range covers (one voxel beyond it each side), so the reciprocal of
-                // `dt` may stand for the division here.
-                let bc = cc.map(|c| c / COARSE);
-                if !map.blocks[bc[2] * nbxy + bc[1] * nbx + bc[0]] {
-                    // A block of invisible cells: leap to its exit at once (the same rounding
-                    // argument as for a cell holds at the block's faces, which are its cells').
-                    let mut tb = f32::INFINITY;
-                    for a in 0..3 {
-                        let c = if d[a] > 0.0 {
-                            ((bc[a] + 1) * COARSE).min(last[a] + 1)
-                        } else {
-                            bc[a] * COARSE
-                        };
-                        tb = tb.min(((c * CELL + APRON) as f32 - 0.5 - ol[a]) * r.inv[a]);
+                    if dir[a] != 0 {
+                        let face = (c * CELL + APRON) as f32 - 0.5 + exit[a];
+                        tmax[a] = (face - ol[a]) * r.inv[a];
                     }
-                    let next = ceil_index((tb - t0) * inv_dt - 0.5);
-                    samples += 1;
-                    k = if next > k { next.min(k1) } else { k + 1 };
-                    continue;
                 }
-                let next = ceil_index((te - t0) * inv_dt - 0.5);
-                let end = if next > k { next.min(k1) } else { k + 1 };
-                if !cells[cc[2] * ncxy + cc[1] * ncx + cc[0]] {
-                    samples += 1;
-                    k = end;
-                    continue;
-                }
-                while k < end {
-                    let n = ((end - k) as usize).min(RUN);
+                // Then from cell to cell (a 3-D DDA): the samples before the cell's exit are
+                // its samples. Exits found by stepping differ from the exact faces by
+                // rounding only, and a sample off by a little at a face still reads only the
+                // voxels the cell's range covers (one voxel beyond it each side), so the
+                // visibility of the cell holds for it; the reciprocal of `dt` may stand for
+                // the division likewise. The walk stops where pending samples must be taken
+                // first: before an invisible block or cell, and at the ray's end.
+                let resume = loop {
+                    let bc = [cc[0] / COARSE, cc[1] / COARSE, cc[2] / COARSE];
+                    if !map.blocks[bc[2] * nbxy + bc[1] * nbx + bc[0]] {
+                        // A block of invisible cells: leap to its exit at once (the same
+                        // rounding argument holds at its faces, which are its cells').
+                        let mut tb = f32::INFINITY;
+                        for a in 0..3 {
+                            let c = if d[a] > 0.0 {
+                                ((bc[a] + 1) * COARSE).min(last[a] + 1)
+                            } else {
+                                bc[a] * COARSE
+                            };
+                            tb = tb.min(((c * CELL + APRON) as f32 - 0.5 - ol[a]) * r.inv[a]);
+                        }
+                        samples += 1;
+                        break Resume::Leap(ceil_index((tb - t0) * inv_dt - 0.5));
+                    }
+                    let te = tmax[0].min(tmax[1]).min(tmax[2]);
+                    let end = ceil_index((te - t0) * inv_dt - 0.5).clamp(k, k1);
+                    if cells[cc[2] * ncxy + cc[1] * ncx + cc[0]] {
+                        pend = pend.max(end);
+                    } else if pend > k {
+                        samples += 1;
+                        break Resume::Skip(end);
+                    } else {
+                        samples += 1;
+                        k = k.max(end);
+                        pend = k;
+                    }
+                    if end >= k1 {
+                        break Resume::Skip(k1);
+                    }
+                    // Step across the nearest face; at the brick's boundary the ray stays in
+                    // its last cell (what rounding leaves of it there is that cell's).
+                    let a = if tmax[0] <= tmax[1] && tmax[0] <= tmax[2] {
+                        0
+                    } else if tmax[1] <= tmax[2] {
+                        1
+                    } else {
+                        2
+                    };
+                    let c = cc[a] as i64 + dir[a];
+                    if dir[a] == 0 || c < 0 || c > last[a] as i64 {
+                        tmax[a] = f32::INFINITY;
+                    } else {
+                        cc[a] = c as usize;
+                        tmax[a] += delta[a];
+                    }
+                };
+                // The pending samples, front to back (one place, so the sampling code is
+                // expanded once), then on past the invisible cell or block.
+                while k < pend {
+                    let n = ((pend - k) as usize).min(RUN);
                     let run = run(&steps, k, n, r.light);
                     for &[cr, cg, cb, a] in &run[..n] {
                         samples += 1;
@@ -849,6 +903,12 @@ impl<'a> Frame<'a> {
                         }
                     }
                 }
+                k = match resume {
+                    Resume::Leap(next) if next > k => next.min(k1),
+                    Resume::Leap(_) => k + 1,
+                    Resume::Skip(end) => k.max(end),
+                };
+                pend = k;
             }
         }
         samples
