@@ -3,7 +3,7 @@
 //! pixels that changed bricks affect.
 
 use crate::image::Image;
-use crate::march::{Accum, CellMap, Frame, RenderParams};
+use crate::march::{Accum, CellMap, Frame, Rays, RenderParams};
 use crate::source::{BrickSource, RenderBrick, APRON};
 use crate::tf::Luts;
 use crate::Result;
@@ -60,6 +60,8 @@ pub struct Renderer<S: BrickSource> {
     cache: Lru<([usize; 3], bool), Arc<RenderBrick>>,
     last: Option<Last>,
     stats: RenderStats,
+    /// The last frame's rays, for the next frame of the same view.
+    rays: Option<Arc<Rays>>,
 }
 
 impl<S: BrickSource> Renderer<S> {
@@ -70,6 +72,7 @@ impl<S: BrickSource> Renderer<S> {
             cache: Lru::new(cache_bytes),
             last: None,
             stats: RenderStats::default(),
+            rays: None,
         }
     }
 
@@ -90,7 +93,8 @@ impl<S: BrickSource> Renderer<S> {
 
     /// Renders a frame.
     pub fn render(&mut self, params: &RenderParams, luts: &Luts) -> Result<Image> {
-        let frame = Frame::new(*params, self.source.geom(), luts)?;
+        let frame = Frame::new(*params, self.source.geom(), luts)?.reusing_rays(self.rays.take());
+        self.rays = Some(frame.rays());
         let mut acc = vec![[0.0f32; 4]; params.width * params.height];
         let stats = self.composite(&frame, &mut acc, None)?;
         let img = finish(&frame, &acc);
@@ -160,7 +164,9 @@ impl<S: BrickSource> Renderer<S> {
         let Some(last) = self.last.take() else {
             return Ok(None);
         };
-        let frame = Frame::new(last.params, self.source.geom(), &last.luts)?;
+        let frame =
+            Frame::new(last.params, self.source.geom(), &last.luts)?.reusing_rays(self.rays.take());
+        self.rays = Some(frame.rays());
         let (w, h) = (last.params.width, last.params.height);
         let mut mask = vec![false; w * h];
         for c in changed {

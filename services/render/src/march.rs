@@ -13,7 +13,7 @@ use crate::source::{RenderBrick, VolumeGeom, APRON, CELL};
 use crate::tf::{Lut, Luts, Visibility};
 use crate::{RenderError, Result};
 use serde::{Deserialize, Serialize};
-use std::sync::OnceLock;
+use std::sync::{Arc, OnceLock};
 
 /// What a sample's colour and opacity come from.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -223,8 +223,9 @@ pub struct Frame<'a> {
     corrected: Lut,
     /// Half the reciprocal spacing: central differences to world-unit gradients.
     half_inv_spacing: [f32; 3],
-    /// Each image row's rays, resolved on first use.
-    rays: Vec<OnceLock<Box<[Ray]>>>,
+    /// Each image row's rays, resolved on first use (shared with other frames of the same
+    /// camera, image size and volume).
+    rays: Arc<Rays>,
     /// Which table ranges hold a visible entry (empty-space skipping).
     visible: Visible,
 }
@@ -248,6 +249,28 @@ impl Visible {
                         .map(|c| (c.probability.visibility(), c.intensity.visibility()))
                 })
                 .collect(),
+        }
+    }
+}
+
+/// The rays of a frame's pixels, row by row, each row resolved on first use. Frames with the
+/// same camera, image size and volume geometry draw the same rays, so a renderer hands them
+/// from frame to frame ([`Frame::reusing_rays`]): re-rendering a view (a new transfer
+/// function, new class probabilities) does not resolve them again.
+pub struct Rays {
+    camera: Camera,
+    size: [usize; 2],
+    geom: VolumeGeom,
+    rows: Vec<OnceLock<Box<[Ray]>>>,
+}
+
+impl Rays {
+    fn new(params: &RenderParams, geom: VolumeGeom) -> Self {
+        Rays {
+            camera: params.camera,
+            size: [params.width, params.height],
+            geom,
+            rows: (0..params.height).map(|_| OnceLock::new()).collect(),
         }
     }
 }
@@ -499,9 +522,28 @@ impl<'a> Frame<'a> {
             alpha_exp: params.step,
             corrected,
             half_inv_spacing: inv_spacing.map(|v| 0.5 * v),
-            rays: (0..params.height).map(|_| OnceLock::new()).collect(),
+            rays: Arc::new(Rays::new(&params, geom)),
             visible: Visible::new(luts),
         })
+    }
+
+    /// This frame with the rays of an earlier frame, where they are this frame's rays (same
+    /// camera, image size and volume geometry); unchanged otherwise.
+    pub fn reusing_rays(mut self, rays: Option<Arc<Rays>>) -> Self {
+        if let Some(r) = rays {
+            if r.camera == self.params.camera
+                && r.size == [self.params.width, self.params.height]
+                && r.geom == self.geom
+            {
+                self.rays = r;
+            }
+        }
+        self
+    }
+
+    /// The frame's rays, to hand to the next frame ([`Self::reusing_rays`]).
+    pub fn rays(&self) -> Arc<Rays> {
+        self.rays.clone()
     }
 
     /// The intensity table the intensity mode reads: opacity already corrected for the step
@@ -510,9 +552,9 @@ impl<'a> Frame<'a> {
         &self.corrected
     }
 
-    /// The rays of image row `j`, resolved once per frame.
+    /// The rays of image row `j`, resolved on first use.
     fn row_rays(&self, j: usize) -> &[Ray] {
-        self.rays[j].get_or_init(|| {
+        self.rays.rows[j].get_or_init(|| {
             (0..self.params.width)
                 .map(|i| match self.voxel_ray(i, j) {
                     Some((o, d, t0, tend)) => Ray {
