@@ -161,13 +161,17 @@ impl RenderBrick {
                     for z in span(cz, 2) {
                         for y in span(cy, 1) {
                             let row = (z * padded[1] + y) * padded[0];
-                            for x in span(cx, 0) {
-                                let v = intensity[row + x];
+                            let xs = span(cx, 0);
+                            for &v in &intensity[row + xs.start()..=row + xs.end()] {
                                 a = a.min(v);
                                 b = b.max(v);
-                                let q = &probs[(row + x) * channels..(row + x + 1) * channels];
-                                for (m, &p) in pm.iter_mut().zip(q) {
-                                    *m = (*m).max(p);
+                            }
+                            if channels > 0 {
+                                for x in xs {
+                                    let q = &probs[(row + x) * channels..(row + x + 1) * channels];
+                                    for (m, &p) in pm.iter_mut().zip(q) {
+                                        *m = (*m).max(p);
+                                    }
                                 }
                             }
                         }
@@ -209,10 +213,13 @@ impl RenderBrick {
     /// (a 36^3 padded brick's differences fit in L2 at 373 KB where f32 took 746 KB).
     pub fn differences(&self) -> &[[u16; 4]] {
         self.differences.0.get_or_init(|| {
+            use half::slice::HalfFloatSliceExt;
             let [nx, ny, nz] = self.padded;
             let v = &self.intensity;
-            let h = |x: f32| half::f16::from_f32(x).to_bits();
             let mut out = vec![[0u16; 4]; v.len()];
+            // A row of differences in f32, then converted to half floats at once (8 lanes
+            // a step where the CPU has F16C; the same rounding to nearest either way).
+            let mut d = vec![0.0f32; nx * 4];
             for z in 0..nz {
                 let (z0, z1) = (z.saturating_sub(1), (z + 1).min(nz - 1));
                 for y in 0..ny {
@@ -220,15 +227,14 @@ impl RenderBrick {
                     let row = (z * ny + y) * nx;
                     let (ym, yp) = ((z * ny + y0) * nx, (z * ny + y1) * nx);
                     let (zm, zp) = ((z0 * ny + y) * nx, (z1 * ny + y) * nx);
-                    for x in 0..nx {
+                    for (x, e) in d.chunks_exact_mut(4).enumerate() {
                         let (x0, x1) = (x.saturating_sub(1), (x + 1).min(nx - 1));
-                        out[row + x] = [
-                            h(v[row + x1] - v[row + x0]),
-                            h(v[yp + x] - v[ym + x]),
-                            h(v[zp + x] - v[zm + x]),
-                            0,
-                        ];
+                        e[0] = v[row + x1] - v[row + x0];
+                        e[1] = v[yp + x] - v[ym + x];
+                        e[2] = v[zp + x] - v[zm + x];
                     }
+                    let o: &mut [half::f16] = bytemuck::cast_slice_mut(&mut out[row..row + nx]);
+                    o.convert_from_f32_slice(&d);
                 }
             }
             out
