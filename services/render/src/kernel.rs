@@ -227,23 +227,8 @@ impl Kernels for Avx2 {
         // SAFETY: the four 8-byte reads end at corners 1, 3, 5 and 7, all at most `t.last()`
         // (checked); the caller runs on a CPU with AVX2 (see the type).
         unsafe {
-            let p = v.as_ptr();
-            let (b, sy, sz) = (t.b, t.sy, t.sz);
-            // Corner pairs (c, c + 1) as one 8-byte read each (no closures: see `values4_simd`).
-            let lo = _mm_movelh_ps(
-                _mm_castpd_ps(_mm_load_sd(p.add(b) as *const f64)),
-                _mm_castpd_ps(_mm_load_sd(p.add(b + sy) as *const f64)),
-            );
-            let hi = _mm_movelh_ps(
-                _mm_castpd_ps(_mm_load_sd(p.add(b + sz) as *const f64)),
-                _mm_castpd_ps(_mm_load_sd(p.add(b + sz + sy) as *const f64)),
-            );
-            let wlo = _mm_loadu_ps(t.w[0].as_ptr());
-            let whi = _mm_loadu_ps(t.w[1].as_ptr());
-            let s = _mm_add_ps(_mm_mul_ps(lo, wlo), _mm_mul_ps(hi, whi));
-            // [s0 + s2, s1 + s3], then their sum.
-            let h = _mm_add_ps(s, _mm_movehl_ps(s, s));
-            _mm_cvtss_f32(_mm_add_ss(h, _mm_shuffle_ps::<0b01>(h, h)))
+            let (wlo, whi) = (_mm_loadu_ps(t.w[0].as_ptr()), _mm_loadu_ps(t.w[1].as_ptr()));
+            value_at(v.as_ptr(), t.b, t.sy, t.sz, wlo, whi)
         }
     }
 
@@ -393,18 +378,7 @@ impl Avx2 {
             let wh = [w4, w5, w6, w7];
             for l in 0..4 {
                 let b = bs[l] as usize;
-                let lo = _mm_movelh_ps(
-                    _mm_castpd_ps(_mm_load_sd(p.add(b) as *const f64)),
-                    _mm_castpd_ps(_mm_load_sd(p.add(b + sy) as *const f64)),
-                );
-                let hi = _mm_movelh_ps(
-                    _mm_castpd_ps(_mm_load_sd(p.add(b + sz) as *const f64)),
-                    _mm_castpd_ps(_mm_load_sd(p.add(b + sz + sy) as *const f64)),
-                );
-                // s_c = q_c w_c + q_(c+4) w_(c+4); (s0 + s2) + (s1 + s3).
-                let sum = _mm_add_ps(_mm_mul_ps(lo, wl[l]), _mm_mul_ps(hi, wh[l]));
-                let h = _mm_add_ps(sum, _mm_movehl_ps(sum, sum));
-                out.values[l] = _mm_cvtss_f32(_mm_add_ss(h, _mm_shuffle_ps::<0b01>(h, h)));
+                out.values[l] = value_at(p, b, sy, sz, wl[l], wh[l]);
                 out.t[l].b = b;
                 _mm_storeu_ps(out.t[l].w[0].as_mut_ptr(), wl[l]);
                 _mm_storeu_ps(out.t[l].w[1].as_mut_ptr(), wh[l]);
@@ -412,6 +386,39 @@ impl Avx2 {
             out
         }
     }
+}
+
+/// [`Kernels::value`] of the sample whose corner 0 is `p[b]`, with the weights of corners
+/// 0-3 and 4-7 in `wlo` and `whi`: the corner pairs (c, c + 1) read 8 bytes at a time,
+/// `s_c = q_c w_c + q_(c+4) w_(c+4)`, then `(s0 + s2) + (s1 + s3)`.
+///
+/// # Safety
+/// Corner 7, `p[b + sz + sy + 1]`, must be readable, and the CPU must have AVX2. (An
+/// `#[inline(always)]` function without closures: its intrinsics are inlined where it is, in
+/// code compiled for AVX2.)
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+unsafe fn value_at(
+    p: *const f32,
+    b: usize,
+    sy: usize,
+    sz: usize,
+    wlo: std::arch::x86_64::__m128,
+    whi: std::arch::x86_64::__m128,
+) -> f32 {
+    use std::arch::x86_64::*;
+    let lo = _mm_movelh_ps(
+        _mm_castpd_ps(_mm_load_sd(p.add(b) as *const f64)),
+        _mm_castpd_ps(_mm_load_sd(p.add(b + sy) as *const f64)),
+    );
+    let hi = _mm_movelh_ps(
+        _mm_castpd_ps(_mm_load_sd(p.add(b + sz) as *const f64)),
+        _mm_castpd_ps(_mm_load_sd(p.add(b + sz + sy) as *const f64)),
+    );
+    let s = _mm_add_ps(_mm_mul_ps(lo, wlo), _mm_mul_ps(hi, whi));
+    // [s0 + s2, s1 + s3], then their sum.
+    let h = _mm_add_ps(s, _mm_movehl_ps(s, s));
+    _mm_cvtss_f32(_mm_add_ss(h, _mm_shuffle_ps::<0b01>(h, h)))
 }
 
 /// Whether this CPU runs the [`Avx2`] kernels.
