@@ -41,7 +41,14 @@ need_nats() {
 
 nats_bin() { command -v nats-server 2>/dev/null || echo /usr/sbin/nats-server; }
 
-alive() { [ -f "$1" ] && kill -0 "$(cat "$1")" 2>/dev/null; }
+# A process that was killed but not yet reaped (a zombie) counts as gone.
+alive() {
+  [ -f "$1" ] || return 1
+  local p
+  p=$(cat "$1")
+  kill -0 "$p" 2>/dev/null || return 1
+  ! grep -q '^State:[[:space:]]*Z' "/proc/$p/status" 2>/dev/null
+}
 
 case "$cmd" in
 start)
@@ -57,7 +64,7 @@ jetstream {
   store_dir: "$(cd "$DIR/nats" && pwd)"
 }
 CONF
-    "$(nats_bin)" -c "$DIR/nats.conf" >"$DIR/nats.log" 2>&1 &
+    "$(nats_bin)" -c "$DIR/nats.conf" >>"$DIR/nats.log" 2>&1 &
     echo $! > "$DIR/nats.pid"
     for _ in $(seq 100); do
       (exec 3<>"/dev/tcp/127.0.0.1/$PORT") 2>/dev/null && break

@@ -25,6 +25,15 @@ SECRET=${AWS_SECRET_ACCESS_KEY:-neuvolex-secret}
 # Pinned: s3s-fs 0.14.1 is the newest release that builds with the workspace's Rust (1.95).
 VERSION=0.14.1
 
+# True if the process in pid file $1 runs (a killed one not yet reaped, a zombie, does not).
+running() {
+  [ -f "$1" ] || return 1
+  local p
+  p=$(cat "$1")
+  kill -0 "$p" 2>/dev/null || return 1
+  ! grep -q '^State:[[:space:]]*Z' "/proc/$p/status" 2>/dev/null
+}
+
 install() {
   if [ -x "$BIN" ] && "$BIN" --version 2>/dev/null | grep -q "$VERSION"; then
     return 0
@@ -50,7 +59,7 @@ start() {
   install
   local data=${1:-$STATE/data}
   mkdir -p "$data/$BUCKET" "$STATE"
-  if [ -f "$STATE/pid" ] && kill -0 "$(cat "$STATE/pid")" 2>/dev/null; then
+  if running "$STATE/pid"; then
     print_env
     return 0
   fi
@@ -63,7 +72,7 @@ start() {
       print_env
       return 0
     fi
-    if ! kill -0 "$(cat "$STATE/pid")" 2>/dev/null; then
+    if ! running "$STATE/pid"; then
       echo "s3s-fs exited: $(tail -5 "$STATE/server.log")" >&2
       exit 1
     fi

@@ -1280,6 +1280,23 @@ impl LocalCluster {
 
 impl Drop for LocalCluster {
     fn drop(&mut self) {
+        if std::thread::panicking() {
+            // What the servers and workers said, for the failure's report.
+            for f in [
+                "nats.log",
+                "s3/server.log",
+                "worker-1.log",
+                "worker-2.log",
+                "worker-3.log",
+            ] {
+                let text = std::fs::read_to_string(self.dir.join(f)).unwrap_or_default();
+                let tail: Vec<&str> = text.lines().rev().take(15).collect();
+                eprintln!("--- {f} (last lines)");
+                for l in tail.iter().rev() {
+                    eprintln!("{l}");
+                }
+            }
+        }
         let _ = Command::new(workspace_root().join("deploy/cluster.sh"))
             .arg("stop")
             .env("NVX_CLUSTER_DIR", &self.dir)
@@ -1420,8 +1437,22 @@ fn done_means_abdomen_ct_on_s3_and_three_workers_equals_one_process() {
         cl.kill9("worker-1");
     });
     assert!(r["run"]["redeliveries"].as_u64().unwrap() >= 1, "{r}");
-    cl.script("start"); // the killed worker comes back
-                        // nats-server killed mid-run and started again on its JetStream store.
+    // `deploy/cluster.sh start` again brings the killed worker back.
+    cl.script("start");
+    let t = Instant::now();
+    let serving = || {
+        std::fs::read_to_string(cl.dir.join("worker-1.log"))
+            .map(|l| l.matches("serving tasks").count())
+            .unwrap_or(0)
+    };
+    while serving() < 2 {
+        assert!(
+            t.elapsed() < Duration::from_secs(20),
+            "worker 1 did not come back"
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    // nats-server killed mid-run and started again on its JetStream store.
     case("restarted", &|| {
         let before: usize = (1..=3).map(|i| cl.started(i)).sum();
         let t = Instant::now();

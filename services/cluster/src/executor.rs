@@ -195,8 +195,10 @@ impl ClusterExecutor {
                 .await
                 .map_err(|x| js("result stream", x))?;
         let mut results = open_results(&result_stream, &run, 1).await?;
-        // The last result read (stream sequence), to reopen the results after a server restart.
+        // The last result read (stream sequence), to reopen the results after a server restart,
+        // and how many were read.
         let mut last_result = 0u64;
+        let mut results_read = 0u64;
         let mut advisories = e
             .client
             .subscribe(format!(
@@ -257,6 +259,7 @@ impl ClusterExecutor {
                         if let Ok(i) = m.info() {
                             last_result = last_result.max(i.stream_sequence);
                         }
+                        results_read += 1;
                         let m: async_nats::Message = m.into();
                         report.queue_bytes += m.payload.len() as u64;
                         let Some(idx) = header(&m, h::TASK).and_then(|v| v.parse::<u32>().ok()) else { continue };
@@ -373,6 +376,17 @@ impl ClusterExecutor {
                                     short = Some((Instant::now(), resolved.len()));
                                 } else if since.elapsed() > LOST_GRACE {
                                     short = None;
+                                    // Unread results first: a reader stalled by a server restart
+                                    // is reopened (those tasks were not lost).
+                                    let stored = queued(&result_stream, &engine::result_subject(&run)).await;
+                                    if stored.is_none_or(|n| n > results_read) {
+                                        tracing::warn!("results: {} stored, {results_read} read; reopening the reader", stored.map_or("?".into(), |n| n.to_string()));
+                                        match open_results(&result_stream, &run, last_result + 1).await {
+                                            Ok(r) => results = r,
+                                            Err(x) => tracing::warn!("results: {x} (retrying)"),
+                                        }
+                                        continue;
+                                    }
                                     let mut lost = Vec::new();
                                     for (&i, t) in &by_index {
                                         if resolved.contains_key(&i) {
@@ -548,7 +562,7 @@ async fn open_results(
         .map_err(|x| js("results consumer", x))
 }
 
-/// Messages of `subject` in the task stream (`None` if the server did not say).
+/// Messages of `subject` in `stream` (`None` if the server did not say).
 async fn queued(stream: &async_nats::jetstream::stream::Stream, subject: &str) -> Option<u64> {
     let mut info = stream.info_with_subjects(subject).await.ok()?;
     let mut n = 0u64;
