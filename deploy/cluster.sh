@@ -41,14 +41,9 @@ need_nats() {
 
 nats_bin() { command -v nats-server 2>/dev/null || echo /usr/sbin/nats-server; }
 
-# A process that was killed but not yet reaped (a zombie) counts as gone.
-alive() {
-  [ -f "$1" ] || return 1
-  local p
-  p=$(cat "$1")
-  kill -0 "$p" 2>/dev/null || return 1
-  ! grep -q '^State:[[:space:]]*Z' "/proc/$p/status" 2>/dev/null
-}
+# shellcheck source=deploy/proc.sh
+. deploy/proc.sh
+alive() { running "$1"; }
 
 case "$cmd" in
 start)

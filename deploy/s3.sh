@@ -25,14 +25,8 @@ SECRET=${AWS_SECRET_ACCESS_KEY:-neuvolex-secret}
 # Pinned: s3s-fs 0.14.1 is the newest release that builds with the workspace's Rust (1.95).
 VERSION=0.14.1
 
-# True if the process in pid file $1 runs (a killed one not yet reaped, a zombie, does not).
-running() {
-  [ -f "$1" ] || return 1
-  local p
-  p=$(cat "$1")
-  kill -0 "$p" 2>/dev/null || return 1
-  ! grep -q '^State:[[:space:]]*Z' "/proc/$p/status" 2>/dev/null
-}
+# shellcheck source=deploy/proc.sh
+. deploy/proc.sh
 
 install() {
   if [ -x "$BIN" ] && "$BIN" --version 2>/dev/null | grep -q "$VERSION"; then

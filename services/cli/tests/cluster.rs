@@ -1,12 +1,14 @@
 //! The cluster: `neuvolex classify --cluster` on real NATS JetStream (Debian's nats-server)
 //! with several `neuvolex worker` processes, against `neuvolex classify` in one process, and
-//! the faults a cluster meets: a worker killed mid-task, a worker's link cut for longer than
-//! AckWait (network namespaces), the NATS server restarted, the coordinator killed and re-run,
-//! a poisoned brick, and unreachable or unauthorised servers. After every fault the result is
-//! compared with the single-process result bit for bit.
+//! the faults a cluster meets: a worker killed mid-task (classification, feature extraction, a
+//! k-means pass), a worker's link cut for longer than AckWait (network namespaces), the NATS
+//! server restarted, the coordinator killed and re-run, a poisoned brick, a task that kills
+//! every worker it reaches, and unreachable or unauthorised servers. The "done means"
+//! runs through `deploy/cluster.sh` with s3s-fs and the abdomen CT. After every fault the result
+//! is compared with the single-process result bit for bit.
 //!
-//! Without nats-server (or, for the link test, root and `ip netns`) the tests print SKIP; under
-//! `CI=true` that is a failure.
+//! Without nats-server, s3s-fs, the real data (or, for the link test, root and `ip netns`) the
+//! tests print SKIP; under `CI=true` that is a failure.
 
 use neuvolex_tests::{free_port, nats_server_binary as nats_server, skip, NatsServer as Nats};
 use std::io::{BufRead, BufReader};

@@ -13,13 +13,8 @@ use support::{
     data_root, event_stream, http, numbers_as_f64, phantom_strokes, wait_end, wait_event, Server,
 };
 
-#[test]
-fn sigterm_stops_a_training_server_within_two_seconds_and_keeps_complete_state() {
-    let d = tempfile::tempdir().unwrap();
-    let data = data_root(d.path());
-    let mut srv = Server::start(d.path(), &data, &[], &[]);
-    let a = &srv.addr.clone();
-    let streams: Vec<_> = (0..3).map(|_| event_stream(a)).collect();
+/// A session on the phantom with its strokes (which start a classification); its id.
+fn session_with_strokes(a: &str) -> String {
     let (st, body) = http(
         a,
         "POST",
@@ -40,6 +35,17 @@ fn sigterm_stops_a_training_server_within_two_seconds_and_keeps_complete_state()
         Some(&phantom_strokes()),
     );
     assert_eq!(st, 202);
+    id
+}
+
+#[test]
+fn sigterm_stops_a_training_server_within_two_seconds_and_keeps_complete_state() {
+    let d = tempfile::tempdir().unwrap();
+    let data = data_root(d.path());
+    let mut srv = Server::start(d.path(), &data, &[], &[]);
+    let a = &srv.addr.clone();
+    let streams: Vec<_> = (0..3).map(|_| event_stream(a)).collect();
+    let id = session_with_strokes(a);
     let (st, body) = http(
         a,
         "POST",
@@ -235,26 +241,7 @@ fn serve_with_cluster_classifies_on_the_workers() {
     let srv = Server::start(d.path(), &data, &["--cluster", &url], &[]);
     let a = &srv.addr.clone();
     let ev = event_stream(a);
-    let (st, body) = http(
-        a,
-        "POST",
-        "/api/sessions",
-        &[],
-        Some(&json!({"volume": "phantom.zarr"})),
-    );
-    assert_eq!(st, 201, "{body}");
-    let id = serde_json::from_str::<Value>(&body).unwrap()["id"]
-        .as_str()
-        .unwrap()
-        .to_string();
-    let (st, _) = http(
-        a,
-        "PUT",
-        &format!("/api/sessions/{id}/strokes"),
-        &[],
-        Some(&phantom_strokes()),
-    );
-    assert_eq!(st, 202);
+    session_with_strokes(a);
     // The strokes start a classification; it finishes without error, on the workers.
     let t = Instant::now();
     let done = loop {

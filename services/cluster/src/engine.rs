@@ -155,9 +155,13 @@ impl Engine {
             match tokio::time::timeout(limit, e.ensure()).await {
                 Err(_) => return Err(bad("JetStream did not answer in time".into())),
                 Ok(Ok(())) => return Ok(e),
-                // A server that has just started listens a moment before JetStream answers.
+                // A server that has just started listens a moment before JetStream answers; and
+                // of processes that create the streams at once, all but one are told the
+                // subjects overlap (the next look finds the stream).
                 Ok(Err(x))
-                    if x.to_string().contains(NOT_ENABLED)
+                    if (x.to_string().contains(NOT_ENABLED)
+                        || x.to_string().contains("overlap")
+                        || x.to_string().contains("already in use"))
                         && t0.elapsed() < Duration::from_secs(5) =>
                 {
                     tokio::time::sleep(Duration::from_millis(250)).await;
