@@ -6,41 +6,27 @@
 //! overhead per task (the worker's fetch, decode, result publish and ack around the work), bytes
 //! through the queue and written to the store.
 //!
+//! Bytes through the store are the store layer's counters (`neuvolex_bricks::store_io`), summed
+//! over the tasks wherever they ran. The queue's own cost is measured first, with tasks that do
+//! no work: publish, delivery, result and ack per task (`R_q`, tasks per second).
+//!
 //! `cargo bench -p neuvolex-benches --bench cluster` (needs nats-server, which
 //! deploy/test.sh or deploy/cluster.sh install). `NEUVOLEX_BENCH_BIG=0` skips the large volume.
 //! Workers are this binary re-executed with `--worker`, one process each. Results also go to
 //! `benches/results/cluster.json`. `NEUVOLEX_BENCH_WORKERS=1,2` picks the worker counts
-//! (default 1,2,4).
+//! (default 1,2,4). `NEUVOLEX_BENCH_S3=1` puts the stores on an S3 server (s3s-fs from
+//! `deploy/s3.sh install`, on loopback) instead of the local file system.
 
 use neuvolex_bricks::{BrickStore, IngestOptions};
 use neuvolex_classify::pipeline::{classify, ClassifyRequest, FeatureSpec, OpenedFeatures};
 use neuvolex_classify::{ClassifyConfig, FeatureSet};
 use neuvolex_cluster::{ClusterExecutor, EngineConfig, WorkerOptions};
-use neuvolex_tasks::{Executor, LocalExecutor, RunReport};
+use neuvolex_tasks::{plan, DynStage, Executor, LocalExecutor, RunReport, Stage, Task, TaskCtx};
 use neuvolex_viewpoints::distributed::recommend_on;
 use neuvolex_viewpoints::{KMeansConfig, RecommendConfig};
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
-
-fn dir_bytes(p: &Path) -> u64 {
-    let mut n = 0;
-    let mut stack = vec![p.to_path_buf()];
-    while let Some(d) = stack.pop() {
-        for e in std::fs::read_dir(&d).into_iter().flatten().flatten() {
-            let m = match e.metadata() {
-                Ok(m) => m,
-                Err(_) => continue,
-            };
-            if m.is_dir() {
-                stack.push(e.path());
-            } else {
-                n += m.len();
-            }
-        }
-    }
-    n
-}
 
 struct Workers(Vec<Child>);
 
@@ -82,10 +68,13 @@ struct Row {
     queue_ms_per_task: f64,
     queue_share: f64,
     queue_bytes: u64,
+    /// Bytes the stage's tasks read from the store.
+    store_read: u64,
+    /// Bytes the stage's tasks wrote to the store.
     store_written: u64,
 }
 
-fn row(volume: &str, stage: &str, workers: usize, r: &RunReport, wall: f64, written: u64) -> Row {
+fn row(volume: &str, stage: &str, workers: usize, r: &RunReport, wall: f64) -> Row {
     let n = r.completed.max(1) as f64;
     let w = r.work_seconds / n;
     let q = r.queue_seconds / n;
@@ -99,10 +88,11 @@ fn row(volume: &str, stage: &str, workers: usize, r: &RunReport, wall: f64, writ
         queue_ms_per_task: q * 1e3,
         queue_share: if w > 0.0 { q / w } else { 0.0 },
         queue_bytes: r.queue_bytes,
-        store_written: written,
+        store_read: r.store_read_bytes,
+        store_written: r.store_written_bytes,
     };
     println!(
-        "| {} | {} | {} | {} | {:.2} | {:.1} | {:.2} ({:.1}%) | {:.2} | {:.1} |",
+        "| {} | {} | {} | {} | {:.2} | {:.1} | {:.2} ({:.1}%) | {:.2} | {:.1} | {:.1} |",
         row.volume,
         row.stage,
         if workers == 0 {
@@ -116,6 +106,7 @@ fn row(volume: &str, stage: &str, workers: usize, r: &RunReport, wall: f64, writ
         row.queue_ms_per_task,
         100.0 * row.queue_share,
         row.queue_bytes as f64 / 1e6,
+        row.store_read as f64 / 1e6,
         row.store_written as f64 / 1e6,
     );
     row
@@ -130,7 +121,7 @@ fn ingest_stage<E: Executor>(
     store: &Path,
     rows: &mut Vec<Row>,
 ) {
-    let out = store.with_extension("ingest.zarr");
+    let out = PathBuf::from(format!("{}.ingest.zarr", store.display()));
     let t = Instant::now();
     let (_, r) = neuvolex_ingest::ingest_on(
         exec,
@@ -147,7 +138,7 @@ fn ingest_stage<E: Executor>(
     )
     .expect("ingest");
     let wall = t.elapsed().as_secs_f64();
-    rows.push(row(volume, "ingest", workers, &r, wall, dir_bytes(&out)));
+    rows.push(row(volume, "ingest", workers, &r, wall));
     let _ = std::fs::remove_dir_all(&out);
 }
 
@@ -193,16 +184,7 @@ fn stages<E: Executor>(
     let o = classify(&req, exec, &mut |_| {}).expect("classify");
     let wall =
         t.elapsed().as_secs_f64() - o.report.seconds_training_features - o.report.seconds_fit;
-    let written = dir_bytes(&store.join("neuvolex/vectors/classes_proba"))
-        + dir_bytes(&store.join("neuvolex/vectors/classes_labels"));
-    rows.push(row(
-        volume,
-        "classify",
-        workers,
-        &o.report.run,
-        wall,
-        written,
-    ));
+    rows.push(row(volume, "classify", workers, &o.report.run, wall));
     // Feature extraction (the INR's 64-D hidden layer).
     if features {
         let s = BrickStore::open(store).expect("store");
@@ -222,14 +204,7 @@ fn stages<E: Executor>(
         )
         .expect("features");
         let wall = t.elapsed().as_secs_f64();
-        rows.push(row(
-            volume,
-            "features",
-            workers,
-            &r,
-            wall,
-            dir_bytes(&store.join("neuvolex/vectors/inr_hidden")),
-        ));
+        rows.push(row(volume, "features", workers, &r, wall));
     }
     // Lloyd k-means (k = 16, 10 iterations) and the view partials, on local features (both
     // volumes: on the large one the adaptive batching is not capped by the brick count).
@@ -258,8 +233,50 @@ fn stages<E: Executor>(
         workers,
         &r,
         t.elapsed().as_secs_f64(),
-        0,
     ));
+}
+
+/// A stage that does nothing: its tasks measure the queue alone.
+struct Noop;
+
+const NOOP: &str = "bench-noop";
+
+impl Stage for Noop {
+    type Output = u32;
+    fn name(&self) -> &'static str {
+        NOOP
+    }
+    fn params(&self) -> serde_json::Value {
+        serde_json::Value::Null
+    }
+    fn run(&self, task: &Task, _: &TaskCtx<'_>) -> neuvolex_tasks::Result<u32> {
+        Ok(task.index)
+    }
+}
+
+fn noop_build(
+    _: &serde_json::Value,
+    _: &dyn neuvolex_tasks::Blobs,
+) -> neuvolex_tasks::Result<std::sync::Arc<dyn DynStage>> {
+    Ok(std::sync::Arc::new(Noop))
+}
+
+/// The queue's cost per task: `n` tasks without work through the coordinator and the workers
+/// (publish, pull, result stored, ack, coordinator decode), three times; prints R_q.
+fn queue_rows<E: Executor>(exec: &E, workers: usize, n: usize, rows: &mut Vec<Row>) {
+    let bricks: Vec<[usize; 3]> = (0..n).map(|i| [i, 0, 0]).collect();
+    let tasks = plan(&bricks, 1, 0);
+    for _ in 0..3 {
+        let t = Instant::now();
+        let r = exec.execute(&Noop, &tasks, &mut |_| {}).expect("noop run");
+        let wall = t.elapsed().as_secs_f64();
+        assert_eq!(r.completed, n);
+        eprintln!(
+            "queue: {n} empty tasks on {workers} workers in {wall:.2} s: R_q = {:.0} tasks/s",
+            n as f64 / wall
+        );
+        rows.push(row("none", "queue (empty tasks)", workers, &r, wall));
+    }
 }
 
 fn main() {
@@ -271,7 +288,7 @@ fn main() {
             .build_global();
         let _ = neuvolex_cluster::serve(
             EngineConfig::new(&args[2]),
-            neuvolex_cluster::standard_registry(),
+            neuvolex_cluster::standard_registry().with(NOOP, noop_build),
             WorkerOptions {
                 name: args.get(3).cloned(),
                 ..Default::default()
@@ -283,34 +300,37 @@ fn main() {
     if args.iter().any(|a| a == "--list" || a == "--test") {
         return;
     }
-    let Some(nats) = ["/usr/sbin/nats-server", "/usr/bin/nats-server"]
-        .iter()
-        .map(PathBuf::from)
-        .find(|p| p.exists())
-    else {
-        eprintln!("SKIP: nats-server is not installed");
+    let tmp = tempfile::tempdir().expect("tmp");
+    let Some(nats) = neuvolex_tests::NatsServer::start(tmp.path(), "127.0.0.1", &[]) else {
         return;
     };
-    let tmp = tempfile::tempdir().expect("tmp");
-    let port = std::net::TcpListener::bind("127.0.0.1:0")
-        .and_then(|l| l.local_addr())
-        .map(|a| a.port())
-        .expect("port");
-    let mut server = Command::new(nats)
-        .args(["-js", "-sd"])
-        .arg(tmp.path().join("nats"))
-        .args(["-a", "127.0.0.1", "-p", &port.to_string()])
-        .stdout(Stdio::null())
-        .stderr(Stdio::null())
-        .spawn()
-        .expect("nats-server");
-    std::thread::sleep(Duration::from_millis(500));
-    let url = format!("nats://127.0.0.1:{port}");
+    let url = nats.url();
     println!("machine: {}", neuvolex_benches::machine());
+    // Stores on an S3 server instead of the local file system: the workers inherit the AWS_*
+    // environment set here.
+    let s3 = if std::env::var("NEUVOLEX_BENCH_S3").is_ok_and(|v| v == "1") {
+        let Some(s3) = neuvolex_tests::S3Server::start() else {
+            eprintln!("SKIP: NEUVOLEX_BENCH_S3=1 needs s3s-fs (deploy/s3.sh install)");
+            return;
+        };
+        for (k, v) in s3.env() {
+            std::env::set_var(k, v);
+        }
+        println!("stores on s3s-fs at {} (bucket test)", s3.endpoint);
+        Some(s3)
+    } else {
+        None
+    };
+    let root = |name: &str| -> PathBuf {
+        match &s3 {
+            Some(_) => PathBuf::from(format!("s3://test/{name}")),
+            None => tmp.path().join(name),
+        }
+    };
     println!(
-        "\n| volume | stage | workers | tasks | wall s | work ms/task | queue ms/task (share) | queue MB | store written MB |"
+        "\n| volume | stage | workers | tasks | wall s | work ms/task | queue ms/task (share) | queue MB | store read MB | store written MB |"
     );
-    println!("|---|---|---|---|---|---|---|---|---|");
+    println!("|---|---|---|---|---|---|---|---|---|---|");
     // (name, store, scribbles, features, big, source file for the ingest stage)
     type Vol = (String, PathBuf, PathBuf, bool, bool, PathBuf);
     let mut vols: Vec<Vol> = Vec::new();
@@ -318,7 +338,7 @@ fn main() {
         neuvolex_benches::shared("abdomen_ct/ct.nii.gz"),
         neuvolex_benches::shared("abdomen_ct/labels.nii.gz"),
     ) {
-        let p = tmp.path().join("abdomen.zarr");
+        let p = root("abdomen.zarr");
         let mut src = neuvolex_bricks::open_volume(&ct, None).expect("ct");
         neuvolex_bricks::ingest(src.as_mut(), &p, &IngestOptions::default(), &mut |_| {})
             .expect("ingest");
@@ -335,11 +355,13 @@ fn main() {
             ct.clone(),
         ));
     }
-    if std::env::var("NEUVOLEX_BENCH_BIG")
-        .map(|v| v != "0")
-        .unwrap_or(true)
+    // The large volume stays on the local file system (S3 mode measures the abdomen).
+    if s3.is_none()
+        && std::env::var("NEUVOLEX_BENCH_BIG")
+            .map(|v| v != "0")
+            .unwrap_or(true)
     {
-        let p = tmp.path().join("big.zarr");
+        let p = root("big.zarr");
         let params = neuvolex_bricks::synth::PhantomParams {
             dims: [512, 512, 452],
             ..neuvolex_bricks::synth::PhantomParams::with_size(512, 0)
@@ -373,6 +395,15 @@ fn main() {
         .filter(|v: &Vec<usize>| !v.is_empty())
         .unwrap_or_else(|| vec![1, 2, 4]);
     let mut rows = Vec::new();
+    let queue_tasks: usize = std::env::var("NEUVOLEX_BENCH_QUEUE_TASKS")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(2000);
+    for &w in &counts {
+        let _ws = start_workers(&url, w);
+        let ex = ClusterExecutor::connect(EngineConfig::new(&url)).expect("connect");
+        queue_rows(&ex, w, queue_tasks, &mut rows);
+    }
     for (name, store, scr, features, big, source) in &vols {
         let local = LocalExecutor::new();
         ingest_stage(&local, 0, name, source, store, &mut rows);
@@ -384,14 +415,15 @@ fn main() {
             stages(&ex, w, name, store, scr, *features, *big, &mut rows);
         }
     }
-    let _ = server.kill();
-    let _ = server.wait();
+    drop(nats);
     let out = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("results/cluster.json");
     let _ = std::fs::write(
         &out,
-        serde_json::to_string_pretty(
-            &serde_json::json!({"machine": neuvolex_benches::machine(), "rows": rows}),
-        )
+        serde_json::to_string_pretty(&serde_json::json!({
+            "machine": neuvolex_benches::machine(),
+            "store": if s3.is_some() { "s3s-fs on loopback" } else { "local file system" },
+            "rows": rows,
+        }))
         .unwrap_or_default(),
     );
     println!("\nresults: {}", out.display());

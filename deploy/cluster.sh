@@ -11,14 +11,21 @@
 #
 # or, on the S3 server: source out/cluster/s3.env, then STORE=s3://neuvolex/NAME.zarr.
 #
-# Settings: NVX_CLUSTER_DIR (default out/cluster: logs, pids, the JetStream store),
-# NVX_NATS_PORT (4222), NVX_WORKER_THREADS (threads per worker; default cores / N, at least 1).
+# Settings: NVX_CLUSTER_DIR (default out/cluster: logs, pids, the JetStream store, the S3
+# server's state and data in s3/), NVX_NATS_PORT (4222), NEUVOLEX_S3_PORT (8014),
+# NVX_WORKER_THREADS (threads per worker; default cores / N, at least 1), NVX_WORKER_ARGS (more
+# `neuvolex worker` arguments, e.g. "--ack-wait 10"), NVX_BIN (default target/release/neuvolex).
+# `start` again restarts whatever died (the server on its port and JetStream store, workers).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 DIR=${NVX_CLUSTER_DIR:-out/cluster}
+mkdir -p "$DIR"
+DIR=$(cd "$DIR" && pwd)
 PORT=${NVX_NATS_PORT:-4222}
 URL="nats://127.0.0.1:$PORT"
-BIN=target/release/neuvolex
+BIN=${NVX_BIN:-target/release/neuvolex}
+# The S3 server's pid, log and data live with the cluster.
+export NEUVOLEX_S3_STATE="$DIR/s3"
 cmd=${1:-start}
 n=${2:-3}
 
@@ -34,7 +41,9 @@ need_nats() {
 
 nats_bin() { command -v nats-server 2>/dev/null || echo /usr/sbin/nats-server; }
 
-alive() { [ -f "$1" ] && kill -0 "$(cat "$1")" 2>/dev/null; }
+# shellcheck source=deploy/proc.sh
+. deploy/proc.sh
+alive() { running "$1"; }
 
 case "$cmd" in
 start)
@@ -50,7 +59,7 @@ jetstream {
   store_dir: "$(cd "$DIR/nats" && pwd)"
 }
 CONF
-    "$(nats_bin)" -c "$DIR/nats.conf" >"$DIR/nats.log" 2>&1 &
+    "$(nats_bin)" -c "$DIR/nats.conf" >>"$DIR/nats.log" 2>&1 &
     echo $! > "$DIR/nats.pid"
     for _ in $(seq 100); do
       (exec 3<>"/dev/tcp/127.0.0.1/$PORT") 2>/dev/null && break
@@ -72,8 +81,9 @@ CONF
   for i in $(seq 1 "$n"); do
     pid="$DIR/worker-$i.pid"
     alive "$pid" && continue
-    "$BIN" worker --nats "$URL" --name "w$i" --threads "$threads" --quiet \
-      >"$DIR/worker-$i.log" 2>&1 &
+    # shellcheck disable=SC2086 # NVX_WORKER_ARGS is a list of arguments
+    "$BIN" worker --nats "$URL" --name "w$i" --threads "$threads" --quiet ${NVX_WORKER_ARGS:-} \
+      >>"$DIR/worker-$i.log" 2>&1 &
     echo $! > "$pid"
   done
   echo "$n workers ($threads threads each), logs $DIR/worker-*.log"

@@ -9,20 +9,24 @@
 #   deploy/s3.sh mb BUCKET        create a bucket (a folder of the data directory)
 #
 # Settings: NEUVOLEX_S3_PORT (default 8014), NEUVOLEX_S3_BUCKET (default neuvolex, created on
-# start), AWS_ACCESS_KEY_ID / AWS_SECRET_ACCESS_KEY (default neuvolex / neuvolex-secret).
+# start), AWS_ACCESS_KEY_ID / AWS_SECRET_ACCESS_KEY (default neuvolex / neuvolex-secret),
+# NEUVOLEX_S3_STATE (default target/s3: pid, log, and the data directory `data`).
 # Nothing is downloaded at run time: `install` uses cargo and the crates.io registry only.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 ROOT=$(pwd)
 TOOLS="$ROOT/target/tools"
 BIN="$TOOLS/bin/s3s-fs"
-STATE="$ROOT/target/s3"
+STATE=${NEUVOLEX_S3_STATE:-$ROOT/target/s3}
 PORT=${NEUVOLEX_S3_PORT:-8014}
 BUCKET=${NEUVOLEX_S3_BUCKET:-neuvolex}
 KEY=${AWS_ACCESS_KEY_ID:-neuvolex}
 SECRET=${AWS_SECRET_ACCESS_KEY:-neuvolex-secret}
 # Pinned: s3s-fs 0.14.1 is the newest release that builds with the workspace's Rust (1.95).
 VERSION=0.14.1
+
+# shellcheck source=deploy/proc.sh
+. deploy/proc.sh
 
 install() {
   if [ -x "$BIN" ] && "$BIN" --version 2>/dev/null | grep -q "$VERSION"; then
@@ -49,7 +53,7 @@ start() {
   install
   local data=${1:-$STATE/data}
   mkdir -p "$data/$BUCKET" "$STATE"
-  if [ -f "$STATE/pid" ] && kill -0 "$(cat "$STATE/pid")" 2>/dev/null; then
+  if running "$STATE/pid"; then
     print_env
     return 0
   fi
@@ -62,7 +66,7 @@ start() {
       print_env
       return 0
     fi
-    if ! kill -0 "$(cat "$STATE/pid")" 2>/dev/null; then
+    if ! running "$STATE/pid"; then
       echo "s3s-fs exited: $(tail -5 "$STATE/server.log")" >&2
       exit 1
     fi
@@ -85,5 +89,5 @@ case "${1:-}" in
   stop) stop ;;
   env) print_env ;;
   mb) mkdir -p "$STATE/data/${2:?bucket name}" ;;
-  *) sed -n '2,14p' "$0"; exit 2 ;;
+  *) sed -n '2,15p' "$0"; exit 2 ;;
 esac

@@ -6,8 +6,18 @@
 # The GPU test needs a Vulkan driver; on a machine without a GPU, Mesa's lavapipe (a software
 # Vulkan) serves, so this installs it where it is missing and apt is usable. Without any adapter
 # the GPU test skips (and fails under CI=true).
+# Under CI=true nothing a test needs may be missing: a tool that cannot be installed ends the
+# run here, with its name, instead of tests skipping (they fail under CI=true anyway, later and
+# less clearly).
 set -euo pipefail
 cd "$(dirname "$0")/.."
+missing() {
+  if [ "${CI:-}" = "true" ]; then
+    echo "deploy/test.sh: $1 (required under CI=true)" >&2
+    exit 1
+  fi
+  echo "$1: $2 will skip"
+}
 if ! ls /usr/share/vulkan/icd.d/*.json >/dev/null 2>&1; then
   SUDO=""
   [ "$(id -u)" -ne 0 ] && command -v sudo >/dev/null 2>&1 && SUDO="sudo -n"
@@ -15,7 +25,7 @@ if ! ls /usr/share/vulkan/icd.d/*.json >/dev/null 2>&1; then
     echo "installing a software Vulkan driver (mesa-vulkan-drivers, libvulkan1) for the GPU tests"
     $SUDO apt-get install -y -q mesa-vulkan-drivers libvulkan1 >/dev/null 2>&1 ||
       { $SUDO apt-get update -q >/dev/null 2>&1 && $SUDO apt-get install -y -q mesa-vulkan-drivers libvulkan1 >/dev/null 2>&1; } ||
-      echo "could not install a Vulkan driver: the GPU renderer test will skip"
+      missing "could not install a Vulkan driver" "the GPU tests"
   fi
 fi
 # The browser test: Debian's chromium and playwright-core (no browser download).
@@ -25,17 +35,17 @@ if ! [ -x /usr/bin/chromium ] && command -v apt-get >/dev/null 2>&1; then
   echo "installing chromium for the browser test"
   $SUDO apt-get install -y -q chromium >/dev/null 2>&1 ||
     { $SUDO apt-get update -q >/dev/null 2>&1 && $SUDO apt-get install -y -q chromium >/dev/null 2>&1; } ||
-    echo "could not install chromium: the browser test will skip"
+    missing "could not install chromium" "the browser test"
 fi
 if command -v npm >/dev/null 2>&1 && ! [ -d target/e2e/node_modules/playwright-core ]; then
   mkdir -p target/e2e
   (cd target/e2e && { [ -f package.json ] || npm init -y >/dev/null 2>&1; } && npm install --silent --no-audit --no-fund playwright-core@1 >/dev/null 2>&1) ||
-    echo "could not install playwright-core: the browser test will skip"
+    missing "could not install playwright-core" "the browser test"
 fi
 # The object-store tests: s3s-fs (a real S3 server over a directory, from crates.io), built once
 # into target/tools; each S3 test starts its own on a loopback port. Without it they skip (and
 # fail under CI=true).
-./deploy/s3.sh install >/dev/null || echo "could not build s3s-fs: the S3 tests will skip"
+./deploy/s3.sh install >/dev/null || missing "could not build s3s-fs" "the S3 tests"
 # The cluster tests: Debian's nats-server (JetStream) where missing.
 if ! command -v nats-server >/dev/null 2>&1 && ! [ -x /usr/sbin/nats-server ] && command -v apt-get >/dev/null 2>&1; then
   SUDO=""
@@ -43,6 +53,9 @@ if ! command -v nats-server >/dev/null 2>&1 && ! [ -x /usr/sbin/nats-server ] &&
   echo "installing nats-server for the cluster tests"
   $SUDO apt-get install -y -q nats-server >/dev/null 2>&1 ||
     { $SUDO apt-get update -q >/dev/null 2>&1 && $SUDO apt-get install -y -q nats-server >/dev/null 2>&1; } ||
-    echo "could not install nats-server: the cluster tests will skip"
+    echo "could not install nats-server"
+fi
+if ! command -v nats-server >/dev/null 2>&1 && ! [ -x /usr/sbin/nats-server ]; then
+  missing "nats-server is not installed" "the cluster tests"
 fi
 exec cargo test --workspace --release --features neuvolex-tests/gpu,neuvolex/gpu "$@"

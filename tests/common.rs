@@ -110,6 +110,111 @@ pub struct S3Server {
     pub dir: tempfile::TempDir,
 }
 
+/// True under `CI=true`.
+pub fn ci() -> bool {
+    std::env::var("CI").map(|v| v == "true").unwrap_or(false)
+}
+
+/// Prints `SKIP: why` (a test that cannot run here); under `CI=true` it panics instead.
+pub fn skip(why: &str) {
+    if ci() {
+        panic!("required under CI=true: {why}");
+    }
+    eprintln!("SKIP: {why}");
+}
+
+/// A free TCP port on 127.0.0.1.
+pub fn free_port() -> u16 {
+    std::net::TcpListener::bind("127.0.0.1:0")
+        .and_then(|l| l.local_addr())
+        .map(|a| a.port())
+        .expect("free port")
+}
+
+/// Debian's nats-server, if installed.
+pub fn nats_server_binary() -> Option<PathBuf> {
+    [
+        "/usr/sbin/nats-server",
+        "/usr/bin/nats-server",
+        "/usr/local/bin/nats-server",
+    ]
+    .iter()
+    .map(PathBuf::from)
+    .find(|p| p.exists())
+}
+
+/// A nats-server with JetStream on a store directory, on a free port; killed on drop.
+pub struct NatsServer {
+    child: Option<std::process::Child>,
+    bin: PathBuf,
+    dir: PathBuf,
+    /// The address it listens on.
+    pub host: String,
+    /// Its port.
+    pub port: u16,
+    extra: Vec<String>,
+}
+
+impl NatsServer {
+    /// Starts it on `host` with its JetStream store in `dir/nats` and `extra` arguments. Where
+    /// nats-server is not installed it prints `SKIP` and returns `None` (under `CI=true`, a
+    /// failure; deploy/test.sh installs it).
+    pub fn start(dir: &std::path::Path, host: &str, extra: &[&str]) -> Option<NatsServer> {
+        let Some(bin) = nats_server_binary() else {
+            skip("nats-server is not installed (deploy/test.sh installs it)");
+            return None;
+        };
+        let mut n = NatsServer {
+            child: None,
+            bin,
+            dir: dir.join("nats"),
+            host: host.into(),
+            port: free_port(),
+            extra: extra.iter().map(|s| s.to_string()).collect(),
+        };
+        n.spawn();
+        Some(n)
+    }
+
+    /// Starts the process (again, after [`NatsServer::stop`]: same port and store).
+    pub fn spawn(&mut self) {
+        let child = std::process::Command::new(&self.bin)
+            .args(["-js", "-sd"])
+            .arg(&self.dir)
+            .args(["-a", &self.host, "-p", &self.port.to_string()])
+            .args(&self.extra)
+            .stdout(std::process::Stdio::null())
+            .stderr(std::process::Stdio::null())
+            .spawn()
+            .expect("start nats-server");
+        self.child = Some(child);
+        let t = std::time::Instant::now();
+        while std::net::TcpStream::connect((self.host.as_str(), self.port)).is_err() {
+            assert!(t.elapsed().as_secs() < 20, "nats-server did not start");
+            std::thread::sleep(std::time::Duration::from_millis(50));
+        }
+    }
+
+    /// `nats://HOST:PORT`.
+    pub fn url(&self) -> String {
+        format!("nats://{}:{}", self.host, self.port)
+    }
+
+    /// Kills the process.
+    pub fn stop(&mut self) {
+        if let Some(mut c) = self.child.take() {
+            let _ = c.kill();
+            let _ = c.wait();
+        }
+    }
+}
+
+impl Drop for NatsServer {
+    fn drop(&mut self) {
+        self.stop();
+    }
+}
+
 /// Credentials of the test server.
 pub const S3_KEY: &str = "neuvolex-test";
 /// Secret of the test server.
@@ -123,24 +228,15 @@ impl S3Server {
             .map(PathBuf::from)
             .unwrap_or_else(|| workspace().join("target/tools/bin/s3s-fs"));
         if !bin.exists() {
-            if std::env::var("CI").map(|v| v == "true").unwrap_or(false) {
-                panic!(
-                    "{} is required under CI=true (deploy/s3.sh install)",
-                    bin.display()
-                );
-            }
-            eprintln!(
-                "SKIP: {} is absent (run deploy/s3.sh install; S3 test skipped)",
+            skip(&format!(
+                "{} is absent (run deploy/s3.sh install; S3 test skipped)",
                 bin.display()
-            );
+            ));
             return None;
         }
         let dir = tmp();
         std::fs::create_dir_all(dir.path().join("test")).expect("bucket dir");
-        let port = std::net::TcpListener::bind("127.0.0.1:0")
-            .and_then(|l| l.local_addr())
-            .expect("free port")
-            .port();
+        let port = free_port();
         let child = std::process::Command::new(&bin)
             .args(["--host", "127.0.0.1", "--port", &port.to_string()])
             .args(["--access-key", S3_KEY, "--secret-key", S3_SECRET])

@@ -69,7 +69,7 @@ impl Backend {
                 let fs = Arc::new(AtomicFsStore::new(root)?);
                 Ok(Arc::new(Backend {
                     location: location.clone(),
-                    zarr: fs.clone(),
+                    zarr: Arc::new(Counted(fs.clone())),
                     kind: Kind::Fs(fs),
                 }))
             }
@@ -83,10 +83,10 @@ impl Backend {
                         u.prefix.as_str(),
                     ))
                 };
-                let zarr = Arc::new(AsyncToSyncStorageAdapter::new(
+                let zarr = Arc::new(Counted(AsyncToSyncStorageAdapter::new(
                     Arc::new(zarrs_object_store::AsyncObjectStore::new(store.clone())),
                     BlockOn,
-                ));
+                )));
                 Ok(Arc::new(Backend {
                     location: location.clone(),
                     zarr,
@@ -155,7 +155,10 @@ impl Backend {
                     let bytes = r.bytes().await?;
                     Ok::<_, object_store::Error>((bytes.to_vec(), Version(tag)))
                 }) {
-                    Ok(v) => Ok(Some(v)),
+                    Ok(v) => {
+                        count(&IO_READ, v.0.len());
+                        Ok(Some(v))
+                    }
                     Err(object_store::Error::NotFound { .. }) => Ok(None),
                     Err(e) => Err(self.err(key, e)),
                 }
@@ -206,6 +209,7 @@ impl Backend {
             mode,
             ..Default::default()
         };
+        count(&IO_WRITE, bytes.len());
         match block_on(s.put_opts(&p, PutPayload::from(bytes), opts)) {
             Ok(_) => Ok(true),
             Err(object_store::Error::AlreadyExists { .. })
@@ -426,6 +430,7 @@ fn s3_client(
     let client_opts = object_store::ClientOptions::new()
         .with_allow_http(o.allow_http || loopback_http)
         .with_connect_timeout(o.connect_timeout)
+        .with_read_timeout(o.read_timeout)
         .with_timeout(o.request_timeout);
     let retry = object_store::RetryConfig {
         backoff: object_store::BackoffConfig {
@@ -487,6 +492,147 @@ fn s3_client(
         .unwrap_or_else(|p| p.into_inner())
         .insert(key, client.clone());
     Ok(client)
+}
+
+/// Bytes and requests that went through the stores of this process so far (every
+/// [`Backend`], file system and S3 alike): what a task or a stage moved is the difference of
+/// two readings ([`StoreIo::since`]).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+pub struct StoreIo {
+    /// Bytes read (whole and partial gets).
+    pub bytes_read: u64,
+    /// Bytes written.
+    pub bytes_written: u64,
+    /// Read requests.
+    pub reads: u64,
+    /// Write requests.
+    pub writes: u64,
+}
+
+impl StoreIo {
+    /// What moved between `earlier` and this reading.
+    pub fn since(&self, earlier: &StoreIo) -> StoreIo {
+        StoreIo {
+            bytes_read: self.bytes_read.saturating_sub(earlier.bytes_read),
+            bytes_written: self.bytes_written.saturating_sub(earlier.bytes_written),
+            reads: self.reads.saturating_sub(earlier.reads),
+            writes: self.writes.saturating_sub(earlier.writes),
+        }
+    }
+}
+
+/// (bytes, requests) read and written through every store of the process.
+static IO_READ: [AtomicU64; 2] = [AtomicU64::new(0), AtomicU64::new(0)];
+static IO_WRITE: [AtomicU64; 2] = [AtomicU64::new(0), AtomicU64::new(0)];
+
+fn count(c: &[AtomicU64; 2], bytes: usize) {
+    c[0].fetch_add(bytes as u64, Ordering::Relaxed);
+    c[1].fetch_add(1, Ordering::Relaxed);
+}
+
+/// The store traffic of this process so far.
+pub fn store_io() -> StoreIo {
+    StoreIo {
+        bytes_read: IO_READ[0].load(Ordering::Relaxed),
+        bytes_written: IO_WRITE[0].load(Ordering::Relaxed),
+        reads: IO_READ[1].load(Ordering::Relaxed),
+        writes: IO_WRITE[1].load(Ordering::Relaxed),
+    }
+}
+
+/// A zarrs storage that counts the bytes passing through it into [`store_io`].
+struct Counted<T>(T);
+
+impl<T: ReadableStorageTraits> ReadableStorageTraits for Counted<T> {
+    fn get(&self, key: &StoreKey) -> std::result::Result<Option<Bytes>, StorageError> {
+        let v = self.0.get(key)?;
+        if let Some(b) = &v {
+            count(&IO_READ, b.len());
+        }
+        Ok(v)
+    }
+
+    fn get_partial_many<'a>(
+        &'a self,
+        key: &StoreKey,
+        byte_ranges: ByteRangeIterator<'a>,
+    ) -> std::result::Result<MaybeBytesIterator<'a>, StorageError> {
+        let Some(parts) = self.0.get_partial_many(key, byte_ranges)? else {
+            return Ok(None);
+        };
+        let parts: Vec<_> = parts.collect();
+        count(
+            &IO_READ,
+            parts.iter().map(|b| b.as_ref().map_or(0, Bytes::len)).sum(),
+        );
+        Ok(Some(Box::new(parts.into_iter())))
+    }
+
+    fn size_key(&self, key: &StoreKey) -> std::result::Result<Option<u64>, StorageError> {
+        self.0.size_key(key)
+    }
+
+    fn supports_get_partial(&self) -> bool {
+        self.0.supports_get_partial()
+    }
+}
+
+impl<T: WritableStorageTraits> WritableStorageTraits for Counted<T> {
+    fn set(&self, key: &StoreKey, value: Bytes) -> std::result::Result<(), StorageError> {
+        count(&IO_WRITE, value.len());
+        self.0.set(key, value)
+    }
+
+    fn set_partial_many(
+        &self,
+        key: &StoreKey,
+        offset_values: OffsetBytesIterator,
+    ) -> std::result::Result<(), StorageError> {
+        let parts: Vec<_> = offset_values.collect();
+        count(&IO_WRITE, parts.iter().map(|(_, b)| b.len()).sum());
+        self.0.set_partial_many(key, Box::new(parts.into_iter()))
+    }
+
+    fn erase(&self, key: &StoreKey) -> std::result::Result<(), StorageError> {
+        self.0.erase(key)
+    }
+
+    fn erase_many(&self, keys: &[StoreKey]) -> std::result::Result<(), StorageError> {
+        self.0.erase_many(keys)
+    }
+
+    fn erase_prefix(&self, prefix: &StorePrefix) -> std::result::Result<(), StorageError> {
+        self.0.erase_prefix(prefix)
+    }
+
+    fn supports_set_partial(&self) -> bool {
+        self.0.supports_set_partial()
+    }
+}
+
+impl<T: ListableStorageTraits> ListableStorageTraits for Counted<T> {
+    fn list(&self) -> std::result::Result<StoreKeys, StorageError> {
+        self.0.list()
+    }
+
+    fn list_prefix(&self, prefix: &StorePrefix) -> std::result::Result<StoreKeys, StorageError> {
+        self.0.list_prefix(prefix)
+    }
+
+    fn list_dir(
+        &self,
+        prefix: &StorePrefix,
+    ) -> std::result::Result<StoreKeysPrefixes, StorageError> {
+        self.0.list_dir(prefix)
+    }
+
+    fn size_prefix(&self, prefix: &StorePrefix) -> std::result::Result<u64, StorageError> {
+        self.0.size_prefix(prefix)
+    }
+
+    fn size(&self) -> std::result::Result<u64, StorageError> {
+        self.0.size()
+    }
 }
 
 /// Folder of a local store holding the temporaries of atomic writes.
@@ -681,6 +827,20 @@ impl ListableStorageTraits for AtomicFsStore {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn store_traffic_is_counted() {
+        let d = tempfile::tempdir().unwrap();
+        let b = Backend::open(&StoreLocation::Local(d.path().join("c.zarr"))).unwrap();
+        let before = store_io();
+        b.put("a.json", vec![7; 1000]).unwrap();
+        assert_eq!(b.get("a.json").unwrap().map(|v| v.len()), Some(1000));
+        assert_eq!(b.get("missing").unwrap(), None);
+        // Other tests of this binary may count too: at least this test's traffic is seen.
+        let d = store_io().since(&before);
+        assert!(d.bytes_written >= 1000 && d.writes >= 1, "{d:?}");
+        assert!(d.bytes_read >= 1000 && d.reads >= 1, "{d:?}");
+    }
 
     #[test]
     fn fs_put_is_atomic_and_create_new_is_exclusive() {

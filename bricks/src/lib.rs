@@ -46,7 +46,7 @@ mod stream;
 pub use stream::FileVolume;
 pub mod synth;
 
-pub use backend::Backend;
+pub use backend::{store_io, Backend, StoreIo};
 pub use commit::Commit;
 pub use derived::{DerivedBrick, HaloBrick, Normaliser};
 pub use done::{DoneMarkers, StageTag};

@@ -50,13 +50,20 @@ pub struct S3Options {
     /// Plain `http://` endpoints allowed (`AWS_ALLOW_HTTP=true`; implied by an `http://`
     /// endpoint on a loopback address).
     pub allow_http: bool,
-    /// Connection timeout (`NEUVOLEX_S3_CONNECT_TIMEOUT_S`, default 5 s).
+    /// Time to establish a connection (`NEUVOLEX_S3_CONNECT_TIMEOUT_S`, default 3 s): an
+    /// endpoint that drops connection attempts fails within about 3 x this.
     pub connect_timeout: Duration,
-    /// Timeout of one request, transfer included (`NEUVOLEX_S3_TIMEOUT_S`, default 120 s).
+    /// Longest silence while waiting for or reading a response (`NEUVOLEX_S3_READ_TIMEOUT_S`,
+    /// default 10 s; it restarts with every byte received): a server that accepts connections
+    /// and never answers fails within about 2 x this, however large the transfer.
+    pub read_timeout: Duration,
+    /// Timeout of one whole request, transfer included (`NEUVOLEX_S3_TIMEOUT_S`, default
+    /// 120 s), for large objects on slow links.
     pub request_timeout: Duration,
     /// Retries of a failed request (`NEUVOLEX_S3_RETRIES`, default 2).
     pub retries: usize,
-    /// Upper bound of all retries of one request (`NEUVOLEX_S3_RETRY_TIMEOUT_S`, default 20 s).
+    /// No retry starts later than this after a request's first try
+    /// (`NEUVOLEX_S3_RETRY_TIMEOUT_S`, default 15 s).
     pub retry_timeout: Duration,
 }
 
@@ -72,6 +79,7 @@ impl fmt::Debug for S3Options {
             )
             .field("allow_http", &self.allow_http)
             .field("connect_timeout", &self.connect_timeout)
+            .field("read_timeout", &self.read_timeout)
             .field("request_timeout", &self.request_timeout)
             .field("retries", &self.retries)
             .finish()
@@ -93,7 +101,8 @@ fn env_secs(key: &str, default: u64) -> Duration {
 impl S3Options {
     /// Settings from `AWS_ACCESS_KEY_ID`, `AWS_SECRET_ACCESS_KEY`, `AWS_SESSION_TOKEN`,
     /// `AWS_REGION` / `AWS_DEFAULT_REGION`, `AWS_ENDPOINT_URL` / `AWS_ENDPOINT`,
-    /// `AWS_ALLOW_HTTP`, and `NEUVOLEX_S3_{CONNECT_TIMEOUT_S,TIMEOUT_S,RETRIES,RETRY_TIMEOUT_S}`.
+    /// `AWS_ALLOW_HTTP`, and
+    /// `NEUVOLEX_S3_{CONNECT_TIMEOUT_S,READ_TIMEOUT_S,TIMEOUT_S,RETRIES,RETRY_TIMEOUT_S}`.
     pub fn from_env() -> Self {
         let endpoint = env("AWS_ENDPOINT_URL_S3")
             .or_else(|| env("AWS_ENDPOINT_URL"))
@@ -110,13 +119,14 @@ impl S3Options {
             secret_access_key: env("AWS_SECRET_ACCESS_KEY"),
             session_token: env("AWS_SESSION_TOKEN"),
             allow_http,
-            connect_timeout: env_secs("NEUVOLEX_S3_CONNECT_TIMEOUT_S", 5),
+            connect_timeout: env_secs("NEUVOLEX_S3_CONNECT_TIMEOUT_S", 3),
+            read_timeout: env_secs("NEUVOLEX_S3_READ_TIMEOUT_S", 10),
             request_timeout: env_secs("NEUVOLEX_S3_TIMEOUT_S", 120),
             retries: env("NEUVOLEX_S3_RETRIES")
                 .and_then(|v| v.parse().ok())
                 .unwrap_or(2)
                 .min(10),
-            retry_timeout: env_secs("NEUVOLEX_S3_RETRY_TIMEOUT_S", 20),
+            retry_timeout: env_secs("NEUVOLEX_S3_RETRY_TIMEOUT_S", 15),
         }
     }
 
@@ -131,6 +141,7 @@ impl S3Options {
             session_token: None,
             allow_http: true,
             connect_timeout: Duration::from_secs(2),
+            read_timeout: Duration::from_secs(10),
             request_timeout: Duration::from_secs(30),
             retries: 1,
             retry_timeout: Duration::from_secs(5),

@@ -2362,7 +2362,23 @@ pub(crate) fn drop_other_generations(backend: &Backend, node: &str, keep: &str) 
         if child == "zarr.json" || (!keep.is_empty() && child == keep) || child.starts_with('.') {
             continue;
         }
-        delete_node(backend, &format!("{node}/{child}"))?;
+        let key = format!("{node}/{child}");
+        if !child.ends_with(".done") {
+            delete_node(backend, &key)?;
+            continue;
+        }
+        // Done markers of a finished generation: a cluster worker running a late duplicate of a
+        // task (redelivered after its first worker went quiet) may still add one while they are
+        // deleted. They are no longer read, so a folder that will not go is left, with a warning.
+        let mut tries = 0;
+        while let Err(e) = delete_node(backend, &key) {
+            tries += 1;
+            if tries == 5 {
+                tracing::warn!("{}: left in place: {e}", backend.key_path(&key).display());
+                break;
+            }
+            std::thread::sleep(std::time::Duration::from_millis(100));
+        }
     }
     Ok(())
 }

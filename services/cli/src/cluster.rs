@@ -195,6 +195,10 @@ pub struct WorkerArgs {
     /// Tell every worker on this NATS server to finish its task and exit, then return.
     #[arg(long)]
     stop_all: bool,
+    /// Print the dead letters the cluster keeps (tasks given up in the last week: stage, run,
+    /// bricks, deliveries, last error), then return.
+    #[arg(long)]
+    dead_letters: bool,
     #[command(flatten)]
     engine: ClusterArgs,
 }
@@ -206,6 +210,27 @@ pub fn run_worker(a: &WorkerArgs, quiet: bool) -> Result<()> {
         let ex = ClusterExecutor::connect(cfg)?;
         ex.stop_workers()?;
         println!("told every worker on {} to stop", a.nats);
+        return Ok(());
+    }
+    if a.dead_letters {
+        let ex = ClusterExecutor::connect(cfg)?;
+        let dead = ex
+            .block_on(ex.engine().dead_letters(10_000))
+            .with_context(|| format!("dead letters on {}", a.nats))?;
+        for d in &dead {
+            println!(
+                "{} run {} stage {} task {} bricks {:?} after {} deliveries on {}: {}",
+                d.unix,
+                d.run,
+                d.stage,
+                d.task.task,
+                d.task.bricks,
+                d.task.deliveries,
+                d.task.worker,
+                d.task.error
+            );
+        }
+        println!("{} dead letter(s) kept on {}", dead.len(), a.nats);
         return Ok(());
     }
     if let Some(t) = a.threads {
@@ -260,7 +285,15 @@ pub fn run_worker(a: &WorkerArgs, quiet: bool) -> Result<()> {
                     }
                 ))
             }
-            WorkerEvent::Finished { error: None, .. } => bar.inc(1),
+            WorkerEvent::Finished {
+                error: None,
+                stage,
+                task,
+                seconds,
+            } => {
+                tracing::info!(%stage, task, seconds, "task finished");
+                bar.inc(1)
+            }
             WorkerEvent::Finished {
                 error: Some(err), ..
             } => {

@@ -710,3 +710,130 @@ fn scenes_and_viewpoints_end_to_end() {
         "--size 2",
     );
 }
+
+/// A loopback endpoint that drops connection attempts: a listener that never accepts, its
+/// accept queue filled, so the kernel drops further SYNs (the connections are held until drop).
+fn black_hole() -> (std::net::TcpListener, Vec<std::net::TcpStream>, u16) {
+    let l = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let addr = l.local_addr().unwrap();
+    let mut held = Vec::new();
+    for _ in 0..4096 {
+        match std::net::TcpStream::connect_timeout(&addr, std::time::Duration::from_millis(300)) {
+            Ok(s) => held.push(s),
+            Err(_) => return (l, held, addr.port()),
+        }
+    }
+    panic!("the accept queue of {addr} never filled");
+}
+
+/// With the default S3 settings (no NEUVOLEX_S3_* variables), an `s3://` store whose endpoint
+/// is closed, drops connections, accepts and never answers, or refuses the credentials makes
+/// `ingest` (a write) and `classify` (a read) fail with an error naming the URL and the cause,
+/// within a bounded time.
+#[test]
+fn s3_endpoint_faults_fail_clearly_with_default_settings() {
+    use std::time::{Duration, Instant};
+    let d = tempfile::tempdir().unwrap();
+    let p = |n: &str| d.path().join(n).to_string_lossy().into_owned();
+    ok(&["synth", "phantom", "--out", &p("ph.nii.gz"), "--size", "24"]);
+    let closed = {
+        let l = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+        l.local_addr().unwrap().port()
+    };
+    let (_bh, _held, hole) = black_hole();
+    let silent = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let quiet_port = silent.local_addr().unwrap().port();
+    std::thread::spawn(move || {
+        let mut held = Vec::new();
+        for s in silent.incoming().flatten() {
+            held.push(s);
+        }
+    });
+    let s3 = neuvolex_tests::S3Server::start();
+    // (what, endpoint, secret, bound, words the error must hold)
+    let mut cases: Vec<(&str, String, &str, u64, &str)> = vec![
+        (
+            "closed port",
+            format!("http://127.0.0.1:{closed}"),
+            "s",
+            10,
+            "unreachable",
+        ),
+        (
+            "black hole",
+            format!("http://127.0.0.1:{hole}"),
+            "s",
+            25,
+            "unreachable",
+        ),
+        (
+            "silent server",
+            format!("http://127.0.0.1:{quiet_port}"),
+            "s",
+            40,
+            "unreachable",
+        ),
+    ];
+    if let Some(s3) = &s3 {
+        cases.push((
+            "wrong secret",
+            s3.endpoint.clone(),
+            "wrong",
+            10,
+            "access denied",
+        ));
+    }
+    let store = "s3://test/x.zarr";
+    let runs: Vec<_> = cases
+        .into_iter()
+        .flat_map(|c| [(c.clone(), "ingest"), (c, "classify")])
+        .map(|((what, endpoint, secret, bound, needle), cmd)| {
+            let args: Vec<String> = match cmd {
+                "ingest" => vec!["ingest".into(), p("ph.nii.gz"), store.into()],
+                _ => vec![
+                    "classify".into(),
+                    store.into(),
+                    "--scribbles".into(),
+                    p("ph_labels.nii.gz"),
+                ],
+            };
+            std::thread::spawn(move || {
+                let t = Instant::now();
+                let mut c = Command::new(env!("CARGO_BIN_EXE_neuvolex"));
+                c.args(&args).arg("--quiet").env("RUST_LOG", "warn");
+                for k in [
+                    "NEUVOLEX_S3_CONNECT_TIMEOUT_S",
+                    "NEUVOLEX_S3_READ_TIMEOUT_S",
+                    "NEUVOLEX_S3_TIMEOUT_S",
+                    "NEUVOLEX_S3_RETRIES",
+                    "NEUVOLEX_S3_RETRY_TIMEOUT_S",
+                ] {
+                    c.env_remove(k);
+                }
+                let o = c
+                    .env("AWS_ENDPOINT_URL", &endpoint)
+                    .env("AWS_ACCESS_KEY_ID", neuvolex_tests::S3_KEY)
+                    .env("AWS_SECRET_ACCESS_KEY", secret)
+                    .env("AWS_REGION", "us-east-1")
+                    .output()
+                    .expect("neuvolex");
+                let took = t.elapsed();
+                let err = String::from_utf8_lossy(&o.stderr).into_owned();
+                eprintln!("{what}, {cmd}: {took:.1?}: {}", err.trim());
+                assert!(!o.status.success(), "{what}, {cmd}: should fail");
+                assert!(!err.contains("panicked"), "{what}, {cmd}: {err}");
+                assert!(
+                    err.contains(store) && err.contains(needle),
+                    "{what}, {cmd}: the error names the URL and '{needle}': {err}"
+                );
+                assert!(
+                    took < Duration::from_secs(bound),
+                    "{what}, {cmd}: {took:?} (bound {bound} s)"
+                );
+            })
+        })
+        .collect();
+    for r in runs {
+        r.join().unwrap();
+    }
+}

@@ -1,54 +1,24 @@
 //! The cluster: `neuvolex classify --cluster` on real NATS JetStream (Debian's nats-server)
 //! with several `neuvolex worker` processes, against `neuvolex classify` in one process, and
-//! the faults a cluster meets: a worker killed mid-task, a worker's link cut for longer than
-//! AckWait (network namespaces), the NATS server restarted, the coordinator killed and re-run,
-//! a poisoned brick, and unreachable or unauthorised servers. After every fault the result is
-//! compared with the single-process result bit for bit.
+//! the faults a cluster meets: a worker killed mid-task (classification, feature extraction, a
+//! k-means pass), a worker's link cut for longer than AckWait (network namespaces), the NATS
+//! server restarted, the coordinator killed and re-run, a poisoned brick, a task that kills
+//! every worker it reaches, and unreachable or unauthorised servers. The "done means"
+//! runs through `deploy/cluster.sh` with s3s-fs and the abdomen CT. After every fault the result
+//! is compared with the single-process result bit for bit.
 //!
-//! Without nats-server (or, for the link test, root and `ip netns`) the tests print SKIP; under
-//! `CI=true` that is a failure.
+//! Without nats-server, s3s-fs, the real data (or, for the link test, root and `ip netns`) the
+//! tests print SKIP; under `CI=true` that is a failure.
 
+use neuvolex_tests::{free_port, nats_server_binary as nats_server, skip, NatsServer as Nats};
 use std::io::{BufRead, BufReader};
 use std::net::TcpListener;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Output, Stdio};
-use std::sync::atomic::{AtomicUsize, Ordering};
-use std::sync::Arc;
+use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 const BIN: &str = env!("CARGO_BIN_EXE_neuvolex");
-
-fn ci() -> bool {
-    std::env::var("CI").map(|v| v == "true").unwrap_or(false)
-}
-
-fn skip(why: &str) -> bool {
-    if ci() {
-        panic!("required under CI=true: {why}");
-    }
-    eprintln!("SKIP: {why}");
-    true
-}
-
-fn nats_server() -> Option<PathBuf> {
-    for p in [
-        "/usr/sbin/nats-server",
-        "/usr/bin/nats-server",
-        "/usr/local/bin/nats-server",
-    ] {
-        if Path::new(p).exists() {
-            return Some(p.into());
-        }
-    }
-    None
-}
-
-fn free_port() -> u16 {
-    TcpListener::bind("127.0.0.1:0")
-        .and_then(|l| l.local_addr())
-        .map(|a| a.port())
-        .expect("free port")
-}
 
 fn run(args: &[&str]) -> Output {
     Command::new(BIN)
@@ -69,77 +39,21 @@ fn ok(args: &[&str]) -> String {
     String::from_utf8_lossy(&o.stdout).into_owned()
 }
 
-/// A nats-server with JetStream on a store directory.
-struct Nats {
-    child: Option<Child>,
-    bin: PathBuf,
-    dir: PathBuf,
-    host: String,
-    port: u16,
-    extra: Vec<String>,
-}
-
-impl Nats {
-    fn start(dir: &Path, host: &str, extra: &[&str]) -> Option<Nats> {
-        let Some(bin) = nats_server() else {
-            skip("nats-server is not installed (deploy/test.sh installs it)");
-            return None;
-        };
-        let mut n = Nats {
-            child: None,
-            bin,
-            dir: dir.join("nats"),
-            host: host.into(),
-            port: free_port(),
-            extra: extra.iter().map(|s| s.to_string()).collect(),
-        };
-        n.spawn();
-        Some(n)
-    }
-
-    fn spawn(&mut self) {
-        let child = Command::new(&self.bin)
-            .args(["-js", "-sd"])
-            .arg(&self.dir)
-            .args(["-a", &self.host, "-p", &self.port.to_string()])
-            .args(&self.extra)
-            .stdout(Stdio::null())
-            .stderr(Stdio::null())
-            .spawn()
-            .expect("start nats-server");
-        self.child = Some(child);
-        let t = Instant::now();
-        while std::net::TcpStream::connect((self.host.as_str(), self.port)).is_err() {
-            assert!(
-                t.elapsed() < Duration::from_secs(20),
-                "nats-server did not start"
-            );
-            std::thread::sleep(Duration::from_millis(50));
-        }
-    }
-
-    fn url(&self) -> String {
-        format!("nats://{}:{}", self.host, self.port)
-    }
-
-    fn stop(&mut self) {
-        if let Some(mut c) = self.child.take() {
-            let _ = c.kill();
-            let _ = c.wait();
-        }
-    }
-}
-
-impl Drop for Nats {
-    fn drop(&mut self) {
-        self.stop();
-    }
-}
-
-/// A worker process; counts the tasks it started (from its log).
+/// A worker process; keeps its log lines (the tasks it started and finished).
 struct Worker {
     child: Child,
-    started: Arc<AtomicUsize>,
+    log: Arc<Mutex<Vec<String>>>,
+}
+
+/// `key=VALUE` of a log line.
+fn field(line: &str, key: &str) -> Option<i64> {
+    let pat = format!(" {key}=");
+    let i = line.find(&pat)? + pat.len();
+    let v: String = line[i..]
+        .chars()
+        .take_while(|c| c.is_ascii_digit())
+        .collect();
+    v.parse().ok()
 }
 
 impl Worker {
@@ -170,17 +84,15 @@ impl Worker {
             .stderr(Stdio::piped())
             .spawn()
             .expect("start worker");
-        let started = Arc::new(AtomicUsize::new(0));
-        let s = started.clone();
+        let log = Arc::new(Mutex::new(Vec::new()));
+        let l = log.clone();
         let err = child.stderr.take().expect("stderr");
         std::thread::spawn(move || {
-            for l in BufReader::new(err).lines().map_while(Result::ok) {
-                if l.contains("task started") {
-                    s.fetch_add(1, Ordering::SeqCst);
-                }
+            for line in BufReader::new(err).lines().map_while(Result::ok) {
+                l.lock().unwrap().push(line);
             }
         });
-        Worker { child, started }
+        Worker { child, log }
     }
 
     fn kill9(&mut self) {
@@ -188,9 +100,20 @@ impl Worker {
         let _ = self.child.wait();
     }
 
+    /// (task, delivery) of every task it started, in order.
+    fn started(&self) -> Vec<(i64, i64)> {
+        self.log
+            .lock()
+            .unwrap()
+            .iter()
+            .filter(|l| l.contains("task started"))
+            .filter_map(|l| Some((field(l, "task")?, field(l, "delivered")?)))
+            .collect()
+    }
+
     fn wait_started(&self, n: usize, limit: Duration) {
         let t = Instant::now();
-        while self.started.load(Ordering::SeqCst) < n {
+        while self.started().len() < n {
             assert!(t.elapsed() < limit, "worker started no task in {limit:?}");
             std::thread::sleep(Duration::from_millis(20));
         }
@@ -595,22 +518,32 @@ fn fault_poisoned_brick_is_dead_lettered_and_the_rest_completes() {
     assert_eq!(r["run"]["completed"], 63, "the other bricks completed: {r}");
     assert_eq!(markers_done(&store), 63);
     // The completed bricks equal a clean single-process run's.
+    same_but_one_brick(&scene, &store, [1, 1, bz]);
+}
+
+/// The probabilities of `store` (classified on `intensity` features) equal a clean
+/// single-process run's in every brick but `brick` (x, y, z).
+fn same_but_one_brick(scene: &Scene, store: &str, brick: [u64; 3]) {
     let clean = scene.copy("clean.zarr");
     let b = scene.classify_with("intensity", &clean, &scene.p("clean.nii.gz"), &[]);
     ok(&b.iter().map(String::as_str).collect::<Vec<_>>());
     let rel = "neuvolex/vectors/classes_proba";
-    let poisoned = PathBuf::from(format!("c/{bz}/1/1/0"));
+    let [x, y, z] = brick;
+    let poisoned = PathBuf::from(format!("c/{z}/{y}/{x}/0"));
+    let mut compared = 0;
     for f in files(&Path::new(&clean).join(rel)) {
         if f.ends_with(&poisoned) || f.file_name().is_some_and(|n| n == "zarr.json") {
             continue;
         }
         assert_eq!(
             std::fs::read(Path::new(&clean).join(rel).join(&f)).unwrap(),
-            std::fs::read(Path::new(&store).join(rel).join(&f)).unwrap(),
+            std::fs::read(Path::new(store).join(rel).join(&f)).unwrap(),
             "{}",
             f.display()
         );
+        compared += 1;
     }
+    assert!(compared >= 63, "{compared} chunks compared");
 }
 
 #[test]
@@ -678,12 +611,15 @@ fn unreachable_or_unauthorised_nats_fails_clearly_in_bounded_time() {
     assert!(t.elapsed() < Duration::from_secs(30));
 }
 
-/// A network namespace joined to the host by a veth pair, removed on drop.
+/// A network namespace joined to the host by a veth pair, removed on drop (also when the test
+/// panics); namespaces of earlier test processes that were killed are removed on creation.
 struct Netns {
     name: String,
-    host_if: String,
     host_ip: String,
+    ns_if: String,
 }
+
+const NETNS_PREFIX: &str = "nvxt";
 
 impl Netns {
     fn create() -> Option<Netns> {
@@ -696,29 +632,24 @@ impl Netns {
             skip("the link test needs root for network namespaces");
             return None;
         }
-        let id = std::process::id() % 100_000;
+        Netns::remove_stale();
+        let id = std::process::id();
         let k = (id % 250) as u8 + 1;
         let n = Netns {
-            name: format!("nvxt{id}"),
-            host_if: format!("nvxh{id}"),
+            name: format!("{NETNS_PREFIX}{id}"),
             host_ip: format!("10.251.{k}.1"),
+            ns_if: format!("nvxn{}", id % 100_000),
         };
-        let peer = format!("nvxn{id}");
+        let host_if = format!("nvxh{}", id % 100_000);
         let ns_ip = format!("10.251.{k}.2");
         let steps: Vec<Vec<String>> = vec![
             vec!["netns", "add", &n.name],
             vec![
-                "link", "add", &n.host_if, "type", "veth", "peer", "name", &peer,
+                "link", "add", &host_if, "type", "veth", "peer", "name", &n.ns_if,
             ],
-            vec!["link", "set", &peer, "netns", &n.name],
-            vec![
-                "addr",
-                "add",
-                &format!("{}/30", n.host_ip),
-                "dev",
-                &n.host_if,
-            ],
-            vec!["link", "set", &n.host_if, "up"],
+            vec!["link", "set", &n.ns_if, "netns", &n.name],
+            vec!["addr", "add", &format!("{}/30", n.host_ip), "dev", &host_if],
+            vec!["link", "set", &host_if, "up"],
             vec![
                 "netns",
                 "exec",
@@ -728,9 +659,11 @@ impl Netns {
                 "add",
                 &format!("{ns_ip}/30"),
                 "dev",
-                &peer,
+                &n.ns_if,
             ],
-            vec!["netns", "exec", &n.name, "ip", "link", "set", &peer, "up"],
+            vec![
+                "netns", "exec", &n.name, "ip", "link", "set", &n.ns_if, "up",
+            ],
             vec!["netns", "exec", &n.name, "ip", "link", "set", "lo", "up"],
         ]
         .into_iter()
@@ -750,20 +683,56 @@ impl Netns {
         Some(n)
     }
 
+    /// Deletes the namespaces (and with them their veth pairs) of test processes that are gone.
+    fn remove_stale() {
+        let Ok(o) = Command::new("ip").args(["netns", "list"]).output() else {
+            return;
+        };
+        for line in String::from_utf8_lossy(&o.stdout).lines() {
+            let name = line.split_whitespace().next().unwrap_or("");
+            let Some(pid) = name.strip_prefix(NETNS_PREFIX) else {
+                continue;
+            };
+            if pid.parse::<u32>().is_ok() && !Path::new(&format!("/proc/{pid}")).exists() {
+                let _ = Command::new("ip").args(["netns", "del", name]).status();
+            }
+        }
+    }
+
+    /// The namespace's end of the link up or down, from inside the namespace: only processes
+    /// in it lose their route; the server's address and every other client stay on the host.
     fn link(&self, up: bool) {
         let st = Command::new("ip")
-            .args(["link", "set", &self.host_if, if up { "up" } else { "down" }])
+            .args([
+                "netns",
+                "exec",
+                &self.name,
+                "ip",
+                "link",
+                "set",
+                &self.ns_if,
+            ])
+            .arg(if up { "up" } else { "down" })
             .status()
             .expect("ip link");
         assert!(st.success());
+    }
+
+    /// True if a TCP connection from inside the namespace to `ip:port` opens within 2 s.
+    fn reaches(&self, ip: &str, port: u16) -> bool {
+        Command::new("ip")
+            .args(["netns", "exec", &self.name, "timeout", "2", "bash", "-c"])
+            .arg(format!("exec 3<>/dev/tcp/{ip}/{port}"))
+            .stderr(Stdio::null())
+            .status()
+            .map(|s| s.success())
+            .unwrap_or(false)
     }
 }
 
 impl Drop for Netns {
     fn drop(&mut self) {
-        let _ = Command::new("ip")
-            .args(["link", "del", &self.host_if])
-            .status();
+        // Deleting the namespace deletes its end of the veth pair, and with it the pair.
         let _ = Command::new("ip")
             .args(["netns", "del", &self.name])
             .status();
@@ -778,18 +747,26 @@ fn fault_worker_link_cut_longer_than_ack_wait() {
         return;
     }
     let Some(ns) = Netns::create() else { return };
+    // The server listens on the host's end of the veth pair. The coordinator and the other
+    // workers run on the host, where that address is local (never through the veth); the cut
+    // worker runs in the namespace and reaches it through the veth only.
     let Some(nats) = Nats::start(scene.dir.path(), &ns.host_ip, &[]) else {
         return;
     };
     let reference = scene.reference();
-    let slow = ["--task-delay-ms", "500"];
+    let slow = ["--task-delay-ms", "700"];
+    // Declared after the namespace, so the workers die before it is deleted.
     let cut = Worker::spawn(
         &["ip", "netns", "exec", &ns.name],
         &nats.url(),
         "cut",
         &[&slow[..], &engine_args("2")].concat(),
     );
-    let _w = workers(&nats.url(), 2, &[&slow[..], &engine_args("2")].concat());
+    let others = workers(&nats.url(), 2, &[&slow[..], &engine_args("2")].concat());
+    assert!(
+        ns.reaches(&ns.host_ip, nats.port),
+        "the namespace reaches NATS"
+    );
     let Run {
         store,
         out,
@@ -798,17 +775,57 @@ fn fault_worker_link_cut_longer_than_ack_wait() {
     } = scene.cluster_run(&nats.url(), "2");
     let coord = coordinator(&a);
     cut.wait_started(2, Duration::from_secs(60));
+    // The task the cut worker holds (it sleeps 700 ms in it): its link goes now, for 2.5x
+    // AckWait.
+    let (held, _) = *cut.started().last().unwrap();
+    let others_before: usize = others.iter().map(|w| w.started().len()).sum();
     ns.link(false);
+    assert!(
+        !ns.reaches(&ns.host_ip, nats.port),
+        "the namespace lost its link"
+    );
     std::thread::sleep(Duration::from_secs(5));
+    let others_during = others.iter().map(|w| w.started().len()).sum::<usize>() - others_before;
+    let cut_during = cut.started().len();
     ns.link(true);
     let o = coord.wait_with_output().expect("coordinator");
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    let r = report(&rep);
-    assert_eq!(r["run"]["completed"], 64, "each task counted once: {r}");
+    // Only the cut worker lost its link: the others went on working meanwhile.
     assert!(
-        r["run"]["redeliveries"].as_u64().unwrap() >= 1,
-        "the cut worker's task went elsewhere: {r}"
+        others_during >= 4,
+        "the other workers started {others_during} tasks while the link was cut"
     );
+    assert_eq!(cut_during, 2, "the cut worker got no task while cut");
+    let r = report(&rep);
+    let run = &r["run"];
+    assert_eq!(run["completed"], 64, "each task counted once: {r}");
+    assert!(run["dead"].as_array().unwrap().is_empty(), "{r}");
+    let per_worker: u64 = run["per_worker"]
+        .as_object()
+        .unwrap()
+        .values()
+        .map(|v| v.as_u64().unwrap())
+        .sum();
+    assert_eq!(per_worker, 64, "per-worker counts add up to the tasks: {r}");
+    // Another worker completed the held task as a redelivery...
+    let taken_over = others
+        .iter()
+        .any(|w| w.started().iter().any(|&(t, d)| t == held && d >= 2));
+    assert!(
+        taken_over,
+        "task {held} was redelivered to another worker: {r}"
+    );
+    assert!(run["redeliveries"].as_u64().unwrap() >= 1, "{r}");
+    // ...and the cut worker's late result of it, sent when the link came back, was ignored.
+    assert!(
+        run["duplicates"].as_u64().unwrap() >= 1,
+        "the late result was seen and ignored: {r}"
+    );
+    assert!(
+        run["per_worker"]["cut"].as_u64().unwrap_or(0) < cut.started().len() as u64,
+        "the held task is not counted for the cut worker: {r}"
+    );
+    // No duplicate or torn output: the store and the NIfTI equal one process's, byte for byte.
     same_result(&scene, &reference, &store, &out);
 }
 
@@ -822,32 +839,62 @@ fn views_without_times(dir: &str) -> serde_json::Value {
     v
 }
 
+/// Waits until one of `ws` starts a task of `stage` (with `task` index, if given) and kills
+/// it (-9) while it holds it; returns which.
+fn kill_one_in(ws: &mut [Worker], stage: &str, task: Option<i64>, limit: Duration) -> usize {
+    let seen: Vec<usize> = ws.iter().map(|w| w.log.lock().unwrap().len()).collect();
+    let t = Instant::now();
+    loop {
+        for (i, w) in ws.iter_mut().enumerate() {
+            let hit = w.log.lock().unwrap()[seen[i]..].iter().any(|l| {
+                l.contains("task started")
+                    && l.contains(&format!("stage={stage} "))
+                    && task.is_none_or(|k| field(l, "task") == Some(k))
+            });
+            if hit {
+                w.kill9();
+                return i;
+            }
+        }
+        assert!(t.elapsed() < limit, "no {stage} task started in {limit:?}");
+        std::thread::sleep(Duration::from_millis(10));
+    }
+}
+
 #[test]
-fn features_and_viewpoints_on_the_cluster_equal_one_process() {
+fn features_and_viewpoints_on_the_cluster_equal_one_process_with_a_worker_killed_in_each() {
     let scene = Scene::new();
     let Some(nats) = Nats::start(scene.dir.path(), "127.0.0.1", &[]) else {
         return;
     };
     ok(&["train", &scene.p("base.zarr"), "--epochs", "0.05"]);
-    let _w: Vec<Worker> = (0..2)
-        .map(|i| Worker::spawn(&[], &nats.url(), &format!("w{i}"), &[]))
-        .collect();
+    let args = [&["--task-delay-ms", "150"][..], &engine_args("2")].concat();
+    let mut ws = workers(&nats.url(), 3, &args);
     let (a, b) = (scene.copy("local.zarr"), scene.copy("cluster.zarr"));
     ok(&["features", &a]);
-    ok(&[
-        "features",
-        &b,
-        "--cluster",
-        &nats.url(),
-        "--bricks-per-task",
-        "3",
-    ]);
+    // Feature extraction on the cluster, one worker killed in the middle of a task.
+    let mut c = coordinator(
+        &[
+            "features",
+            &b,
+            "--cluster",
+            &nats.url(),
+            "--bricks-per-task",
+            "3",
+            "--ack-wait",
+            "2",
+        ]
+        .map(String::from),
+    );
+    kill_one_in(&mut ws, "features", None, Duration::from_secs(60));
+    let st = c.wait().expect("coordinator");
+    assert!(st.success(), "features on the cluster");
     same_tree(&a, &b, "neuvolex/vectors/inr_hidden");
-    for (store, out, cl) in [
-        (&a, scene.p("va"), None),
-        (&b, scene.p("vb"), Some(nats.url())),
-    ] {
-        let mut args = vec![
+    ws.push(Worker::spawn(&[], &nats.url(), "w3", &args));
+    // k-means and the views: a worker killed during a Lloyd pass.
+    let (va, vb) = (scene.p("va"), scene.p("vb"));
+    let vp = |store: &str, out: &str| -> Vec<String> {
+        [
             "viewpoints",
             store,
             "--features",
@@ -860,17 +907,73 @@ fn features_and_viewpoints_on_the_cluster_equal_one_process() {
             "--size",
             "0",
             "--out",
-            &out,
-        ];
-        if let Some(u) = &cl {
-            args.extend(["--cluster", u.as_str()]);
-        }
-        ok(&args);
-    }
-    assert_eq!(
-        views_without_times(&scene.p("va")),
-        views_without_times(&scene.p("vb"))
+            out,
+        ]
+        .map(String::from)
+        .to_vec()
+    };
+    ok(&vp(&a, &va).iter().map(String::as_str).collect::<Vec<_>>());
+    let mut cl = vp(&b, &vb);
+    cl.extend(["--cluster", &nats.url(), "--ack-wait", "2"].map(String::from));
+    let c = coordinator(&cl);
+    kill_one_in(&mut ws, "kmeans-pass", None, Duration::from_secs(60));
+    let o = c.wait_with_output().expect("coordinator");
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    // Centroids, their assignment and the views: the same as in one process.
+    assert_eq!(views_without_times(&va), views_without_times(&vb));
+}
+
+/// A task whose worker dies on every delivery: after MaxDeliver deliveries JetStream's
+/// max-deliveries advisory ends it, the run names it, the dead-letter stream keeps it, and the
+/// other bricks equal a clean run's.
+#[test]
+fn fault_a_task_that_kills_every_worker_it_reaches_is_dead_lettered() {
+    let scene = Scene::new();
+    let Some(nats) = Nats::start(scene.dir.path(), "127.0.0.1", &[]) else {
+        return;
+    };
+    let args = [&["--task-delay-ms", "100"][..], &engine_args("2")].concat();
+    let mut ws = workers(&nats.url(), 2, &args);
+    let store = scene.copy("cluster.zarr");
+    let (out, rep) = (scene.p("cluster.nii.gz"), scene.p("cluster.json"));
+    let mut a = scene.classify_with(
+        "intensity",
+        &store,
+        &out,
+        &["--report", &rep, "--cluster", &nats.url()],
     );
+    a.extend(engine_args("2").iter().map(|s| s.to_string()));
+    let c = coordinator(&a);
+    // Task 40 kills whoever takes it: three deliveries, three workers lost.
+    for k in 0..3 {
+        let i = kill_one_in(&mut ws, "classify", Some(40), Duration::from_secs(60));
+        ws.remove(i);
+        ws.push(Worker::spawn(&[], &nats.url(), &format!("n{k}"), &args));
+    }
+    let o = c.wait_with_output().expect("coordinator");
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success(), "a dead task fails the run");
+    assert!(err.contains("every delivery timed out"), "{err}");
+    let r = report(&rep);
+    let dead = r["run"]["dead"].as_array().unwrap();
+    assert_eq!(dead.len(), 1, "{r}");
+    assert_eq!(dead[0]["task"], 40, "{r}");
+    assert_eq!(dead[0]["deliveries"], 3, "{r}");
+    assert_eq!(r["run"]["completed"], 63, "the other bricks completed: {r}");
+    let brick = dead[0]["bricks"][0].clone();
+    // The dead letter outlives the run.
+    let kept = ok(&["worker", "--nats", &nats.url(), "--dead-letters"]);
+    assert!(
+        kept.contains("stage classify task 40") && kept.contains("1 dead letter(s)"),
+        "{kept}"
+    );
+    // Every other brick equals a clean single-process run's.
+    let b = [
+        brick[0].as_u64().unwrap(),
+        brick[1].as_u64().unwrap(),
+        brick[2].as_u64().unwrap(),
+    ];
+    same_but_one_brick(&scene, &store, b);
 }
 
 /// The middle-slice PSNR `neuvolex train` prints.
@@ -1053,4 +1156,314 @@ fn same_store(a: &str, b: &str) {
         let _ = std::fs::remove_file(Path::new(s).join("neuvolex/writer.lock"));
     }
     same_tree(a, b, "");
+}
+
+/// A local cluster as `deploy/cluster.sh` starts it (nats-server, the S3 server, `n` workers),
+/// in its own folder and on free ports; stopped on drop (also when the test panics).
+struct LocalCluster {
+    dir: PathBuf,
+    nats_port: u16,
+    s3_port: u16,
+    n: usize,
+    worker_args: String,
+    /// The `AWS_*` environment of its S3 server (`s3.env`).
+    s3_env: Vec<(String, String)>,
+}
+
+fn workspace_root() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../..")
+}
+
+impl LocalCluster {
+    fn start(dir: &Path, n: usize, worker_args: &str) -> Option<LocalCluster> {
+        if nats_server().is_none() {
+            skip("nats-server is not installed (deploy/test.sh installs it)");
+            return None;
+        }
+        if !workspace_root().join("target/tools/bin/s3s-fs").exists() {
+            skip("s3s-fs is not built (deploy/s3.sh install; deploy/test.sh runs it)");
+            return None;
+        }
+        let mut c = LocalCluster {
+            dir: dir.join("cluster"),
+            nats_port: free_port(),
+            s3_port: free_port(),
+            n,
+            worker_args: worker_args.into(),
+            s3_env: Vec::new(),
+        };
+        c.script("start");
+        let env = std::fs::read_to_string(c.dir.join("s3.env")).expect("s3.env");
+        c.s3_env = env
+            .lines()
+            .filter_map(|l| l.strip_prefix("export ")?.split_once('='))
+            .map(|(k, v)| (k.to_string(), v.to_string()))
+            .collect();
+        assert!(
+            c.s3_env.iter().any(|(k, _)| k == "AWS_ENDPOINT_URL"),
+            "{env}"
+        );
+        Some(c)
+    }
+
+    /// `deploy/cluster.sh CMD N` with this cluster's settings.
+    fn script(&self, cmd: &str) {
+        let o = Command::new(workspace_root().join("deploy/cluster.sh"))
+            .args([cmd, &self.n.to_string()])
+            .env("NVX_CLUSTER_DIR", &self.dir)
+            .env("NVX_NATS_PORT", self.nats_port.to_string())
+            .env("NEUVOLEX_S3_PORT", self.s3_port.to_string())
+            .env("NVX_WORKER_THREADS", "1")
+            .env("NVX_WORKER_ARGS", &self.worker_args)
+            .env("NVX_BIN", BIN)
+            .output()
+            .expect("deploy/cluster.sh");
+        assert!(
+            o.status.success(),
+            "deploy/cluster.sh {cmd}: {}{}",
+            String::from_utf8_lossy(&o.stdout),
+            String::from_utf8_lossy(&o.stderr)
+        );
+    }
+
+    fn url(&self) -> String {
+        format!("nats://127.0.0.1:{}", self.nats_port)
+    }
+
+    /// The pid in `NAME.pid` of the cluster's folder.
+    fn pid(&self, name: &str) -> i32 {
+        std::fs::read_to_string(self.dir.join(format!("{name}.pid")))
+            .expect("pid file")
+            .trim()
+            .parse()
+            .expect("pid")
+    }
+
+    fn kill9(&self, name: &str) {
+        let st = Command::new("kill")
+            .args(["-9", &self.pid(name).to_string()])
+            .status()
+            .expect("kill");
+        assert!(st.success());
+    }
+
+    /// Tasks worker `i` (1-based) started, from its log.
+    fn started(&self, i: usize) -> usize {
+        std::fs::read_to_string(self.dir.join(format!("worker-{i}.log")))
+            .map(|l| l.matches("task started").count())
+            .unwrap_or(0)
+    }
+
+    /// The objects of `key` (a store) in the S3 server's data folder.
+    fn object_path(&self, key: &str) -> PathBuf {
+        self.dir.join("s3/data/neuvolex").join(key)
+    }
+
+    /// `neuvolex ARGS` with the S3 environment; stdout, or a panic with stderr.
+    fn ok(&self, args: &[&str]) -> String {
+        let o = self.cmd(args).output().expect("neuvolex");
+        assert!(
+            o.status.success(),
+            "neuvolex {args:?}: {}",
+            String::from_utf8_lossy(&o.stderr)
+        );
+        String::from_utf8_lossy(&o.stdout).into_owned()
+    }
+
+    fn cmd(&self, args: &[&str]) -> Command {
+        let mut c = Command::new(BIN);
+        c.args(args).arg("--quiet").env("RUST_LOG", "warn");
+        for (k, v) in &self.s3_env {
+            c.env(k, v);
+        }
+        c
+    }
+}
+
+impl Drop for LocalCluster {
+    fn drop(&mut self) {
+        if std::thread::panicking() {
+            // What the servers and workers said, for the failure's report.
+            for f in [
+                "nats.log",
+                "s3/server.log",
+                "worker-1.log",
+                "worker-2.log",
+                "worker-3.log",
+            ] {
+                let text = std::fs::read_to_string(self.dir.join(f)).unwrap_or_default();
+                let tail: Vec<&str> = text.lines().rev().take(15).collect();
+                eprintln!("--- {f} (last lines)");
+                for l in tail.iter().rev() {
+                    eprintln!("{l}");
+                }
+            }
+        }
+        let _ = Command::new(workspace_root().join("deploy/cluster.sh"))
+            .arg("stop")
+            .env("NVX_CLUSTER_DIR", &self.dir)
+            .env("NVX_NATS_PORT", self.nats_port.to_string())
+            .env("NVX_BIN", BIN)
+            .output();
+    }
+}
+
+/// The "done means": `deploy/cluster.sh start 3` (nats-server, s3s-fs, three workers),
+/// the abdomen CT ingested into an `s3://` store on the workers, and `neuvolex classify
+/// --cluster` on it, equal byte for byte to `neuvolex classify` in one process on a local
+/// store; then the same with a worker killed (-9) mid-task and with nats-server restarted
+/// mid-run, each on a fresh S3 store.
+#[test]
+fn done_means_abdomen_ct_on_s3_and_three_workers_equals_one_process() {
+    let data = |rel: &str| {
+        neuvolex_tests::shared(rel)
+            .map(|p| p.canonicalize().unwrap().to_string_lossy().into_owned())
+    };
+    let (Some(ct), Some(labels)) = (
+        data("abdomen_ct/ct.nii.gz"),
+        data("abdomen_ct/labels.nii.gz"),
+    ) else {
+        return;
+    };
+    let dir = tempfile::tempdir().expect("tmp");
+    let p = |n: &str| dir.path().join(n).to_string_lossy().into_owned();
+    // AckWait 2 s (the workers create the queue's consumer); each task waits 400 ms first, so
+    // a kill lands mid-task.
+    let Some(cl) = LocalCluster::start(
+        dir.path(),
+        3,
+        "--ack-wait 2 --max-deliver 3 --task-delay-ms 400",
+    ) else {
+        return;
+    };
+    let url = cl.url();
+    // The reference: one process, local store. A small forest on local features keeps it
+    // short; the cluster runs the same arguments.
+    ok(&["ingest", &ct, &p("ingested.zarr")]);
+    ok(&["ingest", &ct, &p("local.zarr")]);
+    ok(&[
+        "scribble-sim",
+        &labels,
+        "--level",
+        "S2",
+        "--out",
+        &p("scr.nii.gz"),
+    ]);
+    let classify = |store: &str, out: &str, extra: &[&str]| -> Vec<String> {
+        let mut a: Vec<String> = [
+            "classify",
+            store,
+            "--scribbles",
+            &p("scr.nii.gz"),
+            "--features",
+            "local",
+            "--trees",
+            "10",
+            "--out",
+            out,
+        ]
+        .map(String::from)
+        .to_vec();
+        a.extend(extra.iter().map(|s| s.to_string()));
+        a
+    };
+    let a = classify(&p("local.zarr"), &p("local.nii.gz"), &[]);
+    ok(&a.iter().map(String::as_str).collect::<Vec<_>>());
+    let cluster_args = ["--cluster", url.as_str(), "--ack-wait", "2"];
+    // Each case: ingest on the workers into a fresh S3 store (the same bytes as the local
+    // ingest), classify on the cluster while `fault` runs, compare.
+    let case = |name: &str, fault: &dyn Fn()| {
+        let key = format!("{name}.zarr");
+        let url_store = format!("s3://neuvolex/{key}");
+        cl.ok(&["ingest", &ct, &url_store, "--cluster", &url]);
+        let objects = cl.object_path(&key);
+        same_store(&p("ingested.zarr"), &objects.to_string_lossy());
+        let (out, rep) = (p(&format!("{name}.nii.gz")), p(&format!("{name}.json")));
+        let a = classify(
+            &url_store,
+            &out,
+            &[&["--report", &rep][..], &cluster_args].concat(),
+        );
+        let coord = cl
+            .cmd(&a.iter().map(String::as_str).collect::<Vec<_>>())
+            .stdout(Stdio::null())
+            .stderr(Stdio::piped())
+            .spawn()
+            .expect("coordinator");
+        fault();
+        let o = coord.wait_with_output().expect("coordinator");
+        assert!(
+            o.status.success(),
+            "{name}: {}",
+            String::from_utf8_lossy(&o.stderr)
+        );
+        let r = report(&rep);
+        assert_eq!(r["run"]["completed"], 8, "{name}: {r}");
+        assert!(
+            r["run"]["dead"].as_array().unwrap().is_empty(),
+            "{name}: {r}"
+        );
+        same_tree(
+            &p("local.zarr"),
+            &objects.to_string_lossy(),
+            "neuvolex/vectors/classes_proba",
+        );
+        same_tree(
+            &p("local.zarr"),
+            &objects.to_string_lossy(),
+            "labels/classified",
+        );
+        assert!(
+            std::fs::read(p("local.nii.gz")).unwrap() == std::fs::read(&out).unwrap(),
+            "{name}: the NIfTI label volumes differ"
+        );
+        r
+    };
+    let r = case("abdomen", &|| {});
+    assert_eq!(
+        r["run"]["per_worker"].as_object().unwrap().len(),
+        3,
+        "all three workers took tasks: {r}"
+    );
+    // A worker killed with -9 in the middle of a task: redelivered after AckWait.
+    let r = case("killed", &|| {
+        let before = cl.started(1);
+        let t = Instant::now();
+        while cl.started(1) == before {
+            assert!(
+                t.elapsed() < Duration::from_secs(60),
+                "worker 1 took no task"
+            );
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        cl.kill9("worker-1");
+    });
+    assert!(r["run"]["redeliveries"].as_u64().unwrap() >= 1, "{r}");
+    // `deploy/cluster.sh start` again brings the killed worker back.
+    cl.script("start");
+    let t = Instant::now();
+    let serving = || {
+        std::fs::read_to_string(cl.dir.join("worker-1.log"))
+            .map(|l| l.matches("serving tasks").count())
+            .unwrap_or(0)
+    };
+    while serving() < 2 {
+        assert!(
+            t.elapsed() < Duration::from_secs(20),
+            "worker 1 did not come back"
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    // nats-server killed mid-run and started again on its JetStream store.
+    case("restarted", &|| {
+        let before: usize = (1..=3).map(|i| cl.started(i)).sum();
+        let t = Instant::now();
+        while (1..=3).map(|i| cl.started(i)).sum::<usize>() == before {
+            assert!(t.elapsed() < Duration::from_secs(60), "no task started");
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        cl.kill9("nats");
+        std::thread::sleep(Duration::from_millis(1500));
+        cl.script("start");
+    });
 }

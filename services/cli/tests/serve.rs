@@ -1,7 +1,8 @@
 //! `neuvolex serve` as a real process: SIGTERM and Ctrl-C (SIGINT) stop it within 2 s with
 //! event streams open and a training running; the training's checkpoint and the session's
 //! state on disk are complete afterwards. On a non-loopback address a token is required: the
-//! generated one printed in the URL, `--token`, or `NEUVOLEX_TOKEN`.
+//! generated one printed in the URL, `--token`, or `NEUVOLEX_TOKEN`. With `--cluster` the
+//! session's classification runs on `neuvolex worker` processes.
 
 mod support;
 
@@ -12,13 +13,8 @@ use support::{
     data_root, event_stream, http, numbers_as_f64, phantom_strokes, wait_end, wait_event, Server,
 };
 
-#[test]
-fn sigterm_stops_a_training_server_within_two_seconds_and_keeps_complete_state() {
-    let d = tempfile::tempdir().unwrap();
-    let data = data_root(d.path());
-    let mut srv = Server::start(d.path(), &data, &[], &[]);
-    let a = &srv.addr.clone();
-    let streams: Vec<_> = (0..3).map(|_| event_stream(a)).collect();
+/// A session on the phantom with its strokes (which start a classification); its id.
+fn session_with_strokes(a: &str) -> String {
     let (st, body) = http(
         a,
         "POST",
@@ -39,6 +35,17 @@ fn sigterm_stops_a_training_server_within_two_seconds_and_keeps_complete_state()
         Some(&phantom_strokes()),
     );
     assert_eq!(st, 202);
+    id
+}
+
+#[test]
+fn sigterm_stops_a_training_server_within_two_seconds_and_keeps_complete_state() {
+    let d = tempfile::tempdir().unwrap();
+    let data = data_root(d.path());
+    let mut srv = Server::start(d.path(), &data, &[], &[]);
+    let a = &srv.addr.clone();
+    let streams: Vec<_> = (0..3).map(|_| event_stream(a)).collect();
+    let id = session_with_strokes(a);
     let (st, body) = http(
         a,
         "POST",
@@ -205,4 +212,60 @@ fn beyond_loopback_a_token_is_required() {
         .unwrap();
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("at least 8"));
+}
+
+#[test]
+fn serve_with_cluster_classifies_on_the_workers() {
+    let d = tempfile::tempdir().unwrap();
+    let Some(nats) = neuvolex_tests::NatsServer::start(d.path(), "127.0.0.1", &[]) else {
+        return;
+    };
+    let url = nats.url();
+    let logs: Vec<_> = (0..2)
+        .map(|i| d.path().join(format!("worker-{i}.log")))
+        .collect();
+    let mut workers: Vec<_> = logs
+        .iter()
+        .enumerate()
+        .map(|(i, log)| {
+            Command::new(env!("CARGO_BIN_EXE_neuvolex"))
+                .args(["worker", "--nats", &url, "--threads", "1", "--quiet"])
+                .args(["--name", &format!("w{i}")])
+                .env("RUST_LOG", "neuvolex=info,warn")
+                .stderr(std::fs::File::create(log).unwrap())
+                .spawn()
+                .unwrap()
+        })
+        .collect();
+    let data = data_root(d.path());
+    let srv = Server::start(d.path(), &data, &["--cluster", &url], &[]);
+    let a = &srv.addr.clone();
+    let ev = event_stream(a);
+    session_with_strokes(a);
+    // The strokes start a classification; it finishes without error, on the workers.
+    let t = Instant::now();
+    let done = loop {
+        match ev.recv_timeout(Duration::from_secs(120)) {
+            Ok(Some((k, d))) if k == "classification" => break d,
+            Ok(Some(_)) => {}
+            other => panic!("no classification event: {other:?}"),
+        }
+        assert!(t.elapsed() < Duration::from_secs(120), "no classification");
+    };
+    assert!(!done.contains("\"error\""), "{done}");
+    let started: usize = logs
+        .iter()
+        .map(|l| {
+            std::fs::read_to_string(l)
+                .unwrap_or_default()
+                .matches("task started")
+                .count()
+        })
+        .sum();
+    assert!(started >= 1, "the workers ran the classification's tasks");
+    srv.signal("-INT");
+    for w in &mut workers {
+        let _ = w.kill();
+        let _ = w.wait();
+    }
 }

@@ -6,8 +6,12 @@ use std::time::Duration;
 
 /// Stream of tasks (WorkQueue retention).
 pub const TASKS: &str = "NVX_TASKS";
-/// Stream of results and dead letters (limits retention).
+/// Stream of results and the workers' dead-letter notices (limits retention; each run's
+/// messages are purged when it ends).
 pub const RESULTS: &str = "NVX_RESULTS";
+/// Stream of dead-letter records (`nvx.dead.<stage>.<run>`), kept for a week after their run so
+/// an operator can inspect them (`neuvolex worker --nats URL --dead-letters`).
+pub const DEAD: &str = "NVX_DEAD";
 /// The durable pull consumer every worker shares.
 pub const CONSUMER: &str = "workers";
 /// Object store of blobs (trained forests, models).
@@ -19,6 +23,9 @@ pub const CANCEL: &str = "nvx.cancel";
 /// Core subject that tells every worker to finish its task and exit.
 pub const STOP: &str = "nvx.workers.stop";
 
+/// What a connection error says when the server answers without JetStream.
+const NOT_ENABLED: &str = "JetStream is not enabled on this server";
+
 /// Task subject of a run: `nvx.task.<stage>.<stage key>.<run>`.
 pub fn task_subject(stage: &str, key: u64, run: &str) -> String {
     format!("nvx.task.{stage}.{key:016x}.{run}")
@@ -27,6 +34,31 @@ pub fn task_subject(stage: &str, key: u64, run: &str) -> String {
 /// Result subject of a run.
 pub fn result_subject(run: &str) -> String {
     format!("nvx.result.{run}")
+}
+
+/// Subject on which a run's coordinator answers while it runs (see [`Engine::run_alive`]).
+pub fn run_subject(run: &str) -> String {
+    format!("nvx.run.{run}")
+}
+
+/// Dead-letter subject of a run.
+pub fn dead_subject(stage: &str, run: &str) -> String {
+    format!("nvx.dead.{stage}.{run}")
+}
+
+/// A task given up, as kept in the dead-letter stream.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct DeadLetter {
+    /// The run.
+    pub run: String,
+    /// The stage.
+    pub stage: String,
+    /// The stage's parameters (JSON text).
+    pub params: String,
+    /// Unix seconds when the coordinator recorded it.
+    pub unix: u64,
+    /// The task, its bricks, deliveries, last error and worker.
+    pub task: neuvolex_tasks::DeadTask,
 }
 
 /// Engine settings shared by coordinators and workers.
@@ -118,17 +150,32 @@ impl Engine {
             .build(client.clone());
         let mut e = Engine { cfg, client, js };
         let limit = e.cfg.connect_timeout * 4;
-        tokio::time::timeout(limit, e.ensure())
-            .await
-            .map_err(|_| bad("JetStream did not answer in time".into()))??;
-        Ok(e)
+        let t0 = std::time::Instant::now();
+        loop {
+            match tokio::time::timeout(limit, e.ensure()).await {
+                Err(_) => return Err(bad("JetStream did not answer in time".into())),
+                Ok(Ok(())) => return Ok(e),
+                // A server that has just started listens a moment before JetStream answers; and
+                // of processes that create the streams at once, all but one are told the
+                // subjects overlap (the next look finds the stream).
+                Ok(Err(x))
+                    if (x.to_string().contains(NOT_ENABLED)
+                        || x.to_string().contains("overlap")
+                        || x.to_string().contains("already in use"))
+                        && t0.elapsed() < Duration::from_secs(5) =>
+                {
+                    tokio::time::sleep(Duration::from_millis(250)).await;
+                }
+                Ok(Err(x)) => return Err(x),
+            }
+        }
     }
 
     async fn ensure(&mut self) -> Result<()> {
         let hint = |e: &dyn std::fmt::Display| {
             let s = e.to_string();
             if s.contains("not enabled") || s.contains("503") || s.contains("no responders") {
-                format!("{s}: JetStream is not enabled on this server (start nats-server with -js)")
+                format!("{s}: {NOT_ENABLED} (start nats-server with -js)")
             } else {
                 s
             }
@@ -157,6 +204,18 @@ impl Engine {
             })
             .await
             .map_err(|e| js("result stream", hint(&e)))?;
+        self.js
+            .get_or_create_stream(stream::Config {
+                name: DEAD.into(),
+                subjects: vec!["nvx.dead.>".into()],
+                retention: stream::RetentionPolicy::Limits,
+                storage: stream::StorageType::File,
+                max_age: Duration::from_secs(7 * 24 * 3600),
+                max_messages: 100_000,
+                ..Default::default()
+            })
+            .await
+            .map_err(|e| js("dead-letter stream", hint(&e)))?;
         let want = self.consumer_config();
         let s = self
             .js
@@ -266,6 +325,79 @@ impl Engine {
             .await
             .map_err(|e| js(&format!("blob '{key}'"), e))?;
         Ok(v)
+    }
+
+    /// True unless the coordinator of `run` is certainly gone: nobody listens on its
+    /// [`run_subject`] (NATS answers "no responders" at once). A coordinator that does not
+    /// answer in time counts as alive, so a slow one never loses its tasks.
+    pub async fn run_alive(&self, run: &str) -> bool {
+        let req = async_nats::Request::new()
+            .payload("alive?".into())
+            .timeout(Some(Duration::from_secs(2)));
+        match self.client.send_request(run_subject(run), req).await {
+            Ok(_) => true,
+            Err(e) => !matches!(e.kind(), async_nats::RequestErrorKind::NoResponders),
+        }
+    }
+
+    /// Records a dead letter in the retained dead-letter stream.
+    pub async fn record_dead(&self, d: &DeadLetter) -> Result<()> {
+        let payload = serde_json::to_vec(d).map_err(|e| js("dead letter", e))?;
+        self.js
+            .publish(dead_subject(&d.stage, &d.run), payload.into())
+            .await
+            .map_err(|e| js("dead letter", e))?
+            .await
+            .map_err(|e| js("dead letter", e))?;
+        Ok(())
+    }
+
+    /// The dead letters kept (oldest first; at most `limit`).
+    pub async fn dead_letters(&self, limit: usize) -> Result<Vec<DeadLetter>> {
+        use futures_util::StreamExt;
+        let s = self
+            .js
+            .get_stream(DEAD)
+            .await
+            .map_err(|e| js("dead-letter stream", e))?;
+        let mut out = Vec::new();
+        let n = s
+            .get_info()
+            .await
+            .map_err(|e| js("dead-letter stream", e))?
+            .state
+            .messages as usize;
+        if n == 0 {
+            return Ok(out);
+        }
+        let c = s
+            .create_consumer(consumer::pull::OrderedConfig {
+                filter_subject: "nvx.dead.>".into(),
+                deliver_policy: consumer::DeliverPolicy::All,
+                ..Default::default()
+            })
+            .await
+            .map_err(|e| js("dead-letter consumer", e))?;
+        let mut msgs = c
+            .messages()
+            .await
+            .map_err(|e| js("dead-letter consumer", e))?;
+        let want = n.min(limit);
+        for _ in 0..want {
+            let wait = self.cfg.connect_timeout.max(Duration::from_secs(5));
+            let m = tokio::time::timeout(wait, msgs.next())
+                .await
+                .map_err(|_| js("dead-letter consumer", "no answer in time"))?;
+            match m {
+                Some(Ok(m)) => match serde_json::from_slice::<DeadLetter>(&m.payload) {
+                    Ok(d) => out.push(d),
+                    Err(e) => tracing::warn!("a dead letter that is not a record ({e}): skipped"),
+                },
+                Some(Err(e)) => return Err(js("dead-letter consumer", e)),
+                None => break,
+            }
+        }
+        Ok(out)
     }
 
     /// Tells every worker to finish its current task and exit.

@@ -38,6 +38,10 @@ pub(crate) mod h {
     pub const DELIVERED: &str = "Nvx-Delivered";
     /// A result too large for one message: the key of the blob that holds it.
     pub const BLOB: &str = "Nvx-Blob";
+    /// Bytes the task read from the brick store.
+    pub const READ: &str = "Nvx-Read";
+    /// Bytes the task wrote to the brick store.
+    pub const WRITTEN: &str = "Nvx-Written";
 }
 
 /// Results larger than this go through the blob store (NATS messages are limited to 1 MiB
@@ -164,32 +168,37 @@ impl ClusterExecutor {
         let run = run_id();
         let params = stage.params().to_string();
         let key = fingerprint(format!("{}\n{params}", stage.name()).as_bytes());
-        // Tasks of an earlier run of the same stage and parameters (a coordinator that was
-        // killed) are redundant: this run re-plans what is not done yet.
+        // While this run lasts its coordinator answers on the run's subject, so that a later
+        // coordinator of the same stage and parameters leaves its tasks alone.
+        let mut presence = e
+            .client
+            .subscribe(engine::run_subject(&run))
+            .await
+            .map_err(|x| js("run presence", x))?;
+        let responder = {
+            let client = e.client.clone();
+            AbortOnDrop(tokio::spawn(async move {
+                while let Some(m) = presence.next().await {
+                    if let Some(reply) = m.reply {
+                        let _ = client.publish(reply, "alive".into()).await;
+                    }
+                }
+            }))
+        };
         let task_stream =
             e.js.get_stream(TASKS)
                 .await
                 .map_err(|x| js("task stream", x))?;
-        let prefix = format!("nvx.task.{}.{key:016x}.>", stage.name());
-        if let Err(x) = task_stream.purge().filter(&prefix).await {
-            tracing::warn!("cannot purge stale tasks {prefix}: {x}");
-        }
+        purge_dead_runs(e, &task_stream, stage.name(), key).await;
         let result_stream =
             e.js.get_stream(RESULTS)
                 .await
                 .map_err(|x| js("result stream", x))?;
-        let results = result_stream
-            .create_consumer(consumer::pull::OrderedConfig {
-                filter_subject: engine::result_subject(&run),
-                deliver_policy: consumer::DeliverPolicy::All,
-                ..Default::default()
-            })
-            .await
-            .map_err(|x| js("results consumer", x))?;
-        let mut results = results
-            .messages()
-            .await
-            .map_err(|x| js("results consumer", x))?;
+        let mut results = open_results(&result_stream, &run, 1).await?;
+        // The last result read (stream sequence), to reopen the results after a server restart,
+        // and how many were read.
+        let mut last_result = 0u64;
+        let mut results_read = 0u64;
         let mut advisories = e
             .client
             .subscribe(format!(
@@ -205,30 +214,20 @@ impl ClusterExecutor {
             .map_err(|x| js("worker presence", x))?;
         let subject = engine::task_subject(stage.name(), key, &run);
         let mut seq_to_task: HashMap<u64, u32> = HashMap::new();
-        let mut acks = Vec::with_capacity(tasks.len());
-        for t in tasks {
-            let payload = codec::encode(&TaskMsg {
-                run: run.clone(),
-                stage: stage.name().to_string(),
-                key,
-                params: params.clone(),
-                task: t.clone(),
-            })?;
-            report.queue_bytes += payload.len() as u64;
-            let ack =
-                e.js.send_publish(
-                    subject.clone(),
-                    async_nats::jetstream::message::PublishMessage::build()
-                        .payload(payload.into())
-                        .message_id(format!("{run}.{}", t.index)),
-                )
-                .await
-                .map_err(|x| js("publish task", x))?;
-            acks.push((t.index, ack));
-        }
-        for (i, a) in acks {
-            let a = a.await.map_err(|x| js("publish task", x))?;
-            seq_to_task.insert(a.sequence, i);
+        let mut task_to_seq: HashMap<u32, u64> = HashMap::new();
+        let all: Vec<&Task> = tasks.iter().collect();
+        let enqueue = Enqueue {
+            e,
+            subject: &subject,
+            run: &run,
+            stage: stage.name(),
+            key,
+            params: &params,
+        };
+        for (i, seq, bytes) in enqueue.send(&all, 0).await? {
+            report.queue_bytes += bytes;
+            seq_to_task.insert(seq, i);
+            task_to_seq.insert(i, seq);
         }
         tracing::debug!(run, tasks = tasks.len(), subject, "enqueued");
         let by_index: BTreeMap<u32, &Task> = tasks.iter().map(|t| (t.index, t)).collect();
@@ -236,17 +235,45 @@ impl ClusterExecutor {
         let mut workers: HashMap<String, Instant> = HashMap::new();
         let mut last_worker = Instant::now();
         let mut tick = tokio::time::interval(Duration::from_millis(250));
+        let mut ticks = 0u64;
+        // Since when the queue holds fewer tasks than have no result (and how many had one).
+        let mut short: Option<(Instant, usize)> = None;
+        let mut requeues = 0u32;
+        // Tasks given up by the max-deliveries advisory: they stay in the queue.
+        let mut lingering = 0usize;
+        let params_text = params.clone();
+        let dead = |d: &DeadTask| engine::DeadLetter {
+            run: run.clone(),
+            stage: stage.name().to_string(),
+            params: params_text.clone(),
+            unix: std::time::SystemTime::now()
+                .duration_since(std::time::UNIX_EPOCH)
+                .map(|t| t.as_secs())
+                .unwrap_or(0),
+            task: d.clone(),
+        };
         while resolved.len() < tasks.len() {
             tokio::select! {
                 m = results.next() => match m {
                     Some(Ok(m)) => {
+                        if let Ok(i) = m.info() {
+                            last_result = last_result.max(i.stream_sequence);
+                        }
+                        results_read += 1;
                         let m: async_nats::Message = m.into();
                         report.queue_bytes += m.payload.len() as u64;
                         let Some(idx) = header(&m, h::TASK).and_then(|v| v.parse::<u32>().ok()) else { continue };
                         let worker = header(&m, h::WORKER).unwrap_or("?").to_string();
                         workers.insert(worker.clone(), Instant::now());
                         last_worker = Instant::now();
-                        if resolved.contains_key(&idx) || !by_index.contains_key(&idx) {
+                        if !by_index.contains_key(&idx) {
+                            continue;
+                        }
+                        if resolved.contains_key(&idx) {
+                            // A late result: the task was redelivered and completed elsewhere
+                            // (tasks are idempotent, so it carries the same output).
+                            report.duplicates += 1;
+                            tracing::debug!(task = idx, worker, "duplicate result ignored");
                             continue;
                         }
                         let delivered: u64 = header(&m, h::DELIVERED).and_then(|v| v.parse().ok()).unwrap_or(1);
@@ -260,6 +287,9 @@ impl ClusterExecutor {
                                 error: String::from_utf8_lossy(&m.payload).into_owned(),
                                 worker,
                             };
+                            if let Err(x) = e.record_dead(&dead(&d)).await {
+                                tracing::warn!("cannot keep the dead letter of task {idx}: {x}");
+                            }
                             report.dead.push(d.clone());
                             on(Event::Dead(d));
                             continue;
@@ -276,6 +306,10 @@ impl ClusterExecutor {
                         let work: f64 = header(&m, h::WORK).and_then(|v| v.parse().ok()).unwrap_or(0.0);
                         let overhead: f64 = header(&m, h::OVERHEAD).and_then(|v| v.parse().ok()).unwrap_or(0.0);
                         let skipped: u64 = header(&m, h::SKIPPED).and_then(|v| v.parse().ok()).unwrap_or(0);
+                        let read: u64 = header(&m, h::READ).and_then(|v| v.parse().ok()).unwrap_or(0);
+                        let written: u64 = header(&m, h::WRITTEN).and_then(|v| v.parse().ok()).unwrap_or(0);
+                        report.store_read_bytes += read;
+                        report.store_written_bytes += written;
                         resolved.insert(idx, ());
                         report.completed += 1;
                         report.work_seconds += work;
@@ -284,8 +318,19 @@ impl ClusterExecutor {
                         *report.per_worker.entry(worker.clone()).or_default() += 1;
                         on(Event::Done(Done { task: idx, worker, output, work_seconds: work, skipped }));
                     }
-                    Some(Err(x)) => tracing::warn!("results: {x} (resuming)"),
-                    None => return Err(js("results", "the results consumer ended")),
+                    // The server restarted (its ephemeral consumers are gone) or the read failed:
+                    // read on from the last result.
+                    end => {
+                        match end {
+                            Some(Err(x)) => tracing::warn!("results: {x} (reopening)"),
+                            _ => tracing::warn!("results: the consumer ended (reopening)"),
+                        }
+                        tokio::time::sleep(Duration::from_millis(250)).await;
+                        match open_results(&result_stream, &run, last_result + 1).await {
+                            Ok(r) => results = r,
+                            Err(x) => tracing::warn!("results: {x} (retrying)"),
+                        }
+                    }
                 },
                 a = advisories.next() => {
                     let Some(a) = a else { continue };
@@ -293,6 +338,7 @@ impl ClusterExecutor {
                     let seq = v["stream_seq"].as_u64().unwrap_or(0);
                     if let Some(&idx) = seq_to_task.get(&seq) {
                         if resolved.insert(idx, ()).is_none() {
+                            lingering += 1;
                             let d = DeadTask {
                                 task: idx,
                                 bricks: by_index[&idx].bricks.clone(),
@@ -300,6 +346,9 @@ impl ClusterExecutor {
                                 error: "no worker completed it: every delivery timed out (worker lost, or the task outlives its heartbeats)".into(),
                                 worker: "-".into(),
                             };
+                            if let Err(x) = e.record_dead(&dead(&d)).await {
+                                tracing::warn!("cannot keep the dead letter of task {idx}: {x}");
+                            }
                             report.dead.push(d.clone());
                             on(Event::Dead(d));
                         }
@@ -312,6 +361,79 @@ impl ClusterExecutor {
                     }
                 }
                 _ = tick.tick() => {
+                    ticks += 1;
+                    // Every 2 s: does the queue still hold every task without a result?
+                    // Results are stored before their task is acked, so a task that is neither
+                    // queued nor answered for a while was lost: a restarted server that had not
+                    // written it to disk yet, or a purge. The coordinator owns its tasks and
+                    // enqueues the lost ones again (a few times; they are idempotent).
+                    if ticks.is_multiple_of(8) && resolved.len() < tasks.len() {
+                        let unresolved = tasks.len() - resolved.len();
+                        match queued(&task_stream, &subject).await {
+                            Some(n) if (n as usize).saturating_sub(lingering) < unresolved => {
+                                let (since, at) = *short.get_or_insert((Instant::now(), resolved.len()));
+                                if at != resolved.len() {
+                                    short = Some((Instant::now(), resolved.len()));
+                                } else if since.elapsed() > LOST_GRACE {
+                                    short = None;
+                                    // Unread results first: a reader stalled by a server restart
+                                    // is reopened (those tasks were not lost).
+                                    let stored = queued(&result_stream, &engine::result_subject(&run)).await;
+                                    if stored.is_none_or(|n| n > results_read) {
+                                        tracing::warn!("results: {} stored, {results_read} read; reopening the reader", stored.map_or("?".into(), |n| n.to_string()));
+                                        match open_results(&result_stream, &run, last_result + 1).await {
+                                            Ok(r) => results = r,
+                                            Err(x) => tracing::warn!("results: {x} (retrying)"),
+                                        }
+                                        continue;
+                                    }
+                                    let mut lost = Vec::new();
+                                    for (&i, t) in &by_index {
+                                        if resolved.contains_key(&i) {
+                                            continue;
+                                        }
+                                        let gone = match task_to_seq.get(&i) {
+                                            Some(&seq) => matches!(
+                                                task_stream.get_raw_message(seq).await,
+                                                Err(x) if x.kind() == async_nats::jetstream::stream::LastRawMessageErrorKind::NoMessageFound
+                                            ),
+                                            None => true,
+                                        };
+                                        if gone {
+                                            lost.push(*t);
+                                        }
+                                    }
+                                    if !lost.is_empty() {
+                                        requeues += 1;
+                                        let which: Vec<u32> = lost.iter().map(|t| t.index).take(20).collect();
+                                        if requeues > MAX_REQUEUES {
+                                            return Err(js(
+                                                "run",
+                                                format!(
+                                                    "{} of {} tasks left the queue without a result again after {MAX_REQUEUES} \
+                                                     re-enqueues (tasks {which:?}): something purges them; re-run the \
+                                                     command (done markers keep what completed)",
+                                                    lost.len(),
+                                                    tasks.len()
+                                                ),
+                                            ));
+                                        }
+                                        tracing::warn!(
+                                            "{} tasks left the queue without a result (tasks {which:?}); enqueuing them again",
+                                            lost.len()
+                                        );
+                                        report.requeued += lost.len() as u64;
+                                        for (i, seq, bytes) in enqueue.send(&lost, requeues).await? {
+                                            report.queue_bytes += bytes;
+                                            seq_to_task.insert(seq, i);
+                                            task_to_seq.insert(i, seq);
+                                        }
+                                    }
+                                }
+                            }
+                            _ => short = None,
+                        }
+                    }
                     if self.poll.as_ref().is_some_and(|p| p()) {
                         report.cancelled = true;
                         if let Err(x) = task_stream.purge().filter(&subject).await {
@@ -343,8 +465,159 @@ impl ClusterExecutor {
         {
             tracing::debug!("cannot purge results of {run}: {x}");
         }
+        drop(responder);
         report.seconds = t0.elapsed().as_secs_f64();
         Ok(report)
+    }
+}
+
+/// How long the queue may hold fewer tasks than have no result, without any result arriving,
+/// before the coordinator looks for lost tasks.
+const LOST_GRACE: Duration = Duration::from_secs(5);
+
+/// Re-enqueues of lost tasks before a run gives up.
+const MAX_REQUEUES: u32 = 3;
+
+/// Publishes a run's tasks.
+struct Enqueue<'a> {
+    e: &'a Engine,
+    subject: &'a str,
+    run: &'a str,
+    stage: &'a str,
+    key: u64,
+    params: &'a str,
+}
+
+impl Enqueue<'_> {
+    /// Publishes `tasks` (attempt 0 first, then re-enqueues), waits until JetStream stored
+    /// them, and returns (task index, stream sequence, bytes) of each.
+    async fn send(
+        &self,
+        tasks: &[&Task],
+        attempt: u32,
+    ) -> Result<Vec<(u32, u64, u64)>, ClusterError> {
+        let mut acks = Vec::with_capacity(tasks.len());
+        for t in tasks {
+            let payload = codec::encode(&TaskMsg {
+                run: self.run.to_string(),
+                stage: self.stage.to_string(),
+                key: self.key,
+                params: self.params.to_string(),
+                task: (*t).clone(),
+            })?;
+            let bytes = payload.len() as u64;
+            let ack = self
+                .e
+                .js
+                .send_publish(
+                    self.subject.to_string(),
+                    async_nats::jetstream::message::PublishMessage::build()
+                        .payload(payload.into())
+                        .message_id(format!("{}.{}.{attempt}", self.run, t.index)),
+                )
+                .await
+                .map_err(|x| js("publish task", x))?;
+            acks.push((t.index, ack, bytes));
+        }
+        let mut out = Vec::with_capacity(acks.len());
+        for (i, a, bytes) in acks {
+            let a = a.await.map_err(|x| js("publish task", x))?;
+            out.push((i, a.sequence, bytes));
+        }
+        Ok(out)
+    }
+}
+
+/// Aborts a spawned task when dropped.
+struct AbortOnDrop(tokio::task::JoinHandle<()>);
+
+impl Drop for AbortOnDrop {
+    fn drop(&mut self) {
+        self.0.abort();
+    }
+}
+
+/// The results of `run` from stream sequence `from` on (an ordered consumer).
+async fn open_results(
+    stream: &async_nats::jetstream::stream::Stream,
+    run: &str,
+    from: u64,
+) -> Result<consumer::pull::Ordered, ClusterError> {
+    stream
+        .create_consumer(consumer::pull::OrderedConfig {
+            filter_subject: engine::result_subject(run),
+            deliver_policy: if from <= 1 {
+                consumer::DeliverPolicy::All
+            } else {
+                consumer::DeliverPolicy::ByStartSequence {
+                    start_sequence: from,
+                }
+            },
+            ..Default::default()
+        })
+        .await
+        .map_err(|x| js("results consumer", x))?
+        .messages()
+        .await
+        .map_err(|x| js("results consumer", x))
+}
+
+/// Messages of `subject` in `stream` (`None` if the server did not say).
+async fn queued(stream: &async_nats::jetstream::stream::Stream, subject: &str) -> Option<u64> {
+    let mut info = stream.info_with_subjects(subject).await.ok()?;
+    let mut n = 0u64;
+    while let Some(r) = info.next().await {
+        n += r.ok()?.1 as u64;
+    }
+    Some(n)
+}
+
+/// Purges the queued tasks of earlier runs of the same stage and parameters whose coordinator
+/// is gone (killed: this run re-plans what is not done yet). Tasks of a run whose coordinator
+/// still answers stay: two identical runs at once both finish.
+async fn purge_dead_runs(
+    e: &Engine,
+    stream: &async_nats::jetstream::stream::Stream,
+    stage: &str,
+    key: u64,
+) {
+    let filter = format!("nvx.task.{stage}.{key:016x}.>");
+    let mut runs = std::collections::BTreeSet::new();
+    match stream.info_with_subjects(&filter).await {
+        Ok(mut info) => {
+            while let Some(r) = info.next().await {
+                match r {
+                    Ok((subject, _)) => {
+                        if let Some(run) = subject.rsplit('.').next() {
+                            runs.insert(run.to_string());
+                        }
+                    }
+                    Err(x) => {
+                        tracing::warn!("cannot list queued tasks {filter}: {x}");
+                        break;
+                    }
+                }
+            }
+        }
+        Err(x) => tracing::warn!("cannot list queued tasks {filter}: {x}"),
+    }
+    for run in runs {
+        if e.run_alive(&run).await {
+            tracing::info!(
+                run,
+                "a run of the same stage and parameters is in progress: its tasks stay"
+            );
+            continue;
+        }
+        let subject = engine::task_subject(stage, key, &run);
+        match stream.purge().filter(&subject).await {
+            Ok(p) => tracing::info!(
+                run,
+                purged = p.purged,
+                "purged the tasks of a run whose coordinator is gone"
+            ),
+            Err(x) => tracing::warn!("cannot purge stale tasks {subject}: {x}"),
+        }
     }
 }
 

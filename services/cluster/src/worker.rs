@@ -327,6 +327,7 @@ async fn serve_async(
         );
         let tm2 = tm.clone();
         let t_work = Instant::now();
+        let io0 = neuvolex_bricks::store_io();
         let r = tokio::task::spawn_blocking(move || {
             if let Some(d) = delay {
                 std::thread::sleep(d);
@@ -346,6 +347,8 @@ async fn serve_async(
         })
         .await;
         let work = t_work.elapsed().as_secs_f64();
+        // One task at a time: the process's store traffic meanwhile is the task's.
+        let io = neuvolex_bricks::store_io().since(&io0);
         hb.abort();
         *current.lock().unwrap_or_else(|p| p.into_inner()) = None;
         let outcome: std::result::Result<(Vec<u8>, u64), TaskError> = match r {
@@ -372,6 +375,8 @@ async fn serve_async(
                 hdr.insert(h::WORK, format!("{work:.6}").as_str());
                 hdr.insert(h::OVERHEAD, format!("{overhead:.6}").as_str());
                 hdr.insert(h::SKIPPED, skipped.to_string().as_str());
+                hdr.insert(h::READ, io.bytes_read.to_string().as_str());
+                hdr.insert(h::WRITTEN, io.bytes_written.to_string().as_str());
                 let t_pub = Instant::now();
                 let sent = if bytes.len() > crate::executor::INLINE_RESULT_MAX {
                     // Too large for a message: the result goes through the blob store.

@@ -73,6 +73,7 @@ pub enum RunEvent {
 
 /// What a stage's run did.
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
 pub struct RunReport {
     /// Stage name.
     pub stage: String,
@@ -98,6 +99,16 @@ pub struct RunReport {
     pub queue_seconds: f64,
     /// Bytes of task messages and results through the queue (cluster only).
     pub queue_bytes: u64,
+    /// Bytes the tasks read from the brick store (wherever they ran).
+    pub store_read_bytes: u64,
+    /// Bytes the tasks wrote to the brick store.
+    pub store_written_bytes: u64,
+    /// Results of tasks already resolved that arrived again and were ignored (the late result
+    /// of a worker whose task was redelivered meanwhile; cluster only).
+    pub duplicates: u64,
+    /// Tasks the coordinator enqueued again because they left the queue without a result (a
+    /// restarted queue server that had not stored them yet, or a purge; cluster only).
+    pub requeued: u64,
     /// True when the run stopped because it was cancelled.
     pub cancelled: bool,
 }
@@ -121,6 +132,10 @@ impl RunReport {
         self.work_seconds += o.work_seconds;
         self.queue_seconds += o.queue_seconds;
         self.queue_bytes += o.queue_bytes;
+        self.store_read_bytes += o.store_read_bytes;
+        self.store_written_bytes += o.store_written_bytes;
+        self.duplicates += o.duplicates;
+        self.requeued += o.requeued;
         self.cancelled |= o.cancelled;
     }
 }
@@ -242,6 +257,7 @@ impl Executor for LocalExecutor {
         on: &mut dyn FnMut(Event<S::Output>),
     ) -> Result<RunReport> {
         let t0 = Instant::now();
+        let io0 = neuvolex_bricks::store_io();
         let who = self.describe();
         let mut report = RunReport {
             stage: stage.name().to_string(),
@@ -300,6 +316,11 @@ impl Executor for LocalExecutor {
         });
         report.cancelled |= self.cancel.load(Ordering::SeqCst);
         report.seconds = t0.elapsed().as_secs_f64();
+        // The process's store traffic during the run (the tasks', and whatever else ran in
+        // this process meanwhile).
+        let io = neuvolex_bricks::store_io().since(&io0);
+        report.store_read_bytes = io.bytes_read;
+        report.store_written_bytes = io.bytes_written;
         Ok(report)
     }
 }
