@@ -33,7 +33,7 @@ use std::time::{Duration, Instant};
 
 use neuvolex_bricks::BrickStore;
 use serde_json::{json, Value};
-use support::{http, try_http, Server};
+use support::{classify_strokes, http, open_phantom, try_http, Server};
 
 mod support;
 
@@ -555,47 +555,6 @@ fn earlier_strokes() -> Value {
     ])
 }
 
-/// Opens `phantom.zarr` on `srv` (restoring its saved session when asked); the session id.
-fn open_session(srv: &Server, restore: bool) -> String {
-    let (st, body) = http(
-        &srv.addr,
-        "POST",
-        "/api/sessions",
-        &[],
-        Some(&json!({"volume": "phantom.zarr", "restore": restore})),
-    );
-    assert_eq!(st, 201, "{body}");
-    serde_json::from_str::<Value>(&body).unwrap()["id"]
-        .as_str()
-        .unwrap()
-        .to_string()
-}
-
-/// Sends `strokes` to session `id` and waits until their classification is done.
-fn classify_strokes(srv: &Server, id: &str, strokes: &Value) {
-    let (st, body) = http(
-        &srv.addr,
-        "PUT",
-        &format!("/api/sessions/{id}/strokes"),
-        &[],
-        Some(strokes),
-    );
-    assert_eq!(st, 202, "{body}");
-    let t = Instant::now();
-    loop {
-        let (_, body) = http(&srv.addr, "GET", &format!("/api/sessions/{id}"), &[], None);
-        let v: Value = serde_json::from_str(&body).unwrap();
-        if v["status"]["state"] == "done" && v["status"]["generation"] == v["generation"] {
-            return;
-        }
-        assert!(
-            v["status"]["state"] != "failed" && t.elapsed() < Duration::from_secs(120),
-            "classification did not finish: {v}"
-        );
-        std::thread::sleep(Duration::from_millis(20));
-    }
-}
-
 /// A step run in `neuvolex serve`. Each run starts from a fresh copy of the stage's base
 /// folder (`data/phantom.zarr` and the server's `work/`).
 struct ServerStage {
@@ -613,8 +572,8 @@ struct ServerStage {
 }
 
 fn export_prepare(srv: &Server) -> String {
-    let id = open_session(srv, false);
-    classify_strokes(srv, &id, &support::phantom_strokes());
+    let id = open_phantom(&srv.addr, false);
+    classify_strokes(&srv.addr, &id, &support::phantom_strokes());
     id
 }
 
@@ -634,7 +593,7 @@ fn export_digest(run: &Path) -> State {
 }
 
 fn save_prepare(srv: &Server) -> String {
-    open_session(srv, true)
+    open_phantom(&srv.addr, true)
 }
 
 fn save_step(addr: &str, id: &str) -> bool {
@@ -666,12 +625,12 @@ fn save_digest(run: &Path) -> State {
 /// strokes.
 fn server_stages() -> Vec<ServerStage> {
     fn earlier_export(srv: &Server) {
-        let id = open_session(srv, false);
-        classify_strokes(srv, &id, &earlier_strokes());
+        let id = open_phantom(&srv.addr, false);
+        classify_strokes(&srv.addr, &id, &earlier_strokes());
         assert!(export_step(&srv.addr, &id));
     }
     fn earlier_save(srv: &Server) {
-        let id = open_session(srv, false);
+        let id = open_phantom(&srv.addr, false);
         let (st, _) = http(
             &srv.addr,
             "PUT",
@@ -930,6 +889,100 @@ fn a_full_disk_gives_a_clear_error_and_keeps_the_previous_store() {
             // With space again, the step completes.
             run_ok(&work, &stage.rerun(k, &work));
         }
+    }
+}
+
+/// The server's OME-Zarr export and session save on a full disk (the data root and the work
+/// folder on a tmpfs filled to the last byte): 507 with an error naming the path and the
+/// cause, the previous store or saved session intact (the session stays open, so nothing is
+/// lost), and the same request succeeds once there is space again.
+#[test]
+fn a_full_disk_in_the_server_gives_a_clear_error_and_keeps_the_previous_state() {
+    let Some(fs) = Tmpfs::mount(96) else {
+        return;
+    };
+    // The server's log stays off the full disk; its data and work folder are on it.
+    let logs = tempfile::tempdir().unwrap();
+    for stage in server_stages() {
+        let base = fs.dir.path().join("base");
+        if base.exists() {
+            std::fs::remove_dir_all(&base).unwrap();
+        }
+        std::fs::create_dir_all(base.join("work")).unwrap();
+        let d = logs.path().join(stage.name.replace(' ', "-"));
+        std::fs::create_dir_all(&d).unwrap();
+        std::os::unix::fs::symlink(base.join("work"), d.join("work")).unwrap();
+        let data = support::data_root(&base);
+        {
+            let srv = Server::start(&d, &data, &[], &[]);
+            (stage.setup)(&srv);
+        }
+        let srv = Server::start(&d, &data, &[], &[]);
+        let id = (stage.prepare)(&srv);
+        let before = (stage.digest)(&base);
+        let filler = fill(fs.dir.path(), 0);
+        let (path, method, uri, body) = if stage.name.contains("export") {
+            (
+                "phantom.zarr",
+                "POST",
+                format!("/api/sessions/{id}/export/zarr"),
+                Some(json!({"name": "nx"})),
+            )
+        } else {
+            let (st, _) = http(
+                &srv.addr,
+                "PUT",
+                &format!("/api/sessions/{id}/strokes"),
+                &[],
+                Some(&support::phantom_strokes()),
+            );
+            assert_eq!(st, 202);
+            (
+                "sessions/phantom.zarr.json",
+                "DELETE",
+                format!("/api/sessions/{id}"),
+                None,
+            )
+        };
+        let (st, err) = http(&srv.addr, method, &uri, &[], body.as_ref());
+        assert_eq!(
+            st, 507,
+            "{}: {method} {uri} on a full disk: {err}",
+            stage.name
+        );
+        assert!(
+            err.contains("No space left on device") && err.contains(path),
+            "{}: the error names neither the cause nor {path}: {err}",
+            stage.name
+        );
+        assert_eq!(
+            (stage.digest)(&base),
+            before,
+            "{}: a full disk changed the previous state",
+            stage.name
+        );
+        eprintln!("disk full, server {}: {st} {err}", stage.name);
+        // The NIfTI exports go through the work folder: refused the same way.
+        if stage.name.contains("export") {
+            let (st, err) = http(
+                &srv.addr,
+                "GET",
+                &format!("/api/sessions/{id}/export/labels.nii.gz"),
+                &[],
+                None,
+            );
+            assert_eq!(st, 507, "labels.nii.gz on a full disk: {err}");
+            assert!(err.contains("No space left on device"), "{err}");
+        }
+        std::fs::remove_file(filler).unwrap();
+        // With space again, the same request completes (the session was kept open).
+        let (st2, body2) = http(&srv.addr, method, &uri, &[], body.as_ref());
+        assert!(
+            st2 == 200 || st2 == 204,
+            "{}: after freeing space: {st2} {body2}",
+            stage.name
+        );
+        assert_ne!((stage.digest)(&base), before, "{}", stage.name);
     }
 }
 

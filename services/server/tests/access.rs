@@ -1,8 +1,9 @@
 //! Who may use the server and how much of it: the token, the loopback host check, refusal of
 //! cross-origin writes, the data root as the only readable place (a detached NRRD header naming
 //! a file outside it included), and each limit (sessions, the feature cache across sessions,
-//! the request timeout, concurrent trainings, the body size) answering with a clear 4xx/503
-//! and a JSON error. Also the session file (save, load, restore) and concurrent appends.
+//! the render cache and probabilities across sessions, the request timeout, concurrent
+//! trainings, the body size) answering with a clear 4xx/503 and a JSON error. Also the session
+//! file (save, load, restore) and concurrent appends.
 
 #[macro_use]
 mod common;
@@ -294,6 +295,112 @@ async fn the_feature_cache_is_bounded_across_sessions() {
     assert_eq!(s["sessions"], 0, "{s}");
 }
 
+/// Waits until session `id` finished classifying `generation`, done or failed.
+async fn wait_settled<S>(app: &S, id: &str, generation: u64) -> Value
+where
+    S: actix_web::dev::Service<
+        actix_http::Request,
+        Response = actix_web::dev::ServiceResponse,
+        Error = actix_web::Error,
+    >,
+{
+    let t = Instant::now();
+    loop {
+        let req = test::TestRequest::get()
+            .uri(&format!("/api/sessions/{id}"))
+            .to_request();
+        let v: Value = test::call_and_read_body_json(app, req).await;
+        let st = &v["status"];
+        if st["generation"] == json!(generation)
+            && (st["state"] == "done" || st["state"] == "failed")
+        {
+            return v;
+        }
+        assert!(t.elapsed() < Duration::from_secs(120), "never settled: {v}");
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+}
+
+#[actix_web::test]
+async fn what_sessions_hold_stays_within_the_servers_budgets() {
+    let (_d, mut cfg) = data();
+    // Render bricks: 2 MiB for every session's 3-D view together (each session's frames
+    // read far more). Probabilities: room for two sessions' (48 x 48 x 42 voxels, 2 classes).
+    let one = 48 * 48 * 42 * 2;
+    cfg.render_cache_bytes = 2 << 20;
+    cfg.probs_bytes = 2 * one + 1000;
+    let app = app!(cfg);
+    let check = |s: &Value| {
+        let m = &s["memory"];
+        for part in ["feature_cache", "render_cache", "probabilities"] {
+            assert!(
+                m[part]["used"].as_u64().unwrap() <= m[part]["budget"].as_u64().unwrap(),
+                "{part}: {m}"
+            );
+        }
+        assert!(
+            m["used"].as_u64().unwrap() <= m["budget"].as_u64().unwrap(),
+            "{m}"
+        );
+    };
+    let mut ids = Vec::new();
+    for k in 0..3 {
+        let id = open_session(&app).await;
+        let g = put_strokes(&app, &id, k).await;
+        let v = wait_settled(&app, &id, g).await;
+        if k < 2 {
+            assert_eq!(v["status"]["state"], "done", "{v}");
+        } else {
+            // The third would pass the probability budget: refused, naming it.
+            assert_eq!(v["status"]["state"], "failed", "{v}");
+            let m = v["status"]["message"].as_str().unwrap();
+            assert!(
+                m.contains("--probs-mib") && m.contains("close a session"),
+                "{m}"
+            );
+        }
+        ids.push(id);
+    }
+    let s = server_status(&app).await;
+    assert_eq!(s["memory"]["probabilities"]["used"], 2 * one, "{s}");
+    check(&s);
+    // Every session renders, sharing the one render budget.
+    for (k, id) in ids.iter().enumerate() {
+        for az in [0, 90] {
+            let r = test::call_service(
+                &app,
+                test::TestRequest::get()
+                    .uri(&format!("/api/sessions/{id}/render?size=96&az={az}"))
+                    .to_request(),
+            )
+            .await;
+            assert_eq!(r.status(), 200, "session {k}");
+        }
+        let s = server_status(&app).await;
+        assert!(
+            s["memory"]["render_cache"]["used"].as_u64().unwrap() > 0,
+            "{s}"
+        );
+        check(&s);
+    }
+    // Closing the first gives its share back: the third classifies now.
+    let close = |id: &str| {
+        test::TestRequest::delete()
+            .uri(&format!("/api/sessions/{id}"))
+            .to_request()
+    };
+    assert_eq!(test::call_service(&app, close(&ids[0])).await.status(), 204);
+    let g = put_strokes(&app, &ids[2], 1).await;
+    let v = wait_settled(&app, &ids[2], g).await;
+    assert_eq!(v["status"]["state"], "done", "{v}");
+    check(&server_status(&app).await);
+    for id in &ids[1..] {
+        assert_eq!(test::call_service(&app, close(id)).await.status(), 204);
+    }
+    let s = server_status(&app).await;
+    assert_eq!(s["memory"]["used"], 0, "everything given back: {s}");
+}
+
 #[actix_web::test]
 async fn slow_requests_time_out_with_503() {
     let (_d, mut cfg) = data();
@@ -322,7 +429,22 @@ async fn slow_requests_time_out_with_503() {
     let v: Value = serde_json::from_slice(&body).unwrap();
     let e = v["error"].as_str().unwrap().to_string();
     assert!(e.contains("request timeout"), "{e}");
-    assert!(e.contains("/render"), "{e}");
+    assert!(
+        e.contains("/render") && e.contains("the render was cancelled"),
+        "{e}"
+    );
+    // And it was: the renderer stops the frame at its next batch of bricks instead of
+    // finishing it for nobody.
+    let t = Instant::now();
+    loop {
+        let s = server_status(&app).await;
+        if s["renders_in_flight"] == 0 {
+            assert_eq!(s["renders_cancelled"], 1, "{s}");
+            break;
+        }
+        assert!(t.elapsed() < Duration::from_secs(60), "{s}");
+        tokio::time::sleep(Duration::from_millis(10)).await;
+    }
     // Event streams are not cut by the timeout.
     let mut sse = Sse::open(&app, "").await;
     tokio::time::sleep(Duration::from_millis(50)).await;
