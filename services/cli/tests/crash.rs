@@ -826,10 +826,13 @@ impl Drop for Tmpfs {
 fn fill(dir: &Path, leave: u64) -> PathBuf {
     let p = dir.join("filler");
     let mut f = std::fs::File::create(&p).unwrap();
-    let block = vec![0x5au8; 1 << 16];
     let mut n = 0u64;
-    while f.write_all(&block).is_ok() {
-        n += block.len() as u64;
+    // Large blocks, then smaller ones down to single bytes: nothing is left over.
+    for size in [1usize << 16, 4096, 1] {
+        let block = vec![0x5au8; size];
+        while let Ok(k @ 1..) = f.write(&block) {
+            n += k as u64;
+        }
     }
     let _ = f.flush();
     f.set_len(n.saturating_sub(leave)).unwrap();
@@ -962,8 +965,11 @@ fn a_full_disk_in_the_server_gives_a_clear_error_and_keeps_the_previous_state() 
             stage.name
         );
         eprintln!("disk full, server {}: {st} {err}", stage.name);
-        // The NIfTI exports go through the work folder: refused the same way.
+        // The NIfTI exports go through the work folder: refused the same way (filled again:
+        // the refused export gave back what it had written).
         if stage.name.contains("export") {
+            std::fs::remove_file(&filler).unwrap();
+            fill(fs.dir.path(), 0);
             let (st, err) = http(
                 &srv.addr,
                 "GET",
