@@ -2,7 +2,7 @@
 //! binary:
 //!
 //! - **SIGKILL**: each stage (ingest with labels over an existing store; train with periodic
-//!   checkpoints; features then classify) runs once uninterrupted for its reference result and
+//!   checkpoints; features; classify) runs once uninterrupted for its reference result and
 //!   duration, then `NEUVOLEX_CRASH_KILLS` times (default 6; the recorded run uses 50) is killed
 //!   with SIGKILL at a time drawn from a seeded RNG (`NEUVOLEX_CRASH_SEED`) over that duration
 //!   (+10 %, so some kills land after the end). After each kill every node of the store (image,
@@ -19,8 +19,10 @@
 //!   uninterrupted result with no debris.
 //! - **Disk full**: the same stages on a small tmpfs (mounted by the test, unmounted after)
 //!   filled to a few KiB: a clear error naming a path on it, the previous store intact, and a
-//!   re-run after space is freed completes. Skips visibly where mounting is not permitted
-//!   (fails under `CI=true`).
+//!   re-run after space is freed completes; the server's OME-Zarr export and session save
+//!   likewise (507 naming the path, the previous store or saved session intact, the request
+//!   completing once space is freed). Skips visibly where mounting is not permitted (fails
+//!   under `CI=true`).
 //! - **Concurrent writers**: while one process writes a store, every other writer (ingest,
 //!   train, features, classify) is refused with an error naming the store and the holder.
 
@@ -367,12 +369,20 @@ fn stages(inp: &Inputs) -> Vec<(Stage, Vec<Vec<String>>)> {
             },
             vec![ingest("ph", "ph")],
         ),
+        // Features and classify are stages of their own, each with its own kills.
         (
             Stage {
-                name: "features + classify",
-                steps: vec![features.clone(), classify.clone()],
+                name: "features",
+                steps: vec![features.clone()],
             },
-            vec![ingest("ph", "ph"), train],
+            vec![ingest("ph", "ph"), train.clone()],
+        ),
+        (
+            Stage {
+                name: "classify",
+                steps: vec![classify],
+            },
+            vec![ingest("ph", "ph"), train, features],
         ),
     ]
 }
@@ -1010,7 +1020,7 @@ fn a_second_writer_is_refused_with_the_store_and_the_holder() {
         all[0].0.steps[0].clone(),
         all[1].0.steps[0].clone(),
         args(&["features", "st.zarr"]),
-        all[2].0.steps[1].clone(),
+        all[3].0.steps[0].clone(),
     ];
     let lock = w.join("st.zarr/neuvolex/writer.lock");
     for other in &others {
