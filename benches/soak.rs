@@ -198,7 +198,6 @@ impl Record {
 struct Client {
     agent: ureq::Agent,
     base: String,
-    addr: String,
     rec: Record,
 }
 
@@ -209,7 +208,6 @@ impl Client {
                 .timeout(Duration::from_secs(120))
                 .build(),
             base: format!("http://{addr}"),
-            addr: addr.to_string(),
             rec: Record::default(),
         }
     }
@@ -412,10 +410,10 @@ fn random_stroke(rng: &mut Rng, dims: &[usize], slices: &[usize]) -> Stroke {
     }
 }
 
-fn pause(rng: &mut Rng, lo: u64, hi: u64) {
-    std::thread::sleep(Duration::from_millis(
-        lo + rng.below((hi - lo) as usize) as u64,
-    ));
+/// Sleeps a random `lo..hi` ms, but not past `deadline`.
+fn pause(rng: &mut Rng, lo: u64, hi: u64, deadline: Instant) {
+    let d = Duration::from_millis(lo + rng.below((hi - lo) as usize) as u64);
+    std::thread::sleep(d.min(deadline.saturating_duration_since(Instant::now())));
 }
 
 /// The export kinds the editor must each get through at least once.
@@ -481,7 +479,7 @@ fn worker(o: &Opts) -> Result<()> {
                     // A refused stroke was not added: a person draws it again later.
                     refused += 1;
                 }
-                pause(&mut rng, 250, 600);
+                pause(&mut rng, 250, 600, deadline);
             }
             extra.insert("refused".into(), json!(refused));
         }
@@ -517,7 +515,7 @@ fn worker(o: &Opts) -> Result<()> {
                         None,
                     );
                 }
-                pause(&mut rng, 50, 250);
+                pause(&mut rng, 50, 250, deadline);
             }
         }
         "renderer" => {
@@ -551,13 +549,13 @@ fn worker(o: &Opts) -> Result<()> {
                         );
                     }
                 }
-                pause(&mut rng, 200, 1000);
+                pause(&mut rng, 200, 1000, deadline);
             }
         }
         "editor" => {
             let mut n = 0u32;
             let mut ok: BTreeMap<&str, u64> = EXPORTS.iter().map(|e| (*e, 0)).collect();
-            let (mut not_converged, mut waits) = (0u64, Vec::new());
+            let (mut not_converged, mut waits, mut exports) = (0u64, Vec::new(), 0usize);
             while Instant::now() < deadline {
                 n += 1;
                 let classes: Vec<Value> = (1..=3)
@@ -596,7 +594,13 @@ fn worker(o: &Opts) -> Result<()> {
                     continue;
                 };
                 waits.push(t.elapsed().as_secs_f64());
-                let kind = EXPORTS[n as usize % EXPORTS.len()];
+                // A kind not yet through first, else in turn.
+                exports += 1;
+                let kind = EXPORTS
+                    .iter()
+                    .find(|e| ok[**e] == 0)
+                    .copied()
+                    .unwrap_or(EXPORTS[exports % EXPORTS.len()]);
                 let (st, _) = match kind {
                     "GET /export/labels.nii.gz" => c.call(
                         kind,
@@ -626,7 +630,7 @@ fn worker(o: &Opts) -> Result<()> {
                 if st == 200 {
                     *ok.entry(kind).or_insert(0) += 1;
                 }
-                pause(&mut rng, 200, 800);
+                pause(&mut rng, 200, 800, deadline);
             }
             extra.insert("exports_ok".into(), json!(ok));
             extra.insert("not_converged".into(), json!(not_converged));
@@ -637,8 +641,14 @@ fn worker(o: &Opts) -> Result<()> {
             let (mut previews, mut snapshots, mut stops, mut rounds) = (0u64, 0u64, 0u64, 0u64);
             let mut seen = BTreeMap::new();
             while Instant::now() + Duration::from_secs(5) < deadline {
+                let t = Instant::now();
                 let (mut ev, st) = EventStream::open(addr, Some(s))?;
-                c.rec.add("GET /events (headers)", 0.0, st, "");
+                c.rec.add(
+                    "GET /events (headers)",
+                    t.elapsed().as_secs_f64() * 1e3,
+                    st,
+                    "",
+                );
                 let action = if resume { "resume" } else { "start" };
                 let (st, _) = c.call(
                     "POST /train start",
@@ -647,7 +657,7 @@ fn worker(o: &Opts) -> Result<()> {
                     Some(&json!({"action": action, "epochs": 1000})),
                 );
                 if st != 202 {
-                    pause(&mut rng, 1000, 2000);
+                    pause(&mut rng, 1000, 2000, deadline);
                     continue;
                 }
                 rounds += 1;
@@ -711,7 +721,7 @@ fn worker(o: &Opts) -> Result<()> {
                     std::thread::sleep(Duration::from_millis(100));
                 }
                 // Looking at the result before training again.
-                pause(&mut rng, 10000, 20000);
+                pause(&mut rng, 10000, 20000, deadline);
             }
             extra.insert("rounds".into(), json!(rounds));
             extra.insert("previews_ok".into(), json!(previews));
@@ -740,7 +750,12 @@ fn worker(o: &Opts) -> Result<()> {
                             *seen.entry(k).or_insert(0u64) += 1;
                         }
                     }
-                    Err(e) => c.rec.add("GET /events (headers)", 0.0, 0, &e.to_string()),
+                    Err(e) => c.rec.add(
+                        "GET /events (headers)",
+                        t.elapsed().as_secs_f64() * 1e3,
+                        0,
+                        &e.to_string(),
+                    ),
                 }
             }
             extra.insert("streams".into(), json!(streams));
@@ -821,7 +836,7 @@ fn worker(o: &Opts) -> Result<()> {
                         closed += 1;
                     }
                 }
-                pause(&mut rng, 15000, 25000);
+                pause(&mut rng, 15000, 25000, deadline);
             }
             extra.insert("opened".into(), json!(opened));
             extra.insert("closed".into(), json!(closed));
@@ -830,7 +845,6 @@ fn worker(o: &Opts) -> Result<()> {
         }
         other => bail!("unknown role '{other}'"),
     }
-    let _ = c.addr;
     let report = json!({
         "role": role,
         "rec": c.rec.to_json(),
@@ -1409,19 +1423,12 @@ fn coordinator(o: &Opts) -> Result<()> {
         let codes = all_status.get(route).cloned().unwrap_or_default();
         requests += codes.values().sum::<u64>();
         let codes_s: Vec<String> = codes.iter().map(|(c, n)| format!("{c}: {n}")).collect();
-        let lat = |x: f64| {
-            if route == "GET /events (headers)" && x == 0.0 {
-                "-".to_string()
-            } else {
-                format!("{x:.1}")
-            }
-        };
         println!(
-            "| {route} | {} | {} | {} | {} | {} |",
+            "| {route} | {} | {:.1} | {:.1} | {:.1} | {} |",
             codes.values().sum::<u64>(),
-            lat(percentile(&xs, 0.5)),
-            lat(percentile(&xs, 0.99)),
-            lat(xs.last().copied().unwrap_or(f64::NAN)),
+            percentile(&xs, 0.5),
+            percentile(&xs, 0.99),
+            xs.last().copied().unwrap_or(f64::NAN),
             codes_s.join(", ")
         );
         rows.push(

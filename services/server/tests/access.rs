@@ -295,32 +295,6 @@ async fn the_feature_cache_is_bounded_across_sessions() {
     assert_eq!(s["sessions"], 0, "{s}");
 }
 
-/// Waits until session `id` finished classifying `generation`, done or failed.
-async fn wait_settled<S>(app: &S, id: &str, generation: u64) -> Value
-where
-    S: actix_web::dev::Service<
-        actix_http::Request,
-        Response = actix_web::dev::ServiceResponse,
-        Error = actix_web::Error,
-    >,
-{
-    let t = Instant::now();
-    loop {
-        let req = test::TestRequest::get()
-            .uri(&format!("/api/sessions/{id}"))
-            .to_request();
-        let v: Value = test::call_and_read_body_json(app, req).await;
-        let st = &v["status"];
-        if st["generation"] == json!(generation)
-            && (st["state"] == "done" || st["state"] == "failed")
-        {
-            return v;
-        }
-        assert!(t.elapsed() < Duration::from_secs(120), "never settled: {v}");
-        tokio::time::sleep(Duration::from_millis(50)).await;
-    }
-}
-
 #[actix_web::test]
 async fn what_sessions_hold_stays_within_the_servers_budgets() {
     let (_d, mut cfg) = data();
@@ -347,7 +321,7 @@ async fn what_sessions_hold_stays_within_the_servers_budgets() {
     for k in 0..3 {
         let id = open_session(&app).await;
         let g = put_strokes(&app, &id, k).await;
-        let v = wait_settled(&app, &id, g).await;
+        let v = wait_state(&app, &id, g, &["done", "failed"]).await;
         if k < 2 {
             assert_eq!(v["status"]["state"], "done", "{v}");
         } else {
@@ -391,7 +365,7 @@ async fn what_sessions_hold_stays_within_the_servers_budgets() {
     };
     assert_eq!(test::call_service(&app, close(&ids[0])).await.status(), 204);
     let g = put_strokes(&app, &ids[2], 1).await;
-    let v = wait_settled(&app, &ids[2], g).await;
+    let v = wait_state(&app, &ids[2], g, &["done", "failed"]).await;
     assert_eq!(v["status"]["state"], "done", "{v}");
     check(&server_status(&app).await);
     for id in &ids[1..] {
