@@ -582,46 +582,48 @@ fn spawn_classify(
     cluster: Option<ClusterExecutor>,
     pool: Arc<rayon::ThreadPool>,
 ) -> tokio::task::JoinHandle<()> {
-    tokio::task::spawn_blocking(move || {
-        pool.install(|| {
-        let s = job.session.clone();
-        let id = s.id.clone();
-        let shards = rayon::current_num_threads() * 2;
-        let on_brick = |b: [usize; 3], done: usize, total: usize| {
-            hub.publish(
+    tokio::task::spawn_blocking(move || pool.install(|| classify_job(job, &hub, cluster.as_ref())))
+}
+
+/// Classifies one job's session on the calling thread (inside the classifier's pool),
+/// publishing each brick and the outcome.
+fn classify_job(job: ClassifyJob, hub: &Hub, cluster: Option<&ClusterExecutor>) {
+    let s = job.session.clone();
+    let id = s.id.clone();
+    let shards = rayon::current_num_threads() * 2;
+    let on_brick = |b: [usize; 3], done: usize, total: usize| {
+        hub.publish(
                 Some(&id),
                 "classified",
                 serde_json::json!({"brick": b, "done": done, "total": total, "generation": job.generation}),
             );
-        };
-        let t = std::time::Instant::now();
-        let r = s.classify_with(job.generation, TREES, shards, &on_brick, cluster.as_ref());
-        let status = s.status.read().unwrap_or_else(|p| p.into_inner()).clone();
-        tracing::info!(
-            session = %id,
-            generation = job.generation,
-            state = %status.state,
-            bricks = status.done,
-            seconds = t.elapsed().as_secs_f64(),
-            "classification"
-        );
-        match r {
-            Ok(n) => hub.publish(
+    };
+    let t = std::time::Instant::now();
+    let r = s.classify_with(job.generation, TREES, shards, &on_brick, cluster);
+    let status = s.status.read().unwrap_or_else(|p| p.into_inner()).clone();
+    tracing::info!(
+        session = %id,
+        generation = job.generation,
+        state = %status.state,
+        bricks = status.done,
+        seconds = t.elapsed().as_secs_f64(),
+        "classification"
+    );
+    match r {
+        Ok(n) => hub.publish(
+            Some(&id),
+            "classification",
+            serde_json::json!({"bricks": n, "status": status}),
+        ),
+        Err(e) => {
+            s.status.write().unwrap_or_else(|p| p.into_inner()).state = "failed".into();
+            hub.publish(
                 Some(&id),
                 "classification",
-                serde_json::json!({"bricks": n, "status": status}),
-            ),
-            Err(e) => {
-                s.status.write().unwrap_or_else(|p| p.into_inner()).state = "failed".into();
-                hub.publish(
-                    Some(&id),
-                    "classification",
-                    serde_json::json!({"error": e.to_string(), "status": status}),
-                );
-            }
+                serde_json::json!({"error": e.to_string(), "status": status}),
+            );
         }
-    })
-    })
+    }
 }
 
 /// Starts each training as its own task (the HTTP layer caps how many run at once), so the
