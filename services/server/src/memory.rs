@@ -11,15 +11,25 @@
 //! The caches evict; the probabilities are refused. So everything sessions hold together stays
 //! under the sum of the three budgets ([`Memory::budget`]), however many are open.
 //!
+//! A store's trained INR (its `model.nvx`, tens of MiB) is loaded once and shared by every
+//! session on that store ([`Memory::store_model`]) instead of once per session; a training's
+//! snapshots are its session's own (one training at a time by default, `--max-trainings`).
+//!
 //! It also counts the renders in flight: classification yields to them between bricks
 //! ([`Memory::yield_to_renders`]), so a user waiting on the 3-D view is served first.
 
 use crate::cache::FeatureCache;
 use crate::error::{ApiError, ApiResult};
+use neuvolex_bricks::BrickStore;
+use neuvolex_features::InrModel;
 use neuvolex_render::BrickCache;
+use std::collections::HashMap;
 use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
-use std::sync::{Arc, Mutex};
-use std::time::{Duration, Instant};
+use std::sync::{Arc, Mutex, Weak};
+use std::time::{Duration, Instant, SystemTime};
+
+/// A model file's size and modification time: a changed file is loaded again.
+type Stamp = (u64, SystemTime);
 
 /// The server's session memory and its budgets.
 pub struct Memory {
@@ -32,6 +42,7 @@ pub struct Memory {
     probs_budget: usize,
     renders: AtomicUsize,
     cancelled: AtomicU64,
+    models: Mutex<HashMap<String, (Stamp, Weak<InrModel>)>>,
 }
 
 /// Marks a render in flight until dropped ([`Memory::render_started`]).
@@ -57,7 +68,48 @@ impl Memory {
             probs_budget: probs,
             renders: AtomicUsize::new(0),
             cancelled: AtomicU64::new(0),
+            models: Mutex::new(HashMap::new()),
         })
+    }
+
+    /// The INR saved in `store` (`neuvolex/inr/model.nvx`, by `neuvolex train` or a finished
+    /// server training) when it fits the store's grid: loaded once and shared by every session
+    /// holding it, loaded again when the file changed (or each time on S3, where the file is
+    /// not stamped). `None` without a usable model.
+    pub fn store_model(&self, store: &BrickStore) -> Option<Arc<InrModel>> {
+        let loc = neuvolex_features::train::model_path(store);
+        let stamp = std::fs::metadata(loc.as_path())
+            .ok()
+            .and_then(|m| Some((m.len(), m.modified().ok()?)));
+        let key = loc.to_string();
+        let mut models = self.models.lock().unwrap_or_else(|p| p.into_inner());
+        models.retain(|_, (_, w)| w.strong_count() > 0);
+        if let Some((s, w)) = models.get(&key) {
+            if Some(*s) == stamp {
+                if let Some(m) = w.upgrade() {
+                    return Some(m);
+                }
+            }
+        }
+        let model = neuvolex_features::checkpoint::load(loc)
+            .ok()
+            .filter(|l| l.model.dims == store.info().dims)
+            .map(|l| Arc::new(l.model))?;
+        if let Some(s) = stamp {
+            models.insert(key, (s, Arc::downgrade(&model)));
+        }
+        Some(model)
+    }
+
+    /// Store models held by sessions now: how many, and their parameters' bytes.
+    pub fn store_models(&self) -> (usize, usize) {
+        let models = self.models.lock().unwrap_or_else(|p| p.into_inner());
+        models
+            .values()
+            .filter_map(|(_, w)| w.upgrade())
+            .fold((0, 0), |(n, b), m| {
+                (n + 1, b + (m.table.len() + m.dense.len()) * 4)
+            })
     }
 
     /// The three budgets together, bytes.
@@ -133,12 +185,14 @@ impl Memory {
 
     /// Use and budgets, as `GET /api/server` reports them.
     pub fn report(&self) -> serde_json::Value {
+        let (models, model_bytes) = self.store_models();
         serde_json::json!({
             "feature_cache": {"used": self.features.used(), "budget": self.features.budget()},
             "render_cache": {"used": self.render.used(), "budget": self.render_budget},
             "probabilities": {"used": self.probs_used(), "budget": self.probs_budget},
             "used": self.used(),
             "budget": self.budget(),
+            "store_models": {"loaded": models, "bytes": model_bytes},
         })
     }
 }
@@ -146,6 +200,52 @@ impl Memory {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_store_model_is_loaded_once_for_all_its_sessions() {
+        let d = tempfile::tempdir().unwrap();
+        let p = d.path().join("ph.zarr");
+        neuvolex_bricks::synth::phantom_store(
+            &p,
+            neuvolex_bricks::synth::PhantomParams::with_size(16, 0),
+            &neuvolex_bricks::IngestOptions {
+                brick: 8,
+                ..Default::default()
+            },
+            &mut |_| {},
+        )
+        .unwrap();
+        let store = BrickStore::open(&p).unwrap();
+        let m = Memory::new(1 << 20, 1 << 20, 1 << 20);
+        assert!(m.store_model(&store).is_none(), "no model file yet");
+        let cfg = neuvolex_features::InrConfig {
+            log2_table: 10,
+            ..Default::default()
+        };
+        let save = |seed| {
+            let model = InrModel::new(&cfg, store.info().dims, seed);
+            let path = neuvolex_features::train::model_path(&store);
+            neuvolex_features::checkpoint::save(path, &model, None).unwrap();
+        };
+        save(1);
+        let (a, b) = (
+            m.store_model(&store).unwrap(),
+            m.store_model(&store).unwrap(),
+        );
+        assert!(Arc::ptr_eq(&a, &b), "two sessions share one model");
+        assert_eq!(m.store_models().0, 1);
+        // A rewritten file (another size or time) is loaded again.
+        std::thread::sleep(Duration::from_millis(20));
+        save(2);
+        let c = m.store_model(&store).unwrap();
+        assert!(!Arc::ptr_eq(&a, &c));
+        drop((a, b, c));
+        assert_eq!(
+            m.store_models(),
+            (0, 0),
+            "nothing held once the sessions are gone"
+        );
+    }
 
     #[test]
     fn probability_reservations_stay_within_the_budget() {

@@ -186,12 +186,9 @@ impl Session {
                 })
                 .collect();
         }
-        // A model trained earlier (by `neuvolex train` or a previous session) on this grid.
-        let model =
-            neuvolex_features::checkpoint::load(neuvolex_features::train::model_path(&store))
-                .ok()
-                .filter(|l| l.model.dims == store.info().dims)
-                .map(|l| (1, Arc::new(l.model)));
+        // A model trained earlier (by `neuvolex train` or a previous session) on this grid,
+        // shared with the other sessions on this store.
+        let model = memory.store_model(&store).map(|m| (1, m));
         let features = cache.for_session(&id);
         Arc::new(Session {
             id,
