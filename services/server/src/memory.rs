@@ -202,52 +202,6 @@ mod tests {
     use super::*;
 
     #[test]
-    fn a_store_model_is_loaded_once_for_all_its_sessions() {
-        let d = tempfile::tempdir().unwrap();
-        let p = d.path().join("ph.zarr");
-        neuvolex_bricks::synth::phantom_store(
-            &p,
-            neuvolex_bricks::synth::PhantomParams::with_size(16, 0),
-            &neuvolex_bricks::IngestOptions {
-                brick: 8,
-                ..Default::default()
-            },
-            &mut |_| {},
-        )
-        .unwrap();
-        let store = BrickStore::open(&p).unwrap();
-        let m = Memory::new(1 << 20, 1 << 20, 1 << 20);
-        assert!(m.store_model(&store).is_none(), "no model file yet");
-        let cfg = neuvolex_features::InrConfig {
-            log2_table: 10,
-            ..Default::default()
-        };
-        let save = |seed| {
-            let model = InrModel::new(&cfg, store.info().dims, seed);
-            let path = neuvolex_features::train::model_path(&store);
-            neuvolex_features::checkpoint::save(path, &model, None).unwrap();
-        };
-        save(1);
-        let (a, b) = (
-            m.store_model(&store).unwrap(),
-            m.store_model(&store).unwrap(),
-        );
-        assert!(Arc::ptr_eq(&a, &b), "two sessions share one model");
-        assert_eq!(m.store_models().0, 1);
-        // A rewritten file (another size or time) is loaded again.
-        std::thread::sleep(Duration::from_millis(20));
-        save(2);
-        let c = m.store_model(&store).unwrap();
-        assert!(!Arc::ptr_eq(&a, &c));
-        drop((a, b, c));
-        assert_eq!(
-            m.store_models(),
-            (0, 0),
-            "nothing held once the sessions are gone"
-        );
-    }
-
-    #[test]
     fn probability_reservations_stay_within_the_budget() {
         let m = Memory::new(1 << 20, 1 << 20, 100);
         let (mut a, mut b) = (0, 0);

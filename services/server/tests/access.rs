@@ -376,6 +376,43 @@ async fn what_sessions_hold_stays_within_the_servers_budgets() {
 }
 
 #[actix_web::test]
+async fn a_store_model_is_loaded_once_for_all_its_sessions() {
+    use neuvolex_features::InrModel;
+    use std::sync::Arc;
+    let (_d, cfg) = data();
+    let store = neuvolex_bricks::BrickStore::open(cfg.data_root.join("ph.zarr")).unwrap();
+    let m = neuvolex_server::memory::Memory::new(1 << 20, 1 << 20, 1 << 20);
+    assert!(m.store_model(&store).is_none(), "no model file yet");
+    let inr = neuvolex_features::InrConfig {
+        log2_table: 10,
+        ..Default::default()
+    };
+    let save = |seed| {
+        let model = InrModel::new(&inr, store.info().dims, seed);
+        let path = neuvolex_features::train::model_path(&store);
+        neuvolex_features::checkpoint::save(path, &model, None).unwrap();
+    };
+    save(1);
+    let (a, b) = (
+        m.store_model(&store).unwrap(),
+        m.store_model(&store).unwrap(),
+    );
+    assert!(Arc::ptr_eq(&a, &b), "two sessions share one model");
+    assert_eq!(m.store_models().0, 1);
+    // A rewritten file (another modification time) is loaded again.
+    std::thread::sleep(Duration::from_millis(20));
+    save(2);
+    let c = m.store_model(&store).unwrap();
+    assert!(!Arc::ptr_eq(&a, &c));
+    drop((a, b, c));
+    assert_eq!(
+        m.store_models(),
+        (0, 0),
+        "nothing held once the sessions are gone"
+    );
+}
+
+#[actix_web::test]
 async fn slow_requests_time_out_with_503() {
     let (_d, mut cfg) = data();
     cfg.request_timeout = Duration::from_millis(5);
