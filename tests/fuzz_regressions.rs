@@ -150,3 +150,103 @@ fn ome_zarr_dataset_paths_stay_inside_the_group() {
     let e = fails(&root, "img.ome.zarr");
     assert!(e.to_string().contains("inside the group"), "{e}");
 }
+
+/// A 16^3 phantom brick store (8^3 bricks, int16; also an OME-Zarr image) with `edit`
+/// applied to its files.
+fn phantom_store_edited(d: &Path, edit: impl FnOnce(&Path)) -> std::path::PathBuf {
+    let p = d.join("ph.zarr");
+    neuvolex_bricks::synth::phantom_store(
+        &p,
+        neuvolex_bricks::synth::PhantomParams::with_size(16, 0),
+        &neuvolex_bricks::IngestOptions {
+            brick: 8,
+            ..Default::default()
+        },
+        &mut |_| {},
+    )
+    .unwrap();
+    edit(&p);
+    p
+}
+
+/// Rewrites the JSON file `p` with `f`.
+fn edit_json(p: &Path, f: impl FnOnce(&mut serde_json::Value)) {
+    let mut v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(p).unwrap()).unwrap();
+    f(&mut v);
+    std::fs::write(p, v.to_string()).unwrap();
+}
+
+/// A Zarr chunk whose shape claims far more decoded bytes than its file can hold (2 GiB, above
+/// the 256 MiB limit; 32 MiB from a 10-byte file, past the 32768:1 ratio no codec reaches) is
+/// refused before anything is allocated for it, read as a brick store (what the server opens)
+/// and as an OME-Zarr image (what the ingest reads). The fuzz finding's packed inputs are in
+/// `fuzz/regressions/omezarr/chunk-*`.
+#[test]
+fn zarr_chunks_claiming_more_than_they_store_are_refused() {
+    for (shape, tiny, want) in [
+        (1024u64, false, "above the limit"),
+        (256, true, "too few to decode"),
+    ] {
+        let d = tmp();
+        let p = phantom_store_edited(d.path(), |p| {
+            edit_json(&p.join("0/zarr.json"), |v| {
+                v["chunk_grid"]["configuration"]["chunk_shape"] =
+                    serde_json::json!([shape, shape, shape]);
+            });
+            for e in std::fs::read_dir(p.join("0")).unwrap().flatten() {
+                if e.file_name().to_string_lossy().starts_with("c.") {
+                    std::fs::remove_file(e.path()).unwrap();
+                }
+            }
+            let chunk: Vec<u8> = if tiny {
+                vec![0x28, 0xb5, 0x2f, 0xfd, 0, 0, 0, 0, 0, 0]
+            } else {
+                vec![0; 4096]
+            };
+            std::fs::write(p.join("0/c.0.0.0"), chunk).unwrap();
+        });
+        let t = Instant::now();
+        let store = neuvolex_bricks::BrickStore::open(&p).unwrap();
+        let e = store
+            .read_box(0, [0; 3], [8, 8, 8])
+            .expect_err("the brick store read must be refused");
+        let msg = e.to_string();
+        assert!(msg.contains(want) && msg.contains("ph.zarr"), "{msg}");
+        assert!(matches!(e, BrickError::CorruptStore { .. }), "{e}");
+        let e = neuvolex_bricks::omezarr::OmeZarrSource::open(&p)
+            .and_then(|mut s| neuvolex_bricks::VolumeSource::read_slab(&mut s, 0, 1).map(|_| ()))
+            .expect_err("the OME-Zarr read must be refused");
+        assert!(e.to_string().contains(want), "{e}");
+        assert!(t.elapsed() < Duration::from_secs(5), "{:?}", t.elapsed());
+    }
+}
+
+/// A brick store whose array's data type disagrees with its attributes (which set the byte
+/// count of every brick) is refused when opened, naming both, instead of slicing out of bounds
+/// later. The packed inputs are in `fuzz/regressions/omezarr/{attributes,array}-*`.
+#[test]
+fn brick_store_dtype_disagreeing_with_its_attributes_is_refused() {
+    type Edit = fn(&Path);
+    let cases: [(Edit, &str); 2] = [
+        (
+            |p| {
+                edit_json(&p.join("zarr.json"), |v| {
+                    v["attributes"]["neuvolex"]["dtype"] = "f32".into()
+                })
+            },
+            "level 0 holds int16, attributes say float32",
+        ),
+        (
+            |p| edit_json(&p.join("0/zarr.json"), |v| v["data_type"] = "uint8".into()),
+            "level 0 holds uint8, attributes say int16",
+        ),
+    ];
+    for (edit, want) in cases {
+        let d = tmp();
+        let p = phantom_store_edited(d.path(), edit);
+        let e = neuvolex_bricks::BrickStore::open(&p).expect_err("must be refused");
+        let msg = e.to_string();
+        assert!(msg.contains(want) && msg.contains("ph.zarr"), "{msg}");
+    }
+}

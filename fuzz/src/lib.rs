@@ -5,10 +5,9 @@
 //! A target returns normally on any `Err`: only a panic, an abort, a leak past
 //! `-rss_limit_mb`, an allocation past `-malloc_limit_mb` or a timeout is a finding.
 
-pub mod targets;
-
-#[cfg(feature = "fuzzing")]
 pub mod alloc_limit;
+pub mod mutate;
+pub mod targets;
 
 use neuvolex_bricks::VolumeSource;
 use std::path::{Path, PathBuf};
@@ -146,4 +145,50 @@ pub fn open_and_read(path: &Path) {
     if let Ok(mut src) = neuvolex_bricks::open_volume(path, None) {
         exercise(src.as_mut());
     }
+}
+
+/// Writes every target's seeds into `out/TARGET/` with the `seeds` binary (`seeds_bin`), from
+/// the real volumes beside the project (`fuzz/../../shared/data`): their crops are skipped,
+/// visibly, where that folder is missing, and that is an error under `CI=true`. Panics when
+/// the seed writer fails (test helper).
+pub fn write_seeds(seeds_bin: &Path, out: &Path) {
+    let data = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/data");
+    if !data.is_dir() {
+        assert!(
+            std::env::var("CI").as_deref() != Ok("true"),
+            "{} is missing: CI=true requires the real volumes for the fuzz seeds",
+            data.display()
+        );
+        eprintln!(
+            "fuzz: {} missing, real-volume seeds SKIPPED (project-written seeds only)",
+            data.display()
+        );
+    }
+    let st = std::process::Command::new(seeds_bin)
+        .arg(&data)
+        .arg(out)
+        .status()
+        .expect("running the seed writer");
+    assert!(st.success(), "the seed writer failed");
+}
+
+/// Every input of `target` under `dirs` (each `DIR/TARGET/*`), sorted: the seeds and the saved
+/// findings (`fuzz/regressions/TARGET/`).
+pub fn inputs(target: &str, dirs: &[&Path]) -> Vec<PathBuf> {
+    let mut v: Vec<PathBuf> = dirs
+        .iter()
+        .filter_map(|d| std::fs::read_dir(d.join(target)).ok())
+        .flat_map(|rd| rd.flatten().map(|e| e.path()))
+        .filter(|p| p.is_file())
+        .collect();
+    v.sort();
+    v
+}
+
+/// The message of a caught panic.
+pub fn panic_message(e: &(dyn std::any::Any + Send)) -> String {
+    e.downcast_ref::<String>()
+        .cloned()
+        .or_else(|| e.downcast_ref::<&str>().map(|s| s.to_string()))
+        .unwrap_or_default()
 }

@@ -75,7 +75,10 @@ pub fn raw(data: &[u8]) {
 
 /// OME-Zarr 0.5 / Zarr v3 metadata and chunks: the input is a packed store (`zarr.json` files
 /// and chunk files). It is opened as an image (`OmeZarrSource`, what `neuvolex ingest` reads)
-/// and as a neuvolex brick store (`BrickStore`, what the server opens), and read.
+/// and as a neuvolex brick store (`BrickStore`, what the server opens), and read: bricks of
+/// level 0 and a corner of every pyramid level above it, label images (classes and voxels),
+/// vector arrays (`open_vectors`, bricks), and the commit record (`neuvolex/commit.json`)
+/// through which readers resolve the nodes a killed writer committed.
 pub fn omezarr(data: &[u8]) {
     let files = unpack(data);
     if files.is_empty() {
@@ -94,9 +97,41 @@ pub fn omezarr(data: &[u8]) {
             let _ = store.brick_range(b);
             let _ = store.read_box(0, b.origin, b.size);
         }
+        // Pyramid levels above 0: a corner of each.
+        for (k, d) in info.levels.iter().enumerate().skip(1) {
+            let _ = store.read_box(k, [0; 3], d.map(|v| v.clamp(1, 8)));
+        }
+        // Label images (resolved through an outstanding commit record when there is one):
+        // their class tables and voxels.
         for l in &info.labels {
             let _ = store.label_classes(l);
+            if let Some(b) = bricks.first() {
+                let _ = store.read_labels_box(l, b.origin, b.size);
+            }
         }
+        // Vector arrays, named by the files under `neuvolex/vectors/`.
+        let mut vectors: Vec<String> = files
+            .iter()
+            .filter_map(|(p, _)| {
+                let mut c = p.components().map(|c| c.as_os_str().to_string_lossy());
+                (c.next()? == "neuvolex" && c.next()? == "vectors")
+                    .then(|| c.next().map(|n| n.into_owned()))
+                    .flatten()
+            })
+            .collect();
+        vectors.sort();
+        vectors.dedup();
+        for name in vectors.iter().take(4) {
+            if let Ok(va) = store.open_vectors(name) {
+                let _ = va.info();
+                for b in &bricks {
+                    if let Ok(v) = va.read_brick(b) {
+                        assert_eq!(v.len(), b.voxels() * va.info().channels);
+                    }
+                }
+            }
+        }
+        let _ = neuvolex_bricks::commit::outstanding(store.backend());
         let _ = store.occupied_bricks(None);
         let _ = store.normaliser();
     }

@@ -1,49 +1,27 @@
 //! Every fuzz target over every seed and every saved finding, in the normal test suite (what
-//! CI runs instead of fuzzing: no libFuzzer, nightly flags or sanitizers; the workspace's
-//! compiled dependencies). The seeds are written by the `seeds` binary from `../shared/data`
-//! (crops of the real volumes; skipped visibly where it is missing, an error under `CI=true`)
-//! and from files the project writes; saved findings live in `fuzz/regressions/TARGET/`.
-//! A panic in a target, for any input, fails the test naming the target and the file.
+//! CI runs beside the bounded mutation run of `tests/mutate.rs`: no libFuzzer, nightly flags or
+//! sanitizers; the workspace's compiled dependencies). The seeds are written by the `seeds`
+//! binary from `../shared/data` (crops of the real volumes; skipped visibly where it is
+//! missing, an error under `CI=true`) and from files the project writes; saved findings live
+//! in `fuzz/regressions/TARGET/`. A panic in a target, for any input, fails the test naming
+//! the target and the file.
 
 use std::path::Path;
-use std::process::Command;
 use std::time::Instant;
 
 #[test]
 fn every_target_survives_its_seeds_and_saved_findings() {
     let t0 = Instant::now();
     let fuzz = Path::new(env!("CARGO_MANIFEST_DIR"));
-    let data = fuzz.join("../../shared/data");
-    if !data.is_dir() {
-        assert!(
-            std::env::var("CI").as_deref() != Ok("true"),
-            "{} is missing: CI=true requires the real volumes for the fuzz seeds",
-            data.display()
-        );
-        eprintln!(
-            "fuzz replay: {} missing, real-volume seeds SKIPPED (project-written seeds only)",
-            data.display()
-        );
-    }
     let out = tempfile::tempdir().unwrap();
-    let st = Command::new(env!("CARGO_BIN_EXE_seeds"))
-        .arg(&data)
-        .arg(out.path())
-        .status()
-        .unwrap();
-    assert!(st.success(), "the seed writer failed");
+    neuvolex_fuzz::write_seeds(Path::new(env!("CARGO_BIN_EXE_seeds")), out.path());
     // Panics are caught and reported per input; keep their messages out of the log.
     std::panic::set_hook(Box::new(|_| {}));
     let mut failures = Vec::new();
     let mut total = 0;
+    let regressions = fuzz.join("regressions");
     for (name, target) in neuvolex_fuzz::targets::ALL {
-        let mut inputs: Vec<_> = [out.path().join(name), fuzz.join("regressions").join(name)]
-            .iter()
-            .filter_map(|d| std::fs::read_dir(d).ok())
-            .flat_map(|rd| rd.flatten().map(|e| e.path()))
-            .filter(|p| p.is_file())
-            .collect();
-        inputs.sort();
+        let inputs = neuvolex_fuzz::inputs(name, &[out.path(), &regressions]);
         assert!(
             !inputs.is_empty(),
             "fuzz target {name} has no seeds: the seed writer must cover it"
@@ -52,11 +30,7 @@ fn every_target_survives_its_seeds_and_saved_findings() {
         for p in &inputs {
             let bytes = std::fs::read(p).unwrap();
             if let Err(e) = std::panic::catch_unwind(|| target(&bytes)) {
-                let msg = e
-                    .downcast_ref::<String>()
-                    .cloned()
-                    .or_else(|| e.downcast_ref::<&str>().map(|s| s.to_string()))
-                    .unwrap_or_default();
+                let msg = neuvolex_fuzz::panic_message(&*e);
                 failures.push(format!("{name} on {}: panicked: {msg}", p.display()));
             }
         }

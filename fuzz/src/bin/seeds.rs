@@ -72,6 +72,80 @@ fn file_bytes(p: &Path) -> Vec<u8> {
 }
 
 /// Every file under `dir`, as (relative path, bytes), sorted.
+/// A phantom store with what the other seeds lack: a pyramid (levels above 0), a published
+/// vector array (half precision), and an outstanding commit record (`neuvolex/commit.json`)
+/// naming a new label image and a u8 probability array, as a writer killed after its commit
+/// point leaves it (readers resolve those nodes through the record).
+fn widened_store(tmp: &Path) -> PathBuf {
+    use neuvolex_bricks::{BrickStore, Commit, VectorEncoding};
+    let p = tmp.join("ph_wide.zarr");
+    neuvolex_bricks::synth::phantom_store(
+        &p,
+        neuvolex_bricks::synth::PhantomParams::with_size(16, 0),
+        &IngestOptions {
+            brick: 8,
+            levels: Some(2),
+            ..Default::default()
+        },
+        &mut |_| {},
+    )
+    .expect("phantom store with a pyramid");
+    let mut store = BrickStore::open(&p).expect("phantom opens");
+    let bricks: Vec<_> = store.bricks().collect();
+    let mut feat = store
+        .create_vectors("feat", 3, VectorEncoding::F16)
+        .expect("vector array");
+    for b in &bricks {
+        let v: Vec<f32> = (0..b.voxels() * 3).map(|i| i as f32 * 0.01).collect();
+        feat.write_brick(b, &v).expect("vector brick");
+    }
+    feat.finish().expect("vector array published");
+    // Staged outputs and their commit record, never applied.
+    let mut commit = Commit::new();
+    let dims = store.info().dims;
+    let mut seg = MemVolume::from_f64(
+        dims,
+        DType::U8,
+        &(0..dims.iter().product::<usize>())
+            .map(|i| (i % 3) as f64)
+            .collect::<Vec<_>>(),
+    );
+    seg.meta.spacing = store.info().spacing;
+    let classes = store
+        .label_classes(&store.info().labels[0].clone())
+        .expect("classes");
+    store
+        .stage_labels(&mut commit, "seg", &mut seg, &classes, &mut |_| {})
+        .expect("staged labels");
+    let mut probs = store
+        .create_vectors(
+            "seg_proba",
+            2,
+            VectorEncoding::U8 {
+                lo: vec![0.0; 2],
+                hi: vec![1.0; 2],
+            },
+        )
+        .expect("probability array");
+    for b in &bricks {
+        probs
+            .write_brick(b, &vec![0.5; b.voxels() * 2])
+            .expect("probability brick");
+    }
+    probs
+        .finish_into(&mut commit)
+        .expect("staged probabilities");
+    store
+        .backend()
+        .put(
+            neuvolex_bricks::commit::COMMIT_KEY,
+            serde_json::to_vec(&commit).expect("commit record"),
+        )
+        .expect("commit record written");
+    drop(commit);
+    p
+}
+
 fn tree(dir: &Path) -> Vec<(String, Vec<u8>)> {
     fn walk(root: &Path, d: &Path, out: &mut Vec<(String, Vec<u8>)>) {
         let mut es: Vec<_> = std::fs::read_dir(d).expect("read_dir").flatten().collect();
@@ -292,6 +366,11 @@ fn main() {
     )
     .expect("phantom store");
     c.put("omezarr", "phantom16", &pack(&tree(&ph)));
+    c.put(
+        "omezarr",
+        "phantom16_pyramid_vectors_commit",
+        &pack(&tree(&widened_store(&tmp))),
+    );
     let store = neuvolex_bricks::BrickStore::open(&ph).expect("phantom opens");
     for l in &store.info().labels {
         let classes = store.label_classes(l).expect("classes");

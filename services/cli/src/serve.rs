@@ -11,9 +11,13 @@ use neuvolex_server::{configure, AppState, ServerConfig};
 use std::path::PathBuf;
 use std::time::Duration;
 
-/// How long shutdown waits for trainings to save their checkpoints before the server stops
-/// (the whole shutdown stays under 2 s).
+/// How long shutdown waits for trainings to save their checkpoints before the server stops.
 const SHUTDOWN_GRACE: Duration = Duration::from_millis(1200);
+
+/// The whole shutdown, from the signal to the exit: the grace above, then the requests still
+/// in flight (renders are cancelled at once; an export or a session save finishes unless this
+/// runs out, and its store or file stays whole either way: they commit atomically).
+const SHUTDOWN_LIMIT: Duration = Duration::from_millis(1800);
 
 /// Arguments of `neuvolex serve`.
 #[derive(clap::Args)]
@@ -50,6 +54,13 @@ pub struct ServeArgs {
     /// precision).
     #[arg(long, default_value_t = 512)]
     cache_mib: usize,
+    /// Render-cache budget, MiB, for every session's 3-D view together.
+    #[arg(long, default_value_t = 512)]
+    render_cache_mib: usize,
+    /// Class-probability budget, MiB, for all sessions together (one byte per voxel and
+    /// class of each classified session; a classification past it gets 503).
+    #[arg(long, default_value_t = 2048)]
+    probs_mib: usize,
     /// Engines of the INR trainer and the renderer: cpu, gpu (any adapter, software ones
     /// included) or auto (a hardware GPU where one exists). GPU needs `--features gpu`.
     #[arg(long, default_value = "auto")]
@@ -118,6 +129,8 @@ pub fn run_serve(a: &ServeArgs) -> Result<()> {
     cfg.default_volume = default_volume;
     cfg.generated_root = generated;
     cfg.feature_cache_bytes = a.cache_mib.max(1) << 20;
+    cfg.render_cache_bytes = a.render_cache_mib.max(1) << 20;
+    cfg.probs_bytes = a.probs_mib.max(1) << 20;
     cfg.backend = a.backend.parse().map_err(anyhow::Error::msg)?;
     // With --cluster, classification and viewpoints run on the cluster's workers.
     cfg.cluster = match &a.cluster.cluster {
@@ -229,7 +242,16 @@ pub fn run_serve(a: &ServeArgs) -> Result<()> {
                 state_dir.display(),
                 t.elapsed().as_secs_f64()
             );
-            handle.stop(true).await;
+            // Requests in flight get what is left of the limit (actix's own timeout is whole
+            // seconds, too long); then the process ends without waiting for them.
+            let left = SHUTDOWN_LIMIT.saturating_sub(t.elapsed());
+            if tokio::time::timeout(left, handle.stop(true)).await.is_err() {
+                tracing::warn!(
+                    "requests still in flight after {:.2} s: stopping without them",
+                    t.elapsed().as_secs_f64()
+                );
+                std::process::exit(0);
+            }
         });
         let r = server.await.context("server");
         // Dropping the runtime would wait for work still running on its blocking pool (a

@@ -2,7 +2,7 @@
 //! binary:
 //!
 //! - **SIGKILL**: each stage (ingest with labels over an existing store; train with periodic
-//!   checkpoints; features then classify) runs once uninterrupted for its reference result and
+//!   checkpoints; features; classify) runs once uninterrupted for its reference result and
 //!   duration, then `NEUVOLEX_CRASH_KILLS` times (default 6; the recorded run uses 50) is killed
 //!   with SIGKILL at a time drawn from a seeded RNG (`NEUVOLEX_CRASH_SEED`) over that duration
 //!   (+10 %, so some kills land after the end). After each kill every node of the store (image,
@@ -19,8 +19,10 @@
 //!   uninterrupted result with no debris.
 //! - **Disk full**: the same stages on a small tmpfs (mounted by the test, unmounted after)
 //!   filled to a few KiB: a clear error naming a path on it, the previous store intact, and a
-//!   re-run after space is freed completes. Skips visibly where mounting is not permitted
-//!   (fails under `CI=true`).
+//!   re-run after space is freed completes; the server's OME-Zarr export and session save
+//!   likewise (507 naming the path, the previous store or saved session intact, the request
+//!   completing once space is freed). Skips visibly where mounting is not permitted (fails
+//!   under `CI=true`).
 //! - **Concurrent writers**: while one process writes a store, every other writer (ingest,
 //!   train, features, classify) is refused with an error naming the store and the holder.
 
@@ -33,7 +35,7 @@ use std::time::{Duration, Instant};
 
 use neuvolex_bricks::BrickStore;
 use serde_json::{json, Value};
-use support::{http, try_http, Server};
+use support::{classify_strokes, http, open_phantom, try_http, Server};
 
 mod support;
 
@@ -367,12 +369,20 @@ fn stages(inp: &Inputs) -> Vec<(Stage, Vec<Vec<String>>)> {
             },
             vec![ingest("ph", "ph")],
         ),
+        // Features and classify are stages of their own, each with its own kills.
         (
             Stage {
-                name: "features + classify",
-                steps: vec![features.clone(), classify.clone()],
+                name: "features",
+                steps: vec![features.clone()],
             },
-            vec![ingest("ph", "ph"), train],
+            vec![ingest("ph", "ph"), train.clone()],
+        ),
+        (
+            Stage {
+                name: "classify",
+                steps: vec![classify],
+            },
+            vec![ingest("ph", "ph"), train, features],
         ),
     ]
 }
@@ -555,47 +565,6 @@ fn earlier_strokes() -> Value {
     ])
 }
 
-/// Opens `phantom.zarr` on `srv` (restoring its saved session when asked); the session id.
-fn open_session(srv: &Server, restore: bool) -> String {
-    let (st, body) = http(
-        &srv.addr,
-        "POST",
-        "/api/sessions",
-        &[],
-        Some(&json!({"volume": "phantom.zarr", "restore": restore})),
-    );
-    assert_eq!(st, 201, "{body}");
-    serde_json::from_str::<Value>(&body).unwrap()["id"]
-        .as_str()
-        .unwrap()
-        .to_string()
-}
-
-/// Sends `strokes` to session `id` and waits until their classification is done.
-fn classify_strokes(srv: &Server, id: &str, strokes: &Value) {
-    let (st, body) = http(
-        &srv.addr,
-        "PUT",
-        &format!("/api/sessions/{id}/strokes"),
-        &[],
-        Some(strokes),
-    );
-    assert_eq!(st, 202, "{body}");
-    let t = Instant::now();
-    loop {
-        let (_, body) = http(&srv.addr, "GET", &format!("/api/sessions/{id}"), &[], None);
-        let v: Value = serde_json::from_str(&body).unwrap();
-        if v["status"]["state"] == "done" && v["status"]["generation"] == v["generation"] {
-            return;
-        }
-        assert!(
-            v["status"]["state"] != "failed" && t.elapsed() < Duration::from_secs(120),
-            "classification did not finish: {v}"
-        );
-        std::thread::sleep(Duration::from_millis(20));
-    }
-}
-
 /// A step run in `neuvolex serve`. Each run starts from a fresh copy of the stage's base
 /// folder (`data/phantom.zarr` and the server's `work/`).
 struct ServerStage {
@@ -613,8 +582,8 @@ struct ServerStage {
 }
 
 fn export_prepare(srv: &Server) -> String {
-    let id = open_session(srv, false);
-    classify_strokes(srv, &id, &support::phantom_strokes());
+    let id = open_phantom(&srv.addr, false);
+    classify_strokes(&srv.addr, &id, &support::phantom_strokes());
     id
 }
 
@@ -634,7 +603,7 @@ fn export_digest(run: &Path) -> State {
 }
 
 fn save_prepare(srv: &Server) -> String {
-    open_session(srv, true)
+    open_phantom(&srv.addr, true)
 }
 
 fn save_step(addr: &str, id: &str) -> bool {
@@ -666,12 +635,12 @@ fn save_digest(run: &Path) -> State {
 /// strokes.
 fn server_stages() -> Vec<ServerStage> {
     fn earlier_export(srv: &Server) {
-        let id = open_session(srv, false);
-        classify_strokes(srv, &id, &earlier_strokes());
+        let id = open_phantom(&srv.addr, false);
+        classify_strokes(&srv.addr, &id, &earlier_strokes());
         assert!(export_step(&srv.addr, &id));
     }
     fn earlier_save(srv: &Server) {
-        let id = open_session(srv, false);
+        let id = open_phantom(&srv.addr, false);
         let (st, _) = http(
             &srv.addr,
             "PUT",
@@ -867,10 +836,13 @@ impl Drop for Tmpfs {
 fn fill(dir: &Path, leave: u64) -> PathBuf {
     let p = dir.join("filler");
     let mut f = std::fs::File::create(&p).unwrap();
-    let block = vec![0x5au8; 1 << 16];
     let mut n = 0u64;
-    while f.write_all(&block).is_ok() {
-        n += block.len() as u64;
+    // Large blocks, then smaller ones down to single bytes: nothing is left over.
+    for size in [1usize << 16, 4096, 1] {
+        let block = vec![0x5au8; size];
+        while let Ok(k @ 1..) = f.write(&block) {
+            n += k as u64;
+        }
     }
     let _ = f.flush();
     f.set_len(n.saturating_sub(leave)).unwrap();
@@ -933,6 +905,103 @@ fn a_full_disk_gives_a_clear_error_and_keeps_the_previous_store() {
     }
 }
 
+/// The server's OME-Zarr export and session save on a full disk (the data root and the work
+/// folder on a tmpfs filled to the last byte): 507 with an error naming the path and the
+/// cause, the previous store or saved session intact (the session stays open, so nothing is
+/// lost), and the same request succeeds once there is space again.
+#[test]
+fn a_full_disk_in_the_server_gives_a_clear_error_and_keeps_the_previous_state() {
+    let Some(fs) = Tmpfs::mount(96) else {
+        return;
+    };
+    // The server's log stays off the full disk; its data and work folder are on it.
+    let logs = tempfile::tempdir().unwrap();
+    for stage in server_stages() {
+        let base = fs.dir.path().join("base");
+        if base.exists() {
+            std::fs::remove_dir_all(&base).unwrap();
+        }
+        std::fs::create_dir_all(base.join("work")).unwrap();
+        let d = logs.path().join(stage.name.replace(' ', "-"));
+        std::fs::create_dir_all(&d).unwrap();
+        std::os::unix::fs::symlink(base.join("work"), d.join("work")).unwrap();
+        let data = support::data_root(&base);
+        {
+            let srv = Server::start(&d, &data, &[], &[]);
+            (stage.setup)(&srv);
+        }
+        let srv = Server::start(&d, &data, &[], &[]);
+        let id = (stage.prepare)(&srv);
+        let before = (stage.digest)(&base);
+        let filler = fill(fs.dir.path(), 0);
+        let (path, method, uri, body) = if stage.name.contains("export") {
+            (
+                "phantom.zarr",
+                "POST",
+                format!("/api/sessions/{id}/export/zarr"),
+                Some(json!({"name": "nx"})),
+            )
+        } else {
+            let (st, _) = http(
+                &srv.addr,
+                "PUT",
+                &format!("/api/sessions/{id}/strokes"),
+                &[],
+                Some(&support::phantom_strokes()),
+            );
+            assert_eq!(st, 202);
+            (
+                "sessions/phantom.zarr.json",
+                "DELETE",
+                format!("/api/sessions/{id}"),
+                None,
+            )
+        };
+        let (st, err) = http(&srv.addr, method, &uri, &[], body.as_ref());
+        assert_eq!(
+            st, 507,
+            "{}: {method} {uri} on a full disk: {err}",
+            stage.name
+        );
+        assert!(
+            err.contains("No space left on device") && err.contains(path),
+            "{}: the error names neither the cause nor {path}: {err}",
+            stage.name
+        );
+        assert_eq!(
+            (stage.digest)(&base),
+            before,
+            "{}: a full disk changed the previous state",
+            stage.name
+        );
+        eprintln!("disk full, server {}: {st} {err}", stage.name);
+        // The NIfTI exports go through the work folder: refused the same way (filled again:
+        // the refused export gave back what it had written).
+        if stage.name.contains("export") {
+            std::fs::remove_file(&filler).unwrap();
+            fill(fs.dir.path(), 0);
+            let (st, err) = http(
+                &srv.addr,
+                "GET",
+                &format!("/api/sessions/{id}/export/labels.nii.gz"),
+                &[],
+                None,
+            );
+            assert_eq!(st, 507, "labels.nii.gz on a full disk: {err}");
+            assert!(err.contains("No space left on device"), "{err}");
+        }
+        std::fs::remove_file(filler).unwrap();
+        // With space again, the same request completes (the session was kept open).
+        let (st2, body2) = http(&srv.addr, method, &uri, &[], body.as_ref());
+        assert!(
+            st2 == 200 || st2 == 204,
+            "{}: after freeing space: {st2} {body2}",
+            stage.name
+        );
+        assert_ne!((stage.digest)(&base), before, "{}", stage.name);
+    }
+}
+
 #[test]
 fn a_second_writer_is_refused_with_the_store_and_the_holder() {
     let inp = Inputs::new();
@@ -951,7 +1020,7 @@ fn a_second_writer_is_refused_with_the_store_and_the_holder() {
         all[0].0.steps[0].clone(),
         all[1].0.steps[0].clone(),
         args(&["features", "st.zarr"]),
-        all[2].0.steps[1].clone(),
+        all[3].0.steps[0].clone(),
     ];
     let lock = w.join("st.zarr/neuvolex/writer.lock");
     for other in &others {

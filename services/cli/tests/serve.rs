@@ -1,8 +1,10 @@
 //! `neuvolex serve` as a real process: SIGTERM and Ctrl-C (SIGINT) stop it within 2 s with
-//! event streams open and a training running; the training's checkpoint and the session's
-//! state on disk are complete afterwards. On a non-loopback address a token is required: the
-//! generated one printed in the URL, `--token`, or `NEUVOLEX_TOKEN`. With `--cluster` the
-//! session's classification runs on `neuvolex worker` processes.
+//! event streams open and a training running, or a render and an export in flight; the
+//! training's checkpoint, the store and the session's state on disk are complete afterwards.
+//! On a non-loopback address a token is required: the generated one printed in the URL,
+//! `--token`, or `NEUVOLEX_TOKEN`. The server and a CLI writer (`neuvolex train`) take turns
+//! on one store through its writer lock, each refused with the other named. With `--cluster`
+//! the session's classification runs on `neuvolex worker` processes.
 
 mod support;
 
@@ -10,7 +12,8 @@ use serde_json::{json, Value};
 use std::process::Command;
 use std::time::{Duration, Instant};
 use support::{
-    data_root, event_stream, http, numbers_as_f64, phantom_strokes, wait_end, wait_event, Server,
+    classify_strokes, data_root, event_stream, http, numbers_as_f64, open_phantom, phantom_strokes,
+    try_http, wait_end, wait_event, Server,
 };
 
 /// A session on the phantom with its strokes (which start a classification); its id.
@@ -268,4 +271,184 @@ fn serve_with_cluster_classifies_on_the_workers() {
         let _ = w.kill();
         let _ = w.wait();
     }
+}
+
+/// The server's status (`GET /api/server`).
+fn server_status(addr: &str) -> Value {
+    serde_json::from_str(&http(addr, "GET", "/api/server", &[], None).1).unwrap()
+}
+
+#[test]
+fn sigterm_with_a_render_and_an_export_in_flight_stops_within_two_seconds() {
+    let d = tempfile::tempdir().unwrap();
+    let data = data_root(d.path());
+    let mut srv = Server::start(d.path(), &data, &[], &[]);
+    let a = srv.addr.clone();
+    let id = open_phantom(&a, false);
+    classify_strokes(&a, &id, &phantom_strokes());
+    // A full-size frame (seconds of work here) and an OME-Zarr export, both in flight.
+    let (a1, i1) = (a.clone(), id.clone());
+    let render = std::thread::spawn(move || {
+        try_http(
+            &a1,
+            "GET",
+            &format!("/api/sessions/{i1}/render?size=2048"),
+            &[],
+            None,
+        )
+    });
+    let (a2, i2) = (a.clone(), id.clone());
+    let export = std::thread::spawn(move || {
+        try_http(
+            &a2,
+            "POST",
+            &format!("/api/sessions/{i2}/export/zarr"),
+            &[],
+            Some(&json!({"name": "sx"})),
+        )
+    });
+    let t = Instant::now();
+    while server_status(&a)["renders_in_flight"] == 0 {
+        assert!(
+            t.elapsed() < Duration::from_secs(30),
+            "the render never started"
+        );
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    srv.signal("-TERM");
+    let (took, clean) = srv.wait_exit(Duration::from_secs(30));
+    eprintln!("SIGTERM with a render and an export in flight: stopped in {took:?}");
+    let log = std::fs::read_to_string(d.path().join("server-0.log")).unwrap_or_default();
+    assert!(clean, "exit status 0: {log}");
+    assert!(took < Duration::from_secs(2), "stopped in {took:?}: {log}");
+    // The render was cancelled (503) or its connection closed; never a frame after the stop.
+    match render.join().unwrap() {
+        Ok((st, body)) => assert_eq!(st, 503, "{body}"),
+        Err(e) => eprintln!("render: connection closed ({e})"),
+    }
+    let exported = matches!(export.join().unwrap(), Ok((200, _)));
+    // The store reads whole: the export is there complete, or not at all.
+    let store = neuvolex_bricks::BrickStore::open(data.join("phantom.zarr")).unwrap();
+    let has_labels = store.info().labels.iter().any(|l| l == "sx");
+    let has_probs = store.has_vectors("sx_proba").unwrap();
+    assert_eq!(
+        has_labels, has_probs,
+        "labels {has_labels}, probabilities {has_probs}"
+    );
+    assert!(
+        !exported || has_labels,
+        "an acknowledged export must be in the store"
+    );
+    if has_labels {
+        let dims = store.info().dims;
+        store.read_labels_box("sx", [0; 3], dims).unwrap();
+        let va = store.open_vectors("sx_proba").unwrap();
+        for b in store.bricks() {
+            va.read_brick(&b).unwrap();
+        }
+    }
+    // The session was saved, whole.
+    let saved = d.path().join("work/sessions/phantom.zarr.json");
+    let v: Value = serde_json::from_str(&std::fs::read_to_string(&saved).unwrap()).unwrap();
+    assert_eq!(
+        numbers_as_f64(&v["strokes"]),
+        numbers_as_f64(&phantom_strokes())
+    );
+}
+
+#[test]
+fn a_cli_writer_and_the_server_take_turns_on_the_store() {
+    let d = tempfile::tempdir().unwrap();
+    let data = data_root(d.path());
+    let store = data.join("phantom.zarr");
+    let lock = store.join("neuvolex/writer.lock");
+    let srv = Server::start(d.path(), &data, &[], &[]);
+    let a = srv.addr.clone();
+    let id = open_phantom(&a, false);
+    classify_strokes(&a, &id, &phantom_strokes());
+    // A CLI training holds the store's writer lock.
+    let mut cli = Command::new(env!("CARGO_BIN_EXE_neuvolex"))
+        .arg("train")
+        .arg(&store)
+        .args(["--seconds", "120"])
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    let pid = cli.id().to_string();
+    let t = Instant::now();
+    while !std::fs::read_to_string(&lock).is_ok_and(|s| s.contains(&pid)) {
+        assert!(
+            t.elapsed() < Duration::from_secs(60),
+            "the CLI never took the lock"
+        );
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    // The server's writes are refused with 409 naming the holder.
+    let train = |action: &str| {
+        http(
+            &a,
+            "POST",
+            &format!("/api/sessions/{id}/train"),
+            &[],
+            Some(&json!({"action": action, "epochs": 1000})),
+        )
+    };
+    let export = || {
+        http(
+            &a,
+            "POST",
+            &format!("/api/sessions/{id}/export/zarr"),
+            &[],
+            Some(&json!({"name": "nx"})),
+        )
+    };
+    for (what, (st, body)) in [("train", train("start")), ("export", export())] {
+        assert_eq!(st, 409, "{what} beside a CLI writer: {body}");
+        assert!(
+            body.contains("locked by another writer")
+                && body.contains(&format!("pid {pid}"))
+                && body.contains("train"),
+            "{what}: the holder is not named: {body}"
+        );
+        eprintln!("server {what} beside `neuvolex train`: {st} {body}");
+    }
+    assert_eq!(
+        server_status(&a)["trainings"],
+        0,
+        "a refused training holds no slot"
+    );
+    // Once the CLI writer is gone, the server writes.
+    cli.kill().unwrap();
+    cli.wait().unwrap();
+    let (st, body) = export();
+    assert_eq!(st, 200, "{body}");
+    let (st, body) = train("start");
+    assert_eq!(st, 202, "{body}");
+    // Now the server holds the lock: its own export still works, a CLI writer is refused.
+    let (st, body) = export();
+    assert_eq!(st, 200, "{body}");
+    let o = Command::new(env!("CARGO_BIN_EXE_neuvolex"))
+        .arg("train")
+        .arg(&store)
+        .args(["--seconds", "1"])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        !o.status.success(),
+        "a CLI training ran beside the server's"
+    );
+    assert!(
+        err.contains("locked by another writer")
+            && err.contains(&format!("pid {}", srv.child.id()))
+            && err.contains("neuvolex serve: training session"),
+        "{err}"
+    );
+    eprintln!(
+        "`neuvolex train` beside the server's training: {}",
+        err.trim()
+    );
+    let (st, _) = train("stop");
+    assert_eq!(st, 202);
 }

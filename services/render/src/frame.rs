@@ -54,10 +54,23 @@ struct Last {
     acc: Vec<Accum>,
 }
 
+/// The key of a render brick in a [`BrickCache`]: the owning renderer, the brick, and whether
+/// it holds probabilities.
+pub type BrickKey = (u64, [usize; 3], bool);
+
+/// Render bricks of one or several renderers under one byte budget (a server shares one
+/// between all its sessions: [`Renderer::with_cache`]).
+pub type BrickCache = Lru<BrickKey, Arc<RenderBrick>>;
+
+/// Polled between batches of bricks: `true` stops the frame with [`crate::RenderError::Cancelled`].
+pub type CancelPoll = Arc<dyn Fn() -> bool + Send + Sync>;
+
 /// A CPU renderer over a brick source, keeping the last frame for incremental updates.
 pub struct Renderer<S: BrickSource> {
     source: S,
-    cache: Lru<([usize; 3], bool), Arc<RenderBrick>>,
+    cache: Arc<BrickCache>,
+    owner: u64,
+    cancel: Option<CancelPoll>,
     last: Option<Last>,
     stats: RenderStats,
     /// The last frame's rays, for the next frame of the same view.
@@ -67,13 +80,34 @@ pub struct Renderer<S: BrickSource> {
 impl<S: BrickSource> Renderer<S> {
     /// A renderer caching at most `cache_bytes` of bricks.
     pub fn new(source: S, cache_bytes: usize) -> Self {
+        Self::with_cache(source, Arc::new(Lru::new(cache_bytes)), 0)
+    }
+
+    /// A renderer keeping its bricks in `cache`, shared with other renderers under one budget,
+    /// as `owner` (each sharing renderer needs its own; [`Self::forget`] drops its bricks).
+    pub fn with_cache(source: S, cache: Arc<BrickCache>, owner: u64) -> Self {
         Renderer {
             source,
-            cache: Lru::new(cache_bytes),
+            cache,
+            owner,
+            cancel: None,
             last: None,
             stats: RenderStats::default(),
             rays: None,
         }
+    }
+
+    /// Drops this renderer's bricks from its cache (a shared cache keeps the others').
+    pub fn forget(&self) {
+        let owner = self.owner;
+        self.cache.retain(|k| k.0 != owner);
+    }
+
+    /// Polls `cancel` between batches of bricks from now on (`None`: never cancelled); a
+    /// cancelled frame or update returns [`crate::RenderError::Cancelled`], and the next call
+    /// renders from scratch.
+    pub fn set_cancel(&mut self, cancel: Option<CancelPoll>) {
+        self.cancel = cancel;
     }
 
     /// The source.
@@ -145,22 +179,7 @@ impl<S: BrickSource> Renderer<S> {
     /// the last frame by re-rendering only the pixels whose rays read those bricks, and
     /// returns it (`None` when nothing was rendered yet). The result equals a full render.
     pub fn update_bricks(&mut self, changed: &[[usize; 3]]) -> Result<Option<Image>> {
-        let g = self.source.geom().grid();
-        let mut stale = Vec::new();
-        for c in changed {
-            if (0..3).any(|k| c[k] >= g[k]) {
-                return Err(crate::RenderError::Input(format!(
-                    "changed brick {c:?} outside the {g:?} grid"
-                )));
-            }
-            // Its voxels sit in the aprons of its neighbours too.
-            stale.extend(crate::source::neighbourhood(*c, g));
-        }
-        self.source.invalidate(changed);
-        for n in &stale {
-            self.cache.remove(&(*n, false));
-            self.cache.remove(&(*n, true));
-        }
+        self.invalidate(changed)?;
         let Some(last) = self.last.take() else {
             return Ok(None);
         };
@@ -193,17 +212,41 @@ impl<S: BrickSource> Renderer<S> {
         Ok(Some(img))
     }
 
+    /// Forgets the cached copies of `changed` bricks (and of their neighbours, whose aprons
+    /// hold their voxels) after their data changed, without rendering; the last frame is kept
+    /// as it was.
+    pub fn invalidate(&mut self, changed: &[[usize; 3]]) -> Result<()> {
+        let g = self.source.geom().grid();
+        let mut stale = Vec::new();
+        for c in changed {
+            if (0..3).any(|k| c[k] >= g[k]) {
+                return Err(crate::RenderError::Input(format!(
+                    "changed brick {c:?} outside the {g:?} grid"
+                )));
+            }
+            // Its voxels sit in the aprons of its neighbours too.
+            stale.extend(crate::source::neighbourhood(*c, g));
+        }
+        self.source.invalidate(changed);
+        for n in &stale {
+            self.cache.remove(&(self.owner, *n, false));
+            self.cache.remove(&(self.owner, *n, true));
+        }
+        Ok(())
+    }
+
     /// Brick `index` through the cache; with its central differences made when `shaded` (so
     /// the cache counts them).
     fn load(&self, index: [usize; 3], probs: bool, shaded: bool) -> Result<Arc<RenderBrick>> {
-        self.cache.get_or_try_insert(&(index, probs), || {
-            let b = self.source.load(index, probs)?;
-            if shaded {
-                b.differences();
-            }
-            let cost = b.bytes();
-            Ok((Arc::new(b), cost))
-        })
+        self.cache
+            .get_or_try_insert(&(self.owner, index, probs), || {
+                let b = self.source.load(index, probs)?;
+                if shaded {
+                    b.differences();
+                }
+                let cost = b.bytes();
+                Ok((Arc::new(b), cost))
+            })
     }
 
     /// Composites every brick, front to back, into `acc` (only masked pixels if a mask is
@@ -229,6 +272,9 @@ impl<S: BrickSource> Renderer<S> {
         let mut queue: Vec<([usize; 3], [usize; 4])> = Vec::with_capacity(PREFETCH);
         let mut pending = order.into_iter().peekable();
         while pending.peek().is_some() {
+            if self.cancel.as_ref().is_some_and(|c| c()) {
+                return Err(crate::RenderError::Cancelled);
+            }
             // The next bricks that need loading: on screen, possibly visible, not occluded.
             queue.clear();
             for i in pending.by_ref() {

@@ -29,7 +29,7 @@ pub mod source;
 pub mod tf;
 
 pub use camera::{Camera, Projection};
-pub use frame::{Pass, RenderStats, Renderer};
+pub use frame::{BrickCache, BrickKey, CancelPoll, Pass, RenderStats, Renderer};
 pub use image::Image;
 pub use march::{CellMap, Mode, RenderParams, Shading, COARSE};
 pub use source::{BrickSource, MemSource, ProbSource, RenderBrick, StoreSource, VolumeGeom};
@@ -68,6 +68,9 @@ pub enum RenderError {
     /// The GPU path failed (no adapter, device lost, ...).
     #[error("gpu: {0}")]
     Gpu(String),
+    /// The frame was cancelled (its requester left, or the service is stopping).
+    #[error("the render was cancelled")]
+    Cancelled,
 }
 
 /// Result with [`RenderError`].

@@ -14,7 +14,8 @@
 //!   train or export on your behalf.
 //! - **Timeout.** A request that takes longer than
 //!   [`ServerConfig::request_timeout`](crate::ServerConfig::request_timeout) is answered with
-//!   503 (its work is cancelled where it can be); event streams are exempt.
+//!   503; a render is cancelled with it, other work already under way finishes in the
+//!   background; event streams are exempt.
 //! - **Shutdown.** Once shutdown began, new requests get 503.
 
 use crate::error::ApiError;
@@ -210,10 +211,17 @@ pub async fn guard(
         match tokio::time::timeout(st.cfg.request_timeout, next.call(req)).await {
             Ok(r) => r?.map_into_boxed_body(),
             Err(_) => {
-                // The request went with the cancelled handler: the error becomes the answer.
+                // The request went with the dropped handler: the error becomes the answer. A
+                // render is cancelled with it (the renderer polls its requester); other work
+                // already handed to a worker thread (an export, a viewpoint search) cannot be
+                // interrupted safely and finishes in the background.
+                let fate = if what.ends_with("/render") {
+                    "the render was cancelled"
+                } else {
+                    "work already under way finishes in the background"
+                };
                 let e = ApiError::Busy(format!(
-                    "{what} took longer than the server's request timeout of {:?}; its work \
-                     was cancelled",
+                    "{what} took longer than the server's request timeout of {:?}; {fate}",
                     st.cfg.request_timeout
                 ));
                 return Err(e.into());

@@ -129,6 +129,8 @@ pub enum TrainCommand {
         cancel: Arc<AtomicBool>,
         /// Its place among the concurrent trainings the server allows.
         slot: TrainingSlot,
+        /// The store's writer lock, held while the training writes its checkpoint and model.
+        lock: neuvolex_bricks::WriterLock,
     },
 }
 
@@ -168,6 +170,21 @@ pub struct RenderJob {
     pub tf: neuvolex_render::TfFile,
     /// PNG bytes or an error.
     pub reply: oneshot::Sender<ApiResult<Vec<u8>>>,
+    /// Set when the requester went away (its request timed out or its client left): the
+    /// frame stops at its next batch of bricks.
+    pub cancel: Arc<AtomicBool>,
+    /// Counts the render in flight (classification yields to it) until the job ends.
+    pub ticket: crate::memory::RenderTicket,
+}
+
+/// Sets its flag when dropped: a request's future dropped before its answer (timeout, client
+/// gone) cancels the work it queued.
+struct CancelOnDrop(Arc<AtomicBool>);
+
+impl Drop for CancelOnDrop {
+    fn drop(&mut self) {
+        self.0.store(true, Ordering::SeqCst);
+    }
 }
 
 /// A volume file to ingest into a brick store (once: an existing store is reused).
@@ -208,6 +225,8 @@ pub struct Actors {
     render: mpsc::Sender<Mail<RenderJob>>,
     views: mpsc::Sender<Mail<ViewJob>>,
     compute: Arc<crate::compute::Compute>,
+    /// Set once the server stops: renders in flight end at their next batch of bricks.
+    stopping: Arc<AtomicBool>,
 }
 
 /// Forest size of interactive classification.
@@ -256,17 +275,33 @@ impl Actors {
         supervise("ingest", hub.clone(), move || {
             ingester(irx.clone(), h.clone())
         });
-        let (h, cl) = (hub.clone(), cluster.clone());
+        // Classification, training and rendering each run on threads of their own, so none
+        // starves the others of the shared pool (a long classification task queued ahead of a
+        // training step's work, say); the processor is shared by the OS, and classification
+        // and training yield to renders (see `Memory::yield_to_renders`).
+        let pool = |name: &'static str| {
+            Arc::new(
+                rayon::ThreadPoolBuilder::new()
+                    .num_threads(rayon::current_num_threads())
+                    .thread_name(move |i| format!("{name}-{i}"))
+                    .build()
+                    .unwrap_or_else(|e| panic!("cannot start the {name} threads: {e}")),
+            )
+        };
+        let (h, cl, p) = (hub.clone(), cluster.clone(), pool("classify"));
         supervise("classifier", hub.clone(), move || {
-            classifier(crx.clone(), h.clone(), cl.clone())
+            classifier(crx.clone(), h.clone(), cl.clone(), p.clone())
         });
-        let (h, c, e) = (hub.clone(), ctx.clone(), compute.clone());
+        let (h, c, e, p) = (hub.clone(), ctx.clone(), compute.clone(), pool("train"));
         supervise("trainer", hub.clone(), move || {
-            trainer(trx.clone(), h.clone(), c.clone(), e.clone())
+            trainer(trx.clone(), h.clone(), c.clone(), e.clone(), p.clone())
         });
         let e = compute.clone();
+        let stopping = Arc::new(AtomicBool::new(false));
+        let pool = pool("render");
+        let stop = stopping.clone();
         supervise("renderer", hub.clone(), move || {
-            renderer(rrx.clone(), e.clone())
+            renderer(rrx.clone(), e.clone(), pool.clone(), stop.clone())
         });
         let (h, cl) = (hub.clone(), cluster);
         supervise("viewpoints", hub.clone(), move || {
@@ -280,7 +315,13 @@ impl Actors {
             render: rtx,
             compute,
             views: vtx,
+            stopping,
         }
+    }
+
+    /// The server is stopping: renders in flight and queued end at once (503).
+    pub fn stop(&self) {
+        self.stopping.store(true, Ordering::SeqCst);
     }
 
     /// Ingests `source` into the store `dest` (reused when it exists), publishing progress;
@@ -333,7 +374,8 @@ impl Actors {
             .map_err(busy("trainer"))
     }
 
-    /// Renders a frame.
+    /// Renders a frame. Dropping the future before its answer (a request timeout, a client
+    /// gone) cancels the frame.
     pub async fn render(
         &self,
         session: Arc<Session>,
@@ -341,12 +383,17 @@ impl Actors {
         tf: neuvolex_render::TfFile,
     ) -> ApiResult<Vec<u8>> {
         let (reply, rx) = oneshot::channel();
+        let cancel = Arc::new(AtomicBool::new(false));
+        let _cancel_on_drop = CancelOnDrop(cancel.clone());
+        let ticket = session.memory.render_started();
         self.render
             .try_send(Mail::Work(RenderJob {
                 session,
                 params,
                 tf,
                 reply,
+                cancel,
+                ticket,
             }))
             .map_err(busy("renderer"))?;
         rx.await
@@ -483,7 +530,12 @@ fn ingest_one(
     Ok(BrickStore::open(dest)?)
 }
 
-async fn classifier(rx: Inbox<ClassifyJob>, hub: Hub, cluster: Option<ClusterExecutor>) {
+async fn classifier(
+    rx: Inbox<ClassifyJob>,
+    hub: Hub,
+    cluster: Option<ClusterExecutor>,
+    pool: Arc<rayon::ThreadPool>,
+) {
     let mut rx = rx.lock().await;
     let mut pending: Vec<ClassifyJob> = Vec::new();
     loop {
@@ -515,7 +567,7 @@ async fn classifier(rx: Inbox<ClassifyJob>, hub: Hub, cluster: Option<ClusterExe
         if !job.session.current(job.generation) {
             continue;
         }
-        if let Err(e) = spawn_classify(job, hub.clone(), cluster.clone()).await {
+        if let Err(e) = spawn_classify(job, hub.clone(), cluster.clone(), pool.clone()).await {
             if e.is_panic() {
                 // Fail this actor: the supervisor reports it and restarts it on the same mailbox.
                 std::panic::resume_unwind(e.into_panic());
@@ -528,36 +580,50 @@ fn spawn_classify(
     job: ClassifyJob,
     hub: Hub,
     cluster: Option<ClusterExecutor>,
+    pool: Arc<rayon::ThreadPool>,
 ) -> tokio::task::JoinHandle<()> {
-    tokio::task::spawn_blocking(move || {
-        let s = job.session.clone();
-        let id = s.id.clone();
-        let shards = rayon::current_num_threads() * 2;
-        let on_brick = |b: [usize; 3], done: usize, total: usize| {
-            hub.publish(
+    tokio::task::spawn_blocking(move || pool.install(|| classify_job(job, &hub, cluster.as_ref())))
+}
+
+/// Classifies one job's session on the calling thread (inside the classifier's pool),
+/// publishing each brick and the outcome.
+fn classify_job(job: ClassifyJob, hub: &Hub, cluster: Option<&ClusterExecutor>) {
+    let s = job.session.clone();
+    let id = s.id.clone();
+    let shards = rayon::current_num_threads() * 2;
+    let on_brick = |b: [usize; 3], done: usize, total: usize| {
+        hub.publish(
                 Some(&id),
                 "classified",
                 serde_json::json!({"brick": b, "done": done, "total": total, "generation": job.generation}),
             );
-        };
-        let r = s.classify_with(job.generation, TREES, shards, &on_brick, cluster.as_ref());
-        let status = s.status.read().unwrap_or_else(|p| p.into_inner()).clone();
-        match r {
-            Ok(n) => hub.publish(
+    };
+    let t = std::time::Instant::now();
+    let r = s.classify_with(job.generation, TREES, shards, &on_brick, cluster);
+    let status = s.status.read().unwrap_or_else(|p| p.into_inner()).clone();
+    tracing::info!(
+        session = %id,
+        generation = job.generation,
+        state = %status.state,
+        bricks = status.done,
+        seconds = t.elapsed().as_secs_f64(),
+        "classification"
+    );
+    match r {
+        Ok(n) => hub.publish(
+            Some(&id),
+            "classification",
+            serde_json::json!({"bricks": n, "status": status}),
+        ),
+        Err(e) => {
+            s.status.write().unwrap_or_else(|p| p.into_inner()).state = "failed".into();
+            hub.publish(
                 Some(&id),
                 "classification",
-                serde_json::json!({"bricks": n, "status": status}),
-            ),
-            Err(e) => {
-                s.status.write().unwrap_or_else(|p| p.into_inner()).state = "failed".into();
-                hub.publish(
-                    Some(&id),
-                    "classification",
-                    serde_json::json!({"error": e.to_string(), "status": status}),
-                );
-            }
+                serde_json::json!({"error": e.to_string(), "status": status}),
+            );
         }
-    })
+    }
 }
 
 /// Starts each training as its own task (the HTTP layer caps how many run at once), so the
@@ -567,6 +633,7 @@ async fn trainer(
     hub: Hub,
     classify: mpsc::Sender<Mail<ClassifyJob>>,
     compute: Arc<crate::compute::Compute>,
+    pool: Arc<rayon::ThreadPool>,
 ) {
     let mut rx = rx.lock().await;
     while let Some(m) = rx.recv().await {
@@ -576,16 +643,18 @@ async fn trainer(
             resume,
             cancel,
             slot,
+            lock,
         } = match m {
             Mail::Work(c) => c,
             Mail::Crash => crash("trainer"),
         };
-        let (h, c, e) = (hub.clone(), classify.clone(), compute.clone());
+        let (h, c, e, p) = (hub.clone(), classify.clone(), compute.clone(), pool.clone());
         tokio::spawn(async move {
             let (s, flag, h2) = (session.clone(), cancel.clone(), h.clone());
-            let r =
-                tokio::task::spawn_blocking(move || train(&s, epochs, resume, &flag, &h2, &c, &e))
-                    .await;
+            let r = tokio::task::spawn_blocking(move || {
+                p.install(|| train(&s, epochs, resume, &flag, &h2, &c, &e))
+            })
+            .await;
             {
                 // Only this training's flag: a newer one may have been installed since.
                 let mut tc = session
@@ -597,6 +666,7 @@ async fn trainer(
                 }
             }
             drop(slot);
+            drop(lock);
             let err = match r {
                 Ok(Ok(())) => return,
                 Ok(Err(e)) => e.to_string(),
@@ -675,6 +745,8 @@ fn train(
     let id = s.id.clone();
     let mut last = std::time::Instant::now();
     let mut on = |e: TrainEvent| match e {
+        // Between steps, a render in flight goes first.
+        TrainEvent::Step { .. } if s.memory.renders_in_flight() > 0 => s.memory.yield_to_renders(),
         TrainEvent::Step {
             epoch,
             psnr,
@@ -778,7 +850,12 @@ fn train(
     Ok(())
 }
 
-async fn renderer(rx: Inbox<RenderJob>, compute: Arc<crate::compute::Compute>) {
+async fn renderer(
+    rx: Inbox<RenderJob>,
+    compute: Arc<crate::compute::Compute>,
+    pool: Arc<rayon::ThreadPool>,
+    stopping: Arc<AtomicBool>,
+) {
     let mut rx = rx.lock().await;
     while let Some(m) = rx.recv().await {
         let job = match m {
@@ -790,10 +867,37 @@ async fn renderer(rx: Inbox<RenderJob>, compute: Arc<crate::compute::Compute>) {
             params,
             tf,
             reply,
+            cancel,
+            ticket,
         } = job;
+        let memory = session.memory.clone();
+        // Nobody waits for it any more: skip it.
+        if cancel.load(Ordering::SeqCst) || reply.is_closed() {
+            memory.render_cancelled();
+            continue;
+        }
         let gpu = compute.render_gpu();
-        let r = tokio::task::spawn_blocking(move || render(&session, &params, &tf, gpu)).await;
-        let _ = reply.send(r.unwrap_or_else(|_| Err(ApiError::Internal("render panicked".into()))));
+        let (p, stop) = (pool.clone(), stopping.clone());
+        let poll: neuvolex_render::CancelPoll =
+            Arc::new(move || cancel.load(Ordering::SeqCst) || stop.load(Ordering::SeqCst));
+        let r = tokio::task::spawn_blocking(move || {
+            p.install(|| render(&session, &params, &tf, gpu, poll))
+        })
+        .await;
+        drop(ticket);
+        let r = match r {
+            Ok(Err(ApiError::Busy(m))) => {
+                memory.render_cancelled();
+                Err(ApiError::Busy(if stopping.load(Ordering::SeqCst) {
+                    "the server is shutting down: the render was cancelled".into()
+                } else {
+                    m
+                }))
+            }
+            Ok(r) => r,
+            Err(_) => Err(ApiError::Internal("render panicked".into())),
+        };
+        let _ = reply.send(r);
     }
 }
 
@@ -805,11 +909,17 @@ fn render(
     params: &neuvolex_render::RenderParams,
     tf: &neuvolex_render::TfFile,
     gpu: bool,
+    cancel: neuvolex_render::CancelPoll,
 ) -> ApiResult<Vec<u8>> {
     use neuvolex_render::BrickSource;
     let mut guard = s.renderer.lock().unwrap_or_else(|p| p.into_inner());
     let st = guard.get_or_insert_with(|| crate::session::RenderState {
-        renderer: neuvolex_render::Renderer::new(s.source(), 512 << 20),
+        // Its bricks in the server's one render cache, under one budget for all sessions.
+        renderer: neuvolex_render::Renderer::with_cache(
+            s.source(),
+            s.memory.render.clone(),
+            s.render_owner,
+        ),
         key: String::new(),
         #[cfg(feature = "gpu")]
         gpu: None,
@@ -832,6 +942,7 @@ fn render(
     }
     #[cfg(not(feature = "gpu"))]
     let _ = gpu;
+    st.renderer.set_cancel(Some(cancel));
     let classes = st.renderer.source().classes();
     let luts = tf.compile(&st.renderer.source().normaliser(), &classes);
     let dirty: Vec<[usize; 3]> =
@@ -845,6 +956,8 @@ fn render(
             None => st.renderer.render(params, &luts)?,
         }
     } else {
+        // The changed bricks' cached copies are stale for this frame too.
+        st.renderer.invalidate(&dirty)?;
         st.renderer.render(params, &luts)?
     };
     st.key = key;

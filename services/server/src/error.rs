@@ -24,9 +24,28 @@ pub enum ApiError {
     /// The request body is over the limit (413).
     #[error("{0}")]
     TooLarge(String),
+    /// The disk is full (507): nothing was changed; free space and retry.
+    #[error("{0}")]
+    Storage(String),
     /// Something failed inside (500).
     #[error("{0}")]
     Internal(String),
+}
+
+/// True when `msg` (an error's text, with its cause) says the disk or quota is full.
+pub fn is_disk_full(msg: &str) -> bool {
+    msg.contains("os error 28") || msg.contains("os error 122")
+}
+
+impl ApiError {
+    /// An error from writing something: 507 when the disk is full, else 500.
+    pub fn write_failed(msg: String) -> Self {
+        if is_disk_full(&msg) {
+            ApiError::Storage(msg)
+        } else {
+            ApiError::Internal(msg)
+        }
+    }
 }
 
 impl ResponseError for ApiError {
@@ -38,6 +57,7 @@ impl ResponseError for ApiError {
             ApiError::Conflict(_) => StatusCode::CONFLICT,
             ApiError::Busy(_) => StatusCode::SERVICE_UNAVAILABLE,
             ApiError::TooLarge(_) => StatusCode::PAYLOAD_TOO_LARGE,
+            ApiError::Storage(_) => StatusCode::INSUFFICIENT_STORAGE,
             ApiError::Internal(_) => StatusCode::INTERNAL_SERVER_ERROR,
         }
     }
@@ -52,7 +72,9 @@ impl From<neuvolex_bricks::BrickError> for ApiError {
     fn from(e: neuvolex_bricks::BrickError) -> Self {
         match e {
             neuvolex_bricks::BrickError::InvalidArgument(m) => ApiError::BadRequest(m),
-            other => ApiError::Internal(other.to_string()),
+            // Another process writes the store (`neuvolex train`, `features`, ...): named.
+            e @ neuvolex_bricks::BrickError::Locked { .. } => ApiError::Conflict(e.to_string()),
+            other => ApiError::write_failed(other.to_string()),
         }
     }
 }
@@ -63,6 +85,8 @@ impl From<neuvolex_render::RenderError> for ApiError {
             neuvolex_render::RenderError::Param(_) | neuvolex_render::RenderError::Tf { .. } => {
                 ApiError::BadRequest(e.to_string())
             }
+            neuvolex_render::RenderError::Cancelled => ApiError::Busy(e.to_string()),
+            neuvolex_render::RenderError::Bricks(b) => b.into(),
             other => ApiError::Internal(other.to_string()),
         }
     }

@@ -36,6 +36,11 @@ pub struct ServerConfig {
     pub generated_root: Option<PathBuf>,
     /// Feature-cache budget, bytes, across all sessions together.
     pub feature_cache_bytes: usize,
+    /// Render-cache budget, bytes, for every session's renderer together.
+    pub render_cache_bytes: usize,
+    /// Class-probability budget, bytes, for all sessions together (one byte per voxel and
+    /// class of each classified session).
+    pub probs_bytes: usize,
     /// Exposes `POST /api/debug/crash/{actor}` (supervisor tests only).
     pub fault_injection: bool,
     /// Engines of the trainer and renderer: cpu, gpu (any adapter) or auto (a hardware GPU).
@@ -58,7 +63,8 @@ pub struct ServerConfig {
 }
 
 impl ServerConfig {
-    /// A configuration with the default cache budget (512 MiB for all sessions), no token,
+    /// A configuration with the default budgets for all sessions together (feature cache
+    /// 512 MiB, render cache 512 MiB, probabilities 2 GiB), no token,
     /// [`MAX_SESSIONS`] sessions, one training at a time, a 60 s request timeout and no fault
     /// injection.
     pub fn new(data_root: PathBuf, work_dir: PathBuf) -> Self {
@@ -68,6 +74,8 @@ impl ServerConfig {
             default_volume: None,
             generated_root: None,
             feature_cache_bytes: 512 << 20,
+            render_cache_bytes: 512 << 20,
+            probs_bytes: 2 << 30,
             fault_injection: false,
             backend: neuvolex_features::Backend::Cpu,
             cluster: None,
@@ -88,8 +96,10 @@ pub struct AppState {
     pub sessions: RwLock<HashMap<String, Arc<Session>>>,
     /// The actors.
     pub actors: Actors,
-    /// Feature bricks of every session, under one budget.
+    /// Feature bricks of every session, under one budget (the same as `memory.features`).
     pub features: Arc<FeatureCache>,
+    /// What sessions hold in memory, under the server's budgets.
+    pub memory: Arc<crate::memory::Memory>,
     /// Trainings running now.
     pub trainings: Arc<AtomicUsize>,
     /// Sessions being opened (counted against the session limit while they ingest).
@@ -105,8 +115,14 @@ impl AppState {
     pub fn new(cfg: ServerConfig) -> web::Data<AppState> {
         let compute = crate::compute::Compute::resolve(cfg.backend);
         let actors = Actors::start_with(Hub::default(), compute, cfg.cluster.clone());
+        let memory = crate::memory::Memory::new(
+            cfg.feature_cache_bytes,
+            cfg.render_cache_bytes,
+            cfg.probs_bytes,
+        );
         web::Data::new(AppState {
-            features: Arc::new(FeatureCache::new(cfg.feature_cache_bytes)),
+            features: memory.features.clone(),
+            memory,
             cfg,
             sessions: RwLock::new(HashMap::new()),
             actors,
@@ -197,8 +213,15 @@ impl AppState {
                     .await?
             }
         };
-        let id = format!("s{}", self.next.fetch_add(1, Ordering::SeqCst));
-        let s = Session::with_cache(id.clone(), rel.to_string(), Arc::new(store), &self.features);
+        let n = self.next.fetch_add(1, Ordering::SeqCst);
+        let id = format!("s{n}");
+        let s = Session::with_memory(
+            id.clone(),
+            rel.to_string(),
+            Arc::new(store),
+            &self.memory,
+            n,
+        );
         self.sessions
             .write()
             .unwrap_or_else(|p| p.into_inner())
@@ -207,15 +230,23 @@ impl AppState {
     }
 
     /// Closes a session: its work is cancelled (training stopped, classification made
-    /// stale), its state saved for the next open, and its cached features dropped.
-    pub fn close(&self, s: &Session) {
+    /// stale), its state saved for the next open, and what it held in memory given back. When
+    /// the state cannot be saved (a full disk), the session stays open and the error names the
+    /// file: nothing is lost, and closing again once there is space saves it.
+    pub fn close(&self, s: &Session) -> ApiResult<()> {
         stop_work(s);
-        let _ = save_state(&self.cfg.work_dir, s);
+        save_state(&self.cfg.work_dir, s).map_err(|e| {
+            ApiError::write_failed(format!(
+                "session {} was not closed: saving its state failed: {e}",
+                s.id
+            ))
+        })?;
         self.sessions
             .write()
             .unwrap_or_else(|p| p.into_inner())
             .remove(&s.id);
-        self.features.drop_session(&s.id);
+        s.release_memory();
+        Ok(())
     }
 
     /// Begins shutdown and returns once in-flight work has stopped, or after `grace`: new
@@ -225,6 +256,7 @@ impl AppState {
     pub async fn shutdown(&self, grace: Duration) -> Vec<PathBuf> {
         let deadline = Instant::now() + grace;
         self.shutdown.send_replace(true);
+        self.actors.stop();
         let sessions = self.all_sessions();
         for s in &sessions {
             stop_work(s);
@@ -233,7 +265,11 @@ impl AppState {
         let saved = web::block(move || {
             sessions
                 .iter()
-                .filter_map(|s| save_state(&work, s).ok())
+                .filter_map(|s| {
+                    save_state(&work, s)
+                        .map_err(|e| tracing::error!("session {} not saved: {e}", s.id))
+                        .ok()
+                })
                 .collect::<Vec<_>>()
         })
         .await
@@ -391,11 +427,7 @@ async fn get_session(st: web::Data<AppState>, id: web::Path<String>) -> ApiResul
 async fn close_session(st: web::Data<AppState>, id: web::Path<String>) -> ApiResult<HttpResponse> {
     let s = st.session(&id)?;
     let st2 = st.clone();
-    blocking(move || {
-        st2.close(&s);
-        Ok(())
-    })
-    .await?;
+    blocking(move || st2.close(&s)).await?;
     Ok(HttpResponse::NoContent().finish())
 }
 
@@ -659,6 +691,9 @@ async fn server_status(st: web::Data<AppState>) -> HttpResponse {
         "trainings": st.trainings.load(Ordering::SeqCst),
         "max_trainings": st.cfg.max_trainings,
         "feature_cache": {"used": st.features.used(), "budget": st.features.budget()},
+        "memory": st.memory.report(),
+        "renders_in_flight": st.memory.renders_in_flight(),
+        "renders_cancelled": st.memory.renders_cancelled(),
         "request_timeout_s": st.cfg.request_timeout.as_secs_f64(),
         "access": if st.cfg.token.is_some() { "token" } else { "open" },
         "uptime_s": st.started.elapsed().as_secs_f64(),
@@ -764,8 +799,11 @@ async fn train(
     }
     match req.action.as_str() {
         "start" | "resume" => {
-            let mut tc = s.train_cancel.lock().unwrap_or_else(|p| p.into_inner());
-            if tc.is_some() {
+            if s.train_cancel
+                .lock()
+                .unwrap_or_else(|p| p.into_inner())
+                .is_some()
+            {
                 return Err(ApiError::Conflict(
                     "this session is already training; stop it first".into(),
                 ));
@@ -776,6 +814,27 @@ async fn train(
                     "{max} training(s) running (the server's limit); stop one or try later"
                 ))
             })?;
+            // The training writes the store's checkpoint and model: it holds the store's
+            // writer lock meanwhile (shared within this server; another process writing the
+            // store, `neuvolex train` say, gets 409 naming it).
+            let s2 = s.clone();
+            let lock = blocking(move || {
+                s2.store
+                    .writer_lock(&format!("neuvolex serve: training session {}", s2.id))
+                    .map_err(|e| match ApiError::from(e) {
+                        ApiError::Conflict(m) => ApiError::Conflict(format!(
+                            "cannot train: {m}; the training writes the store's model"
+                        )),
+                        o => o,
+                    })
+            })
+            .await?;
+            let mut tc = s.train_cancel.lock().unwrap_or_else(|p| p.into_inner());
+            if tc.is_some() {
+                return Err(ApiError::Conflict(
+                    "this session is already training; stop it first".into(),
+                ));
+            }
             let cancel = Arc::new(AtomicBool::new(false));
             st.actors.train(TrainCommand::Start {
                 session: s.clone(),
@@ -783,6 +842,7 @@ async fn train(
                 resume: req.action == "resume",
                 cancel: cancel.clone(),
                 slot,
+                lock,
             })?;
             *tc = Some(cancel);
         }
@@ -977,7 +1037,9 @@ fn nifti_bytes(
     ));
     let r = neuvolex_bricks::nifti::write_nifti(&tmp, vol, 16)
         .map_err(ApiError::from)
-        .and_then(|()| std::fs::read(&tmp).map_err(|e| ApiError::Internal(e.to_string())));
+        .and_then(|()| {
+            std::fs::read(&tmp).map_err(|e| ApiError::Internal(format!("{}: {e}", tmp.display())))
+        });
     let _ = std::fs::remove_file(&tmp);
     r
 }
@@ -1053,6 +1115,7 @@ async fn export_zarr(
             "export name '{name}' is longer than 64 characters"
         )));
     }
+    let (name2, root) = (name.clone(), s.store.root().to_path_buf());
     let out = blocking(move || -> ApiResult<serde_json::Value> {
         let mut vol = u8_volume(&s, label_voxels(&s)?, "labels");
         let classes = s.classes.read().unwrap_or_else(|p| p.into_inner()).clone();
@@ -1095,7 +1158,15 @@ async fn export_zarr(
             "classes": p.ids,
         }))
     })
-    .await?;
+    .await
+    .map_err(|e| match e {
+        // Nothing was published: the store reads as before the export.
+        ApiError::Storage(m) => ApiError::Storage(format!(
+            "export '{name2}' into {}: {m}; the store is unchanged",
+            root.display()
+        )),
+        o => o,
+    })?;
     Ok(HttpResponse::Ok().json(out))
 }
 

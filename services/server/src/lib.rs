@@ -13,6 +13,8 @@
 //! - [`paths`]: volumes only from the configured data root.
 //! - [`assist`]: the spatial prior over the streamed probabilities and the next-slice
 //!   suggestion.
+//! - [`memory`]: the server-wide budgets of what sessions hold (features, render bricks,
+//!   probabilities), and the priority of renders over classification.
 //! - [`access`]: the token, host and origin checks, the request timeout and the shutdown gate
 //!   in front of every route.
 
@@ -26,6 +28,7 @@ pub mod compute;
 pub mod error;
 pub mod http;
 pub mod imaging;
+pub mod memory;
 pub mod paths;
 pub mod session;
 

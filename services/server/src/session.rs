@@ -118,6 +118,13 @@ pub struct Session {
     pub prior: RwLock<Option<crate::assist::PriorState>>,
     /// The current model as a blob for cluster workers (version, identity, bytes).
     model_bytes: Mutex<Option<ModelBlob>>,
+    /// The server's session memory: this session's render bricks and probabilities count
+    /// against its budgets.
+    pub memory: Arc<crate::memory::Memory>,
+    /// This session's key in the shared render cache.
+    pub render_owner: u64,
+    /// Bytes of probabilities this session has reserved in [`Self::memory`].
+    probs_reserved: Mutex<usize>,
 }
 
 type ModelBlob = (u64, String, Arc<Vec<u8>>);
@@ -134,24 +141,29 @@ pub struct RenderState {
 }
 
 impl Session {
-    /// A session over an opened store, with a feature cache of its own holding at most
-    /// `cache_bytes` (the server shares one cache: [`Session::with_cache`]).
+    /// A session over an opened store, with memory of its own: a feature cache and a render
+    /// cache of `cache_bytes` each, and no limit on its probabilities (the server shares one
+    /// [`crate::memory::Memory`]: [`Session::with_memory`]).
     pub fn new(
         id: String,
         name: String,
         store: Arc<BrickStore>,
         cache_bytes: usize,
     ) -> Arc<Session> {
-        Self::with_cache(id, name, store, &Arc::new(FeatureCache::new(cache_bytes)))
+        let memory = crate::memory::Memory::new(cache_bytes, cache_bytes, usize::MAX / 2);
+        Self::with_memory(id, name, store, &memory, 0)
     }
 
-    /// A session over an opened store, reading features through the shared `cache`.
-    pub fn with_cache(
+    /// A session over an opened store, holding its features, render bricks and probabilities
+    /// in the server's `memory` (its render bricks as `render_owner`, unique per session).
+    pub fn with_memory(
         id: String,
         name: String,
         store: Arc<BrickStore>,
-        cache: &Arc<FeatureCache>,
+        memory: &Arc<crate::memory::Memory>,
+        render_owner: u64,
     ) -> Arc<Session> {
+        let cache: &Arc<FeatureCache> = &memory.features;
         // Classes from the store's first label image with a class table, else two defaults.
         let mut classes = Vec::new();
         for l in &store.info().labels {
@@ -174,12 +186,9 @@ impl Session {
                 })
                 .collect();
         }
-        // A model trained earlier (by `neuvolex train` or a previous session) on this grid.
-        let model =
-            neuvolex_features::checkpoint::load(neuvolex_features::train::model_path(&store))
-                .ok()
-                .filter(|l| l.model.dims == store.info().dims)
-                .map(|l| (1, Arc::new(l.model)));
+        // A model trained earlier (by `neuvolex train` or a previous session) on this grid,
+        // shared with the other sessions on this store.
+        let model = memory.store_model(&store).map(|m| (1, m));
         let features = cache.for_session(&id);
         Arc::new(Session {
             id,
@@ -204,7 +213,28 @@ impl Session {
             prior_on: AtomicBool::new(true),
             prior: RwLock::new(None),
             model_bytes: Mutex::new(None),
+            memory: memory.clone(),
+            render_owner,
+            probs_reserved: Mutex::new(0),
         })
+    }
+
+    /// Gives back what this session holds in the server's memory (it was closed): its
+    /// probabilities and their reservation, its render bricks and renderer, its features.
+    pub fn release_memory(&self) {
+        {
+            let mut p = self.probs.write().unwrap_or_else(|p| p.into_inner());
+            *p = Probs::default();
+            let mut held = self
+                .probs_reserved
+                .lock()
+                .unwrap_or_else(|p| p.into_inner());
+            self.memory.release_probs(&mut held);
+        }
+        *self.renderer.lock().unwrap_or_else(|p| p.into_inner()) = None;
+        let owner = self.render_owner;
+        self.memory.render.retain(|k| k.0 != owner);
+        self.memory.features.drop_session(&self.id);
     }
 
     /// Whether the spatial prior is on.
@@ -421,9 +451,26 @@ impl Session {
             s.message.clear();
         });
         let name = set.to_string();
-        let ts = training_set_with(&fx, &scr, BACKGROUND, &|b| {
+        // Newer strokes make this run stale: stop fetching features for it at once.
+        let ts = match training_set_with(&fx, &scr, BACKGROUND, &|b| {
+            if !self.current(generation) {
+                return Err(neuvolex_classify::ClassifyError::Input(
+                    "superseded by newer strokes".into(),
+                ));
+            }
             self.features.get(&name, version, &fx, b)
-        })?;
+        }) {
+            Ok(ts) => ts,
+            Err(_) if !self.current(generation) => {
+                self.set_status(|s| s.state = "cancelled".into());
+                return Ok(0);
+            }
+            Err(e) => return Err(e.into()),
+        };
+        if !self.current(generation) {
+            self.set_status(|s| s.state = "cancelled".into());
+            return Ok(0);
+        }
         let forest = Arc::new(fit(
             &ts,
             &neuvolex_classify::ForestConfig {
@@ -440,6 +487,22 @@ impl Session {
                 return Ok(0);
             }
             if p.ids != ts.labels {
+                // One byte per voxel and class, reserved in full before any brick arrives.
+                let voxels: usize = self.store.info().dims.iter().product();
+                let mut held = self
+                    .probs_reserved
+                    .lock()
+                    .unwrap_or_else(|p| p.into_inner());
+                if let Err(e) =
+                    self.memory
+                        .reserve_probs(&mut held, voxels * ts.labels.len(), &self.id)
+                {
+                    self.set_status(|s| {
+                        s.state = "failed".into();
+                        s.message = e.to_string();
+                    });
+                    return Err(e);
+                }
                 p.bricks.clear();
             }
             p.ids = ts.labels.clone();
@@ -485,6 +548,8 @@ impl Session {
         let hook: Option<FeatureHook<'_>> = match cluster {
             Some(_) => None,
             None => Some(Box::new(|b: &neuvolex_bricks::Brick| {
+                // A render in flight goes first (it runs on its own threads meanwhile).
+                self.memory.yield_to_renders();
                 self.features.get(&name, version, &fx, b)
             })),
         };
@@ -548,6 +613,18 @@ impl Session {
             inner: StoreSource::new(self.store.clone()),
             session: self.clone(),
         }
+    }
+}
+
+impl Drop for Session {
+    /// A session dropped without [`Session::release_memory`] (a work item outliving its
+    /// close) still gives its reservation back.
+    fn drop(&mut self) {
+        let held = self
+            .probs_reserved
+            .get_mut()
+            .unwrap_or_else(|p| p.into_inner());
+        self.memory.release_probs(held);
     }
 }
 

@@ -1,8 +1,9 @@
 //! Who may use the server and how much of it: the token, the loopback host check, refusal of
 //! cross-origin writes, the data root as the only readable place (a detached NRRD header naming
 //! a file outside it included), and each limit (sessions, the feature cache across sessions,
-//! the request timeout, concurrent trainings, the body size) answering with a clear 4xx/503
-//! and a JSON error. Also the session file (save, load, restore) and concurrent appends.
+//! the render cache and probabilities across sessions, the request timeout, concurrent
+//! trainings, the body size) answering with a clear 4xx/503 and a JSON error. Also the session
+//! file (save, load, restore) and concurrent appends.
 
 #[macro_use]
 mod common;
@@ -295,6 +296,123 @@ async fn the_feature_cache_is_bounded_across_sessions() {
 }
 
 #[actix_web::test]
+async fn what_sessions_hold_stays_within_the_servers_budgets() {
+    let (_d, mut cfg) = data();
+    // Render bricks: 2 MiB for every session's 3-D view together (each session's frames
+    // read far more). Probabilities: room for two sessions' (48 x 48 x 42 voxels, 2 classes).
+    let one = 48 * 48 * 42 * 2;
+    cfg.render_cache_bytes = 2 << 20;
+    cfg.probs_bytes = 2 * one + 1000;
+    let app = app!(cfg);
+    let check = |s: &Value| {
+        let m = &s["memory"];
+        for part in ["feature_cache", "render_cache", "probabilities"] {
+            assert!(
+                m[part]["used"].as_u64().unwrap() <= m[part]["budget"].as_u64().unwrap(),
+                "{part}: {m}"
+            );
+        }
+        assert!(
+            m["used"].as_u64().unwrap() <= m["budget"].as_u64().unwrap(),
+            "{m}"
+        );
+    };
+    let mut ids = Vec::new();
+    for k in 0..3 {
+        let id = open_session(&app).await;
+        let g = put_strokes(&app, &id, k).await;
+        let v = wait_state(&app, &id, g, &["done", "failed"]).await;
+        if k < 2 {
+            assert_eq!(v["status"]["state"], "done", "{v}");
+        } else {
+            // The third would pass the probability budget: refused, naming it.
+            assert_eq!(v["status"]["state"], "failed", "{v}");
+            let m = v["status"]["message"].as_str().unwrap();
+            assert!(
+                m.contains("--probs-mib") && m.contains("close a session"),
+                "{m}"
+            );
+        }
+        ids.push(id);
+    }
+    let s = server_status(&app).await;
+    assert_eq!(s["memory"]["probabilities"]["used"], 2 * one, "{s}");
+    check(&s);
+    // Every session renders, sharing the one render budget.
+    for (k, id) in ids.iter().enumerate() {
+        for az in [0, 90] {
+            let r = test::call_service(
+                &app,
+                test::TestRequest::get()
+                    .uri(&format!("/api/sessions/{id}/render?size=96&az={az}"))
+                    .to_request(),
+            )
+            .await;
+            assert_eq!(r.status(), 200, "session {k}");
+        }
+        let s = server_status(&app).await;
+        assert!(
+            s["memory"]["render_cache"]["used"].as_u64().unwrap() > 0,
+            "{s}"
+        );
+        check(&s);
+    }
+    // Closing the first gives its share back: the third classifies now.
+    let close = |id: &str| {
+        test::TestRequest::delete()
+            .uri(&format!("/api/sessions/{id}"))
+            .to_request()
+    };
+    assert_eq!(test::call_service(&app, close(&ids[0])).await.status(), 204);
+    let g = put_strokes(&app, &ids[2], 1).await;
+    let v = wait_state(&app, &ids[2], g, &["done", "failed"]).await;
+    assert_eq!(v["status"]["state"], "done", "{v}");
+    check(&server_status(&app).await);
+    for id in &ids[1..] {
+        assert_eq!(test::call_service(&app, close(id)).await.status(), 204);
+    }
+    let s = server_status(&app).await;
+    assert_eq!(s["memory"]["used"], 0, "everything given back: {s}");
+}
+
+#[actix_web::test]
+async fn a_store_model_is_loaded_once_for_all_its_sessions() {
+    use neuvolex_features::InrModel;
+    use std::sync::Arc;
+    let (_d, cfg) = data();
+    let store = neuvolex_bricks::BrickStore::open(cfg.data_root.join("ph.zarr")).unwrap();
+    let m = neuvolex_server::memory::Memory::new(1 << 20, 1 << 20, 1 << 20);
+    assert!(m.store_model(&store).is_none(), "no model file yet");
+    let inr = neuvolex_features::InrConfig {
+        log2_table: 10,
+        ..Default::default()
+    };
+    let save = |seed| {
+        let model = InrModel::new(&inr, store.info().dims, seed);
+        let path = neuvolex_features::train::model_path(&store);
+        neuvolex_features::checkpoint::save(path, &model, None).unwrap();
+    };
+    save(1);
+    let (a, b) = (
+        m.store_model(&store).unwrap(),
+        m.store_model(&store).unwrap(),
+    );
+    assert!(Arc::ptr_eq(&a, &b), "two sessions share one model");
+    assert_eq!(m.store_models().0, 1);
+    // A rewritten file (another modification time) is loaded again.
+    std::thread::sleep(Duration::from_millis(20));
+    save(2);
+    let c = m.store_model(&store).unwrap();
+    assert!(!Arc::ptr_eq(&a, &c));
+    drop((a, b, c));
+    assert_eq!(
+        m.store_models(),
+        (0, 0),
+        "nothing held once the sessions are gone"
+    );
+}
+
+#[actix_web::test]
 async fn slow_requests_time_out_with_503() {
     let (_d, mut cfg) = data();
     cfg.request_timeout = Duration::from_millis(5);
@@ -322,7 +440,22 @@ async fn slow_requests_time_out_with_503() {
     let v: Value = serde_json::from_slice(&body).unwrap();
     let e = v["error"].as_str().unwrap().to_string();
     assert!(e.contains("request timeout"), "{e}");
-    assert!(e.contains("/render"), "{e}");
+    assert!(
+        e.contains("/render") && e.contains("the render was cancelled"),
+        "{e}"
+    );
+    // And it was: the renderer stops the frame at its next batch of bricks instead of
+    // finishing it for nobody.
+    let t = Instant::now();
+    loop {
+        let s = server_status(&app).await;
+        if s["renders_in_flight"] == 0 {
+            assert_eq!(s["renders_cancelled"], 1, "{s}");
+            break;
+        }
+        assert!(t.elapsed() < Duration::from_secs(60), "{s}");
+        tokio::time::sleep(Duration::from_millis(10)).await;
+    }
     // Event streams are not cut by the timeout.
     let mut sse = Sse::open(&app, "").await;
     tokio::time::sleep(Duration::from_millis(50)).await;

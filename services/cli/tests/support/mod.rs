@@ -227,6 +227,47 @@ pub fn wait_end(rx: &mpsc::Receiver<Option<(String, String)>>, limit: Duration) 
     }
 }
 
+/// Sends `strokes` to session `id` and waits until their classification is done.
+pub fn classify_strokes(addr: &str, id: &str, strokes: &Value) {
+    let (st, body) = http(
+        addr,
+        "PUT",
+        &format!("/api/sessions/{id}/strokes"),
+        &[],
+        Some(strokes),
+    );
+    assert_eq!(st, 202, "{body}");
+    let t = Instant::now();
+    loop {
+        let (_, body) = http(addr, "GET", &format!("/api/sessions/{id}"), &[], None);
+        let v: Value = serde_json::from_str(&body).unwrap();
+        if v["status"]["state"] == "done" && v["status"]["generation"] == v["generation"] {
+            return;
+        }
+        assert!(
+            v["status"]["state"] != "failed" && t.elapsed() < Duration::from_secs(120),
+            "classification did not finish: {v}"
+        );
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+/// Opens the phantom as a session (restoring its saved state when `restore`); its id.
+pub fn open_phantom(addr: &str, restore: bool) -> String {
+    let (st, body) = http(
+        addr,
+        "POST",
+        "/api/sessions",
+        &[],
+        Some(&json!({"volume": "phantom.zarr", "restore": restore})),
+    );
+    assert_eq!(st, 201, "{body}");
+    serde_json::from_str::<Value>(&body).unwrap()["id"]
+        .as_str()
+        .unwrap()
+        .to_string()
+}
+
 pub fn phantom_strokes() -> Value {
     json!([
         {"class": 1, "axis": "z", "slice": 21, "points": [[23, 30], [25, 31]], "radius": 1.5},

@@ -59,6 +59,18 @@ where
         Error = actix_web::Error,
     >,
 {
+    wait_state(app, id, generation, &["done", "idle"]).await
+}
+
+/// Waits until session `id`'s classification of `generation` is in one of `states`.
+pub async fn wait_state<S>(app: &S, id: &str, generation: u64, states: &[&str]) -> Value
+where
+    S: actix_web::dev::Service<
+        actix_http::Request,
+        Response = actix_web::dev::ServiceResponse,
+        Error = actix_web::Error,
+    >,
+{
     let t = Instant::now();
     loop {
         let req = test::TestRequest::get()
@@ -66,13 +78,12 @@ where
             .to_request();
         let v: Value = test::call_and_read_body_json(app, req).await;
         let st = &v["status"];
-        if st["generation"] == json!(generation) && (st["state"] == "done" || st["state"] == "idle")
-        {
+        if st["generation"] == json!(generation) && states.iter().any(|s| st["state"] == *s) {
             return v;
         }
         assert!(
             t.elapsed() < Duration::from_secs(120),
-            "classification never finished: {v}"
+            "classification never reached {states:?}: {v}"
         );
         tokio::time::sleep(Duration::from_millis(50)).await;
     }
