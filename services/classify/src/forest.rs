@@ -206,7 +206,8 @@ struct Builder<'a> {
     /// The features column by column (`d x n`): a node's values of one feature are read from
     /// one column that stays cached, not from `n` rows far apart.
     cols: Vec<f32>,
-    w: &'a [f32],
+    /// Per class: the weight of each of its samples (class weights are per class).
+    w: Vec<f64>,
     cfg: &'a ForestConfig,
     mtry: usize,
 }
@@ -215,7 +216,8 @@ impl Builder<'_> {
     fn counts(&self, idx: &[u32], out: &mut [f64]) {
         out.iter_mut().for_each(|c| *c = 0.0);
         for &i in idx {
-            out[self.data.y[i as usize] as usize] += self.w[i as usize] as f64;
+            let y = self.data.y[i as usize] as usize;
+            out[y] += self.w[y];
         }
     }
 
@@ -253,8 +255,9 @@ impl Builder<'_> {
         let mut best: Option<(f64, f32)> = None;
         for p in 0..buf.len() - 1 {
             let (v, i) = at(p);
-            let wi = self.w[i as usize] as f64;
-            left[self.data.y[i as usize] as usize] += wi;
+            let y = self.data.y[i as usize] as usize;
+            let wi = self.w[y];
+            left[y] += wi;
             wl += wi;
             let next = at(p + 1).0;
             if next <= v + FEATURE_EPS {
@@ -294,6 +297,7 @@ impl Builder<'_> {
         let mut probs: Vec<f32> = Vec::new();
         let mut buf = Vec::with_capacity(n);
         let mut tmp = Vec::with_capacity(n);
+        let mut right: Vec<u32> = Vec::with_capacity(n);
         let mut total = vec![0.0f64; c];
         let mut left = vec![0.0f64; c];
         let mut feats: Vec<usize> = (0..d).collect();
@@ -347,15 +351,22 @@ impl Builder<'_> {
             }
             match split {
                 Some((_, f, thr)) => {
-                    // Partition idx[lo..hi] into <= thr | > thr.
+                    // Partition idx[lo..hi] into <= thr | > thr, stably: every node's samples
+                    // stay in ascending order, so reading a column for them walks it forwards.
                     let part = &mut idx[lo..hi];
+                    let col = &self.cols[f * n..][..n];
+                    right.clear();
                     let mut m = 0;
                     for q in 0..part.len() {
-                        if self.cols[f * n + part[q] as usize] <= thr {
-                            part.swap(m, q);
+                        let i = part[q];
+                        if col[i as usize] <= thr {
+                            part[m] = i;
                             m += 1;
+                        } else {
+                            right.push(i);
                         }
                     }
+                    part[m..].copy_from_slice(&right);
                     let l = nodes.len();
                     nodes.push(Node {
                         feature: LEAF,
@@ -472,16 +483,15 @@ impl Forest {
         if cfg.trees == 0 {
             return Err(ForestError::Data("0 trees".into()));
         }
-        let w: Vec<f32> = match cfg.class_weight {
-            ClassWeight::None => vec![1.0; n],
-            ClassWeight::Balanced => {
-                let present = per.iter().filter(|&&k| k > 0).count() as f32;
-                data.y
-                    .iter()
-                    .map(|&c| n as f32 / (present * per[c as usize] as f32))
-                    .collect()
-            }
-        };
+        let present = per.iter().filter(|&&k| k > 0).count() as f32;
+        let w: Vec<f64> = per
+            .iter()
+            .map(|&k| match cfg.class_weight {
+                ClassWeight::None => 1.0,
+                // Computed in f32 as before, so the trees keep their bits.
+                ClassWeight::Balanced => (n as f32 / (present * k as f32)) as f64,
+            })
+            .collect();
         let mtry = match cfg.max_features {
             MaxFeatures::Sqrt => ((data.d as f64).sqrt().floor() as usize).max(1),
             MaxFeatures::All => data.d,
@@ -497,7 +507,7 @@ impl Forest {
         let b = Builder {
             data,
             cols,
-            w: &w,
+            w,
             cfg,
             mtry,
         };
