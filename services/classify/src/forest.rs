@@ -233,16 +233,18 @@ impl Builder<'_> {
         left: &mut [f64],
     ) -> Result<Option<(f64, f32)>, Constant> {
         let col = &self.cols[f * self.data.y.len()..][..self.data.y.len()];
-        // Each sample as one integer, its value's order key above its index, so the sort
-        // compares plain integers (the order of `f32::total_cmp`; ties, which no split point
-        // separates, fall in index order).
+        // Each sample as one integer, its value's order key above its class, so the sort
+        // compares plain integers (the order of `f32::total_cmp`) and the scan reads no other
+        // array. The sort is stable and a node's samples are in ascending order, so ties, which
+        // no split point separates, fall in index order.
         // The extremes come first, so a feature constant here (a dead unit) costs no sort.
         buf.clear();
         let (mut lo, mut hi) = (u32::MAX, 0u32);
+        let y = self.data.y;
         buf.extend(idx.iter().map(|&i| {
             let k = order_key(col[i as usize]);
             (lo, hi) = (lo.min(k), hi.max(k));
-            ((k as u64) << 32) | i as u64
+            ((k as u64) << 32) | y[i as usize] as u64
         }));
         if from_order_key(hi) <= from_order_key(lo) + FEATURE_EPS {
             return Err(Constant);
@@ -253,14 +255,30 @@ impl Builder<'_> {
         let wt: f64 = total.iter().sum();
         let mut wl = 0.0f64;
         let mut best: Option<(f64, f32)> = None;
-        for p in 0..buf.len() - 1 {
-            let (v, i) = at(p);
-            let y = self.data.y[i as usize] as usize;
+        // The class of every sample in the current group (samples that no cut separates), or
+        // `MIXED`.
+        const MIXED: u32 = u32::MAX;
+        let (mut group, mut first) = (MIXED, true);
+        let n = buf.len();
+        for p in 0..n - 1 {
+            let (v, y) = at(p);
+            group = if first || group == y { y } else { MIXED };
+            first = false;
+            let y = y as usize;
             let wi = self.w[y];
             left[y] += wi;
             wl += wi;
             let next = at(p + 1).0;
             if next <= v + FEATURE_EPS {
+                continue;
+            }
+            first = true;
+            // A cut between two groups of one class is skipped: along consecutive groups of
+            // one class the proxy is strictly convex in the samples moved left (a sum of
+            // quadratic-over-linear terms), so its maximum is at the run's ends, cuts next to
+            // another class (Fayyad and Irani's boundary points), which are evaluated. The
+            // next group is checked only where it is one sample.
+            if group == at(p + 1).1 && (p + 2 == n || at(p + 2).0 > next + FEATURE_EPS) {
                 continue;
             }
             let wr = wt - wl;
@@ -744,6 +762,118 @@ mod tests {
         }
     }
 
+    /// The best cut by evaluating every cut between distinct values (the scan before cuts
+    /// inside one-class runs were skipped), in the same order and arithmetic.
+    fn every_cut(b: &Builder<'_>, idx: &[u32], f: usize, total: &[f64]) -> Option<(f64, f32)> {
+        let n = b.data.y.len();
+        let col = &b.cols[f * n..][..n];
+        let mut s: Vec<(f32, u32)> = idx.iter().map(|&i| (col[i as usize], i)).collect();
+        s.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+        let mut left = vec![0.0f64; total.len()];
+        let wt: f64 = total.iter().sum();
+        let (mut wl, mut best) = (0.0f64, None::<(f64, f32)>);
+        for p in 0..s.len() - 1 {
+            let (v, i) = s[p];
+            let y = b.data.y[i as usize] as usize;
+            left[y] += b.w[y];
+            wl += b.w[y];
+            let next = s[p + 1].0;
+            let wr = wt - wl;
+            if next <= v + FEATURE_EPS || wl <= 0.0 || wr <= 0.0 {
+                continue;
+            }
+            let (mut sl, mut sr) = (0.0, 0.0);
+            for k in 0..left.len() {
+                sl += left[k] * left[k];
+                let r = total[k] - left[k];
+                sr += r * r;
+            }
+            let proxy = sl / wl + sr / wr;
+            if best.is_none_or(|b| proxy > b.0) {
+                let mut thr = 0.5 * (v + next);
+                if thr >= next || !thr.is_finite() {
+                    thr = v;
+                }
+                best = Some((proxy, thr));
+            }
+        }
+        best
+    }
+
+    #[test]
+    fn skipping_cuts_inside_one_class_runs_finds_the_best_cut() {
+        // Values on a coarse grid (ties) whose class follows the value with noise (runs of
+        // one class), balanced and unit weights, random subsets as nodes.
+        let mut r = Rng(11);
+        for trial in 0..200 {
+            let (n, d, classes) = (40 + r.below(260), 3, 2 + r.below(4));
+            let levels = 2 + r.below(60);
+            let mut x = vec![0.0f32; n * d];
+            let mut y = vec![0u16; n];
+            for i in 0..n {
+                for f in 0..d {
+                    x[i * d + f] = r.below(levels) as f32 * 0.25 - 3.0;
+                }
+                y[i] = if r.below(5) == 0 {
+                    r.below(classes) as u16
+                } else {
+                    ((x[i * d] + 3.0) * 4.0) as u16 * classes as u16 / levels as u16
+                };
+            }
+            let mut per = vec![0usize; classes];
+            y.iter().for_each(|&c| per[c as usize] += 1);
+            let balanced = trial % 2 == 0;
+            let w: Vec<f64> = per
+                .iter()
+                .map(|&k| {
+                    if balanced {
+                        (n as f32 / (classes as f32 * k.max(1) as f32)) as f64
+                    } else {
+                        1.0
+                    }
+                })
+                .collect();
+            let mut cols = vec![0.0f32; n * d];
+            for i in 0..n {
+                for f in 0..d {
+                    cols[f * n + i] = x[i * d + f];
+                }
+            }
+            let config = cfg(1);
+            let b = Builder {
+                data: Dataset {
+                    x: &x,
+                    y: &y,
+                    d,
+                    classes,
+                },
+                cols,
+                w,
+                cfg: &config,
+                mtry: d,
+            };
+            let idx: Vec<u32> = (0..n as u32).filter(|_| r.below(4) != 0).collect();
+            if idx.len() < 2 {
+                continue;
+            }
+            let mut total = vec![0.0f64; classes];
+            b.counts(&idx, &mut total);
+            let (mut buf, mut tmp, mut left) = (Vec::new(), Vec::new(), vec![0.0f64; classes]);
+            for f in 0..d {
+                let got = b
+                    .best_on(&idx, f, &total, &mut buf, &mut tmp, &mut left)
+                    .ok()
+                    .flatten();
+                let want = every_cut(&b, &idx, f, &total);
+                assert_eq!(
+                    got.map(|(p, t)| (p.to_bits(), t.to_bits())),
+                    want.map(|(p, t)| (p.to_bits(), t.to_bits())),
+                    "trial {trial} feature {f}"
+                );
+            }
+        }
+    }
+
     #[test]
     fn constant_features_do_not_use_up_the_draw() {
         // 100 dead (constant) features, one perfect and one weak feature: sqrt(102) = 10 draws of
@@ -960,8 +1090,14 @@ mod tests {
         let bits = |v: &[f32]| v.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
         assert_eq!(bits(&got), bits(&want));
         // Several blocks of rows with a partial last one, and fewer rows than lanes.
-        let many: Vec<f32> = x.iter().chain(&x).chain(&x).copied().collect();
-        for rows in [1, 3, 7, 9, 4096, 4097, 3 * n] {
+        let block = crate::packed::BLOCK;
+        let many: Vec<f32> = x
+            .iter()
+            .cycle()
+            .take((2 * block + 5) * d)
+            .copied()
+            .collect();
+        for rows in [1, 3, 7, 9, block - 1, block, block + 1, 2 * block + 5] {
             let part = &many[..rows * d];
             let mut want = vec![0.0f32; rows * c];
             f.predict_f32(part, &mut want, 1.0 / 25.0);

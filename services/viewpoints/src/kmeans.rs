@@ -125,10 +125,25 @@ impl Partial {
     }
 }
 
-/// Squared Euclidean distance.
+/// Squared Euclidean distance, summed in 8 interleaved partial sums (which compile to vector
+/// lanes; one running sum is a chain of dependent additions, and LLVM may not reorder it).
+/// Every path (bounds, plain passes, assignment) uses this one function, so they agree bit for
+/// bit; the bounds' error margin holds for any order of summation.
 #[inline]
 fn sq_dist(a: &[f32], b: &[f32]) -> f32 {
-    a.iter().zip(b).map(|(x, y)| (x - y) * (x - y)).sum()
+    let mut acc = [0.0f32; 8];
+    let (ca, cb) = (a.chunks_exact(8), b.chunks_exact(8));
+    let mut tail = 0.0f32;
+    for (x, y) in ca.remainder().iter().zip(cb.remainder()) {
+        tail += (x - y) * (x - y);
+    }
+    for (x, y) in ca.zip(cb) {
+        for j in 0..8 {
+            let t = x[j] - y[j];
+            acc[j] += t * t;
+        }
+    }
+    ((acc[0] + acc[4]) + (acc[1] + acc[5])) + ((acc[2] + acc[6]) + (acc[3] + acc[7])) + tail
 }
 
 /// The smallest entry of `n2[j] - 2 dots[j]` (first index on ties), and the smallest over the
@@ -264,17 +279,23 @@ impl Geometry {
 }
 
 fn check_rows(rows: &[f32], dim: usize) -> Result<()> {
-    if dim == 0 || !rows.len().is_multiple_of(dim) {
-        return Err(ViewpointError::Input(format!(
-            "{} feature values do not make rows of {dim}",
-            rows.len()
-        )));
-    }
+    check_shape(rows, dim)?;
     if let Some(i) = rows.iter().position(|v| !v.is_finite()) {
         return Err(ViewpointError::Input(format!(
             "feature value {} at row {} is not finite",
             rows[i],
             i / dim
+        )));
+    }
+    Ok(())
+}
+
+/// Whether `rows` make whole rows of `dim` values.
+fn check_shape(rows: &[f32], dim: usize) -> Result<()> {
+    if dim == 0 || !rows.len().is_multiple_of(dim) {
+        return Err(ViewpointError::Input(format!(
+            "{} feature values do not make rows of {dim}",
+            rows.len()
         )));
     }
     Ok(())
@@ -373,12 +394,22 @@ impl KMeans {
     /// The statistics of rows under a given assignment: counts, feature sums and squared
     /// distances (each computed directly, `|x - c|^2`, in row order).
     fn tally(&self, rows: &[f32], assign: &[u16]) -> Partial {
+        self.tally_known(rows, assign, &[])
+    }
+
+    /// [`Self::tally`] where `known[i]`, when `i` is inside it and it is not NaN, is already
+    /// `sq_dist` of row `i` to its centroid (the same value, so the same bits).
+    fn tally_known(&self, rows: &[f32], assign: &[u16], known: &[f32]) -> Partial {
         let (k, d) = (self.k(), self.dim);
         let mut p = Partial::new(k, d);
-        for (x, &c) in rows.chunks_exact(d).zip(assign) {
+        for (i, (x, &c)) in rows.chunks_exact(d).zip(assign).enumerate() {
             let c = c as usize;
             p.counts[c] += 1;
-            p.inertia += sq_dist(x, &self.centroids[c * d..(c + 1) * d]) as f64;
+            let e = match known.get(i) {
+                Some(&e) if !e.is_nan() => e,
+                _ => sq_dist(x, &self.centroids[c * d..(c + 1) * d]),
+            };
+            p.inertia += e as f64;
             for (s, &v) in p.sums[c * d..(c + 1) * d].iter_mut().zip(x) {
                 *s += v as f64;
             }
@@ -394,6 +425,8 @@ impl KMeans {
         let (k, d) = (self.k(), self.dim);
         let n = rows.len() / d;
         let mut pending: Vec<u32> = Vec::new();
+        // Squared distances to the final centroid where computed (NaN: not computed).
+        let mut known = vec![f32::NAN; n];
         if state.assign.len() != n {
             // First pass: every row gets its distances.
             state.assign = vec![0; n];
@@ -408,7 +441,9 @@ impl KMeans {
                 state.lower[i] = l;
                 if !g.settled(a, u, l) {
                     // Tighten the upper bound to the distance itself, then test again.
-                    u = g.up(sq_dist(x, &self.centroids[a * d..(a + 1) * d]).sqrt());
+                    let e = sq_dist(x, &self.centroids[a * d..(a + 1) * d]);
+                    known[i] = e;
+                    u = g.up(e.sqrt());
                     if !g.settled(a, u, l) {
                         pending.push(i as u32);
                     }
@@ -418,6 +453,7 @@ impl KMeans {
         }
         // Rows the bounds cannot settle: the full distance product, as `partial` computes it.
         const GATHER: usize = 256;
+        let zero = vec![0.0f32; d];
         let mut blk = vec![0.0f32; GATHER.min(pending.len()) * d];
         let mut dots = vec![0.0f32; GATHER.min(pending.len()) * k];
         for ids in pending.chunks(GATHER) {
@@ -430,15 +466,17 @@ impl KMeans {
             for (j, &i) in ids.iter().enumerate() {
                 let (x, i) = (&b[j * d..(j + 1) * d], i as usize);
                 let (a, second) = nearest_two(&dots[j * k..(j + 1) * k], &g.n2);
-                let xn: f32 = x.iter().map(|v| v * v).sum();
+                let xn = sq_dist(x, &zero[..d]);
                 // |x|^2 + (|c|^2 - 2 x.c) is the squared distance within the product's error.
                 let e = g.error(g.up(xn.sqrt()));
                 state.assign[i] = a as u16;
-                state.upper[i] = g.up(sq_dist(x, &self.centroids[a * d..(a + 1) * d]).sqrt());
+                let dist = sq_dist(x, &self.centroids[a * d..(a + 1) * d]);
+                known[i] = dist;
+                state.upper[i] = g.up(dist.sqrt());
                 state.lower[i] = g.down((second + xn - e).max(0.0).sqrt());
             }
         }
-        (self.tally(rows, &state.assign), pending.len())
+        (self.tally_known(rows, &state.assign, &known), pending.len())
     }
 
     /// Fits on `chunks` chunks of rows (`load(i)` gives chunk `i`, `dim` values per row); chunks
@@ -521,7 +559,13 @@ impl KMeans {
                         .map(|(c, st)| {
                             let rows = load(c)?;
                             let rows = rows.as_ref();
-                            check_rows(rows, dim)?;
+                            // Values are checked the first time a chunk is seen; later passes
+                            // read the same chunk again, so only its shape is checked.
+                            if let ChunkState::Fresh = st {
+                                check_rows(rows, dim)?;
+                            } else {
+                                check_shape(rows, dim)?;
+                            }
                             if let ChunkState::Fresh = st {
                                 let bytes = rows.len() / dim * BOUND_BYTES;
                                 let fits = budget
