@@ -198,6 +198,32 @@ fn from_order_key(k: u32) -> f32 {
 /// Values closer than this count as equal when looking for split points (as scikit-learn).
 const FEATURE_EPS: f32 = 1e-7;
 
+/// The Gini proxy of a cut with class weights `left` on the left of `total`, `wl` and `wr`
+/// in all: maximising `sum_k l_k^2 / w_l + sum_k r_k^2 / w_r` minimises the weighted Gini.
+#[inline(always)]
+fn gini_proxy(left: &[f64], total: &[f64], wl: f64, wr: f64) -> f64 {
+    let mut sl = 0.0;
+    let mut sr = 0.0;
+    for k in 0..left.len() {
+        sl += left[k] * left[k];
+        let r = total[k] - left[k];
+        sr += r * r;
+    }
+    sl / wl + sr / wr
+}
+
+/// The threshold of a cut between `v` and the next larger value: their midpoint, or `v` where
+/// the midpoint rounds to `next` or overflows.
+#[inline(always)]
+fn cut_threshold(v: f32, next: f32) -> f32 {
+    let thr = 0.5 * (v + next);
+    if thr >= next || !thr.is_finite() {
+        v
+    } else {
+        thr
+    }
+}
+
 /// A feature that does not vary in a node (nor, then, in any node below it).
 struct Constant;
 
@@ -285,21 +311,9 @@ impl Builder<'_> {
             if wl <= 0.0 || wr <= 0.0 {
                 continue;
             }
-            // Maximising sum_k l_k^2 / w_l + sum_k r_k^2 / w_r minimises the weighted Gini.
-            let mut sl = 0.0;
-            let mut sr = 0.0;
-            for k in 0..left.len() {
-                sl += left[k] * left[k];
-                let r = total[k] - left[k];
-                sr += r * r;
-            }
-            let proxy = sl / wl + sr / wr;
+            let proxy = gini_proxy(left, total, wl, wr);
             if best.is_none_or(|b| proxy > b.0) {
-                let mut thr = 0.5 * (v + next);
-                if thr >= next || !thr.is_finite() {
-                    thr = v;
-                }
-                best = Some((proxy, thr));
+                best = Some((proxy, cut_threshold(v, next)));
             }
         }
         Ok(best)
@@ -782,19 +796,9 @@ mod tests {
             if next <= v + FEATURE_EPS || wl <= 0.0 || wr <= 0.0 {
                 continue;
             }
-            let (mut sl, mut sr) = (0.0, 0.0);
-            for k in 0..left.len() {
-                sl += left[k] * left[k];
-                let r = total[k] - left[k];
-                sr += r * r;
-            }
-            let proxy = sl / wl + sr / wr;
+            let proxy = gini_proxy(&left, total, wl, wr);
             if best.is_none_or(|b| proxy > b.0) {
-                let mut thr = 0.5 * (v + next);
-                if thr >= next || !thr.is_finite() {
-                    thr = v;
-                }
-                best = Some((proxy, thr));
+                best = Some((proxy, cut_threshold(v, next)));
             }
         }
         best

@@ -157,12 +157,15 @@ impl Engine {
                 Ok(Ok(())) => return Ok(e),
                 // A server that has just started listens a moment before JetStream answers; and
                 // of processes that create the streams at once, all but one are told the
-                // subjects overlap (the next look finds the stream).
+                // subjects overlap (the next look finds the stream). On a busy machine a request
+                // can time out and one attempt take seconds, so the retries last as long as one
+                // attempt may.
                 Ok(Err(x))
                     if (x.to_string().contains(NOT_ENABLED)
                         || x.to_string().contains("overlap")
-                        || x.to_string().contains("already in use"))
-                        && t0.elapsed() < Duration::from_secs(5) =>
+                        || x.to_string().contains("already in use")
+                        || x.to_string().contains("timed out"))
+                        && t0.elapsed() < limit =>
                 {
                     tokio::time::sleep(Duration::from_millis(250)).await;
                 }
