@@ -294,7 +294,7 @@ impl Builder<'_> {
             let wi = self.w[y];
             left[y] += wi;
             wl += wi;
-            let next = at(p + 1).0;
+            let (next, next_y) = at(p + 1);
             if next <= v + FEATURE_EPS {
                 continue;
             }
@@ -304,7 +304,7 @@ impl Builder<'_> {
             // quadratic-over-linear terms), so its maximum is at the run's ends, cuts next to
             // another class (Fayyad and Irani's boundary points), which are evaluated. The
             // next group is checked only where it is one sample.
-            if group == at(p + 1).1 && (p + 2 == n || at(p + 2).0 > next + FEATURE_EPS) {
+            if group == next_y && (p + 2 == n || at(p + 2).0 > next + FEATURE_EPS) {
                 continue;
             }
             let wr = wt - wl;

@@ -155,21 +155,21 @@ impl Engine {
             match tokio::time::timeout(limit, e.ensure()).await {
                 Err(_) => return Err(bad("JetStream did not answer in time".into())),
                 Ok(Ok(())) => return Ok(e),
-                // A server that has just started listens a moment before JetStream answers; and
-                // of processes that create the streams at once, all but one are told the
-                // subjects overlap (the next look finds the stream). On a busy machine a request
-                // can time out and one attempt take seconds, so the retries last as long as one
-                // attempt may.
-                Ok(Err(x))
-                    if (x.to_string().contains(NOT_ENABLED)
-                        || x.to_string().contains("overlap")
-                        || x.to_string().contains("already in use")
-                        || x.to_string().contains("timed out"))
-                        && t0.elapsed() < limit =>
-                {
+                Ok(Err(x)) => {
+                    // A server that has just started listens a moment before JetStream answers;
+                    // and of processes that create the streams at once, all but one are told
+                    // the subjects overlap (the next look finds the stream). On a busy machine a
+                    // request can time out and one attempt take seconds, so the retries last as
+                    // long as one attempt may.
+                    let s = x.to_string();
+                    let transient = [NOT_ENABLED, "overlap", "already in use", "timed out"]
+                        .iter()
+                        .any(|t| s.contains(t));
+                    if !transient || t0.elapsed() >= limit {
+                        return Err(x);
+                    }
                     tokio::time::sleep(Duration::from_millis(250)).await;
                 }
-                Ok(Err(x)) => return Err(x),
             }
         }
     }

@@ -466,7 +466,7 @@ impl KMeans {
             for (j, &i) in ids.iter().enumerate() {
                 let (x, i) = (&b[j * d..(j + 1) * d], i as usize);
                 let (a, second) = nearest_two(&dots[j * k..(j + 1) * k], &g.n2);
-                let xn = sq_dist(x, &zero[..d]);
+                let xn = sq_dist(x, &zero);
                 // |x|^2 + (|c|^2 - 2 x.c) is the squared distance within the product's error.
                 let e = g.error(g.up(xn.sqrt()));
                 state.assign[i] = a as u16;
@@ -563,10 +563,6 @@ impl KMeans {
                             // read the same chunk again, so only its shape is checked.
                             if let ChunkState::Fresh = st {
                                 check_rows(rows, dim)?;
-                            } else {
-                                check_shape(rows, dim)?;
-                            }
-                            if let ChunkState::Fresh = st {
                                 let bytes = rows.len() / dim * BOUND_BYTES;
                                 let fits = budget
                                     .fetch_update(Ordering::Relaxed, Ordering::Relaxed, |b| {
@@ -578,6 +574,8 @@ impl KMeans {
                                 } else {
                                     ChunkState::Plain
                                 };
+                            } else {
+                                check_shape(rows, dim)?;
                             }
                             let (p, n) = match st {
                                 ChunkState::Bounded(b) => km.bounded_partial(rows, b, &g),
