@@ -22,7 +22,7 @@ pub use components::{Partial, PriorConfig};
 pub use features::{BrickFeatures, Component, FeatureSet, Quantise};
 pub use forest::{ClassWeight, Dataset, Forest, ForestConfig, ForestError, MaxFeatures};
 pub use scribble::{
-    load_scribbles, rasterise, simulate, Level, ScribbleError, ScribbleSource, Scribbles,
+    load_scribbles, rasterise, simulate, thicken, Level, ScribbleError, ScribbleSource, Scribbles,
     SimConfig, Stroke,
 };
 pub use shard::{

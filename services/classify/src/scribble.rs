@@ -81,6 +81,31 @@ impl Scribbles {
     }
 }
 
+/// Each stroke copied onto the `depth` slices on either side of its own (those inside `dims`):
+/// a structure marked on one slice continues through its neighbours. The copies come first,
+/// farthest first, so where strokes overlap the user's own strokes win ([`rasterise`] lets later
+/// strokes win).
+pub fn thicken(strokes: &[Stroke], depth: usize, dims: [usize; 3]) -> Vec<Stroke> {
+    let mut out = Vec::with_capacity(strokes.len() * (2 * depth + 1));
+    for j in (1..=depth).rev() {
+        for s in strokes {
+            let n = dims[match s.axis {
+                Axis::X => 0,
+                Axis::Y => 1,
+                Axis::Z => 2,
+            }];
+            let near = [s.slice.checked_sub(j), Some(s.slice + j).filter(|&z| z < n)];
+            out.extend(
+                near.into_iter()
+                    .flatten()
+                    .map(|slice| Stroke { slice, ..s.clone() }),
+            );
+        }
+    }
+    out.extend_from_slice(strokes);
+    out
+}
+
 /// Most distinct voxels strokes may cover (4 Mi, 16 fully painted 512x512 slices); more is
 /// refused rather than held in memory.
 pub const MAX_SCRIBBLED_VOXELS: usize = 1 << 22;
@@ -649,6 +674,37 @@ mod tests {
             radius: 0.0,
         };
         assert_eq!(rasterise(&[s], [6, 3, 2]).unwrap().voxels, vec![(5, 1)]);
+    }
+
+    #[test]
+    fn thickened_strokes_cover_neighbour_slices_and_the_originals_win() {
+        let at = |class, axis, slice, x: f32| Stroke {
+            class,
+            axis,
+            slice,
+            points: vec![[x, 0.0]],
+            radius: 0.0,
+        };
+        let dims = [4, 1, 5];
+        // Class 1 on z = 1 and class 2 on z = 3 at the same pixel; class 3 on x = 3.
+        let strokes = [
+            at(1, Axis::Z, 1, 0.0),
+            at(2, Axis::Z, 3, 0.0),
+            at(3, Axis::X, 3, 0.0),
+        ];
+        let r = rasterise(&thicken(&strokes, 2, dims), dims).unwrap();
+        let label = |x: u64, z: u64| r.voxels.iter().find(|v| v.0 == z * 4 + x).map(|v| v.1);
+        // z = 0..=4 at x = 0: the user's own slices keep their class; z = 2 lies one slice from
+        // both strokes, and the nearer copies come after the farther ones, so the later stroke
+        // in the list (class 2) wins there; z = 0 is one from class 1 and three from class 2.
+        let column: Vec<_> = (0..5).map(|z| label(0, z)).collect();
+        assert_eq!(column, [Some(1), Some(1), Some(2), Some(2), Some(2)]);
+        // The sagittal stroke spreads along x only, inside the grid (x = 1, 2, 3).
+        assert_eq!(label(1, 0), Some(3));
+        assert_eq!(label(2, 0), Some(3));
+        assert_eq!(label(3, 0), Some(3));
+        // Depth 0 is the strokes as drawn.
+        assert_eq!(thicken(&strokes, 0, dims), strokes.to_vec());
     }
 
     /// The per-pixel stamping the interval rasteriser replaces: every stamp tests every pixel

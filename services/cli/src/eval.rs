@@ -66,6 +66,9 @@ pub struct EvalArgs {
     /// fraction of its class's largest scribbled component.
     #[arg(long, default_value_t = neuvolex_classify::PriorConfig::default().relative_mass)]
     pub prior_mass: f64,
+    /// Each scribble stroke also covers this many slices on either side of its own.
+    #[arg(long, default_value_t = 0)]
+    pub thicken: usize,
     /// Feature-cache budget in MiB.
     #[arg(long, default_value_t = 4096)]
     pub cache_mib: usize,
@@ -134,6 +137,7 @@ impl EvalArgs {
             prior,
             inr,
             cache_bytes: self.cache_mib << 20,
+            thicken: self.thicken,
         })
     }
 }

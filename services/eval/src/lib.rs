@@ -168,6 +168,10 @@ pub struct EvalConfig {
     pub inr: Vec<InrVariant>,
     /// Feature-cache budget in bytes.
     pub cache_bytes: usize,
+    /// Slices on either side of its own that each scribble stroke also covers
+    /// ([`neuvolex_classify::thicken`]).
+    #[serde(default)]
+    pub thicken: usize,
 }
 
 /// Progress and results, in order.

@@ -5,7 +5,8 @@ use crate::predict::{predict, score, train, with_prior, Features};
 use crate::{EvalConfig, EvalError, EvalEvent, Events, Method, Prior, Result};
 use neuvolex_classify::cache::FeatureCache;
 use neuvolex_classify::{
-    simulate, BrickFeatures, FeatureSet, Level, Quantise, Scribbles, SimConfig, F1,
+    rasterise, simulate, thicken, BrickFeatures, FeatureSet, Level, Quantise, Scribbles, SimConfig,
+    F1,
 };
 use serde::{Deserialize, Serialize};
 
@@ -170,7 +171,7 @@ pub fn run(cfg: &EvalConfig, os: &OneShotConfig, events: Events) -> Result<Vec<R
         for &level in &os.levels {
             for seed in 0..cfg.seeds {
                 let mut src = ds.truth_source()?;
-                let (_, s) = simulate(
+                let (strokes, s) = simulate(
                     &mut *src,
                     &SimConfig {
                         level,
@@ -179,6 +180,12 @@ pub fn run(cfg: &EvalConfig, os: &OneShotConfig, events: Events) -> Result<Vec<R
                         ..SimConfig::default()
                     },
                 )?;
+                let s = if cfg.thicken > 0 {
+                    let dims = ds.store.info().dims;
+                    rasterise(&thicken(&strokes, cfg.thicken, dims), dims)?
+                } else {
+                    s
+                };
                 scribbles.push((level, seed, s));
             }
         }

@@ -29,7 +29,8 @@ use neuvolex_classify::cache::FeatureCache;
 use neuvolex_classify::components::{label_brick, Partial};
 use neuvolex_classify::scribble::{erode, longest_stroke, stroke_length, Axis};
 use neuvolex_classify::{
-    rasterise, simulate, BrickFeatures, FeatureSet, Level, SimConfig, SliceMass, Stroke, F1,
+    rasterise, simulate, thicken, BrickFeatures, FeatureSet, Level, SimConfig, SliceMass, Stroke,
+    F1,
 };
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
@@ -469,7 +470,7 @@ pub fn run(cfg: &EvalConfig, rc: &RobotConfig, events: Events) -> Result<Vec<Rou
                             let mut rng = Rng::new(seed ^ 0x0B07_u64);
                             let mut added: Vec<Stroke> = Vec::new();
                             for round in 0..=rc.rounds {
-                                let scr = rasterise(&strokes, dims)?;
+                                let scr = rasterise(&thicken(&strokes, cfg.thicken, dims), dims)?;
                                 let t0 = Instant::now();
                                 let t = train(&f, &scr, &cfg.classify)?;
                                 let p = predict(&f, &t.forest, &t.ts, &cfg.classify, events)?;
