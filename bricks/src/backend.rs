@@ -354,7 +354,7 @@ pub(crate) fn storage_error(
 /// A hint for the usual causes of an object-store error text ("" if none applies).
 pub(crate) fn storage_hint(detail: &str) -> &'static str {
     let d = detail.to_ascii_lowercase();
-    if d.contains("403")
+    if has_number(&d, "403")
         || d.contains("forbidden")
         || d.contains("signaturedoesnotmatch")
         || d.contains("invalidaccesskeyid")
@@ -376,6 +376,17 @@ pub(crate) fn storage_hint(detail: &str) -> &'static str {
     } else {
         ""
     }
+}
+
+/// Whether `n` occurs in `text` as a number of its own, not inside a longer one: a status code,
+/// not the digits of an elapsed time such as "9.240382585s" or a port.
+fn has_number(text: &str, n: &str) -> bool {
+    let b = text.as_bytes();
+    let part = |c: Option<&u8>| c.is_some_and(|c| c.is_ascii_digit() || *c == b'.');
+    text.match_indices(n).any(|(i, _)| {
+        let before = i.checked_sub(1).and_then(|j| b.get(j));
+        !part(before) && !part(b.get(i + n.len()))
+    })
 }
 
 /// The Tokio runtime that drives object-store requests for synchronous callers.
@@ -827,6 +838,23 @@ impl ListableStorageTraits for AtomicFsStore {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn hints_read_status_codes_not_digits_of_times() {
+        let denied = " (access denied: check AWS_ACCESS_KEY_ID and AWS_SECRET_ACCESS_KEY)";
+        let unreachable =
+            " (endpoint unreachable: check AWS_ENDPOINT_URL and that the server runs)";
+        assert_eq!(
+            storage_hint("Server returned non-2xx status code: 403 Forbidden"),
+            denied
+        );
+        assert_eq!(storage_hint("status 403"), denied);
+        // A black-holed request that happened to take 9.2403... s, on a port with 403 inside.
+        let slow = "Error performing HEAD http://127.0.0.1:40312/a in 9.240382585s, after 2 \
+                    retries - HTTP error: error sending request: operation timed out";
+        assert_eq!(storage_hint(slow), unreachable);
+        assert_eq!(storage_hint("HEAD in 1.403s: error sending request"), "");
+    }
 
     #[test]
     fn store_traffic_is_counted() {
