@@ -121,8 +121,17 @@ impl Worker {
 }
 
 impl Drop for Worker {
+    /// Kills the worker; when the test failed, prints what it logged, so a failure on a busy
+    /// machine shows the worker's side too.
     fn drop(&mut self) {
         self.kill9();
+        if std::thread::panicking() {
+            let log = self.log.lock().unwrap_or_else(|e| e.into_inner());
+            eprintln!("--- worker log ({} lines, last 40) ---", log.len());
+            for line in log.iter().skip(log.len().saturating_sub(40)) {
+                eprintln!("{line}");
+            }
+        }
     }
 }
 
