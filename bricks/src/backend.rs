@@ -379,13 +379,17 @@ pub(crate) fn storage_hint(detail: &str) -> &'static str {
 }
 
 /// Whether `n` occurs in `text` as a number of its own, not inside a longer one: a status code,
-/// not the digits of an elapsed time such as "9.240382585s" or a port.
+/// not the digits of an elapsed time such as "9.240382585s" or a port. A full stop belongs to
+/// the number only where a digit lies beyond it ("403." ending a sentence is 403).
 fn has_number(text: &str, n: &str) -> bool {
     let b = text.as_bytes();
-    let part = |c: Option<&u8>| c.is_some_and(|c| c.is_ascii_digit() || *c == b'.');
+    let digit = |j: Option<usize>| j.and_then(|j| b.get(j)).is_some_and(u8::is_ascii_digit);
+    let dot = |j: Option<usize>| j.and_then(|j| b.get(j)) == Some(&b'.');
     text.match_indices(n).any(|(i, _)| {
-        let before = i.checked_sub(1).and_then(|j| b.get(j));
-        !part(before) && !part(b.get(i + n.len()))
+        let (before, after) = (i.checked_sub(1), i + n.len());
+        let joined_before = digit(before) || (dot(before) && digit(i.checked_sub(2)));
+        let joined_after = digit(Some(after)) || (dot(Some(after)) && digit(Some(after + 1)));
+        !joined_before && !joined_after
     })
 }
 
@@ -849,6 +853,7 @@ mod tests {
             denied
         );
         assert_eq!(storage_hint("status 403"), denied);
+        assert_eq!(storage_hint("the server answered 403."), denied);
         // A black-holed request that happened to take 9.2403... s, on a port with 403 inside.
         let slow = "Error performing HEAD http://127.0.0.1:40312/a in 9.240382585s, after 2 \
                     retries - HTTP error: error sending request: operation timed out";

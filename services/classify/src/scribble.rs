@@ -22,6 +22,18 @@ pub enum Axis {
     Z,
 }
 
+impl Axis {
+    /// The grid axes (0 = x, 1 = y, 2 = z) of a slice's two in-slice coordinates and of the
+    /// slice index.
+    pub fn grid_axes(self) -> (usize, usize, usize) {
+        match self {
+            Axis::X => (1, 2, 0),
+            Axis::Y => (0, 2, 1),
+            Axis::Z => (0, 1, 2),
+        }
+    }
+}
+
 /// One brush stroke on a slice.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Stroke {
@@ -86,14 +98,12 @@ impl Scribbles {
 /// farthest first, so where strokes overlap the user's own strokes win ([`rasterise`] lets later
 /// strokes win).
 pub fn thicken(strokes: &[Stroke], depth: usize, dims: [usize; 3]) -> Vec<Stroke> {
+    // No copy lies farther away than the grid is long.
+    let depth = depth.min(dims.into_iter().max().unwrap_or(0));
     let mut out = Vec::with_capacity(strokes.len() * (2 * depth + 1));
     for j in (1..=depth).rev() {
         for s in strokes {
-            let n = dims[match s.axis {
-                Axis::X => 0,
-                Axis::Y => 1,
-                Axis::Z => 2,
-            }];
+            let n = dims[s.axis.grid_axes().2];
             let near = [s.slice.checked_sub(j), Some(s.slice + j).filter(|&z| z < n)];
             out.extend(
                 near.into_iter()
@@ -147,11 +157,7 @@ pub fn rasterise(strokes: &[Stroke], dims: [usize; 3]) -> Result<Scribbles, Scri
     const FLUSH: usize = 1 << 20;
     for (si, s) in strokes.iter().enumerate() {
         let bad = |detail: String| ScribbleError::Stroke { index: si, detail };
-        let (ua, va, wa) = match s.axis {
-            Axis::X => (1, 2, 0),
-            Axis::Y => (0, 2, 1),
-            Axis::Z => (0, 1, 2),
-        };
+        let (ua, va, wa) = s.axis.grid_axes();
         if s.slice >= dims[wa] {
             return Err(bad(format!("slice {} outside 0..{}", s.slice, dims[wa])));
         }
@@ -703,8 +709,9 @@ mod tests {
         assert_eq!(label(1, 0), Some(3));
         assert_eq!(label(2, 0), Some(3));
         assert_eq!(label(3, 0), Some(3));
-        // Depth 0 is the strokes as drawn.
+        // Depth 0 is the strokes as drawn; any depth past the grid covers every slice once.
         assert_eq!(thicken(&strokes, 0, dims), strokes.to_vec());
+        assert_eq!(thicken(&strokes, usize::MAX, dims).len(), 5 + 5 + 4);
     }
 
     /// The per-pixel stamping the interval rasteriser replaces: every stamp tests every pixel
@@ -712,11 +719,7 @@ mod tests {
     fn rasterise_per_pixel(strokes: &[Stroke], dims: [usize; 3]) -> Vec<(u64, u32)> {
         let mut map = std::collections::BTreeMap::new();
         for s in strokes {
-            let (ua, va, wa) = match s.axis {
-                Axis::X => (1, 2, 0),
-                Axis::Y => (0, 2, 1),
-                Axis::Z => (0, 1, 2),
-            };
+            let (ua, va, wa) = s.axis.grid_axes();
             let r = s.radius;
             let mut stamp = |cu: f32, cv: f32| {
                 let u0 = (cu - r).floor().max(0.0) as usize;
