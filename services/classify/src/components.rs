@@ -18,6 +18,14 @@
 //! both legs) keeps its unscribbled parts when they are about as credible as the part the user
 //! marked, while speckle and small look-alike blobs elsewhere go. The rule has no absolute size:
 //! it compares a volume's components with each other.
+//!
+//! Then the kept labels grow into the voxels the confidence threshold left unlabelled
+//! ([`grow_box`], hysteresis as in Canny's edge linking): a doubtful voxel whose most probable
+//! class is `c` takes `c` when it touches a voxel of `c`, `grow` times. Boundary voxels mix two
+//! tissues, in the image (partial volume) and in the filter responses that describe them, so
+//! their probabilities are diluted below the threshold although their best class is right; a
+//! confident, kept neighbour of the same class vouches for them. Growth stops after `grow`
+//! voxels, because farther from a confident voxel a weak best class is real doubt.
 
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
@@ -29,22 +37,49 @@ pub struct PriorConfig {
     /// An unscribbled component is kept when its probability mass is at least this fraction of
     /// the mass of its class's largest scribbled component.
     pub relative_mass: f64,
+    /// Voxels (6-neighbour steps) the kept labels grow into doubtful voxels whose most probable
+    /// class is theirs (0: no growth).
+    pub grow: u32,
 }
 
+/// The most growth steps [`PriorConfig::with_grow`] accepts.
+pub const MAX_GROW: u32 = 16;
+
+/// Default growth: the radius (2 sigma, in voxels) of the filter bank's sigma-1 Gaussian, the
+/// band beside a boundary where a voxel's features mix both sides and its probabilities are
+/// diluted. Beyond it the features are those of one tissue, and a low confidence is real doubt.
+pub const DEFAULT_GROW: u32 = 2;
+
 impl PriorConfig {
-    /// Settings with `relative_mass` checked: a fraction within 0..=1 (NaN refused).
+    /// Settings with `relative_mass` checked: a fraction within 0..=1 (NaN refused); growth
+    /// at its default.
     pub fn new(relative_mass: f64) -> Result<Self, String> {
         if (0.0..=1.0).contains(&relative_mass) {
-            Ok(PriorConfig { relative_mass })
+            Ok(PriorConfig {
+                relative_mass,
+                ..Default::default()
+            })
         } else {
             Err("must be within 0..=1".into())
+        }
+    }
+
+    /// The same settings growing `grow` voxels (at most [`MAX_GROW`]).
+    pub fn with_grow(self, grow: u32) -> Result<Self, String> {
+        if grow <= MAX_GROW {
+            Ok(PriorConfig { grow, ..self })
+        } else {
+            Err(format!("must be at most {MAX_GROW} voxels"))
         }
     }
 }
 
 impl Default for PriorConfig {
     fn default() -> Self {
-        PriorConfig { relative_mass: 0.5 }
+        PriorConfig {
+            relative_mass: 0.5,
+            grow: DEFAULT_GROW,
+        }
     }
 }
 
@@ -346,20 +381,108 @@ pub struct PriorVerdict {
     pub kept: usize,
     /// Voxels set to 0.
     pub cleared: u64,
+    /// Doubtful voxels the kept labels grew into.
+    pub grown: u64,
+}
+
+/// Grows labels into doubtful voxels on a box of `size` voxels (x fastest): `doubtful` holds,
+/// per voxel, the class it may take (its most probable class where the threshold left it
+/// unlabelled, 0 elsewhere). Each of `steps` rounds gives every unlabelled voxel with
+/// `doubtful = c` the label `c` when a 6-neighbour had `c` after the round before. The result is
+/// exact on the whole box; on a brick cut from a larger volume it is exact farther than `steps`
+/// voxels from the cut faces (a round moves labels one voxel). Returns the voxels labelled.
+pub fn grow_box(labels: &mut [u16], doubtful: &[u16], size: [usize; 3], steps: u32) -> u64 {
+    let n: usize = size.iter().product();
+    assert_eq!(labels.len(), n, "labels of a {size:?} box");
+    assert_eq!(doubtful.len(), n, "doubtful classes of a {size:?} box");
+    let (sx, sy) = (size[0], size[0] * size[1]);
+    let mut grown = 0;
+    let mut add: Vec<(usize, u16)> = Vec::new();
+    for _ in 0..steps {
+        add.clear();
+        for i in 0..n {
+            let c = doubtful[i];
+            if c == 0 || labels[i] != 0 {
+                continue;
+            }
+            let (x, y, z) = (i % sx, (i / sx) % size[1], i / sy);
+            let touches = (x > 0 && labels[i - 1] == c)
+                || (x + 1 < size[0] && labels[i + 1] == c)
+                || (y > 0 && labels[i - sx] == c)
+                || (y + 1 < size[1] && labels[i + sx] == c)
+                || (z > 0 && labels[i - sy] == c)
+                || (z + 1 < size[2] && labels[i + sy] == c);
+            if touches {
+                add.push((i, c));
+            }
+        }
+        if add.is_empty() {
+            break;
+        }
+        for &(i, c) in &add {
+            labels[i] = c;
+        }
+        grown += add.len() as u64;
+    }
+    grown
+}
+
+/// [`grow_box`] over a whole volume in memory, in parallel slabs of z with a halo of `steps`
+/// slices (so the result equals one [`grow_box`] over the volume).
+pub fn grow_in_memory(labels: &mut [u16], doubtful: &[u16], dims: [usize; 3], steps: u32) -> u64 {
+    use rayon::prelude::*;
+    const SLAB: usize = 16;
+    let plane = dims[0] * dims[1];
+    let h = steps as usize;
+    let slabs: Vec<(usize, usize)> = (0..dims[2])
+        .step_by(SLAB)
+        .map(|z| (z, SLAB.min(dims[2] - z)))
+        .collect();
+    let src: &[u16] = labels;
+    let done: Vec<(usize, Vec<u16>, u64)> = slabs
+        .par_iter()
+        .map(|&(z0, nz)| {
+            let (lo, hi) = (z0.saturating_sub(h), (z0 + nz + h).min(dims[2]));
+            let mut l = src[lo * plane..hi * plane].to_vec();
+            let d = &doubtful[lo * plane..hi * plane];
+            grow_box(&mut l, d, [dims[0], dims[1], hi - lo], steps);
+            let inner = l[(z0 - lo) * plane..(z0 - lo + nz) * plane].to_vec();
+            let before = &src[z0 * plane..(z0 + nz) * plane];
+            let g = inner.iter().zip(before).filter(|(a, b)| a != b).count() as u64;
+            (z0, inner, g)
+        })
+        .collect();
+    let mut grown = 0;
+    for (z0, inner, g) in done {
+        labels[z0 * plane..z0 * plane + inner.len()].copy_from_slice(&inner);
+        grown += g;
+    }
+    grown
 }
 
 /// Applies the prior to a whole label volume held in memory (`dims`, x fastest), brick by
-/// brick (`brick` edge) with rayon: label, merge, filter. `proba` gives each voxel's
-/// probability of its label; `seeds` are the scribbles (voxel index, label).
+/// brick (`brick` edge) with rayon: label, merge, filter, then grow (when `best` is given and
+/// `cfg.grow > 0`). `proba` gives each voxel's probability of its label, `best` its most
+/// probable output label whatever its probability (0 = background); `seeds` are the scribbles
+/// (voxel index, label).
 pub fn apply_in_memory(
     labels: &mut [u16],
     dims: [usize; 3],
     brick: usize,
     proba: Option<&[f32]>,
+    best: Option<&[u16]>,
     seeds: &[(u64, u16)],
     cfg: &PriorConfig,
 ) -> PriorVerdict {
     use rayon::prelude::*;
+    // Doubtful voxels: left unlabelled by the threshold (not cleared by the filter below).
+    let doubtful: Option<Vec<u16>> = best.filter(|_| cfg.grow > 0).map(|b| {
+        labels
+            .par_iter()
+            .zip(b)
+            .map(|(&l, &b)| if l == 0 { b } else { 0 })
+            .collect()
+    });
     let grid = dims.map(|d| d.div_ceil(brick));
     let mut per_brick: BTreeMap<[usize; 3], Vec<(usize, u16)>> = BTreeMap::new();
     for &(i, l) in seeds {
@@ -424,10 +547,12 @@ pub fn apply_in_memory(
             cleared += c;
         }
     }
+    let grown = doubtful.map_or(0, |d| grow_in_memory(labels, &d, dims, cfg.grow));
     PriorVerdict {
         components: keep.len(),
         kept: keep.iter().filter(|&&k| k).count(),
         cleared,
+        grown,
     }
 }
 
@@ -594,6 +719,91 @@ mod tests {
         for bad in [-0.1, 1.5, f64::NAN, f64::INFINITY] {
             assert_eq!(PriorConfig::new(bad).unwrap_err(), "must be within 0..=1");
         }
+        let c = PriorConfig::new(0.25).unwrap();
+        assert_eq!(c.grow, DEFAULT_GROW);
+        assert_eq!(c.with_grow(0).unwrap().grow, 0);
+        assert_eq!(c.with_grow(MAX_GROW).unwrap().grow, MAX_GROW);
+        assert_eq!(
+            c.with_grow(MAX_GROW + 1).unwrap_err(),
+            format!("must be at most {MAX_GROW} voxels")
+        );
+        // Settings written before growth existed read back with the default.
+        let old: PriorConfig = serde_json::from_str(r#"{"relative_mass":0.3}"#).unwrap();
+        assert_eq!(old.grow, DEFAULT_GROW);
+    }
+
+    #[test]
+    fn growth_follows_the_best_class_for_its_steps_and_no_farther() {
+        // A row of 10 voxels: a confident class-1 voxel at x = 2; doubtful voxels whose best
+        // class is 1 at x = 3..=7, one whose best class is 2 at x = 1, background best at 0.
+        let d = [10, 1, 1];
+        let mut labels = vec![0u16; 10];
+        labels[2] = 1;
+        let doubtful = [0u16, 2, 0, 1, 1, 1, 1, 1, 0, 1];
+        let mut l = labels.clone();
+        assert_eq!(grow_box(&mut l, &doubtful, d, 2), 2);
+        assert_eq!(l, [0, 0, 1, 1, 1, 0, 0, 0, 0, 0]);
+        let mut l = labels.clone();
+        assert_eq!(grow_box(&mut l, &doubtful, d, 16), 5);
+        assert_eq!(
+            l,
+            [0, 0, 1, 1, 1, 1, 1, 1, 0, 0],
+            "stops at a background voxel"
+        );
+        let mut l = labels.clone();
+        assert_eq!(grow_box(&mut l, &doubtful, d, 0), 0);
+        assert_eq!(l, labels);
+    }
+
+    #[test]
+    fn growth_in_slabs_equals_growth_on_the_whole_volume() {
+        let d = [9, 7, 53];
+        let n = d.iter().product::<usize>();
+        let mut rng = Rng::new(7);
+        let labels: Vec<u16> = (0..n)
+            .map(|_| {
+                if rng.f32() < 0.05 {
+                    1 + rng.below(2) as u16
+                } else {
+                    0
+                }
+            })
+            .collect();
+        let doubtful: Vec<u16> = labels
+            .iter()
+            .map(|&l| if l == 0 { rng.below(3) as u16 } else { 0 })
+            .collect();
+        for steps in [0, 1, 3, 20] {
+            let mut whole = labels.clone();
+            let g1 = grow_box(&mut whole, &doubtful, d, steps);
+            let mut slabs = labels.clone();
+            let g2 = grow_in_memory(&mut slabs, &doubtful, d, steps);
+            assert_eq!(whole, slabs, "{steps} steps");
+            assert_eq!(g1, g2);
+            assert!(steps == 0 || g1 > 0);
+        }
+    }
+
+    #[test]
+    fn growth_never_revives_what_the_filter_cleared() {
+        // A scribbled class-1 bar and a speck of class 1 two voxels past its end: the filter
+        // clears the speck; growth then fills the doubtful gap but the speck stays cleared
+        // (its own best class is 1, but the threshold had labelled it, so it is not doubtful).
+        let d = [12, 1, 1];
+        let mut labels = vec![0u16; 12];
+        labels[..4].fill(1);
+        labels[9] = 1;
+        let best = vec![1u16; 12];
+        let seeds = [(0u64, 1u16)];
+        let cfg = PriorConfig::default().with_grow(8).unwrap();
+        let p: Vec<f32> = (0..12).map(|i| if i < 4 { 1.0 } else { 0.1 }).collect();
+        let v = apply_in_memory(&mut labels, d, 4, Some(&p), Some(&best), &seeds, &cfg);
+        assert_eq!(v.cleared, 1);
+        assert_eq!(
+            v.grown, 5,
+            "x = 4..=8; the cleared speck blocks the way to 10 and 11"
+        );
+        assert_eq!(labels, [1, 1, 1, 1, 1, 1, 1, 1, 1, 0, 0, 0]);
     }
 
     #[test]
@@ -621,8 +831,16 @@ mod tests {
         labels[at(3, 8, 7)] = 2;
         let before = labels.clone();
         let seeds = [(at(2, 2, 2) as u64, 1u16), (at(5, 8, 2) as u64, 2)];
-        let cleared =
-            apply_in_memory(&mut labels, d, 8, None, &seeds, &PriorConfig::default()).cleared;
+        let cleared = apply_in_memory(
+            &mut labels,
+            d,
+            8,
+            None,
+            None,
+            &seeds,
+            &PriorConfig::default(),
+        )
+        .cleared;
         assert_eq!(cleared, 3, "the speck and the 2-voxel blob");
         assert_eq!(labels[at(12, 2, 2)], 1, "the unscribbled twin stays");
         assert_eq!(labels[at(18, 8, 8)], 0);
@@ -633,12 +851,20 @@ mod tests {
         let p: Vec<f32> = (0..2000)
             .map(|i| if i % 20 >= 10 { 0.2 } else { 1.0 })
             .collect();
-        apply_in_memory(&mut l2, d, 8, Some(&p), &seeds, &PriorConfig::default());
+        apply_in_memory(
+            &mut l2,
+            d,
+            8,
+            Some(&p),
+            None,
+            &seeds,
+            &PriorConfig::default(),
+        );
         assert_eq!(l2[at(12, 2, 2)], 0);
         // Unscribbled classes are left alone only where a scribble vouches: none here for 3.
         let mut l3 = before;
         l3[at(15, 5, 5)] = 3;
-        apply_in_memory(&mut l3, d, 8, None, &seeds, &PriorConfig::default());
+        apply_in_memory(&mut l3, d, 8, None, None, &seeds, &PriorConfig::default());
         assert_eq!(l3[at(15, 5, 5)], 0);
     }
 }

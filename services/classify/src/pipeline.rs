@@ -354,6 +354,8 @@ pub struct PriorReport {
     pub kept: usize,
     /// Voxels it set to background.
     pub voxels_cleared: u64,
+    /// Doubtful voxels the kept labels grew into.
+    pub voxels_grown: u64,
     /// Seconds it took.
     pub seconds: f64,
 }
@@ -623,7 +625,11 @@ pub fn classify<E: Executor + ?Sized>(
         let mut labels = assemble_labels(&store_arc, &stage.labels)?;
         if let Some(pc) = &req.prior {
             let t = Instant::now();
-            let conf = assemble_confidence(&store_arc, &stage.proba)?;
+            let (conf, best) = assemble_confidence(
+                &store_arc,
+                &stage.proba,
+                &output_labels(&ts.labels, cfg.background),
+            )?;
             let seeds: Vec<(u64, u16)> = scr
                 .voxels
                 .iter()
@@ -631,12 +637,21 @@ pub fn classify<E: Executor + ?Sized>(
                 .map(|&(i, l)| (i, l.min(u16::MAX as u32) as u16))
                 .collect();
             let info = store_arc.info();
-            let v = apply_in_memory(&mut labels, info.dims, info.brick, Some(&conf), &seeds, pc);
+            let v = apply_in_memory(
+                &mut labels,
+                info.dims,
+                info.brick,
+                Some(&conf),
+                Some(&best),
+                &seeds,
+                pc,
+            );
             prior_report = Some(PriorReport {
                 config: *pc,
                 components: v.components,
                 kept: v.kept,
                 voxels_cleared: v.cleared,
+                voxels_grown: v.grown,
                 seconds: t.elapsed().as_secs_f64(),
             });
         }
@@ -656,6 +671,7 @@ pub fn classify<E: Executor + ?Sized>(
                 "components": p.components,
                 "kept": p.kept,
                 "voxels_cleared": p.voxels_cleared,
+                "voxels_grown": p.voxels_grown,
             })),
         }));
         // The probabilities, the label vectors and the OME label image appear together: a
@@ -724,25 +740,33 @@ fn assemble_labels(store: &BrickStore, va: &VectorArray) -> Result<Vec<u16>, Cla
     Ok(out)
 }
 
-/// Reads every probability brick into each voxel's largest class probability (x fastest).
-fn assemble_confidence(store: &BrickStore, va: &VectorArray) -> Result<Vec<f32>, ClassifyError> {
+/// Reads every probability brick into each voxel's largest class probability and the output
+/// label of that class (`out_labels` per class index, 0 = background), x fastest.
+fn assemble_confidence(
+    store: &BrickStore,
+    va: &VectorArray,
+    out_labels: &[u16],
+) -> Result<(Vec<f32>, Vec<u16>), ClassifyError> {
     let dims = store.info().dims;
     let c = va.info().channels.max(1);
-    let mut out = vec![1.0f32; dims.iter().product()];
+    let n = dims.iter().product();
+    let (mut conf, mut best) = (vec![1.0f32; n], vec![0u16; n]);
     for b in store.bricks() {
         let p = va.read_brick(&b)?;
         let mut k = 0;
         for z in 0..b.size[2] {
             for y in 0..b.size[1] {
                 let row = ((b.origin[2] + z) * dims[1] + b.origin[1] + y) * dims[0] + b.origin[0];
-                for o in &mut out[row..row + b.size[0]] {
-                    *o = p[k * c..(k + 1) * c].iter().fold(0.0f32, |a, &v| a.max(v));
+                for i in row..row + b.size[0] {
+                    let (j, m) = crate::shard::argmax(&p[k * c..(k + 1) * c]);
+                    conf[i] = m.max(0.0);
+                    best[i] = out_labels.get(j).copied().unwrap_or(0);
                     k += 1;
                 }
             }
         }
     }
-    Ok(out)
+    Ok((conf, best))
 }
 
 /// The name of the stage that returns probabilities instead of writing them (the service).

@@ -292,10 +292,7 @@ pub fn predict_brick(
     let lab = p
         .chunks(c)
         .map(|r| {
-            let (k, v) = r
-                .iter()
-                .enumerate()
-                .fold((0, f32::MIN), |b, (k, &v)| if v > b.1 { (k, v) } else { b });
+            let (k, v) = argmax(r);
             if v >= tau {
                 out_labels[k]
             } else {
@@ -304,6 +301,14 @@ pub fn predict_brick(
         })
         .collect();
     Ok((p, lab))
+}
+
+/// The index and value of the largest probability of one voxel (the first on ties; `(0,
+/// f32::MIN)` for an empty row).
+pub fn argmax(row: &[f32]) -> (usize, f32) {
+    row.iter()
+        .enumerate()
+        .fold((0, f32::MIN), |b, (k, &v)| if v > b.1 { (k, v) } else { b })
 }
 
 /// The result of classifying a volume.

@@ -122,6 +122,10 @@ pub struct ClassifyArgs {
     /// of its class's largest scribbled part.
     #[arg(long, default_value_t = neuvolex_classify::PriorConfig::default().relative_mass)]
     pub prior_mass: f64,
+    /// The kept parts grow this many voxels into voxels below the confidence threshold whose
+    /// most probable class is theirs (the diluted boundary band; 0 = no growth).
+    #[arg(long, default_value_t = neuvolex_classify::PriorConfig::default().grow)]
+    pub prior_grow: u32,
     /// Class table JSON ({"classes": [{"id", "name", "color"}], "background": 255}).
     #[arg(long)]
     pub classes: Option<PathBuf>,
@@ -144,9 +148,15 @@ pub struct ClassifyArgs {
 }
 
 /// The prior's settings from the flags (`None` when turned off).
-fn prior_config(off: bool, mass: f64) -> Result<Option<neuvolex_classify::PriorConfig>> {
+pub(crate) fn prior_config(
+    off: bool,
+    mass: f64,
+    grow: u32,
+) -> Result<Option<neuvolex_classify::PriorConfig>> {
     let cfg = neuvolex_classify::PriorConfig::new(mass)
-        .map_err(|e| anyhow::anyhow!("--prior-mass {mass}: {e}"))?;
+        .map_err(|e| anyhow::anyhow!("--prior-mass {mass}: {e}"))?
+        .with_grow(grow)
+        .map_err(|e| anyhow::anyhow!("--prior-grow {grow}: {e}"))?;
     Ok((!off).then_some(cfg))
 }
 
@@ -162,7 +172,7 @@ pub fn run_classify(a: &ClassifyArgs, quiet: bool) -> Result<()> {
         stored_features: a.stored_features,
         config: a.forest.config()?,
         bricks_per_task: a.cluster.bricks_per_task,
-        prior: prior_config(a.no_prior, a.prior_mass)?,
+        prior: prior_config(a.no_prior, a.prior_mass, a.prior_grow)?,
     };
     let exec = a.cluster.executor()?;
     let mut bar = crate::cluster::StageBar::new(quiet);

@@ -66,6 +66,9 @@ pub struct EvalArgs {
     /// fraction of its class's largest scribbled component.
     #[arg(long, default_value_t = neuvolex_classify::PriorConfig::default().relative_mass)]
     pub prior_mass: f64,
+    /// The prior's kept parts grow this many voxels into doubtful voxels of their class.
+    #[arg(long, default_value_t = neuvolex_classify::PriorConfig::default().grow)]
+    pub prior_grow: u32,
     /// Each scribble stroke also covers this many slices on either side of its own.
     #[arg(long, default_value_t = 0)]
     pub thicken: usize,
@@ -122,8 +125,8 @@ impl EvalArgs {
                 }
             }
         }
-        let prior = neuvolex_classify::PriorConfig::new(self.prior_mass)
-            .map_err(|e| anyhow::anyhow!("--prior-mass {}: {e}", self.prior_mass))?;
+        let prior = crate::classify::prior_config(false, self.prior_mass, self.prior_grow)?
+            .unwrap_or_default();
         Ok(EvalConfig {
             datasets: self.datasets.clone(),
             data: self.data.clone(),

@@ -462,6 +462,17 @@ fn classify_and_eval_on_the_phantom() {
             &p("s.zarr"),
             "--scribbles",
             &p("scr.nii.gz"),
+            "--prior-grow",
+            "17",
+        ],
+        "--prior-grow 17: must be at most 16 voxels",
+    );
+    fails(
+        &[
+            "classify",
+            &p("s.zarr"),
+            "--scribbles",
+            &p("scr.nii.gz"),
             "--features",
             "local",
             "--tau",

@@ -9,7 +9,9 @@ use crate::{EvalEvent, Events, Result};
 use neuvolex_bricks::Brick;
 use neuvolex_classify::cache::SessionFeatures;
 use neuvolex_classify::components::{apply_in_memory, PriorConfig};
-use neuvolex_classify::shard::{fit, predict_brick, training_set_with, TrainingSet};
+use neuvolex_classify::shard::{
+    argmax, fit, output_labels, predict_brick, training_set_with, TrainingSet,
+};
 use neuvolex_classify::suggest::SliceMass;
 use neuvolex_classify::{BrickFeatures, ClassifyConfig, Forest, Quantise, Scribbles, F1};
 use rayon::prelude::*;
@@ -92,6 +94,8 @@ pub struct Prediction {
     pub confidence: Vec<f32>,
     /// Uncertainty (`1 - max p`) summed per slice.
     pub slices: SliceMass,
+    /// Most probable output label per voxel, whatever its probability (0 = background).
+    pub best: Vec<u16>,
     /// Voxels the forest predicted (the rest lay in skipped empty bricks).
     pub voxels_predicted: u64,
     /// Wall-clock seconds of the prediction.
@@ -109,17 +113,7 @@ pub fn predict(
     let t0 = Instant::now();
     let store = f.fx.store();
     let dims = store.info().dims;
-    let out_labels: Vec<u16> = ts
-        .labels
-        .iter()
-        .map(|&l| {
-            if l == cfg.background {
-                0
-            } else {
-                l.min(u16::MAX as u32) as u16
-            }
-        })
-        .collect();
+    let out_labels = output_labels(&ts.labels, cfg.background);
     let bg = ts.labels.iter().position(|&l| l == cfg.background);
     let nc = ts.labels.len();
     let bricks: Vec<Brick> = store.bricks().collect();
@@ -128,7 +122,7 @@ pub fn predict(
         total: bricks.len() as u64,
     });
     let done = AtomicU64::new(0);
-    type BrickOut = (Brick, Option<(Vec<u16>, Vec<f32>)>, SliceMass);
+    type BrickOut = (Brick, Option<(Vec<u16>, Vec<f32>, Vec<u16>)>, SliceMass);
     let parts: Vec<BrickOut> = bricks
         .par_iter()
         .map(|b| -> Result<BrickOut> {
@@ -153,8 +147,9 @@ pub fn predict(
                         k.map_or(0.0, |k| r[k])
                     })
                     .collect();
+                let best: Vec<u16> = p.chunks(nc).map(|r| out_labels[argmax(r).0]).collect();
                 let m = SliceMass::of_brick(dims, b.origin, b.size, &p, nc);
-                (*b, Some((lab, conf)), m)
+                (*b, Some((lab, conf, best)), m)
             };
             events(EvalEvent::Bricks {
                 done: done.fetch_add(1, Ordering::Relaxed) + 1,
@@ -165,11 +160,12 @@ pub fn predict(
     let n: usize = dims.iter().product();
     let mut labels = vec![0u16; n];
     let mut confidence = vec![1.0f32; n];
+    let mut best = vec![0u16; n];
     let mut slices = SliceMass::zeros(dims, nc);
     let mut voxels_predicted = 0;
     for (b, r, m) in parts {
         slices.merge(&m);
-        let Some((lab, conf)) = r else { continue };
+        let Some((lab, conf, bst)) = r else { continue };
         voxels_predicted += b.voxels() as u64;
         let mut k = 0;
         for z in 0..b.size[2] {
@@ -177,6 +173,7 @@ pub fn predict(
                 let row = ((b.origin[2] + z) * dims[1] + b.origin[1] + y) * dims[0] + b.origin[0];
                 labels[row..row + b.size[0]].copy_from_slice(&lab[k..k + b.size[0]]);
                 confidence[row..row + b.size[0]].copy_from_slice(&conf[k..k + b.size[0]]);
+                best[row..row + b.size[0]].copy_from_slice(&bst[k..k + b.size[0]]);
                 k += b.size[0];
             }
         }
@@ -185,6 +182,7 @@ pub fn predict(
         labels,
         confidence,
         slices,
+        best,
         voxels_predicted,
         seconds: t0.elapsed().as_secs_f64(),
     })
@@ -215,6 +213,7 @@ pub fn with_prior(
         dims,
         brick,
         Some(&p.confidence),
+        Some(&p.best),
         &seeds(scr, background),
         cfg,
     );

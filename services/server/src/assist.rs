@@ -7,7 +7,7 @@
 use crate::error::{ApiError, ApiResult};
 use crate::session::{Probs, Session, BACKGROUND};
 use neuvolex_bricks::BrickStore;
-use neuvolex_classify::components::{label_brick, Partial, PriorConfig};
+use neuvolex_classify::components::{grow_in_memory, label_brick, Partial, PriorConfig};
 use neuvolex_classify::suggest::SliceMass;
 use rayon::prelude::*;
 use serde::Serialize;
@@ -19,8 +19,9 @@ use std::sync::Arc;
 pub struct PriorState {
     /// The probabilities' generation it was computed from.
     pub generation: u64,
-    /// Per brick, the (sorted) local voxel indices whose label the prior clears.
-    pub cleared: HashMap<[usize; 3], Arc<Vec<u32>>>,
+    /// Per brick, the (sorted) local voxel indices whose label the prior changes, with the
+    /// label it gives them: 0 where it clears a dropped part, the class where a kept part grew.
+    pub changed: HashMap<[usize; 3], Arc<Vec<(u32, u16)>>>,
     /// What it did.
     pub summary: PriorSummary,
 }
@@ -38,21 +39,33 @@ pub struct PriorSummary {
     pub kept: usize,
     /// Voxels whose label was cleared.
     pub voxels_cleared: u64,
+    /// Doubtful voxels the kept parts grew into.
+    pub voxels_grown: u64,
 }
 
 impl PriorState {
-    /// Whether the prior clears voxel `p`.
-    pub fn clears(&self, store: &BrickStore, p: [usize; 3]) -> bool {
+    /// The label the prior gives voxel `p`, where it changes the forest's (`Some(0)`: cleared).
+    pub fn label(&self, store: &BrickStore, p: [usize; 3]) -> Option<u16> {
         let b = store.info().brick;
-        let Ok(br) = store.brick(p.map(|v| v / b)) else {
-            return false;
-        };
-        let Some(c) = self.cleared.get(&br.index) else {
-            return false;
-        };
+        let br = store.brick(p.map(|v| v / b)).ok()?;
+        let c = self.changed.get(&br.index)?;
         let l = [0, 1, 2].map(|k| p[k] - br.origin[k]);
         let i = ((l[2] * br.size[1] + l[1]) * br.size[0] + l[0]) as u32;
-        c.binary_search(&i).is_ok()
+        c.binary_search_by_key(&i, |&(v, _)| v).ok().map(|k| c[k].1)
+    }
+}
+
+/// The most probable class of a voxel's u8 probabilities, whatever its probability (0 when the
+/// background is most probable).
+fn best_of(ids: &[u32], px: &[u8]) -> u16 {
+    let k = px
+        .iter()
+        .enumerate()
+        .max_by_key(|(_, &v)| v)
+        .map_or(0, |(k, _)| k);
+    match ids.get(k) {
+        Some(&id) if id != BACKGROUND => id.min(u16::MAX as u32) as u16,
+        _ => 0,
     }
 }
 
@@ -70,8 +83,15 @@ pub fn label_of(ids: &[u32], px: &[u8]) -> u32 {
     }
 }
 
-/// Computes the prior over every classified brick of `probs` with the session's scribbles.
+/// Computes the prior over every classified brick of `probs` with the session's scribbles:
+/// components per brick, merged, filtered; then growth (`PriorConfig::grow`) over the label
+/// volume assembled in memory (2 bytes a voxel, with as much again for the doubtful classes).
 pub fn compute_prior(s: &Session, probs: &Probs) -> ApiResult<PriorState> {
+    compute_prior_with(s, probs, &PriorConfig::default())
+}
+
+/// [`compute_prior`] with explicit settings.
+pub fn compute_prior_with(s: &Session, probs: &Probs, cfg: &PriorConfig) -> ApiResult<PriorState> {
     let scr = s.scribbles()?;
     let dims = s.store.info().dims;
     let bs = s.store.info().brick;
@@ -93,7 +113,8 @@ pub fn compute_prior(s: &Session, probs: &Probs) -> ApiResult<PriorState> {
     }
     let c = probs.ids.len().max(1);
     let none = Vec::new();
-    let done: Vec<([usize; 3], Vec<u32>, Partial)> = probs
+    type Labelled = ([usize; 3], Vec<u16>, Vec<u32>, Partial);
+    let done: Vec<Labelled> = probs
         .bricks
         .par_iter()
         .map(|(idx, v)| -> ApiResult<_> {
@@ -112,43 +133,102 @@ pub fn compute_prior(s: &Session, probs: &Probs) -> ApiResult<PriorState> {
                 Some(&conf),
                 seeds.get(idx).unwrap_or(&none),
             );
-            Ok((*idx, ids, part))
+            Ok((*idx, labels, ids, part))
         })
         .collect::<ApiResult<_>>()?;
     let mut ids_of = Vec::with_capacity(done.len());
     let mut parts = Vec::with_capacity(done.len());
-    for (b, ids, p) in done {
-        ids_of.push((b, ids));
+    for (b, labels, ids, p) in done {
+        ids_of.push((b, labels, ids));
         parts.push(p);
     }
     let merged = Partial::merge_all(parts);
-    let keep = merged.keep(&PriorConfig::default());
-    let mut cleared = HashMap::new();
-    let mut voxels = 0;
-    for (b, ids) in ids_of {
+    let keep = merged.keep(cfg);
+    // The filtered labels per brick (raw labels with dropped parts cleared).
+    let mut filtered: HashMap<[usize; 3], (Vec<u16>, Vec<u16>)> = HashMap::new();
+    let mut voxels_cleared = 0;
+    for (b, raw, ids) in ids_of {
         let part = &merged.bricks[&b];
-        let v: Vec<u32> = ids
+        let mut l = raw.clone();
+        for (v, &id) in l.iter_mut().zip(&ids) {
+            if id != 0 && !keep[part.local[id as usize - 1] as usize] {
+                *v = 0;
+                voxels_cleared += 1;
+            }
+        }
+        filtered.insert(b, (raw, l));
+    }
+    if cfg.grow > 0 {
+        grow_bricks(s, probs, &mut filtered, cfg.grow)?;
+    }
+    let mut changed = HashMap::new();
+    let mut voxels_grown = 0;
+    for (b, (raw, l)) in filtered {
+        let v: Vec<(u32, u16)> = raw
             .iter()
+            .zip(&l)
             .enumerate()
-            .filter(|(_, &id)| id != 0 && !keep[part.local[id as usize - 1] as usize])
-            .map(|(i, _)| i as u32)
+            .filter(|(_, (a, b))| a != b)
+            .map(|(i, (_, &b))| (i as u32, b))
             .collect();
+        voxels_grown += v.iter().filter(|&&(_, l)| l != 0).count() as u64;
         if !v.is_empty() {
-            voxels += v.len() as u64;
-            cleared.insert(b, Arc::new(v));
+            changed.insert(b, Arc::new(v));
         }
     }
     Ok(PriorState {
         generation: probs.generation,
-        cleared,
+        changed,
         summary: PriorSummary {
             enabled: true,
             generation: probs.generation,
             components: keep.len(),
             kept: keep.iter().filter(|&&k| k).count(),
-            voxels_cleared: voxels,
+            voxels_cleared,
+            voxels_grown,
         },
     })
+}
+
+/// Grows the filtered labels (`filtered[brick].1`) `steps` voxels into doubtful voxels (raw
+/// label 0) whose most probable class is theirs, over the volume assembled in memory.
+fn grow_bricks(
+    s: &Session,
+    probs: &Probs,
+    filtered: &mut HashMap<[usize; 3], (Vec<u16>, Vec<u16>)>,
+    steps: u32,
+) -> ApiResult<()> {
+    let d = s.store.info().dims;
+    let c = probs.ids.len().max(1);
+    let n: usize = d.iter().product();
+    let (mut labels, mut doubtful) = (vec![0u16; n], vec![0u16; n]);
+    let rows = |b: &neuvolex_bricks::Brick| {
+        let (o, sz) = (b.origin, b.size);
+        (0..sz[2]).flat_map(move |z| {
+            (0..sz[1]).map(move |y| ((o[2] + z) * d[1] + o[1] + y) * d[0] + o[0])
+        })
+    };
+    for (idx, (raw, l)) in filtered.iter() {
+        let b = s.store.brick(*idx)?;
+        let px = &probs.bricks[idx];
+        for (k, row) in rows(&b).enumerate() {
+            let r = k * b.size[0]..(k + 1) * b.size[0];
+            labels[row..row + b.size[0]].copy_from_slice(&l[r.clone()]);
+            for (i, j) in r.enumerate() {
+                if raw[j] == 0 {
+                    doubtful[row + i] = best_of(&probs.ids, &px[j * c..(j + 1) * c]);
+                }
+            }
+        }
+    }
+    grow_in_memory(&mut labels, &doubtful, d, steps);
+    for (idx, (_, l)) in filtered.iter_mut() {
+        let b = s.store.brick(*idx)?;
+        for (k, row) in rows(&b).enumerate() {
+            l[k * b.size[0]..(k + 1) * b.size[0]].copy_from_slice(&labels[row..row + b.size[0]]);
+        }
+    }
+    Ok(())
 }
 
 /// Recomputes the session's prior verdict once its probabilities are complete (called when a

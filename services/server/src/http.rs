@@ -561,11 +561,14 @@ async fn overlay(
                     o.copy_from_slice(&[255, 200, 0, u]);
                 } else {
                     let best = order[0];
-                    let id = ids[best];
-                    if id == BACKGROUND
-                        || p[best] < 128
-                        || prior.as_ref().is_some_and(|pr| pr.clears(&s.store, vox))
-                    {
+                    let mut id = ids[best];
+                    if id == BACKGROUND || p[best] < 128 {
+                        id = 0;
+                    }
+                    if let Some(l) = prior.as_ref().and_then(|pr| pr.label(&s.store, vox)) {
+                        id = l as u32;
+                    }
+                    if id == 0 {
                         continue;
                     }
                     let c = color(id);
@@ -977,23 +980,24 @@ fn per_voxel(s: &Session, f: impl Fn(&crate::session::Probs, &[u8]) -> u8) -> Ap
     Ok(out)
 }
 
-/// The arg-max label of every voxel (0 where the background wins or no class reaches 0.5, or
-/// where the spatial prior, when on, drops the voxel's component).
+/// The arg-max label of every voxel (0 where the background wins or no class reaches 0.5),
+/// with the spatial prior's changes when it is on (dropped parts cleared, kept parts grown).
 fn label_voxels(s: &Session) -> ApiResult<Vec<u8>> {
     let mut out = per_voxel(s, |p, px| crate::assist::label_of(&p.ids, px) as u8)?;
     let probs = s.probs.read().unwrap_or_else(|p| p.into_inner());
     if let Some(pr) = crate::assist::active_prior(s, &probs) {
         let d = s.store.info().dims;
-        for (idx, cleared) in &pr.cleared {
+        for (idx, changed) in &pr.changed {
             let b = s.store.brick(*idx)?;
-            for &i in cleared.iter() {
+            for &(i, l) in changed.iter() {
                 let i = i as usize;
                 let (x, y, z) = (
                     i % b.size[0],
                     (i / b.size[0]) % b.size[1],
                     i / (b.size[0] * b.size[1]),
                 );
-                out[((b.origin[2] + z) * d[1] + b.origin[1] + y) * d[0] + b.origin[0] + x] = 0;
+                out[((b.origin[2] + z) * d[1] + b.origin[1] + y) * d[0] + b.origin[0] + x] =
+                    l as u8;
             }
         }
     }

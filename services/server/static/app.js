@@ -278,7 +278,7 @@ $("load").onchange = async (e) => {
 
 // Assistance: the spatial prior (a toggle) and the next-slice suggestion.
 function priorInfo(r) {
-  $("priorinfo").textContent = r && r.enabled && r.generation ? `${r.kept} of ${r.components} parts kept, ${r.voxels_cleared} voxels cleared` : "";
+  $("priorinfo").textContent = r && r.enabled && r.generation ? `${r.kept} of ${r.components} parts kept, ${r.voxels_cleared} voxels cleared, ${r.voxels_grown} grown` : "";
 }
 async function refreshPrior() { if (S.id) try { priorInfo(await api("GET", `/api/sessions/${S.id}/prior`)); } catch (_) {} }
 $("prior").onchange = async (e) => {
