@@ -625,11 +625,7 @@ pub fn classify<E: Executor + ?Sized>(
         let mut labels = assemble_labels(&store_arc, &stage.labels)?;
         if let Some(pc) = &req.prior {
             let t = Instant::now();
-            let (conf, best) = assemble_confidence(
-                &store_arc,
-                &stage.proba,
-                &output_labels(&ts.labels, cfg.background),
-            )?;
+            let (conf, best) = assemble_confidence(&store_arc, &stage.proba, &stage.out_labels)?;
             let seeds: Vec<(u64, u16)> = scr
                 .voxels
                 .iter()

@@ -147,17 +147,12 @@ pub struct ClassifyArgs {
     pub cluster: crate::cluster::ClusterArgs,
 }
 
-/// The prior's settings from the flags (`None` when turned off).
-pub(crate) fn prior_config(
-    off: bool,
-    mass: f64,
-    grow: u32,
-) -> Result<Option<neuvolex_classify::PriorConfig>> {
-    let cfg = neuvolex_classify::PriorConfig::new(mass)
+/// The prior's settings from `--prior-mass` and `--prior-grow`, checked.
+pub(crate) fn prior_config(mass: f64, grow: u32) -> Result<neuvolex_classify::PriorConfig> {
+    neuvolex_classify::PriorConfig::new(mass)
         .map_err(|e| anyhow::anyhow!("--prior-mass {mass}: {e}"))?
         .with_grow(grow)
-        .map_err(|e| anyhow::anyhow!("--prior-grow {grow}: {e}"))?;
-    Ok((!off).then_some(cfg))
+        .map_err(|e| anyhow::anyhow!("--prior-grow {grow}: {e}"))
 }
 
 /// `neuvolex classify`: parses, chooses the executor, shows progress, prints.
@@ -172,7 +167,7 @@ pub fn run_classify(a: &ClassifyArgs, quiet: bool) -> Result<()> {
         stored_features: a.stored_features,
         config: a.forest.config()?,
         bricks_per_task: a.cluster.bricks_per_task,
-        prior: prior_config(a.no_prior, a.prior_mass, a.prior_grow)?,
+        prior: Some(prior_config(a.prior_mass, a.prior_grow)?).filter(|_| !a.no_prior),
     };
     let exec = a.cluster.executor()?;
     let mut bar = crate::cluster::StageBar::new(quiet);

@@ -125,8 +125,7 @@ impl EvalArgs {
                 }
             }
         }
-        let prior = crate::classify::prior_config(false, self.prior_mass, self.prior_grow)?
-            .unwrap_or_default();
+        let prior = crate::classify::prior_config(self.prior_mass, self.prior_grow)?;
         Ok(EvalConfig {
             datasets: self.datasets.clone(),
             data: self.data.clone(),

@@ -56,29 +56,24 @@ impl PriorState {
 }
 
 /// The most probable class of a voxel's u8 probabilities, whatever its probability (0 when the
-/// background is most probable).
-fn best_of(ids: &[u32], px: &[u8]) -> u16 {
-    let k = px
-        .iter()
-        .enumerate()
-        .max_by_key(|(_, &v)| v)
-        .map_or(0, |(k, _)| k);
-    match ids.get(k) {
-        Some(&id) if id != BACKGROUND => id.min(u16::MAX as u32) as u16,
-        _ => 0,
-    }
-}
-
-/// The label of a voxel's u8 probabilities: the best class when it reaches 0.5 and is not
-/// background, else 0 (as the overlays and exports show it).
-pub fn label_of(ids: &[u32], px: &[u8]) -> u32 {
+/// background is most probable), and that probability.
+fn best_of(ids: &[u32], px: &[u8]) -> (u32, u8) {
     let (k, &m) = px
         .iter()
         .enumerate()
         .max_by_key(|(_, &v)| v)
         .unwrap_or((0, &0));
     match ids.get(k) {
-        Some(&id) if m >= 128 && id != BACKGROUND => id,
+        Some(&id) if id != BACKGROUND => (id, m),
+        _ => (0, m),
+    }
+}
+
+/// The label of a voxel's u8 probabilities: the best class when it reaches 0.5 and is not
+/// background, else 0 (as the overlays and exports show it).
+pub fn label_of(ids: &[u32], px: &[u8]) -> u32 {
+    match best_of(ids, px) {
+        (id, m) if m >= 128 => id,
         _ => 0,
     }
 }
@@ -87,11 +82,7 @@ pub fn label_of(ids: &[u32], px: &[u8]) -> u32 {
 /// components per brick, merged, filtered; then growth (`PriorConfig::grow`) over the label
 /// volume assembled in memory (2 bytes a voxel, with as much again for the doubtful classes).
 pub fn compute_prior(s: &Session, probs: &Probs) -> ApiResult<PriorState> {
-    compute_prior_with(s, probs, &PriorConfig::default())
-}
-
-/// [`compute_prior`] with explicit settings.
-pub fn compute_prior_with(s: &Session, probs: &Probs, cfg: &PriorConfig) -> ApiResult<PriorState> {
+    let cfg = PriorConfig::default();
     let scr = s.scribbles()?;
     let dims = s.store.info().dims;
     let bs = s.store.info().brick;
@@ -143,7 +134,7 @@ pub fn compute_prior_with(s: &Session, probs: &Probs, cfg: &PriorConfig) -> ApiR
         parts.push(p);
     }
     let merged = Partial::merge_all(parts);
-    let keep = merged.keep(cfg);
+    let keep = merged.keep(&cfg);
     // The filtered labels per brick (raw labels with dropped parts cleared).
     let mut filtered: HashMap<[usize; 3], (Vec<u16>, Vec<u16>)> = HashMap::new();
     let mut voxels_cleared = 0;
@@ -216,7 +207,9 @@ fn grow_bricks(
             labels[row..row + b.size[0]].copy_from_slice(&l[r.clone()]);
             for (i, j) in r.enumerate() {
                 if raw[j] == 0 {
-                    doubtful[row + i] = best_of(&probs.ids, &px[j * c..(j + 1) * c]);
+                    doubtful[row + i] = best_of(&probs.ids, &px[j * c..(j + 1) * c])
+                        .0
+                        .min(u16::MAX as u32) as u16;
                 }
             }
         }
