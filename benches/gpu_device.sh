@@ -42,6 +42,8 @@ for l in sys.stdin:
 rm -rf .gpubench
 mkdir -p .gpubench/data
 cp "$exe" .gpubench/inr_gpu
+# Without debug information: the device call carries at most 64 MiB.
+strip .gpubench/inr_gpu
 cp benches/inr_torch.py .gpubench/
 data="${NEUVOLEX_DATA:-$root/../shared/data}"
 for rel in tooth/tooth.nhdr tooth/tooth.raw abdomen_ct/ct.nii.gz scivis/bonsai.nii.gz; do

@@ -8,7 +8,13 @@
 //! 65 535 distinct thresholds; forests past that (or with more than 65 536 features) keep the
 //! f32 walk.
 //!
-//! A block of rows is coded feature by feature (one feature's edges stay cached), then every
+//! A value's code is found in two steps: a table per feature, indexed by the top bits of the
+//! value's order-preserving integer key, gives the first edge of the value's bucket, and a
+//! branch-free binary search over a window of a fixed power-of-two width (the fullest bucket,
+//! edges padded with `+inf`) counts the bucket's edges below the value: a few steps instead of
+//! a search over all of the feature's edges.
+//!
+//! A block of rows is coded feature by feature (one feature's table stays cached), then every
 //! tree walks the block in interleaved lanes (their independent loads overlap) without
 //! data-dependent branches while the next tree is prefetched; each row's leaf is recorded, and
 //! the leaves' fractions are added row by row in tree order, four classes at a time, so the
@@ -36,8 +42,8 @@ struct Node {
 pub(crate) struct Packed {
     d: usize,
     classes: usize,
-    /// Per feature: its distinct split thresholds, ascending.
-    edges: Vec<Vec<f32>>,
+    /// Per feature: its coder over the forest's distinct split thresholds on it.
+    coders: Vec<Coder>,
     /// Every tree's nodes, one after the other (a tree's `left` indices are global).
     nodes: Vec<Node>,
     /// Per tree: its first node and the offset of its first leaf's fractions in `probs`.
@@ -59,19 +65,112 @@ pub(crate) struct TreeView<'a> {
     pub probs: &'a [f32],
 }
 
-/// `#{i : e_i < v}` for ascending `e`, without data-dependent branches.
+/// The order-preserving integer key of a number that is not NaN (`-0.0` as `+0.0`): `a < b`
+/// exactly when `key(a) < key(b)`.
 #[inline(always)]
-fn code(e: &[f32], v: f32) -> u16 {
-    if e.is_empty() {
-        return 0;
+fn key(v: f32) -> u32 {
+    // Adding +0 turns -0 into +0 and leaves every other number as it is.
+    let b = (v + 0.0).to_bits();
+    if b >> 31 == 1 {
+        !b
+    } else {
+        b | 1 << 31
     }
-    let (mut base, mut len) = (0usize, e.len());
-    while len > 1 {
-        let half = len / 2;
-        base = select_unpredictable(e[base + half - 1] < v, base + half, base);
-        len -= half;
+}
+
+/// Most buckets per feature, and buckets per edge: the table (2 bytes a bucket) stays within
+/// L2 while a block's rows are coded.
+const MAX_BUCKETS: usize = 1 << 14;
+const BUCKETS_PER_EDGE: usize = 4;
+
+/// Codes one feature's values: `#{i : e_i < v}` over its ascending distinct edges `e`.
+#[derive(Debug, Clone, PartialEq)]
+struct Coder {
+    /// The edges, then `window` copies of `+inf` (never below any value).
+    padded: Vec<f32>,
+    /// The number of edges.
+    n: usize,
+    /// The key of the first edge; bucket `b` holds keys from `low + (b << shift)`.
+    low: u32,
+    shift: u32,
+    /// Per bucket: the number of edges whose key is below the bucket's first key; one more
+    /// entry holding `n`.
+    starts: Vec<u16>,
+    /// A power of two at least the most edges in one bucket.
+    window: usize,
+}
+
+impl Coder {
+    /// The coder of ascending, distinct edges (at most `u16::MAX` of them, none NaN, `-0.0`
+    /// and `+0.0` not both).
+    fn new(edges: Vec<f32>) -> Self {
+        let n = edges.len();
+        let (low, high) = match (edges.first(), edges.last()) {
+            (Some(&a), Some(&b)) => (key(a), key(b)),
+            _ => (0, 0),
+        };
+        let span = (high - low) as u64;
+        let most = (n * BUCKETS_PER_EDGE).clamp(1, MAX_BUCKETS) as u64;
+        let mut shift = 0;
+        while span >> shift >= most {
+            shift += 1;
+        }
+        let buckets = (span >> shift) as usize + 1;
+        let mut starts = Vec::with_capacity(buckets + 1);
+        let mut i = 0;
+        for b in 0..buckets {
+            let first = low as u64 + ((b as u64) << shift);
+            while i < n && (key(edges[i]) as u64) < first {
+                i += 1;
+            }
+            starts.push(i as u16);
+        }
+        starts.push(n as u16);
+        let most_in_one = starts.windows(2).map(|w| w[1] - w[0]).max().unwrap_or(0);
+        let window = (most_in_one as usize + 1).next_power_of_two();
+        let mut padded = edges;
+        padded.resize(n + window, f32::INFINITY);
+        Coder {
+            padded,
+            n,
+            low,
+            shift,
+            starts,
+            window,
+        }
     }
-    (base + (e[base] < v) as usize) as u16
+
+    /// The edges, ascending.
+    fn edges(&self) -> &[f32] {
+        &self.padded[..self.n]
+    }
+
+    /// `#{i : e_i < v}` (0 for NaN), without data-dependent branches.
+    #[inline(always)]
+    fn code(&self, v: f32) -> u16 {
+        // A key below the first edge's is in bucket 0 (whose start is 0); one past the last
+        // bucket in the last.
+        let last = self.starts.len() - 2;
+        let b = ((key(v).saturating_sub(self.low) >> self.shift) as usize).min(last);
+        let e = &self.padded[..];
+        // Every edge before the bucket is below `v`, every edge past it above, and the window
+        // from the bucket's start covers the bucket (its tail is edges of later buckets or
+        // the padding, all above `v`).
+        // SAFETY: `b <= last`, inside `starts`; a bucket starts at most at `n`, and the search
+        // reads below its start plus `window`, inside `padded` (`n + window` long).
+        let (mut base, mut len) = (
+            unsafe { *self.starts.get_unchecked(b) } as usize,
+            self.window,
+        );
+        while len > 1 {
+            let half = len / 2;
+            let below = unsafe { *e.get_unchecked(base + half - 1) } < v;
+            base = select_unpredictable(below, base + half, base);
+            len -= half;
+        }
+        let c = base + (unsafe { *e.get_unchecked(base) } < v) as usize;
+        select_unpredictable(v.is_nan(), 0, c) as u16
+    }
 }
 
 impl Packed {
@@ -110,12 +209,17 @@ impl Packed {
             }
         }
         for e in &mut edges {
+            // -0 and +0 split alike (`v > t`), so they are one edge.
+            for t in e.iter_mut() {
+                *t += 0.0;
+            }
             e.sort_unstable_by(|a, b| a.total_cmp(b));
             e.dedup_by(|a, b| a.to_bits() == b.to_bits());
             if e.len() > LEAF_CODE as usize {
                 return None;
             }
         }
+        let coders: Vec<Coder> = edges.into_iter().map(Coder::new).collect();
         let total: usize = trees.iter().map(|t| t.nodes.len()).sum();
         let total_u32 = u32::try_from(total).ok()?;
         let mut nodes = Vec::with_capacity(total);
@@ -139,9 +243,9 @@ impl Packed {
                     });
                     leaf_at.push(((leaf0 + t.leaf_of[i] as usize) * width) as u32);
                 } else {
-                    let e = &edges[f as usize];
+                    let e = coders[f as usize].edges();
                     let j = e
-                        .binary_search_by(|a| a.total_cmp(&thr))
+                        .binary_search_by(|a| a.total_cmp(&(thr + 0.0)))
                         .expect("every threshold is an edge");
                     nodes.push(Node {
                         code: j as u16,
@@ -158,7 +262,7 @@ impl Packed {
         Some(Packed {
             d,
             classes,
-            edges,
+            coders,
             nodes,
             trees: starts,
             leaf_at,
@@ -170,9 +274,15 @@ impl Packed {
     /// Codes rows `x` (`rows x d`) into `out`, feature by feature.
     fn code_rows(&self, x: &[f32], out: &mut [u16]) {
         let d = self.d;
-        for (f, e) in self.edges.iter().enumerate() {
+        for (f, c) in self.coders.iter().enumerate() {
+            if c.n == 0 {
+                for o in out.chunks_exact_mut(d) {
+                    o[f] = 0;
+                }
+                continue;
+            }
             for (o, row) in out.chunks_exact_mut(d).zip(x.chunks_exact(d)) {
-                o[f] = code(e, row[f]);
+                o[f] = c.code(row[f]);
             }
         }
     }
@@ -342,17 +452,112 @@ const STEPS: usize = 12;
 
 #[cfg(test)]
 mod tests {
-    use super::code;
+    use super::{key, Coder};
+    use neuvolex_bricks::rng::Rng;
+
+    /// The coder as [`super::Packed::new`] builds it: edges made canonical, sorted, distinct.
+    fn coder(mut e: Vec<f32>) -> Coder {
+        for t in e.iter_mut() {
+            *t += 0.0;
+        }
+        e.sort_unstable_by(|a, b| a.total_cmp(b));
+        e.dedup_by(|a, b| a.to_bits() == b.to_bits());
+        Coder::new(e)
+    }
+
+    fn check(c: &Coder, v: f32) {
+        let want = if v.is_nan() {
+            0
+        } else {
+            c.edges().iter().filter(|&&t| t < v).count()
+        };
+        assert_eq!(c.code(v) as usize, want, "{v:e} ({:#x})", v.to_bits());
+    }
 
     #[test]
     fn codes_count_the_edges_below() {
-        let e = [-1.0f32, 0.0, 0.5, 2.0, 7.0];
-        for v in [-5.0f32, -1.0, -0.5, 0.0, 0.25, 0.5, 1.0, 2.0, 3.0, 7.0, 8.0] {
-            let want = e.iter().filter(|&&t| t < v).count() as u16;
-            assert_eq!(code(&e, v), want, "{v}");
+        let c = coder(vec![-1.0f32, 0.0, 0.5, 2.0, 7.0]);
+        for v in [
+            -5.0f32, -1.0, -0.5, -0.0, 0.0, 0.25, 0.5, 1.0, 2.0, 3.0, 7.0, 8.0,
+        ] {
+            check(&c, v);
         }
-        assert_eq!(code(&e, f32::NAN), 0);
-        assert_eq!(code(&[], 3.0), 0);
-        assert_eq!(code(&e, f32::INFINITY), 5);
+        assert_eq!(c.code(f32::NAN), 0);
+        assert_eq!(c.code(-f32::NAN), 0);
+        assert_eq!(c.code(f32::INFINITY), 5);
+        assert_eq!(c.code(f32::NEG_INFINITY), 0);
+        assert_eq!(coder(vec![]).code(3.0), 0);
+        assert_eq!(coder(vec![]).code(f32::INFINITY), 0);
+    }
+
+    #[test]
+    fn keys_keep_the_order() {
+        let v = [
+            f32::NEG_INFINITY,
+            -f32::MAX,
+            -1.0,
+            -f32::MIN_POSITIVE,
+            -1e-45,
+            0.0,
+            1e-45,
+            f32::MIN_POSITIVE,
+            1.0,
+            f32::MAX,
+            f32::INFINITY,
+        ];
+        for w in v.windows(2) {
+            assert!(key(w[0]) < key(w[1]), "{} {}", w[0], w[1]);
+        }
+        assert_eq!(key(-0.0), key(0.0));
+    }
+
+    /// Against counting, on edge sets that are spread, clustered (one bucket holding most),
+    /// tiny, at the extremes of the number line and with both zeros; values at, next to and
+    /// between the edges, and the special numbers.
+    #[test]
+    fn codes_equal_counting_on_random_edges() {
+        let mut rng = Rng::new(7);
+        let specials = [
+            0.0f32,
+            -0.0,
+            f32::INFINITY,
+            f32::NEG_INFINITY,
+            f32::NAN,
+            f32::MAX,
+            -f32::MAX,
+            f32::MIN_POSITIVE,
+            1e-45,
+            -1e-45,
+        ];
+        for case in 0..200 {
+            let n = [1usize, 2, 3, 7, 100, 1000, 5000][case % 7];
+            let mut e: Vec<f32> = (0..n)
+                .map(|_| match case % 5 {
+                    0 => rng.uniform(-3.0, 3.0),
+                    1 => 1.0 + rng.uniform(0.0, 1e-3),
+                    2 => rng.uniform(-1e-38, 1e-38),
+                    3 => f32::from_bits(rng.next_u64() as u32 & 0xff7f_ffff),
+                    _ => (rng.below(40) as f32 - 20.0) * 0.25,
+                })
+                .collect();
+            if case % 3 == 0 {
+                e.push(-0.0);
+                e.push(f32::INFINITY);
+            }
+            let c = coder(e);
+            let edges = c.edges().to_vec();
+            for &t in &edges {
+                for v in [t, t.next_up(), t.next_down(), -t, t * 0.5] {
+                    check(&c, v);
+                }
+            }
+            for &v in &specials {
+                check(&c, v);
+            }
+            for _ in 0..200 {
+                check(&c, f32::from_bits(rng.next_u64() as u32));
+                check(&c, rng.uniform(-4.0, 4.0));
+            }
+        }
     }
 }
