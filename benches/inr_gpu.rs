@@ -357,6 +357,12 @@ fn renderer() -> Vec<Value> {
     Vec::new()
 }
 
+/// The header of the per-volume table [`gpu_volume`] prints rows of.
+fn volume_table_header() {
+    println!("\n| volume | dims | GPU samples/s | CPU samples/s (same run) | GPU/CPU | PSNR dB | epochs | extract voxels/s (compute / to store) | peak GPU memory |");
+    println!("|---|---|---|---|---|---|---|---|---|");
+}
+
 fn main() {
     let args: Vec<String> = std::env::args().collect();
     let quick = args.iter().any(|a| a == "--quick");
@@ -378,8 +384,7 @@ fn main() {
     }
     let mut report =
         json!({"machine": machine(), "adapter": ctx.describe(), "software": ctx.is_software()});
-    println!("\n| volume | dims | GPU samples/s | CPU samples/s (same run) | GPU/CPU | PSNR dB | epochs | extract voxels/s (compute / to store) | peak GPU memory |");
-    println!("|---|---|---|---|---|---|---|---|---|");
+    volume_table_header();
     let mut vols = Vec::new();
     let mut tooth_sps = f64::NAN;
     let work = tempfile::tempdir().expect("tmp");
@@ -457,8 +462,7 @@ fn main() {
     // so a run cut short still reports the rest.
     let raw = work.path().join("cta_512x512x452_int16.raw");
     neuvolex_benches::write_cta(&raw);
-    println!("\n| volume | dims | GPU samples/s | CPU samples/s (same run) | GPU/CPU | PSNR dB | epochs | extract voxels/s (compute / to store) | peak GPU memory |");
-    println!("|---|---|---|---|---|---|---|---|---|");
+    volume_table_header();
     let dir = tempfile::tempdir_in(work.path()).expect("tmp");
     let store = store_for(&raw, dir.path());
     vols.push(gpu_volume(

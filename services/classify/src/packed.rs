@@ -88,8 +88,6 @@ const BUCKETS_PER_EDGE: usize = 4;
 struct Coder {
     /// The edges, then `window` copies of `+inf` (never below any value).
     padded: Vec<f32>,
-    /// The number of edges.
-    n: usize,
     /// The key of the first edge; bucket `b` holds keys from `low + (b << shift)`.
     low: u32,
     shift: u32,
@@ -101,6 +99,18 @@ struct Coder {
 }
 
 impl Coder {
+    /// The coder of a feature's split thresholds (none NaN; any order, repeats allowed), or
+    /// `None` past `u16::MAX` distinct ones. -0 and +0 split alike (`v > t`), so they are one
+    /// edge.
+    fn from_thresholds(mut edges: Vec<f32>) -> Option<Self> {
+        for t in edges.iter_mut() {
+            *t += 0.0;
+        }
+        edges.sort_unstable_by(|a, b| a.total_cmp(b));
+        edges.dedup_by(|a, b| a.to_bits() == b.to_bits());
+        (edges.len() <= LEAF_CODE as usize).then(|| Self::new(edges))
+    }
+
     /// The coder of ascending, distinct edges (at most `u16::MAX` of them, none NaN, `-0.0`
     /// and `+0.0` not both).
     fn new(edges: Vec<f32>) -> Self {
@@ -132,7 +142,6 @@ impl Coder {
         padded.resize(n + window, f32::INFINITY);
         Coder {
             padded,
-            n,
             low,
             shift,
             starts,
@@ -142,7 +151,7 @@ impl Coder {
 
     /// The edges, ascending.
     fn edges(&self) -> &[f32] {
-        &self.padded[..self.n]
+        &self.padded[..self.padded.len() - self.window]
     }
 
     /// `#{i : e_i < v}` (0 for NaN), without data-dependent branches.
@@ -156,8 +165,9 @@ impl Coder {
         // Every edge before the bucket is below `v`, every edge past it above, and the window
         // from the bucket's start covers the bucket (its tail is edges of later buckets or
         // the padding, all above `v`).
-        // SAFETY: `b <= last`, inside `starts`; a bucket starts at most at `n`, and the search
-        // reads below its start plus `window`, inside `padded` (`n + window` long).
+        // SAFETY: `b <= last`, inside `starts`; a bucket starts at most at the number of edges,
+        // and the search reads below its start plus `window`, inside `padded` (the edges and
+        // `window` more).
         let (mut base, mut len) = (
             unsafe { *self.starts.get_unchecked(b) } as usize,
             self.window,
@@ -208,18 +218,10 @@ impl Packed {
                 }
             }
         }
-        for e in &mut edges {
-            // -0 and +0 split alike (`v > t`), so they are one edge.
-            for t in e.iter_mut() {
-                *t += 0.0;
-            }
-            e.sort_unstable_by(|a, b| a.total_cmp(b));
-            e.dedup_by(|a, b| a.to_bits() == b.to_bits());
-            if e.len() > LEAF_CODE as usize {
-                return None;
-            }
-        }
-        let coders: Vec<Coder> = edges.into_iter().map(Coder::new).collect();
+        let coders: Vec<Coder> = edges
+            .into_iter()
+            .map(Coder::from_thresholds)
+            .collect::<Option<_>>()?;
         let total: usize = trees.iter().map(|t| t.nodes.len()).sum();
         let total_u32 = u32::try_from(total).ok()?;
         let mut nodes = Vec::with_capacity(total);
@@ -275,7 +277,7 @@ impl Packed {
     fn code_rows(&self, x: &[f32], out: &mut [u16]) {
         let d = self.d;
         for (f, c) in self.coders.iter().enumerate() {
-            if c.n == 0 {
+            if c.edges().is_empty() {
                 for o in out.chunks_exact_mut(d) {
                     o[f] = 0;
                 }
@@ -455,14 +457,8 @@ mod tests {
     use super::{key, Coder};
     use neuvolex_bricks::rng::Rng;
 
-    /// The coder as [`super::Packed::new`] builds it: edges made canonical, sorted, distinct.
-    fn coder(mut e: Vec<f32>) -> Coder {
-        for t in e.iter_mut() {
-            *t += 0.0;
-        }
-        e.sort_unstable_by(|a, b| a.total_cmp(b));
-        e.dedup_by(|a, b| a.to_bits() == b.to_bits());
-        Coder::new(e)
+    fn coder(e: Vec<f32>) -> Coder {
+        Coder::from_thresholds(e).expect("few thresholds")
     }
 
     fn check(c: &Coder, v: f32) {
