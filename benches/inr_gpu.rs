@@ -5,7 +5,9 @@
 //!    the same volume in the same run for the ratio;
 //! 2. the same model in PyTorch on the same device (`benches/inr_torch.py --device cuda`,
 //!    dense Adam, sparse Adam and torch.compile; the fastest is the reference);
-//! 3. per-kernel times of one step (each dispatch waited for: where the time goes, not speed);
+//! 3. per-kernel times of one step on both launch paths (each dispatch waited for: where the
+//!    time goes, not speed), and a sweep of launch path x batch size on CT-Tooth (samples/s
+//!    and PSNR after the same seconds of training);
 //! 4. with `--features gpu`, the wgpu renderer against the CPU renderer (bonsai, abdomen;
 //!    512^2 and 1024^2).
 //!
@@ -14,7 +16,10 @@
 //!
 //! Options: `--quick` (1 epoch on the large volume, short PyTorch runs), `--large-epochs N`
 //! (default 100, the paper's), `--cap-s S` (wall-clock cap of the large run, default 480; the
-//! 100-epoch time is then extrapolated and marked so), `--out FILE` (JSON of everything).
+//! 100-epoch time is then extrapolated and marked so), `--sweep-s S` and `--sweep-batches
+//! B,B,..` (the launch-path x batch sweep), `--torch-s S` (each PyTorch variant), `--cpu-s S`
+//! (the CPU engine per volume), `--only agree` (only the fused-against-layered check), `--out
+//! FILE` (JSON of everything).
 //! `NEUVOLEX_DATA` names the data folder (default ../shared/data), `NEUVOLEX_TORCH_PYTHON` the
 //! Python with torch. On a software adapter (lavapipe) every figure is correctness evidence,
 //! not speed, and the bench says so.
@@ -25,7 +30,8 @@ use neuvolex_features::tile::Tile;
 use neuvolex_features::train::training_bricks;
 use neuvolex_features::{train, Budget, FeatureKind, InrConfig, TrainConfig, TrainEvent};
 use neuvolex_features_gpu::{
-    train_gpu, write_features_gpu, AdapterKind, EngineOptions, GpuContext, GpuInr,
+    train_gpu, train_gpu_tuned, write_features_gpu, AdapterKind, EngineOptions, GpuContext, GpuInr,
+    GpuTune, MlpPath,
 };
 use serde_json::{json, Value};
 use std::path::{Path, PathBuf};
@@ -217,7 +223,23 @@ fn torch(device: &str, finest: usize, seconds: f64) -> Vec<Value> {
         .map(PathBuf::from)
         .unwrap_or_else(|| Path::new(env!("CARGO_MANIFEST_DIR")).join("inr_torch.py"));
     let mut out = Vec::new();
-    for extra in [&[][..], &["--sparse"][..], &["--compile"][..]] {
+    // On CUDA the strongest settings: fused Adam and CUDA graphs (`reduce-overhead`) beside the
+    // default compile; on the CPU the plain, sparse and compiled variants.
+    let variants: Vec<&[&str]> = if device == "cuda" {
+        vec![
+            &["--compile"],
+            &["--compile", "--fused-adam"],
+            &[
+                "--compile",
+                "--fused-adam",
+                "--compile-mode",
+                "reduce-overhead",
+            ],
+        ]
+    } else {
+        vec![&[], &["--sparse"], &["--compile"]]
+    };
+    for extra in variants {
         let o = std::process::Command::new(&py)
             .arg(&script)
             .args([
@@ -253,8 +275,136 @@ fn torch(device: &str, finest: usize, seconds: f64) -> Vec<Value> {
     out
 }
 
-/// Seconds per kernel of one step of the paper's model on `store`'s first tiles.
+/// Launch path x batch size on `store`: each trains the paper's model for `seconds` from the
+/// same seed; samples/s (steady) and the PSNR reached, so speed and quality are read together.
+fn sweep(ctx: &Arc<GpuContext>, store: &BrickStore, seconds: f64, batches: &[usize]) -> Value {
+    println!("\nlaunch path x batch ({seconds} s of training each, same seed):");
+    println!("| path | batch | micro-batch | samples/s | steps | PSNR dB | peak GPU memory |");
+    println!("|---|---|---|---|---|---|---|");
+    let mut out = Vec::new();
+    for &batch in batches {
+        for mlp in [MlpPath::Layered, MlpPath::Fused] {
+            let mut ev = Vec::new();
+            let c = TrainConfig {
+                batch,
+                ..cfg(1000.0, Some(seconds))
+            };
+            let r = train_gpu_tuned(
+                ctx,
+                store,
+                &InrConfig::default(),
+                &c,
+                None,
+                None,
+                &AtomicBool::new(false),
+                &mut |e| ev.push(e),
+                GpuTune {
+                    mlp,
+                    micro_batch: Some(batch.min(65536)),
+                },
+            );
+            let g = match r {
+                Ok(g) => g,
+                Err(e) => {
+                    println!("| {} | {batch} | - | failed: {e} | | | |", mlp.name());
+                    continue;
+                }
+            };
+            let curve = curve_of(&ev);
+            let sps = steady(&curve);
+            let steps = g.trained.state.samples / batch as u64;
+            println!(
+                "| {} | {batch} | {} | {:.2} M | {steps} | {:.2} | {:.0} MiB |",
+                mlp.name(),
+                g.report.micro_batch,
+                sps / 1e6,
+                g.trained.psnr,
+                g.report.memory.peak_bytes as f64 / 1048576.0
+            );
+            out.push(json!({"path": mlp.name(), "batch": batch, "micro_batch": g.report.micro_batch,
+                "samples_per_s": sps, "steps": steps, "psnr": g.trained.psnr, "seconds": seconds,
+                "peak_gpu_bytes": g.report.memory.peak_bytes,
+                "readback_wait_s": g.report.readback_wait_s, "loader_wait_s": g.report.loader_wait_s}));
+        }
+    }
+    json!(out)
+}
+
+/// The fused path against the layered one on this adapter: one step's loss and gradients of
+/// the paper's model on the same random samples (on lavapipe both are checked against the CPU
+/// engine by `tests/features_gpu.rs`; here the check is that the device runs the fused program
+/// as lavapipe does). Differences relative to the largest gradient of each kind.
+fn paths_agree(ctx: &Arc<GpuContext>, dims: [usize; 3]) -> Value {
+    use neuvolex_features::rng::Rng;
+    let m = neuvolex_features::InrModel::new(&InrConfig::default(), dims, 3);
+    let n = 20000;
+    let mut r = Rng::new(11);
+    let xs: Vec<[f32; 3]> = (0..n).map(|_| [r.f32(), r.f32(), r.f32()]).collect();
+    let ps: Vec<f32> = (0..n * 125).map(|_| r.uniform(-1.0, 1.0)).collect();
+    let ts: Vec<[f32; 6]> = (0..n)
+        .map(|_| {
+            std::array::from_fn(|k| {
+                if k == 0 {
+                    r.f32()
+                } else {
+                    r.uniform(-0.2, 0.2)
+                }
+            })
+        })
+        .collect();
+    let grads = |mlp| {
+        let mut e = GpuInr::new(
+            ctx,
+            &m,
+            None,
+            EngineOptions {
+                batch: n,
+                micro_batch: Some(8192),
+                train: true,
+                slots: 1,
+                brick: 8,
+                order_pairs: 0,
+                mlp,
+            },
+        )
+        .expect("engine");
+        e.gradients(&xs, &ps, &ts).expect("gradients")
+    };
+    let (a, b) = (grads(MlpPath::Layered), grads(MlpPath::Fused));
+    let rel = |x: &[f32], y: &[f32]| {
+        let scale = y
+            .iter()
+            .fold(0.0f64, |m, v| m.max(v.abs() as f64))
+            .max(1e-30);
+        x.iter()
+            .zip(y)
+            .map(|(p, q)| (*p as f64 - *q as f64).abs())
+            .fold(0.0, f64::max)
+            / scale
+    };
+    let (dl, dd, dt) = (
+        (a.loss - b.loss).abs() / a.loss.abs().max(1e-30),
+        rel(&b.dense, &a.dense),
+        rel(&b.table, &a.table),
+    );
+    let ok = dl < 1e-6 && dd < 1e-5 && dt < 1e-5 && a.touched == b.touched;
+    println!(
+        "\nfused against layered on this adapter (paper model, {n} samples, micro-batches of 8192): loss {dl:.1e} relative, dense gradients {dd:.1e}, table gradients {dt:.1e} of the largest; touched entries {}: {}",
+        if a.touched == b.touched { "equal" } else { "DIFFER" },
+        if ok { "PASS (tolerances 1e-6, 1e-5, 1e-5)" } else { "FAIL" }
+    );
+    json!({"loss_rel": dl, "dense_rel": dd, "table_rel": dt, "touched_equal": a.touched == b.touched, "pass": ok})
+}
+
+/// Seconds per kernel of one step of the paper's model on `store`'s first tiles, per path.
 fn profile(ctx: &Arc<GpuContext>, store: &BrickStore) -> Value {
+    json!([MlpPath::Layered, MlpPath::Fused]
+        .into_iter()
+        .map(|p| json!({"path": p.name(), "kernels": profile_path(ctx, store, p)}))
+        .collect::<Vec<_>>())
+}
+
+fn profile_path(ctx: &Arc<GpuContext>, store: &BrickStore, mlp: MlpPath) -> Value {
     let m = neuvolex_features::InrModel::new(&InrConfig::default(), store.info().dims, 0);
     let brick = store.info().brick;
     let mut e = GpuInr::new(
@@ -268,6 +418,7 @@ fn profile(ctx: &Arc<GpuContext>, store: &BrickStore) -> Value {
             slots: 1,
             brick,
             order_pairs: brick.pow(3),
+            mlp,
         },
     )
     .expect("engine");
@@ -289,7 +440,8 @@ fn profile(ctx: &Arc<GpuContext>, store: &BrickStore) -> Value {
     let p = e.profile();
     let total: f64 = p.iter().map(|x| x.2).sum();
     println!(
-        "\nper-kernel time of one 16384-sample step (each dispatch waited for; total {:.2} ms):",
+        "\nper-kernel time of one 16384-sample step, {} path (each dispatch waited for; total {:.2} ms):",
+        mlp.name(),
         total * 1e3
     );
     println!("| kernel | dispatches | ms | share |\n|---|---|---|---|");
@@ -310,7 +462,7 @@ fn profile(ctx: &Arc<GpuContext>, store: &BrickStore) -> Value {
 fn renderer() -> Vec<Value> {
     use neuvolex_render::{BrickSource, RenderParams, Renderer, StoreSource, TfFile};
     let mut out = Vec::new();
-    println!("\n| volume | size | CPU ms/frame | wgpu ms/frame | ratio |\n|---|---|---|---|---|");
+    println!("\n| volume | size | CPU ms/frame | wgpu ms/frame, still camera | CPU / wgpu | wgpu ms/frame, orbiting (new view each frame) | wgpu fps orbiting |\n|---|---|---|---|---|---|---|");
     for (name, rel, preset) in [
         ("bonsai", "scivis/bonsai.nii.gz", "grey"),
         ("abdomen_ct", "abdomen_ct/ct.nii.gz", "ct-bone"),
@@ -319,7 +471,7 @@ fn renderer() -> Vec<Value> {
         let dir = tempfile::tempdir().expect("tmp");
         let st = Arc::new(store_for(&src, dir.path()));
         let tf = TfFile::preset(preset).expect("preset");
-        for size in [512usize, 1024] {
+        for size in [512usize, 1024, 2048] {
             let p = RenderParams::bench_view(size);
             let source = StoreSource::new(st.clone());
             let luts = tf.compile(&source.normaliser(), &source.classes());
@@ -335,17 +487,31 @@ fn renderer() -> Vec<Value> {
                 continue;
             };
             g.render(&p, &luts).expect("gpu render");
-            let gpu = neuvolex_benches::median(3, || {
+            let gpu = neuvolex_benches::median(5, || {
                 g.render(&p, &luts).expect("gpu render");
             })
             .as_secs_f64()
                 * 1e3;
+            // A camera that moves every frame (2 degrees of azimuth), as a user orbits.
+            let mut az = p.camera.azimuth;
+            let orbit = neuvolex_benches::median(9, || {
+                az += 2.0;
+                let mut q = p;
+                q.camera.azimuth = az;
+                g.render(&q, &luts).expect("gpu render");
+            })
+            .as_secs_f64()
+                * 1e3;
             println!(
-                "| {name} | {size}^2 | {cpu:.1} | {gpu:.1} (on {}) | {:.1}x |",
+                "| {name} | {size}^2 | {cpu:.1} | {gpu:.1} (on {}) | {:.1}x | {orbit:.1} | {:.0} |",
                 g.adapter(),
-                cpu / gpu
+                cpu / gpu,
+                1e3 / orbit
             );
-            out.push(json!({"volume": name, "size": size, "cpu_ms": cpu, "gpu_ms": gpu, "adapter": g.adapter()}));
+            out.push(
+                json!({"volume": name, "size": size, "cpu_ms": cpu, "gpu_ms": gpu,
+                "gpu_orbit_ms": orbit, "adapter": g.adapter()}),
+            );
         }
     }
     out
@@ -368,6 +534,14 @@ fn main() {
     let quick = args.iter().any(|a| a == "--quick");
     let large_epochs: f64 = arg(&args, "--large-epochs", if quick { 1.0 } else { 100.0 });
     let cap_s: f64 = arg(&args, "--cap-s", 480.0);
+    // The launch-path x batch sweep: seconds per run and the batches (comma-separated).
+    let sweep_s: f64 = arg(&args, "--sweep-s", if quick { 2.0 } else { 8.0 });
+    let sweep_batches: Vec<usize> = arg(&args, "--sweep-batches", "16384,65536,262144".to_string())
+        .split(',')
+        .filter_map(|v| v.trim().parse().ok())
+        .collect();
+    let torch_s: f64 = arg(&args, "--torch-s", if quick { 8.0 } else { 20.0 });
+    let cpu_s: f64 = arg(&args, "--cpu-s", if quick { 5.0 } else { 15.0 });
     let out: Option<PathBuf> = arg(&args, "--out", String::new())
         .parse()
         .ok()
@@ -384,6 +558,15 @@ fn main() {
     }
     let mut report =
         json!({"machine": machine(), "adapter": ctx.describe(), "software": ctx.is_software()});
+    // `--only agree`: just the fused-against-layered check (a quick smoke test of a build).
+    if arg(&args, "--only", String::new()) == "agree" {
+        report["paths_agree"] = paths_agree(&ctx, [103, 94, 161]);
+        if let Some(o) = out {
+            std::fs::write(&o, serde_json::to_vec_pretty(&report).expect("json"))
+                .expect("write report");
+        }
+        return;
+    }
     volume_table_header();
     let mut vols = Vec::new();
     let mut tooth_sps = f64::NAN;
@@ -408,17 +591,13 @@ fn main() {
     for (name, src, epochs, cap) in &cases {
         let dir = tempfile::tempdir_in(work.path()).expect("tmp");
         let store = store_for(src, dir.path());
-        let v = gpu_volume(
-            &ctx,
-            name,
-            &store,
-            *epochs,
-            *cap,
-            if quick { 5.0 } else { 15.0 },
-        );
+        let v = gpu_volume(&ctx, name, &store, *epochs, *cap, cpu_s);
         if name == "CT-Tooth" {
             tooth_sps = v["train_samples_per_s"].as_f64().unwrap_or(f64::NAN);
+            report["paths_agree"] = paths_agree(&ctx, store.info().dims);
             report["profile"] = profile(&ctx, &store);
+            report["sweep"] = sweep(&ctx, &store, sweep_s, &sweep_batches);
+            volume_table_header();
         }
         vols.push(v);
     }
@@ -427,7 +606,7 @@ fn main() {
     } else {
         "cpu"
     };
-    let t = torch(device, 161, if quick { 8.0 } else { 20.0 });
+    let t = torch(device, 161, torch_s);
     if let Some(best) = t.iter().max_by(|a, b| {
         a["train_samples_per_s"]
             .as_f64()
@@ -439,13 +618,22 @@ fn main() {
             "\nPyTorch on {device} (CT-Tooth model sizes): {}",
             t.iter()
                 .map(|v| format!(
-                    "{}{}: {:.2} M samples/s",
+                    "{}{}{}{}: {:.2} M samples/s",
                     if v["sparse"] == true {
                         "sparse"
                     } else {
                         "dense"
                     },
+                    if v["fused_adam"] == true {
+                        " fused Adam"
+                    } else {
+                        ""
+                    },
                     if v["compile"] == true { "+compile" } else { "" },
+                    match v["compile_mode"].as_str() {
+                        Some(m) if m != "default" => format!(" ({m})"),
+                        _ => String::new(),
+                    },
                     v["train_samples_per_s"].as_f64().unwrap_or(0.0) / 1e6
                 ))
                 .collect::<Vec<_>>()
@@ -471,7 +659,7 @@ fn main() {
         &store,
         large_epochs,
         Some(cap_s),
-        if quick { 5.0 } else { 15.0 },
+        cpu_s,
     ));
     report["volumes"] = json!(vols);
     if let Some(o) = out {

@@ -4,52 +4,25 @@
 // gather of per-voxel features. Reductions run in a fixed order, so a seed gives one result.
 // The arithmetic mirrors services/features/src/model.rs and adam.rs.
 
-struct Args {
-    a: vec4<u32>,
-    b: vec4<u32>,
-    c: vec4<u32>,
-    d: vec4<u32>,
-    f: vec4<f32>,
-    g: vec4<f32>,
-};
-@group(0) @binding(0) var<uniform> A: Args;
+@group(0) @binding(0) var<uniform> A: Elem;
 
-// FiLM forward: inp[j][s] = pos[j][s] * (gamma[j][s] + 1) + beta[j][s].
-// a: n, enc, -, - | b: pos off, pos stride, gb off, gb stride | c: inp off, inp stride
+// FiLM forward (film_fwd_at, inr_layers.wgsl): one invocation per (sample, feature).
 @compute @workgroup_size(256)
 fn film_fwd(@builtin(global_invocation_id) gid: vec3<u32>) {
-    let s = gid.x;
-    let j = gid.y;
-    if (s >= A.a.x) {
-        return;
+    if (gid.x < A.a.x) {
+        film_fwd_at(A, gid.y, gid.x);
     }
-    let e = A.a.y;
-    let p = arena[A.b.x + j * A.b.y + s];
-    let g = arena[A.b.z + j * A.b.w + s];
-    let b = arena[A.b.z + (e + j) * A.b.w + s];
-    arena[A.c.x + j * A.c.y + s] = p * (g + 1.0) + b;
 }
 
-// FiLM backward: dpos = d (gamma + 1), dgamma = d pos, dbeta = d, with d = dL/dinp.
-// a: n, enc | b: pos off, stride, gb off, stride | c: dinp off, stride | d: dpos off, stride,
-// dgb off, stride
+// FiLM backward (film_bwd_at): one invocation per (sample, feature).
 @compute @workgroup_size(256)
 fn film_bwd(@builtin(global_invocation_id) gid: vec3<u32>) {
-    let s = gid.x;
-    let j = gid.y;
-    if (s >= A.a.x) {
-        return;
+    if (gid.x < A.a.x) {
+        film_bwd_at(A, gid.y, gid.x);
     }
-    let e = A.a.y;
-    let d = arena[A.c.x + j * A.c.y + s];
-    let g = arena[A.b.z + j * A.b.w + s];
-    arena[A.d.x + j * A.d.y + s] = d * (g + 1.0);
-    arena[A.d.z + j * A.d.w + s] = d * arena[A.b.x + j * A.b.y + s];
-    arena[A.d.z + (e + j) * A.d.w + s] = d;
 }
 
 var<workgroup> red_u: array<u32, 256>;
-var<workgroup> red_f: array<vec2<f32>, 256>;
 
 // The largest |x| over rows x samples of a matrix, as bits, into acc_hi[misc] (atomic max of
 // non-negative floats' bit patterns, which order like the floats).
@@ -75,38 +48,19 @@ fn absmax(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invocati
     }
 }
 
-// Loss and output gradient: loss += w_k (y_k - t_k)^2 / B, dy_k = 2 w_k (y_k - t_k) / B, and the
-// intensity error for the PSNR; each workgroup writes its (loss, sse) partial.
-// a: n, outputs, y off, y stride | b: t off, t stride, dy off, dy stride
-// c: loss weights off, partials off | f: 1 / B
+// Loss and output gradient (loss_at, inr_layers.wgsl), one invocation per sample; each
+// workgroup writes its (loss, sse) partial at `c.y + 2 wg`.
 @compute @workgroup_size(256)
 fn loss(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invocation_index) li: u32,
         @builtin(workgroup_id) wg: vec3<u32>) {
-    let s = gid.x;
     var part = vec2<f32>(0.0);
-    if (s < A.a.x) {
-        let inv = A.f.x;
-        for (var k = 0u; k < A.a.y; k++) {
-            let e = arena[A.a.z + k * A.a.w + s] - arena[A.b.x + k * A.b.y + s];
-            let w = arena[A.c.x + k];
-            part.x += w * e * e * inv;
-            arena[A.b.z + k * A.b.w + s] = 2.0 * w * e * inv;
-            if (k == 0u) {
-                part.y = e * e;
-            }
-        }
+    if (gid.x < A.a.x) {
+        part = loss_at(A, gid.x);
     }
-    red_f[li] = part;
-    workgroupBarrier();
-    for (var w = 128u; w > 0u; w >>= 1u) {
-        if (li < w) {
-            red_f[li] = red_f[li] + red_f[li + w];
-        }
-        workgroupBarrier();
-    }
+    let sum = block_sum(li, part, 256u);
     if (li == 0u) {
-        arena[A.c.y + 2u * wg.x] = red_f[0].x;
-        arena[A.c.y + 2u * wg.x + 1u] = red_f[0].y;
+        arena[A.c.y + 2u * wg.x] = sum.x;
+        arena[A.c.y + 2u * wg.x + 1u] = sum.y;
     }
 }
 

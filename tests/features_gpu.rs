@@ -17,7 +17,8 @@ use neuvolex_features::{
     train, Ablation, Budget, FeatureKind, InrConfig, InrModel, TableAdam, TrainConfig, TrainEvent,
 };
 use neuvolex_features_gpu::{
-    train_gpu, write_features_gpu, AdapterKind, EngineOptions, GpuContext, GpuError, GpuInr,
+    train_gpu, train_gpu_tuned, write_features_gpu, AdapterKind, EngineOptions, GpuContext,
+    GpuError, GpuInr, GpuTune, MlpPath,
 };
 use neuvolex_tests::{blobs, store_of, tmp};
 use std::sync::atomic::AtomicBool;
@@ -41,7 +42,7 @@ fn gpu() -> Option<Arc<GpuContext>> {
     }
 }
 
-fn small_model(ab: Ablation, seed: u64, hidden: usize, patch: usize) -> InrModel {
+fn deep_model(ab: Ablation, seed: u64, hidden: usize, patch: usize, layers: usize) -> InrModel {
     let cfg = InrConfig {
         levels: 4,
         log2_table: 10,
@@ -50,7 +51,7 @@ fn small_model(ab: Ablation, seed: u64, hidden: usize, patch: usize) -> InrModel
         patch,
         structural_hidden: 8,
         hidden,
-        hidden_layers: 4,
+        hidden_layers: layers,
         ablation: ab,
         ..Default::default()
     };
@@ -98,22 +99,27 @@ fn rel(a: &[f32], b: &[f32]) -> f64 {
 }
 
 /// The stated tolerance of one step: loss within 1e-6 relative; every dense and table
-/// gradient within 1e-5 of the largest gradient of its kind. Measured on lavapipe: loss
-/// 1e-8, gradients 1e-7 to 5e-7 (printed).
+/// gradient within 1e-5 of the largest gradient of its kind; on both the layered and the fused
+/// path. Measured on lavapipe: loss 1e-8, gradients 1e-7 to 8e-7 (printed).
 #[test]
 fn one_step_loss_and_gradients_equal_the_cpu_engine_for_every_ablation() {
     let Some(ctx) = gpu() else { return };
-    // Every ablation at width 16, and the full model with 72-wide layers (two row tiles of the
-    // GEMM, the second partial) and the paper's 5x5x5 patch (125 inputs, eight k-slices).
+    // Every ablation at width 16, the full model with 72-wide layers (two row tiles of the
+    // GEMM, the second partial) and the paper's 5x5x5 patch (125 inputs, eight k-slices), and
+    // a 20-layer model whose fused program (about 80 operations) takes two dispatches.
     let cases = [
-        (Ablation::Base, 16, 3),
-        (Ablation::Structural, 16, 3),
-        (Ablation::Film, 16, 3),
-        (Ablation::Full, 16, 3),
-        (Ablation::Full, 72, 5),
+        (Ablation::Base, 16, 3, 4),
+        (Ablation::Structural, 16, 3, 4),
+        (Ablation::Film, 16, 3, 4),
+        (Ablation::Full, 16, 3, 4),
+        (Ablation::Full, 72, 5, 4),
+        (Ablation::Full, 16, 3, 20),
     ];
-    for (ab, hidden, patch) in cases {
-        let m = small_model(ab, 1, hidden, patch);
+    for (path, (ab, hidden, patch, layers)) in [MlpPath::Layered, MlpPath::Fused]
+        .into_iter()
+        .flat_map(|p| cases.map(|c| (p, c)))
+    {
+        let m = deep_model(ab, 1, hidden, patch, layers);
         let n = 700;
         let (xs, ps, ts) = samples(&m, n);
         // CPU: one lane over chunks of CHUNK, then the table scatter.
@@ -147,30 +153,25 @@ fn one_step_loss_and_gradients_equal_the_cpu_engine_for_every_ablation() {
                 slots: 1,
                 brick: 8,
                 order_pairs: 0,
+                mlp: path,
             },
         )
         .unwrap();
         let gg = g.gradients(&xs, &ps, &ts).unwrap();
+        let ab = format!("{ab:?} {layers} layers, {}", path.name());
         let dl = (gg.loss - w.loss).abs() / w.loss;
         let dd = rel(&gg.dense, &w.grad);
         let dt = rel(&gg.table, &tg.g);
         let touched = gg.touched.iter().filter(|&&t| t).count();
         eprintln!(
-            "{ab:?}: loss {:.3e} rel {dl:.2e}, dense {dd:.2e}, table {dt:.2e}, touched {touched}",
+            "{ab}: loss {:.3e} rel {dl:.2e}, dense {dd:.2e}, table {dt:.2e}, touched {touched}",
             w.loss
         );
-        assert!(dl < 1e-6, "{ab:?}: loss {} vs {}", gg.loss, w.loss);
-        assert!(
-            (gg.sse - w.sse_int).abs() <= 1e-6 * w.sse_int,
-            "{ab:?}: sse"
-        );
-        assert!(dd < 1e-5, "{ab:?}: dense gradients differ by {dd:e}");
-        assert!(dt < 1e-5, "{ab:?}: table gradients differ by {dt:e}");
-        assert_eq!(
-            touched,
-            tg.touched_params(),
-            "{ab:?}: touched table entries"
-        );
+        assert!(dl < 1e-6, "{ab}: loss {} vs {}", gg.loss, w.loss);
+        assert!((gg.sse - w.sse_int).abs() <= 1e-6 * w.sse_int, "{ab}: sse");
+        assert!(dd < 1e-5, "{ab}: dense gradients differ by {dd:e}");
+        assert!(dt < 1e-5, "{ab}: table gradients differ by {dt:e}");
+        assert_eq!(touched, tg.touched_params(), "{ab}: touched table entries");
         // Untouched entries have no gradient.
         assert!(gg
             .table
@@ -260,9 +261,21 @@ fn gpu_run(
     resume: Option<Loaded>,
     ckpt: Option<&std::path::Path>,
 ) -> (InrModel, Vec<TrainEvent>) {
+    gpu_run_on(ctx, store, inr, c, resume, ckpt, MlpPath::default())
+}
+
+fn gpu_run_on(
+    ctx: &Arc<GpuContext>,
+    store: &BrickStore,
+    inr: &InrConfig,
+    c: &TrainConfig,
+    resume: Option<Loaded>,
+    ckpt: Option<&std::path::Path>,
+    mlp: MlpPath,
+) -> (InrModel, Vec<TrainEvent>) {
     let mut ev = Vec::new();
     let ckpt = ckpt.map(neuvolex_bricks::StoreLocation::from);
-    let t = train_gpu(
+    let t = train_gpu_tuned(
         ctx,
         store,
         inr,
@@ -271,6 +284,10 @@ fn gpu_run(
         ckpt.as_ref(),
         &AtomicBool::new(false),
         &mut |e| ev.push(e),
+        GpuTune {
+            mlp,
+            ..GpuTune::default()
+        },
     )
     .unwrap();
     (t.trained.model, ev)
@@ -291,7 +308,7 @@ fn param_diff(a: &InrModel, b: &InrModel) -> (f64, f64, f64, f64) {
 }
 
 /// N = 8 steps through the real tile path (store, tile ring, sample order, groups crossing
-/// tile groups) on both engines, lazy and dense table Adam. Stated tolerance: every step's loss
+/// tile groups) on both engines, lazy and dense table Adam, the GPU on both its paths. Stated tolerance: every step's loss
 /// within 1e-5 relative; mean parameter difference below 1e-4 x lr; no parameter further apart
 /// than 1e-2 x lr (Adam moves a parameter by up to about lr per step, so this is far below
 /// one step). Measured on lavapipe: loss 7e-8 relative, parameters mean 3e-10, largest 3e-7,
@@ -305,26 +322,29 @@ fn training_steps_equal_the_cpu_engine() {
         let c = cfg(steps * BATCH, mode);
         let inr = small_inr(Ablation::Full);
         let (cm, ce) = cpu_run(&store, &inr, &c, None, None);
-        let (gm, ge) = gpu_run(&ctx, &store, &inr, &c, None, None);
-        let (cl, gl) = (losses(&ce), losses(&ge));
-        assert!(cl.len() >= steps as usize, "{mode:?}: one event per step");
-        assert_eq!(gl.len(), cl.len(), "{mode:?}: GPU events");
-        let worst = cl
-            .iter()
-            .zip(&gl)
-            .map(|(a, b)| (a - b).abs() / a)
-            .fold(0.0, f64::max);
-        let (tm, tx, dm, dx) = param_diff(&cm, &gm);
-        eprintln!("{mode:?}: loss rel {worst:.2e}; table mean {tm:.2e} max {tx:.2e}; dense mean {dm:.2e} max {dx:.2e}");
-        assert!(worst < 1e-5, "{mode:?}: losses {cl:?} vs {gl:?}");
-        assert!(
-            tm < 1e-4 * c.lr_table as f64 && tx <= 1e-2 * c.lr_table as f64,
-            "{mode:?}: table"
-        );
-        assert!(
-            dm < 1e-4 * c.lr as f64 && dx <= 1e-2 * c.lr as f64,
-            "{mode:?}: dense"
-        );
+        for path in [MlpPath::Layered, MlpPath::Fused] {
+            let mode = format!("{mode:?} {}", path.name());
+            let (gm, ge) = gpu_run_on(&ctx, &store, &inr, &c, None, None, path);
+            let (cl, gl) = (losses(&ce), losses(&ge));
+            assert!(cl.len() >= steps as usize, "{mode}: one event per step");
+            assert_eq!(gl.len(), cl.len(), "{mode}: GPU events");
+            let worst = cl
+                .iter()
+                .zip(&gl)
+                .map(|(a, b)| (a - b).abs() / a)
+                .fold(0.0, f64::max);
+            let (tm, tx, dm, dx) = param_diff(&cm, &gm);
+            eprintln!("{mode}: loss rel {worst:.2e}; table mean {tm:.2e} max {tx:.2e}; dense mean {dm:.2e} max {dx:.2e}");
+            assert!(worst < 1e-5, "{mode}: losses {cl:?} vs {gl:?}");
+            assert!(
+                tm < 1e-4 * c.lr_table as f64 && tx <= 1e-2 * c.lr_table as f64,
+                "{mode}: table"
+            );
+            assert!(
+                dm < 1e-4 * c.lr as f64 && dx <= 1e-2 * c.lr as f64,
+                "{mode}: dense"
+            );
+        }
     }
 }
 

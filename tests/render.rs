@@ -634,3 +634,113 @@ fn gpu_and_cpu_images_agree() {
         worst.1
     );
 }
+
+/// The GPU renderer keeps bricks resident between frames: over a moving camera, changed
+/// transfer functions and modes, and new probabilities (invalidated by brick), every frame
+/// equals a fresh renderer's, bit for bit; a repeated frame uploads no brick, and a change of
+/// one brick's probabilities uploads only it and its neighbours. The same holds with pages of
+/// about a dozen bricks and a budget of nine (evicting within frames).
+#[cfg(feature = "gpu")]
+#[test]
+fn gpu_resident_frames_equal_fresh_renders() {
+    let dims = [40, 36, 32];
+    let (v, p) = scene(dims);
+    let mk =
+        |p: &[u8]| MemSource::new(geom(dims, 8), v.clone(), two_classes(), p.to_vec()).unwrap();
+    // New probabilities in brick (1, 1, 1): class 2 everywhere in it.
+    let mut p2 = p.clone();
+    for z in 8..16 {
+        for y in 8..16 {
+            for x in 8..16 {
+                let i = (z * dims[1] + y) * dims[0] + x;
+                p2[2 * i] = 0;
+                p2[2 * i + 1] = 255;
+            }
+        }
+    }
+    let grey = TfFile::preset("grey").unwrap();
+    let other = tf(r#"{"space":"normalised",
+        "intensity":{"color":[[0,1,0.5,0],[1,0,0.5,1]],"opacity":[[0.2,0],[1,0.6]]},
+        "classes":[
+        {"id":1,"tau":0.3,"probability":{"opacity":[[0,0],[1,0.5]]},"intensity":{"opacity":[[0,0.1],[1,0.8]]}},
+        {"id":2,"tau":0.3,"probability":{"opacity":[[0,0],[1,0.9]]},"intensity":{"opacity":[[0.3,0],[1,0.5]]}}]}"#);
+    let frame = |mode, azimuth, elevation, projection| RenderParams {
+        width: 80,
+        height: 64,
+        mode,
+        shading: Some(neuvolex_render::Shading::default()),
+        camera: Camera {
+            azimuth,
+            elevation,
+            projection,
+            ..Camera::default()
+        },
+        background: [0.1, 0.1, 0.2],
+        ..RenderParams::default()
+    };
+    let (pi, pr, it) = (Mode::ProbIntensity, Mode::Probabilistic, Mode::Intensity);
+    let (persp, ortho) = (Projection::Perspective, Projection::Orthographic);
+    // (params, transfer function, new probabilities before the frame)
+    let frames = [
+        (frame(pi, 40.0, 25.0, persp), &grey, false),
+        (frame(pi, 40.0, 25.0, persp), &grey, false),
+        (frame(pi, 75.0, 10.0, persp), &grey, false),
+        (frame(pi, 75.0, 10.0, persp), &other, false),
+        (frame(pr, 110.0, -20.0, ortho), &other, false),
+        (frame(it, 110.0, -20.0, persp), &grey, false),
+        (frame(pi, 110.0, -20.0, persp), &other, true),
+        (frame(pi, 110.0, -20.0, persp), &other, false),
+    ];
+    for small in [false, true] {
+        let Some(mut g) = gpu(mk(&p)) else {
+            return;
+        };
+        if small {
+            g.set_max_batch_bytes(50_000);
+            g.set_resident_bytes(100_000);
+        }
+        let mut probs = &p;
+        let mut evicted = 0;
+        for (n, (params, t, change)) in frames.iter().enumerate() {
+            if *change {
+                g.source_mut().set_probs(p2.clone()).unwrap();
+                g.invalidate(&[[1, 1, 1]]).unwrap();
+                probs = &p2;
+            }
+            let luts = t.compile(&g.source().normaliser(), &g.source().classes());
+            let img = g.render(params, &luts).unwrap();
+            let s = g.last_stats;
+            eprintln!("small {small} frame {n}: {s:?}");
+            evicted += s.evicted;
+            let want = gpu(mk(probs)).unwrap().render(params, &luts).unwrap();
+            assert!(
+                img.alpha.iter().any(|&a| a > 0.3),
+                "frame {n}: something is drawn"
+            );
+            assert!(
+                img == want,
+                "small {small} frame {n}: differs from a fresh renderer's: {:?}",
+                img.diff(&want)
+            );
+            if !small && n == 1 {
+                assert_eq!(
+                    (s.loaded, s.uploaded, s.brick_bytes),
+                    (0, 0, 0),
+                    "a repeated frame uploads nothing"
+                );
+                assert_eq!(s.batches, 1);
+            }
+            if !small && *change {
+                assert!(
+                    s.uploaded > 0 && s.uploaded <= 27,
+                    "re-uploaded {} bricks",
+                    s.uploaded
+                );
+            }
+        }
+        assert!(g.invalidate(&[[9, 9, 9]]).is_err(), "outside the grid");
+        if small {
+            assert!(evicted > 0, "a budget of nine bricks evicts");
+        }
+    }
+}

@@ -4,10 +4,14 @@
 use crate::error::{GpuError, Result};
 use std::sync::{Arc, Mutex};
 
-/// The shared WGSL header (bindings and helpers) and the three kernel modules.
+/// The shared WGSL header (bindings and helpers) and the kernel modules.
 pub const COMMON_WGSL: &str = include_str!("../../../shaders/inr_common.wgsl");
-/// The tiled GEMM of every dense layer, forward and backward.
+/// The layer arithmetic (GEMM tile, FiLM, loss) shared by the layered and fused kernels.
+pub const LAYERS_WGSL: &str = include_str!("../../../shaders/inr_layers.wgsl");
+/// The layered path's GEMM: one dispatch per dense layer, forward and backward.
 pub const GEMM_WGSL: &str = include_str!("../../../shaders/inr_gemm.wgsl");
+/// The fused path: a micro-batch's whole forward, loss and backward in one dispatch.
+pub const FUSED_WGSL: &str = include_str!("../../../shaders/inr_fused.wgsl");
 /// Sample staging, the hash-grid gather and the fixed-point table-gradient scatter.
 pub const GRID_WGSL: &str = include_str!("../../../shaders/inr_grid.wgsl");
 /// FiLM, loss, reductions, Adam and the feature gather.
@@ -47,9 +51,11 @@ pub enum Kernel {
     AdamTable,
     /// Per-voxel feature gather.
     Gather,
+    /// A list of layer operations run per block of samples in one dispatch.
+    Fused,
 }
 
-const KERNELS: [(Kernel, usize, &str); 11] = [
+const KERNELS: [(Kernel, usize, &str); 12] = [
     (Kernel::Gemm, 0, "gemm"),
     (Kernel::Stage, 1, "stage"),
     (Kernel::Encode, 1, "encode"),
@@ -61,10 +67,16 @@ const KERNELS: [(Kernel, usize, &str); 11] = [
     (Kernel::ReduceAdam, 2, "reduce_adam"),
     (Kernel::AdamTable, 2, "adam_table"),
     (Kernel::Gather, 2, "gather"),
+    (Kernel::Fused, 3, "fused"),
 ];
 
 /// Bytes of one dispatch's arguments (every kernel's uniform struct fits).
 pub const ARGS_BYTES: u64 = 96;
+/// Operations in one fused dispatch (`shaders/inr_fused.wgsl` `MAX_OPS`).
+pub const FUSED_OPS: usize = 64;
+/// Bytes of the uniform window bound per dispatch: the fused program (a 16-byte header and
+/// [`FUSED_OPS`] records of [`ARGS_BYTES`]), which every other kernel's arguments fit in.
+pub const WINDOW_BYTES: u64 = 16 + FUSED_OPS as u64 * ARGS_BYTES;
 
 #[derive(Debug, Default)]
 struct Memory {
@@ -275,7 +287,7 @@ impl GpuContext {
             ty: wgpu::BindingType::Buffer {
                 ty: wgpu::BufferBindingType::Uniform,
                 has_dynamic_offset: true,
-                min_binding_size: wgpu::BufferSize::new(ARGS_BYTES),
+                min_binding_size: wgpu::BufferSize::new(WINDOW_BYTES),
             },
             count: None,
         }];
@@ -291,15 +303,16 @@ impl GpuContext {
             immediate_size: 0,
         });
         let modules: Vec<wgpu::ShaderModule> = [
-            ("inr_gemm.wgsl", GEMM_WGSL),
-            ("inr_grid.wgsl", GRID_WGSL),
-            ("inr_ops.wgsl", OPS_WGSL),
+            ("inr_gemm.wgsl", LAYERS_WGSL, GEMM_WGSL),
+            ("inr_grid.wgsl", "", GRID_WGSL),
+            ("inr_ops.wgsl", LAYERS_WGSL, OPS_WGSL),
+            ("inr_fused.wgsl", LAYERS_WGSL, FUSED_WGSL),
         ]
         .iter()
-        .map(|(name, src)| {
+        .map(|(name, layers, src)| {
             device.create_shader_module(wgpu::ShaderModuleDescriptor {
                 label: Some(name),
-                source: wgpu::ShaderSource::Wgsl(format!("{COMMON_WGSL}\n{src}").into()),
+                source: wgpu::ShaderSource::Wgsl(format!("{COMMON_WGSL}\n{layers}\n{src}").into()),
             })
         })
         .collect();

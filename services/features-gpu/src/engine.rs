@@ -5,9 +5,9 @@
 //! bound at a dynamic offset per dispatch, and submitted without waiting: the host runs ahead
 //! of the GPU and reads the step's loss back later (see `train`).
 
-use crate::context::{GpuContext, Kernel, Tracked, ARGS_BYTES};
+use crate::context::{GpuContext, Kernel, Tracked, ARGS_BYTES, FUSED_OPS, WINDOW_BYTES};
 use crate::error::{GpuError, Result};
-use crate::plan::{loss_groups, splits, Mat, Plan, SPLIT, STATS_RING, WG};
+use crate::plan::{Mat, Plan, FUSED_BLOCK, STATS_RING, WG};
 use neuvolex_features::adam::Adam;
 use neuvolex_features::hashgrid::HashGrid;
 use neuvolex_features::model::{DenseLayout, FeatureKind, InrModel, LayerSpec, TARGETS};
@@ -39,6 +39,39 @@ pub fn loss_weights(cfg: &InrConfig, outputs: usize) -> Vec<f32> {
     w
 }
 
+/// How the dense layers of a micro-batch are launched.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum MlpPath {
+    /// One dispatch per layer operation over the whole micro-batch (about 35 for the paper's
+    /// model), each a tiled GEMM or an element-wise kernel: the reference path.
+    Layered,
+    /// The forward pass, the loss and the backward pass in one dispatch: each workgroup runs
+    /// every operation on its own block of 64 samples, with a barrier between operations
+    /// (tiny-cuda-nn's fully fused MLP). The same arithmetic per operation; the weight
+    /// gradients and losses are summed over blocks of 64 instead of 256.
+    #[default]
+    Fused,
+}
+
+impl MlpPath {
+    /// `layered` or `fused`.
+    pub fn name(self) -> &'static str {
+        match self {
+            MlpPath::Layered => "layered",
+            MlpPath::Fused => "fused",
+        }
+    }
+
+    /// The path named `s` (`layered` or `fused`).
+    pub fn parse(s: &str) -> Option<Self> {
+        match s {
+            "layered" => Some(MlpPath::Layered),
+            "fused" => Some(MlpPath::Fused),
+            _ => None,
+        }
+    }
+}
+
 /// How an engine is sized.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct EngineOptions {
@@ -54,6 +87,8 @@ pub struct EngineOptions {
     pub brick: usize,
     /// Sample pairs per half of the order buffer (a tile group's voxels).
     pub order_pairs: usize,
+    /// How the dense layers are launched.
+    pub mlp: MlpPath,
 }
 
 impl EngineOptions {
@@ -66,6 +101,7 @@ impl EngineOptions {
             slots: 2,
             brick,
             order_pairs: 0,
+            mlp: MlpPath::default(),
         }
     }
 }
@@ -96,20 +132,71 @@ pub struct Gradients {
     pub touched: Vec<bool>,
 }
 
+/// Codes of the fused program's operations (`shaders/inr_fused.wgsl`).
+#[derive(Debug, Clone, Copy)]
+enum Op {
+    /// A GEMM over the block's columns (forward, backward data).
+    Cols = 0,
+    /// A weight gradient into the block's partial.
+    Wgrad = 1,
+    FilmFwd = 2,
+    FilmBwd = 3,
+    Loss = 4,
+}
+
 #[derive(Default)]
 struct Program {
     args: Vec<u8>,
     calls: Vec<(Kernel, u32, [u32; 3])>,
     stride: usize,
+    /// While fusing: the operations recorded since `begin_fuse`.
+    fusing: Option<Vec<[u32; 24]>>,
 }
 
 impl Program {
     fn push(&mut self, k: Kernel, a: [u32; 24], groups: [u32; 3]) {
+        self.push_words(k, &a, groups);
+    }
+
+    fn push_words(&mut self, k: Kernel, a: &[u32], groups: [u32; 3]) {
         let off = self.args.len();
-        self.args.extend_from_slice(bytemuck::cast_slice(&a));
-        self.args.resize(off + self.stride, 0);
+        self.args.extend_from_slice(bytemuck::cast_slice(a));
+        self.args
+            .resize(off + (a.len() * 4).div_ceil(self.stride) * self.stride, 0);
         if groups.iter().all(|&g| g > 0) {
             self.calls.push((k, off as u32, groups));
+        }
+    }
+
+    /// A layer operation: recorded into the fused program while fusing, else dispatched.
+    fn op(&mut self, op: Op, k: Kernel, mut a: [u32; 24], groups: [u32; 3]) {
+        match &mut self.fusing {
+            Some(ops) => {
+                a[23] = op as u32;
+                ops.push(a);
+            }
+            None => self.push(k, a, groups),
+        }
+    }
+
+    /// From here until `end_fuse`, layer operations go into one fused program.
+    fn begin_fuse(&mut self) {
+        self.fusing = Some(Vec::new());
+    }
+
+    /// Dispatches the operations recorded since `begin_fuse` over `n` samples, in programs of
+    /// at most [`FUSED_OPS`] operations (a dispatch boundary is a full barrier, so a longer
+    /// list split in two computes the same).
+    fn end_fuse(&mut self, n: usize) {
+        let Some(ops) = self.fusing.take() else {
+            return;
+        };
+        for chunk in ops.chunks(FUSED_OPS) {
+            let mut w = vec![chunk.len() as u32, n as u32, 0, 0];
+            for a in chunk {
+                w.extend_from_slice(a);
+            }
+            self.push_words(Kernel::Fused, &w, [n.div_ceil(FUSED_BLOCK) as u32, 1, 1]);
         }
     }
 }
@@ -178,7 +265,13 @@ impl GpuInr {
             .min(opts.batch.max(1))
             .max(1);
         let plan = loop {
-            let p = Plan::new(model, mb, opts.batch, opts.train);
+            let p = Plan::new(
+                model,
+                mb,
+                opts.batch,
+                opts.train,
+                opts.mlp == MlpPath::Fused,
+            );
             if p.len <= max {
                 break p;
             }
@@ -238,7 +331,11 @@ impl GpuInr {
             .limits
             .min_uniform_buffer_offset_alignment
             .max(ARGS_BYTES as u32) as u64;
-        let args = ctx.buffer("arguments", 64 * align, wgpu::BufferUsages::UNIFORM | cd)?;
+        let args = ctx.buffer(
+            "arguments",
+            64 * align + WINDOW_BYTES,
+            wgpu::BufferUsages::UNIFORM | cd,
+        )?;
         let bind = Self::bind_group(
             ctx,
             &[
@@ -295,7 +392,7 @@ impl GpuInr {
                     wgpu::BindingResource::Buffer(wgpu::BufferBinding {
                         buffer: &buf.buf,
                         offset: 0,
-                        size: wgpu::BufferSize::new(ARGS_BYTES),
+                        size: wgpu::BufferSize::new(WINDOW_BYTES),
                     })
                 } else {
                     buf.as_entire_binding()
@@ -439,8 +536,9 @@ impl GpuInr {
         prog: Program,
         after: impl FnOnce(&mut wgpu::CommandEncoder),
     ) -> Result<wgpu::SubmissionIndex> {
-        if prog.args.len() as u64 > self.args.size() {
-            let size = (prog.args.len() as u64).next_power_of_two();
+        // Every dispatch binds a window of WINDOW_BYTES at its offset.
+        if prog.args.len() as u64 + WINDOW_BYTES > self.args.size() {
+            let size = (prog.args.len() as u64 + WINDOW_BYTES).next_power_of_two();
             self.args = self.ctx.buffer(
                 "arguments",
                 size,
@@ -527,13 +625,15 @@ impl GpuInr {
         e: [u32; 4],
         s: [u32; 2],
         splits: usize,
+        op: Op,
     ) {
         let [m, n, k] = dims;
         let args = [
             m as u32, n as u32, k as u32, flags, a[0], a[1], a[2], 0, b[0], b[1], b[2], b[3], c[0],
             c[1], c[2], c[3], e[0], e[1], e[2], e[3], s[0], s[1], 0, 0,
         ];
-        p.push(
+        p.op(
+            op,
             Kernel::Gemm,
             args,
             [
@@ -569,6 +669,7 @@ impl GpuInr {
             [bias, 0, 0, 0],
             [l.inp as u32, 0],
             1,
+            Op::Cols,
         );
     }
 
@@ -606,6 +707,7 @@ impl GpuInr {
             [0, mo, ms, mf],
             [l.out as u32, 0],
             1,
+            Op::Cols,
         );
     }
 
@@ -621,8 +723,9 @@ impl GpuInr {
             [x.off, 1, x.stride, l.inp as u32],
             [parts + l.w as u32, l.inp as u32, 1, self.layout.len as u32],
             [0; 4],
-            [SPLIT as u32, parts + l.b.unwrap_or(0) as u32],
-            splits(n),
+            [self.plan.split as u32, parts + l.b.unwrap_or(0) as u32],
+            self.plan.splits(n),
+            Op::Wgrad,
         );
     }
 
@@ -677,11 +780,9 @@ impl GpuInr {
         p.push(Kernel::Stage, args, [n.div_ceil(WG) as u32, 1, 1]);
     }
 
-    /// The forward pass of micro-batch `j` (`n` samples, already staged), up to the heads.
-    fn forward(&self, p: &mut Program, j: usize, n: usize, heads: bool) {
+    /// The hash-grid encoding of micro-batch `j` (`n` samples, already staged).
+    fn encode(&self, p: &mut Program, j: usize, n: usize) {
         let pl = &self.plan;
-        let lay = &self.layout;
-        let a = self.cfg.ablation;
         let nl = self.grid.levels.len();
         let coords = pl.coords.at(j, pl.mb);
         p.push(
@@ -689,6 +790,30 @@ impl GpuInr {
             self.grid_args(n, coords, pl.pos),
             [n.div_ceil(WG) as u32, nl as u32, 1],
         );
+    }
+
+    /// The layer operations of micro-batch `j` (`n` samples): the forward pass (up to the
+    /// heads with `heads`) and, with `train_len` (the step's samples), the loss and the
+    /// backward pass; one fused dispatch on the fused path.
+    fn mlp(&self, p: &mut Program, j: usize, n: usize, heads: bool, train_len: Option<usize>) {
+        let fused = self.opts.mlp == MlpPath::Fused;
+        if fused {
+            p.begin_fuse();
+        }
+        self.forward(p, n, heads);
+        if let Some(len) = train_len {
+            self.backward(p, j, n, len);
+        }
+        if fused {
+            p.end_fuse(n);
+        }
+    }
+
+    /// The forward pass of a micro-batch of `n` samples (encoded), up to the heads.
+    fn forward(&self, p: &mut Program, n: usize, heads: bool) {
+        let pl = &self.plan;
+        let lay = &self.layout;
+        let a = self.cfg.ablation;
         if a.structural() {
             self.fwd(p, &lay.structural[0], pl.patch, pl.s[0], n, true, false);
             self.fwd(p, &lay.structural[1], pl.s[0], pl.s[1], n, true, false);
@@ -700,7 +825,12 @@ impl GpuInr {
             args[..4].copy_from_slice(&[n as u32, e as u32, 0, 0]);
             args[4..8].copy_from_slice(&[pl.pos.off, pl.pos.stride, pl.gb.off, pl.gb.stride]);
             args[8..10].copy_from_slice(&[pl.inp.off, pl.inp.stride]);
-            p.push(Kernel::FilmFwd, args, [n.div_ceil(WG) as u32, e as u32, 1]);
+            p.op(
+                Op::FilmFwd,
+                Kernel::FilmFwd,
+                args,
+                [n.div_ceil(WG) as u32, e as u32, 1],
+            );
         }
         for k in 0..lay.main.len() {
             let x = if k == 0 { pl.inp } else { pl.h[k - 1] };
@@ -736,10 +866,10 @@ impl GpuInr {
         args[4..8].copy_from_slice(&[pl.target.off, pl.target.stride, pl.dy.off, pl.dy.stride]);
         args[8..10].copy_from_slice(&[
             pl.weights,
-            pl.loss_parts + (2 * j * loss_groups(pl.mb)) as u32,
+            pl.loss_parts + (2 * j * pl.loss_groups(pl.mb)) as u32,
         ]);
         args[16] = f(1.0 / len as f32);
-        p.push(Kernel::Loss, args, [n.div_ceil(WG) as u32, 1, 1]);
+        p.op(Op::Loss, Kernel::Loss, args, [n.div_ceil(WG) as u32, 1, 1]);
         self.wgrad(p, &lay.head, pl.dy, pl.h[last], n);
         self.bwd(
             p,
@@ -793,7 +923,8 @@ impl GpuInr {
             args[4..8].copy_from_slice(&[pl.pos.off, pl.pos.stride, pl.gb.off, pl.gb.stride]);
             args[8..10].copy_from_slice(&[dinp.off, dinp.stride]);
             args[12..16].copy_from_slice(&[dpos.off, dpos.stride, pl.dgb.off, pl.dgb.stride]);
-            p.push(
+            p.op(
+                Op::FilmBwd,
                 Kernel::FilmBwd,
                 args,
                 [n.div_ceil(WG) as u32, enc as u32, 1],
@@ -835,13 +966,13 @@ impl GpuInr {
         let pl = &self.plan;
         let last = j + 1 == n_mb && adam.is_some();
         let flags = (j == 0) as u32 | if last { 2 } else { 0 };
-        let groups =
-            (n_mb - 1) * loss_groups(pl.mb) + len.saturating_sub((n_mb - 1) * pl.mb).div_ceil(WG);
+        let groups = (n_mb - 1) * pl.loss_groups(pl.mb)
+            + pl.loss_groups(len.saturating_sub((n_mb - 1) * pl.mb));
         let (lr, c) = adam.unwrap_or((0.0, [1.0, 1.0]));
         let dl = self.layout.len;
         let args = [
             dl as u32,
-            splits(n) as u32,
+            pl.splits(n) as u32,
             pl.parts,
             dl as u32,
             pl.g,
@@ -916,8 +1047,8 @@ impl GpuInr {
         let n_mb = micro.len();
         for &(j, s0, n) in &micro {
             self.stage(&mut p, j, n, Source::Order(first + s0));
-            self.forward(&mut p, j, n, true);
-            self.backward(&mut p, j, n, len);
+            self.encode(&mut p, j, n);
+            self.mlp(&mut p, j, n, true, Some(len));
             self.reduce(&mut p, j, n, n_mb, len, Some((rates.lr, c)), slot);
         }
         self.table_scatter(&mut p, len);
@@ -973,14 +1104,14 @@ impl GpuInr {
             for r in 0..TARGETS {
                 self.write(pl.target.row(r).off, &tt[r * n..(r + 1) * n]);
             }
-            self.forward(&mut q, j, n, true);
-            self.backward(&mut q, j, n, len);
+            self.encode(&mut q, j, n);
+            self.mlp(&mut q, j, n, true, Some(len));
             self.reduce(&mut q, j, n, n_mb, len, None, 0);
             self.submit(q, |_| {})?;
         }
         self.table_scatter(&mut p, len);
         self.submit(p, |_| {})?;
-        let groups = (n_mb - 1) * loss_groups(pl.mb) + micro[n_mb - 1].2.div_ceil(WG);
+        let groups = (n_mb - 1) * pl.loss_groups(pl.mb) + pl.loss_groups(micro[n_mb - 1].2);
         let lp = self.floats(&self.arena, pl.loss_parts as u64, 2 * groups)?;
         let (mut loss, mut sse) = (0.0f64, 0.0f64);
         for c in lp.chunks(2) {
@@ -1129,7 +1260,8 @@ impl GpuInr {
                 self.write(pl.patch.row(r).off, &pt[r * n..(r + 1) * n]);
             }
             let mut p = self.program();
-            self.forward(&mut p, 0, n, true);
+            self.encode(&mut p, 0, n);
+            self.mlp(&mut p, 0, n, true, None);
             self.submit(p, |_| {})?;
             let y = self.floats(&self.arena, pl.y.off as u64, outs * pl.mb)?;
             for i in 0..n {
@@ -1172,7 +1304,8 @@ impl GpuInr {
         let c = kind.channels_of(&self.cfg, self.grid.out_dim(), self.layout.mlp_in());
         let mut p = self.program();
         self.stage(&mut p, 0, n, Source::Slot(slot, first));
-        self.forward(&mut p, 0, n, false);
+        self.encode(&mut p, 0, n);
+        self.mlp(&mut p, 0, n, false, None);
         let rows = self.feature_rows(kind);
         let mut a = [0u32; 24];
         a[..3].copy_from_slice(&[n as u32, c as u32, self.plan.out]);

@@ -1,6 +1,8 @@
 //! Feature extraction on the GPU into the store: tiles are read on host threads, each brick's
-//! features are computed and copied back while the next brick uploads, and a writer thread
-//! stores them as f16 bricks (the same arrays and metadata as the CPU's `write_features`).
+//! features are computed and copied back while the next brick uploads, and writer threads
+//! (one per core, up to [`MAX_WRITERS`]) convert and compress them into f16 bricks in parallel
+//! (the same arrays, bytes and metadata as the CPU's `write_features`: each brick is its own
+//! chunk, so the order they finish in does not matter).
 
 use crate::context::GpuContext;
 use crate::engine::{EngineOptions, GpuInr};
@@ -10,11 +12,14 @@ use neuvolex_features::extract::{feature_output, ExtractReport};
 use neuvolex_features::tile::Tile;
 use neuvolex_features::{FeatureKind, InrModel};
 use rayon::prelude::*;
-use std::sync::{mpsc, Arc};
+use std::sync::{mpsc, Arc, Mutex};
 use std::time::Instant;
 
 /// Bricks the loader reads at once (in parallel).
 const LOAD_AHEAD: usize = 8;
+/// Most writer threads: compressing f16 features on the CPU, not the GPU, bounds extraction
+/// into the store, so it runs on every core up to this many.
+pub const MAX_WRITERS: usize = 16;
 
 /// Extracts `kind` features of the training bricks (or all bricks) into the store as f16 on
 /// the GPU of `ctx`; the result equals the CPU's within rounding (`tests/features_gpu.rs`).
@@ -56,7 +61,11 @@ pub fn write_features_gpu(
     let va_ref = &va;
     std::thread::scope(|scope| -> Result<()> {
         let (tile_tx, tile_rx) = mpsc::sync_channel::<Result<(Brick, Tile)>>(LOAD_AHEAD);
-        let (out_tx, out_rx) = mpsc::sync_channel::<(Brick, Vec<f32>)>(2);
+        let writers = std::thread::available_parallelism()
+            .map_or(1, |n| n.get())
+            .clamp(1, MAX_WRITERS);
+        let (out_tx, out_rx) = mpsc::sync_channel::<(Brick, Vec<f32>)>(2 * writers);
+        let out_rx = Arc::new(Mutex::new(out_rx));
         let list = &bricks;
         scope.spawn(move || {
             for chunk in list.chunks(LOAD_AHEAD) {
@@ -71,12 +80,21 @@ pub fn write_features_gpu(
                 }
             }
         });
-        let writer = scope.spawn(move || -> Result<()> {
-            for (b, f) in out_rx {
-                va_ref.write_brick(&b, &f)?;
-            }
-            Ok(())
-        });
+        let pool: Vec<_> = (0..writers)
+            .map(|_| {
+                let out_rx = out_rx.clone();
+                scope.spawn(move || -> Result<()> {
+                    loop {
+                        // The lock is held only to take the next brick.
+                        let next = out_rx.lock().unwrap_or_else(|p| p.into_inner()).recv();
+                        let Ok((b, f)) = next else {
+                            return Ok(());
+                        };
+                        va_ref.write_brick(&b, &f)?;
+                    }
+                })
+            })
+            .collect();
         let mut prev: Option<(usize, Brick, wgpu::SubmissionIndex)> = None;
         let mut done = 0u64;
         let mut flush = |prev: Option<(usize, Brick, wgpu::SubmissionIndex)>| -> Result<()> {
@@ -104,9 +122,10 @@ pub fn write_features_gpu(
         }
         flush(prev)?;
         drop(out_tx);
-        writer
-            .join()
-            .map_err(|_| GpuError::Config("the feature writer panicked".into()))??;
+        for w in pool {
+            w.join()
+                .map_err(|_| GpuError::Config("a feature writer panicked".into()))??;
+        }
         Ok(())
     })?;
     va.finish()?;

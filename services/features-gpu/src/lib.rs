@@ -29,10 +29,10 @@ pub mod plan;
 pub mod train;
 
 pub use context::{hardware_adapter, AdapterKind, GpuContext, MemoryReport};
-pub use engine::{EngineOptions, GpuInr, StepRates};
+pub use engine::{EngineOptions, GpuInr, MlpPath, StepRates};
 pub use error::{GpuError, Result};
 pub use extract::write_features_gpu;
-pub use train::{train_gpu, GpuTrained};
+pub use train::{train_gpu, train_gpu_tuned, GpuTrained, GpuTune};
 
 use neuvolex_features::Backend;
 use std::sync::Arc;

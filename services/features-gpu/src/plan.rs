@@ -4,8 +4,12 @@
 
 use neuvolex_features::model::{DenseLayout, InrModel};
 
-/// Samples per weight-gradient split (one workgroup's share of the sum over samples).
+/// Samples per weight-gradient split on the layered path (one workgroup's share of the sum
+/// over samples).
 pub const SPLIT: usize = 256;
+/// Samples per workgroup of the fused path (`shaders/inr_fused.wgsl` `FB`): its block of
+/// samples is also its weight-gradient split and its loss partial.
+pub const FUSED_BLOCK: usize = 64;
 /// Steps whose (loss, sse) the arena keeps before the slots are reused.
 pub const STATS_RING: usize = 256;
 /// Invocations per workgroup of the element-wise kernels.
@@ -49,6 +53,10 @@ impl Mat {
 pub struct Plan {
     /// Samples per micro-batch.
     pub mb: usize,
+    /// Samples per weight-gradient partial ([`SPLIT`] layered, [`FUSED_BLOCK`] fused).
+    pub split: usize,
+    /// Samples per loss partial ([`WG`] layered, [`FUSED_BLOCK`] fused).
+    pub group: usize,
     /// Samples per step (columns of the full-batch matrices).
     pub batch: usize,
     /// With the backward pass and optimiser regions.
@@ -134,19 +142,25 @@ impl Alloc {
     }
 }
 
-/// Splits of a micro-batch of `n` samples.
-pub fn splits(n: usize) -> usize {
-    n.div_ceil(SPLIT)
-}
-
-/// Loss-partial workgroups per micro-batch of `mb`.
-pub fn loss_groups(mb: usize) -> usize {
-    mb.div_ceil(WG)
-}
-
 impl Plan {
-    /// The layout for `model` with micro-batches of `mb` samples and steps of `batch`.
-    pub fn new(model: &InrModel, mb: usize, batch: usize, train: bool) -> Plan {
+    /// Weight-gradient partials of a micro-batch of `n` samples.
+    pub fn splits(&self, n: usize) -> usize {
+        n.div_ceil(self.split)
+    }
+
+    /// Loss partials of a micro-batch of `n` samples.
+    pub fn loss_groups(&self, n: usize) -> usize {
+        n.div_ceil(self.group)
+    }
+
+    /// The layout for `model` with micro-batches of `mb` samples and steps of `batch`, for
+    /// the fused path's partials (`fused`) or the layered path's.
+    pub fn new(model: &InrModel, mb: usize, batch: usize, train: bool, fused: bool) -> Plan {
+        let (split, group) = if fused {
+            (FUSED_BLOCK, FUSED_BLOCK)
+        } else {
+            (SPLIT, WG)
+        };
         let lay: &DenseLayout = &model.layout;
         let cfg = &model.cfg;
         let a = cfg.ablation;
@@ -218,11 +232,13 @@ impl Plan {
                     ds = [dinp.row(enc), al.mat(sh, false)];
                 }
             }
-            loss_parts = al.take(2 * batch.div_ceil(mb) * loss_groups(mb));
-            parts = al.take(splits(mb) * dl);
+            loss_parts = al.take(2 * batch.div_ceil(mb) * mb.div_ceil(group));
+            parts = al.take(mb.div_ceil(split) * dl);
         }
         Plan {
             mb,
+            split,
+            group,
             batch,
             train,
             params,
@@ -281,31 +297,33 @@ mod tests {
                 ..Default::default()
             };
             let m = InrModel::new(&cfg, [20, 30, 40], 0);
-            let p = Plan::new(&m, 512, 1300, true);
-            let mut spans: Vec<(u32, u32, &str)> = vec![
-                (p.params, m.layout.len as u32, "params"),
-                (p.patch.off, 125 * 512, "patch"),
-                (p.coords.off, 3 * 1300, "coords"),
-                (p.h[0].off, 64 * 512, "h0"),
-                (p.dh[1].off, 64 * 512, "dh1"),
-                (p.parts, (splits(512) * m.layout.len) as u32, "parts"),
-                (p.out, (512 * p.out_channels) as u32, "out"),
-            ];
-            spans.sort();
-            for w in spans.windows(2) {
-                assert!(
-                    w[0].0 + w[0].1 <= w[1].0,
-                    "{ab:?}: {} overlaps {}",
-                    w[0].2,
-                    w[1].2
-                );
-            }
-            assert!(p.len as u32 >= p.parts);
-            // Concatenation: F_pos and the structural output are the MLP input's two halves.
-            if ab == Ablation::Structural {
-                assert_eq!(p.pos.off, p.inp.off);
-                assert_eq!(p.s[1].off, p.inp.off + 32 * 512);
-                assert!(p.dinp.full && p.dpos == p.dinp);
+            for fused in [false, true] {
+                let p = Plan::new(&m, 512, 1300, true, fused);
+                let mut spans: Vec<(u32, u32, &str)> = vec![
+                    (p.params, m.layout.len as u32, "params"),
+                    (p.patch.off, 125 * 512, "patch"),
+                    (p.coords.off, 3 * 1300, "coords"),
+                    (p.h[0].off, 64 * 512, "h0"),
+                    (p.dh[1].off, 64 * 512, "dh1"),
+                    (p.parts, (p.splits(512) * m.layout.len) as u32, "parts"),
+                    (p.out, (512 * p.out_channels) as u32, "out"),
+                ];
+                spans.sort();
+                for w in spans.windows(2) {
+                    assert!(
+                        w[0].0 + w[0].1 <= w[1].0,
+                        "{ab:?}: {} overlaps {}",
+                        w[0].2,
+                        w[1].2
+                    );
+                }
+                assert!(p.len as u32 >= p.parts);
+                // Concatenation: F_pos and the structural output are the MLP input's two halves.
+                if ab == Ablation::Structural {
+                    assert_eq!(p.pos.off, p.inp.off);
+                    assert_eq!(p.s[1].off, p.inp.off + 32 * 512);
+                    assert!(p.dinp.full && p.dpos == p.dinp);
+                }
             }
         }
     }

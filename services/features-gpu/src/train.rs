@@ -10,7 +10,7 @@
 //! non-finite loss stops training.
 
 use crate::context::{GpuContext, MemoryReport, Tracked};
-use crate::engine::{EngineOptions, GpuInr, StepRates};
+use crate::engine::{EngineOptions, GpuInr, MlpPath, StepRates};
 use crate::error::{GpuError, Result};
 use crate::plan::STATS_RING;
 use neuvolex_bricks::{Brick, BrickStore, StoreLocation};
@@ -242,6 +242,16 @@ fn finish_save(h: Saving, events: &mut dyn FnMut(TrainEvent)) -> Result<()> {
     Ok(())
 }
 
+/// How a GPU run launches its work (the model and its training are the same either way).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct GpuTune {
+    /// Layered or fused dense layers.
+    pub mlp: MlpPath,
+    /// Samples per micro-batch; `None`: 16384, halved until the activations fit the binding
+    /// limit.
+    pub micro_batch: Option<usize>,
+}
+
 /// Trains the INR on `store` on the GPU of `ctx`: [`neuvolex_features::train`]'s contract
 /// (configuration, resume, checkpoints, events, cancellation) with the GPU engine.
 #[allow(clippy::too_many_arguments)]
@@ -254,6 +264,32 @@ pub fn train_gpu(
     checkpoint: Option<&StoreLocation>,
     cancel: &AtomicBool,
     events: &mut dyn FnMut(TrainEvent),
+) -> Result<GpuTrained> {
+    train_gpu_tuned(
+        ctx,
+        store,
+        inr,
+        cfg,
+        resume,
+        checkpoint,
+        cancel,
+        events,
+        GpuTune::default(),
+    )
+}
+
+/// [`train_gpu`] with the launch chosen by `tune` (for benchmarks and equivalence tests).
+#[allow(clippy::too_many_arguments)]
+pub fn train_gpu_tuned(
+    ctx: &Arc<GpuContext>,
+    store: &BrickStore,
+    inr: &InrConfig,
+    cfg: &TrainConfig,
+    resume: Option<Loaded>,
+    checkpoint: Option<&StoreLocation>,
+    cancel: &AtomicBool,
+    events: &mut dyn FnMut(TrainEvent),
+    tune: GpuTune,
 ) -> Result<GpuTrained> {
     if resume.is_none() {
         // Refuse a model the device cannot hold before building it on the host.
@@ -309,11 +345,12 @@ pub fn train_gpu(
         Some(&adam),
         EngineOptions {
             batch: tc.batch,
-            micro_batch: None,
+            micro_batch: tune.micro_batch,
             train: true,
             slots: halves * tb,
             brick,
             order_pairs: halves * group_voxels,
+            mlp: tune.mlp,
         },
     )?;
     drop(adam);

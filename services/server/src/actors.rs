@@ -935,7 +935,13 @@ fn render(
         if let Some(g) = st.gpu.as_mut() {
             let src = s.source();
             let luts = tf.compile(&src.normaliser(), &src.classes());
-            s.dirty.lock().unwrap_or_else(|p| p.into_inner()).clear();
+            // Bricks stay resident on the GPU: the changed ones (and their neighbours) are
+            // uploaded again.
+            let dirty: Vec<[usize; 3]> =
+                std::mem::take(&mut *s.dirty.lock().unwrap_or_else(|p| p.into_inner()))
+                    .into_iter()
+                    .collect();
+            g.invalidate(&dirty)?;
             let img = g.render(params, &luts)?;
             return crate::imaging::png(img.width, img.height, 3, &img.to_rgb8());
         }

@@ -1,0 +1,225 @@
+// The INR's layer arithmetic, written once and called by two kinds of launch:
+//   - one dispatch per operation (inr_gemm.wgsl `gemm`, inr_ops.wgsl `film_fwd`, `film_bwd`,
+//     `loss`): the layered path, every operation over the whole micro-batch;
+//   - one dispatch for a whole list of operations (inr_fused.wgsl `fused`): each workgroup
+//     runs every operation of the forward pass, the loss and the backward pass on its own block
+//     of samples, with a barrier between operations instead of a dispatch.
+// Every module that calls these is compiled as inr_common.wgsl + this file + its own file.
+
+// A GEMM's arguments (see gemm_tile):
+//   dims: M, N, K, flags
+//   a: A's offset, stride along m, stride along k, -
+//   b: B's offset, stride along k, stride along n, columns read from B (further ones are 1.0)
+//   c: C's offset, stride along m, stride along n, offset between splits
+//   e: bias offset, mask offset, mask stride along m, first masked row
+//   s: K per split, offset of the ones-column's output (the bias gradient), -, -
+struct Gemm {
+    dims: vec4<u32>,
+    a: vec4<u32>,
+    b: vec4<u32>,
+    c: vec4<u32>,
+    e: vec4<u32>,
+    s: vec4<u32>,
+};
+
+// An element-wise or reduction kernel's arguments (meaning per kernel, see each function).
+struct Elem {
+    a: vec4<u32>,
+    b: vec4<u32>,
+    c: vec4<u32>,
+    d: vec4<u32>,
+    f: vec4<f32>,
+    g: vec4<f32>,
+};
+
+const F_BIAS: u32 = 1u;
+const F_RELU: u32 = 2u;
+const F_ACC: u32 = 4u;
+const F_MASK: u32 = 8u;
+// A is contiguous along k (else along m); B is contiguous along n (else along k).
+const F_A_KCONTIG: u32 = 16u;
+const F_B_NCONTIG: u32 = 32u;
+
+const BM: u32 = 64u;
+const BN: u32 = 64u;
+const BK: u32 = 16u;
+
+var<workgroup> As: array<f32, 1024>;
+var<workgroup> Bs: array<f32, 1024>;
+
+// One 64 x 64 tile (row tile `mt`, column tile `nt`) of split `z` of
+//   C[m][n] (op)= sum_k A[m][k] B[k][n]
+// with A, B and C anywhere in the arena under arbitrary strides, so one function computes
+//   forward        Y  = act(W X + b)            (A = W, B = X),
+//   backward data  dX = (W^T dY) * [X > 0]      (A = W^T, B = dY),
+//   weight grad    dW = dY X^T, db = sum dY     (A = dY, B = X^T plus a column of ones).
+// Weight gradients split the samples (K) into splits of `s.x`; split z writes its partial sum
+// at its own offset, and the partials are summed later in a fixed order (deterministic).
+// 256 invocations (16 x 16) compute the tile, 4 x 4 outputs each, through 16-deep slices of A
+// and B staged in workgroup memory; the k loop runs in index order for every output. Must be
+// called in uniform control flow by all 256 invocations of the workgroup.
+fn gemm_tile(g: Gemm, mt: u32, nt: u32, z: u32, li: u32) {
+    let M = g.dims.x;
+    let N = g.dims.y;
+    let K = g.dims.z;
+    let flags = g.dims.w;
+    let m0 = mt * BM;
+    let n0 = nt * BN;
+    let kb = z * g.s.x;
+    let ke = min(kb + g.s.x, K);
+    let tx = li % 16u;
+    let ty = li / 16u;
+    let a_kc = (flags & F_A_KCONTIG) != 0u;
+    let b_nc = (flags & F_B_NCONTIG) != 0u;
+    var acc: array<vec4<f32>, 4>;
+    for (var i = 0u; i < 4u; i++) {
+        acc[i] = vec4<f32>(0.0);
+    }
+    for (var k0 = kb; k0 < ke; k0 += BK) {
+        for (var i = 0u; i < 4u; i++) {
+            let e = li + i * 256u;
+            var mm: u32;
+            var kk: u32;
+            if (a_kc) {
+                mm = e / BK;
+                kk = e % BK;
+            } else {
+                mm = e % BM;
+                kk = e / BM;
+            }
+            let gm = m0 + mm;
+            let gk = k0 + kk;
+            var v = 0.0;
+            if (gm < M && gk < ke) {
+                v = arena[g.a.x + gm * g.a.y + gk * g.a.z];
+            }
+            As[kk * BM + mm] = v;
+        }
+        for (var i = 0u; i < 4u; i++) {
+            let e = li + i * 256u;
+            var nn: u32;
+            var kk: u32;
+            if (b_nc) {
+                nn = e % BN;
+                kk = e / BN;
+            } else {
+                nn = e / BK;
+                kk = e % BK;
+            }
+            let gn = n0 + nn;
+            let gk = k0 + kk;
+            var v = 0.0;
+            if (gk < ke) {
+                if (gn < g.b.w) {
+                    v = arena[g.b.x + gk * g.b.y + gn * g.b.z];
+                } else if (gn < N) {
+                    v = 1.0;
+                }
+            }
+            Bs[kk * BN + nn] = v;
+        }
+        workgroupBarrier();
+        for (var kk = 0u; kk < BK; kk++) {
+            let ao = kk * BM + ty * 4u;
+            let bo = kk * BN + tx * 4u;
+            let b = vec4<f32>(Bs[bo], Bs[bo + 1u], Bs[bo + 2u], Bs[bo + 3u]);
+            acc[0] += As[ao] * b;
+            acc[1] += As[ao + 1u] * b;
+            acc[2] += As[ao + 2u] * b;
+            acc[3] += As[ao + 3u] * b;
+        }
+        workgroupBarrier();
+    }
+    for (var i = 0u; i < 4u; i++) {
+        let gm = m0 + ty * 4u + i;
+        if (gm >= M) {
+            continue;
+        }
+        for (var j = 0u; j < 4u; j++) {
+            let gn = n0 + tx * 4u + j;
+            if (gn >= N) {
+                continue;
+            }
+            var v = acc[i][j];
+            var addr: u32;
+            if (gn >= g.b.w) {
+                addr = g.s.y + gm + z * g.c.w;
+            } else {
+                addr = g.c.x + gm * g.c.y + gn * g.c.z + z * g.c.w;
+            }
+            if ((flags & F_BIAS) != 0u) {
+                v += arena[g.e.x + gm];
+            }
+            if ((flags & F_ACC) != 0u) {
+                v += arena[addr];
+            }
+            if ((flags & F_RELU) != 0u) {
+                v = max(v, 0.0);
+            }
+            if ((flags & F_MASK) != 0u && gm >= g.e.w) {
+                if (!(arena[g.e.y + gm * g.e.z + gn] > 0.0)) {
+                    v = 0.0;
+                }
+            }
+            arena[addr] = v;
+        }
+    }
+}
+
+// FiLM forward of feature j, sample s: inp = pos (gamma + 1) + beta.
+// a: n, enc | b: pos off, pos stride, gb off, gb stride | c: inp off, inp stride
+fn film_fwd_at(p: Elem, j: u32, s: u32) {
+    let e = p.a.y;
+    let x = arena[p.b.x + j * p.b.y + s];
+    let g = arena[p.b.z + j * p.b.w + s];
+    let b = arena[p.b.z + (e + j) * p.b.w + s];
+    arena[p.c.x + j * p.c.y + s] = x * (g + 1.0) + b;
+}
+
+// FiLM backward of feature j, sample s: dpos = d (gamma + 1), dgamma = d pos, dbeta = d, with
+// d = dL/dinp.
+// a: n, enc | b: pos off, stride, gb off, stride | c: dinp off, stride | d: dpos off, stride,
+// dgb off, stride
+fn film_bwd_at(p: Elem, j: u32, s: u32) {
+    let e = p.a.y;
+    let d = arena[p.c.x + j * p.c.y + s];
+    let g = arena[p.b.z + j * p.b.w + s];
+    arena[p.d.x + j * p.d.y + s] = d * (g + 1.0);
+    arena[p.d.z + j * p.d.w + s] = d * arena[p.b.x + j * p.b.y + s];
+    arena[p.d.z + (e + j) * p.d.w + s] = d;
+}
+
+// The loss of sample s and its output gradient: loss += w_k (y_k - t_k)^2 / B,
+// dy_k = 2 w_k (y_k - t_k) / B; returns (loss term, squared intensity error).
+// a: n, outputs, y off, y stride | b: t off, t stride, dy off, dy stride
+// c: loss weights off, partials off | f: 1 / B
+fn loss_at(p: Elem, s: u32) -> vec2<f32> {
+    var part = vec2<f32>(0.0);
+    let inv = p.f.x;
+    for (var k = 0u; k < p.a.y; k++) {
+        let e = arena[p.a.z + k * p.a.w + s] - arena[p.b.x + k * p.b.y + s];
+        let w = arena[p.c.x + k];
+        part.x += w * e * e * inv;
+        arena[p.b.z + k * p.b.w + s] = 2.0 * w * e * inv;
+        if (k == 0u) {
+            part.y = e * e;
+        }
+    }
+    return part;
+}
+
+var<workgroup> red_f: array<vec2<f32>, 256>;
+
+// The sum of `v` over the first `width` (a power of two, at most 256) invocations, by a tree
+// in a fixed order; valid in invocation 0. Uniform control flow.
+fn block_sum(li: u32, v: vec2<f32>, width: u32) -> vec2<f32> {
+    red_f[li] = v;
+    workgroupBarrier();
+    for (var w = width / 2u; w > 0u; w >>= 1u) {
+        if (li < w) {
+            red_f[li] = red_f[li] + red_f[li + w];
+        }
+        workgroupBarrier();
+    }
+    return red_f[0];
+}
