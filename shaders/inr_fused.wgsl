@@ -19,6 +19,8 @@ const OP_WGRAD: u32 = 1u;
 const OP_FILM_FWD: u32 = 2u;
 const OP_FILM_BWD: u32 = 3u;
 const OP_LOSS: u32 = 4u;
+// The bias gradient into the block's partial.
+const OP_BIAS: u32 = 5u;
 
 struct Program {
     head: vec4<u32>,
@@ -64,6 +66,8 @@ fn fused(@builtin(local_invocation_index) li: u32, @builtin(workgroup_id) wg: ve
                     }
                 }
             }
+        } else if (kind == OP_BIAS) {
+            bias_grad(as_elem(g), b, li);
         } else if (kind == OP_LOSS) {
             let e = as_elem(g);
             var part = vec2<f32>(0.0);

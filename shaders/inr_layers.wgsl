@@ -42,10 +42,15 @@ const F_B_NCONTIG: u32 = 32u;
 
 const BM: u32 = 64u;
 const BN: u32 = 64u;
-const BK: u32 = 16u;
+const BK: u32 = 32u;
+// Elements of a k-slice of A (BK x BM) or B (BK x BN), and per invocation.
+const SLICE: u32 = 2048u;
+const PER: u32 = 8u;
 
-var<workgroup> As: array<f32, 1024>;
-var<workgroup> Bs: array<f32, 1024>;
+// The k-slices of A and B (16 KiB together, the WebGPU default workgroup storage); `As` is
+// also the scratch of `block_sum`.
+var<workgroup> As: array<f32, SLICE>;
+var<workgroup> Bs: array<f32, SLICE>;
 
 // One 64 x 64 tile (row tile `mt`, column tile `nt`) of split `z` of
 //   C[m][n] (op)= sum_k A[m][k] B[k][n]
@@ -55,7 +60,7 @@ var<workgroup> Bs: array<f32, 1024>;
 //   weight grad    dW = dY X^T, db = sum dY     (A = dY, B = X^T plus a column of ones).
 // Weight gradients split the samples (K) into splits of `s.x`; split z writes its partial sum
 // at its own offset, and the partials are summed later in a fixed order (deterministic).
-// 256 invocations (16 x 16) compute the tile, 4 x 4 outputs each, through 16-deep slices of A
+// 256 invocations (16 x 16) compute the tile, 4 x 4 outputs each, through 32-deep slices of A
 // and B staged in workgroup memory; the k loop runs in index order for every output. Must be
 // called in uniform control flow by all 256 invocations of the workgroup.
 fn gemm_tile(g: Gemm, mt: u32, nt: u32, z: u32, li: u32) {
@@ -71,12 +76,14 @@ fn gemm_tile(g: Gemm, mt: u32, nt: u32, z: u32, li: u32) {
     let ty = li / 16u;
     let a_kc = (flags & F_A_KCONTIG) != 0u;
     let b_nc = (flags & F_B_NCONTIG) != 0u;
-    var acc: array<vec4<f32>, 4>;
-    for (var i = 0u; i < 4u; i++) {
-        acc[i] = vec4<f32>(0.0);
-    }
+    // Four named accumulators rather than an array: an array indexed in a loop the driver does
+    // not unroll would live in local memory, one load and store per multiply-add.
+    var acc0 = vec4<f32>(0.0);
+    var acc1 = vec4<f32>(0.0);
+    var acc2 = vec4<f32>(0.0);
+    var acc3 = vec4<f32>(0.0);
     for (var k0 = kb; k0 < ke; k0 += BK) {
-        for (var i = 0u; i < 4u; i++) {
+        for (var i = 0u; i < PER; i++) {
             let e = li + i * 256u;
             var mm: u32;
             var kk: u32;
@@ -95,7 +102,7 @@ fn gemm_tile(g: Gemm, mt: u32, nt: u32, z: u32, li: u32) {
             }
             As[kk * BM + mm] = v;
         }
-        for (var i = 0u; i < 4u; i++) {
+        for (var i = 0u; i < PER; i++) {
             let e = li + i * 256u;
             var nn: u32;
             var kk: u32;
@@ -123,46 +130,57 @@ fn gemm_tile(g: Gemm, mt: u32, nt: u32, z: u32, li: u32) {
             let ao = kk * BM + ty * 4u;
             let bo = kk * BN + tx * 4u;
             let b = vec4<f32>(Bs[bo], Bs[bo + 1u], Bs[bo + 2u], Bs[bo + 3u]);
-            acc[0] += As[ao] * b;
-            acc[1] += As[ao + 1u] * b;
-            acc[2] += As[ao + 2u] * b;
-            acc[3] += As[ao + 3u] * b;
+            acc0 += As[ao] * b;
+            acc1 += As[ao + 1u] * b;
+            acc2 += As[ao + 2u] * b;
+            acc3 += As[ao + 3u] * b;
         }
         workgroupBarrier();
     }
-    for (var i = 0u; i < 4u; i++) {
-        let gm = m0 + ty * 4u + i;
-        if (gm >= M) {
+    let gm = m0 + ty * 4u;
+    let gn = n0 + tx * 4u;
+    gemm_store(g, gm, gn, z, acc0);
+    gemm_store(g, gm + 1u, gn, z, acc1);
+    gemm_store(g, gm + 2u, gn, z, acc2);
+    gemm_store(g, gm + 3u, gn, z, acc3);
+}
+
+// The epilogue of one row of an invocation's 4 x 4 outputs: row gm, columns gn0..gn0 + 3 of
+// split z (bias, accumulate, ReLU, ReLU mask; the column of ones goes to the bias gradient).
+fn gemm_store(g: Gemm, gm: u32, gn0: u32, z: u32, acc: vec4<f32>) {
+    let M = g.dims.x;
+    let N = g.dims.y;
+    let flags = g.dims.w;
+    if (gm >= M) {
+        return;
+    }
+    for (var j = 0u; j < 4u; j++) {
+        let gn = gn0 + j;
+        if (gn >= N) {
             continue;
         }
-        for (var j = 0u; j < 4u; j++) {
-            let gn = n0 + tx * 4u + j;
-            if (gn >= N) {
-                continue;
-            }
-            var v = acc[i][j];
-            var addr: u32;
-            if (gn >= g.b.w) {
-                addr = g.s.y + gm + z * g.c.w;
-            } else {
-                addr = g.c.x + gm * g.c.y + gn * g.c.z + z * g.c.w;
-            }
-            if ((flags & F_BIAS) != 0u) {
-                v += arena[g.e.x + gm];
-            }
-            if ((flags & F_ACC) != 0u) {
-                v += arena[addr];
-            }
-            if ((flags & F_RELU) != 0u) {
-                v = max(v, 0.0);
-            }
-            if ((flags & F_MASK) != 0u && gm >= g.e.w) {
-                if (!(arena[g.e.y + gm * g.e.z + gn] > 0.0)) {
-                    v = 0.0;
-                }
-            }
-            arena[addr] = v;
+        var v = acc[j];
+        var addr: u32;
+        if (gn >= g.b.w) {
+            addr = g.s.y + gm + z * g.c.w;
+        } else {
+            addr = g.c.x + gm * g.c.y + gn * g.c.z + z * g.c.w;
         }
+        if ((flags & F_BIAS) != 0u) {
+            v += arena[g.e.x + gm];
+        }
+        if ((flags & F_ACC) != 0u) {
+            v += arena[addr];
+        }
+        if ((flags & F_RELU) != 0u) {
+            v = max(v, 0.0);
+        }
+        if ((flags & F_MASK) != 0u && gm >= g.e.w) {
+            if (!(arena[g.e.y + gm * g.e.z + gn] > 0.0)) {
+                v = 0.0;
+            }
+        }
+        arena[addr] = v;
     }
 }
 
@@ -208,18 +226,37 @@ fn loss_at(p: Elem, s: u32) -> vec2<f32> {
     return part;
 }
 
-var<workgroup> red_f: array<vec2<f32>, 256>;
+// The bias gradient of a weight-gradient split: db[m] (+ split z's offset) = the sum of
+// dY[m][k] over the split's samples k, in index order (what the layered path's column of ones
+// computes, without a GEMM tile for one column). Rows spread over the 256 invocations.
+// a: M, K (samples), dY off, dY stride | b: db off, offset between splits, K per split
+fn bias_grad(p: Elem, z: u32, li: u32) {
+    let kb = z * p.b.z;
+    let ke = min(kb + p.b.z, p.a.y);
+    for (var m = li; m < p.a.x; m += 256u) {
+        var s = 0.0;
+        for (var k = kb; k < ke; k++) {
+            s += arena[p.a.z + m * p.a.w + k];
+        }
+        arena[p.b.x + m + z * p.b.y] = s;
+    }
+}
 
 // The sum of `v` over the first `width` (a power of two, at most 256) invocations, by a tree
-// in a fixed order; valid in invocation 0. Uniform control flow.
+// in a fixed order (in `As`); valid in every invocation. Uniform control flow, and no tile may
+// be in flight (the callers run between operations).
 fn block_sum(li: u32, v: vec2<f32>, width: u32) -> vec2<f32> {
-    red_f[li] = v;
+    As[2u * li] = v.x;
+    As[2u * li + 1u] = v.y;
     workgroupBarrier();
     for (var w = width / 2u; w > 0u; w >>= 1u) {
         if (li < w) {
-            red_f[li] = red_f[li] + red_f[li + w];
+            As[2u * li] += As[2u * (li + w)];
+            As[2u * li + 1u] += As[2u * (li + w) + 1u];
         }
         workgroupBarrier();
     }
-    return red_f[0];
+    let r = vec2<f32>(As[0], As[1]);
+    workgroupBarrier();
+    return r;
 }

@@ -479,6 +479,33 @@ impl GpuContext {
         size: u64,
         after: Option<wgpu::SubmissionIndex>,
     ) -> Result<Vec<u8>> {
+        self.map_with(staging, size, after, |b| b.to_vec())
+    }
+
+    /// The first `size` bytes (a multiple of 4) of a MAP_READ buffer as f32, copied once out
+    /// of the mapping, waiting only for submission `after`.
+    pub(crate) fn map_read_f32_after(
+        &self,
+        staging: &wgpu::Buffer,
+        size: u64,
+        after: Option<wgpu::SubmissionIndex>,
+    ) -> Result<Vec<f32>> {
+        self.map_with(staging, size, after, |b| {
+            // Mapped ranges are aligned to 4 bytes or more; fall back to a copy otherwise.
+            bytemuck::try_cast_slice::<u8, f32>(b)
+                .map(|f| f.to_vec())
+                .unwrap_or_else(|_| bytemuck::pod_collect_to_vec(b))
+        })
+    }
+
+    /// Maps `staging` once `after` is done and applies `read` to its first `size` bytes.
+    fn map_with<T>(
+        &self,
+        staging: &wgpu::Buffer,
+        size: u64,
+        after: Option<wgpu::SubmissionIndex>,
+        read: impl FnOnce(&[u8]) -> T,
+    ) -> Result<T> {
         let slice = staging.slice(..);
         let (tx, rx) = std::sync::mpsc::channel();
         slice.map_async(wgpu::MapMode::Read, move |r| {
@@ -494,10 +521,11 @@ impl GpuContext {
         rx.recv()
             .map_err(|e| GpuError::Device(e.to_string()))?
             .map_err(|e| GpuError::Device(e.to_string()))?;
-        let out = slice
-            .get_mapped_range()
-            .map_err(|e| GpuError::Device(e.to_string()))?[..size as usize]
-            .to_vec();
+        let out = read(
+            &slice
+                .get_mapped_range()
+                .map_err(|e| GpuError::Device(e.to_string()))?[..size as usize],
+        );
         staging.unmap();
         Ok(out)
     }

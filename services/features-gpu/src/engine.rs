@@ -142,6 +142,8 @@ enum Op {
     FilmFwd = 2,
     FilmBwd = 3,
     Loss = 4,
+    /// A bias gradient into the block's partial.
+    Bias = 5,
 }
 
 #[derive(Default)]
@@ -712,9 +714,13 @@ impl GpuInr {
     }
 
     /// dW = dY X^T and db = sum dY, one partial per split of the samples.
+    /// On the fused path the bias gradient is its own operation (a row sum over the block)
+    /// rather than the GEMM's column of ones, which costs a whole 64-wide tile when the layer's
+    /// input is a multiple of 64 wide.
     fn wgrad(&self, p: &mut Program, l: &LayerSpec, dy: Mat, x: Mat, n: usize) {
         let parts = self.plan.parts;
-        let cols = l.inp + l.b.is_some() as usize;
+        let fused = self.opts.mlp == MlpPath::Fused;
+        let cols = l.inp + (l.b.is_some() && !fused) as usize;
         self.gemm(
             p,
             [l.out, cols, n],
@@ -727,6 +733,17 @@ impl GpuInr {
             self.plan.splits(n),
             Op::Wgrad,
         );
+        if let (Some(b), true) = (l.b, fused) {
+            let mut a = [0u32; 24];
+            a[..4].copy_from_slice(&[l.out as u32, n as u32, dy.off, dy.stride]);
+            a[4..7].copy_from_slice(&[
+                parts + b as u32,
+                self.layout.len as u32,
+                self.plan.split as u32,
+            ]);
+            // Only ever fused: the layered path keeps its column of ones.
+            p.op(Op::Bias, Kernel::Fused, a, [0, 0, 0]);
+        }
     }
 
     fn grid_args(&self, n: usize, coords: Mat, m: Mat) -> [u32; 24] {
