@@ -209,17 +209,8 @@ fn updating_changed_bricks_equals_a_full_render_and_touches_fewer_pixels() {
     let before = r.render(&params, &luts).unwrap();
     let full_pixels = r.stats().pixels;
     // New probabilities in brick (1, 1, 1) only: class 2 everywhere in it.
-    let mut p2 = p.clone();
+    let p2 = class2_in_brick_111(&p, dims);
     let changed = [1usize, 1, 1];
-    for z in 8..16 {
-        for y in 8..16 {
-            for x in 8..16 {
-                let i = (z * dims[1] + y) * dims[0] + x;
-                p2[2 * i] = 0;
-                p2[2 * i + 1] = 255;
-            }
-        }
-    }
     r.source_mut().set_probs(p2.clone()).unwrap();
     let updated = r.update_bricks(&[changed]).unwrap().unwrap();
     let touched = r.stats().pixels;
@@ -635,6 +626,21 @@ fn gpu_and_cpu_images_agree() {
     );
 }
 
+/// Two-class probabilities `p` of a `dims` volume with brick (1, 1, 1) of 8^3 set to class 2.
+fn class2_in_brick_111(p: &[u8], dims: [usize; 3]) -> Vec<u8> {
+    let mut p2 = p.to_vec();
+    for z in 8..16 {
+        for y in 8..16 {
+            for x in 8..16 {
+                let i = (z * dims[1] + y) * dims[0] + x;
+                p2[2 * i] = 0;
+                p2[2 * i + 1] = 255;
+            }
+        }
+    }
+    p2
+}
+
 /// The GPU renderer keeps bricks resident between frames: over a moving camera, changed
 /// transfer functions and modes, and new probabilities (invalidated by brick), every frame
 /// equals a fresh renderer's, bit for bit; a repeated frame uploads no brick, and a change of
@@ -648,16 +654,7 @@ fn gpu_resident_frames_equal_fresh_renders() {
     let mk =
         |p: &[u8]| MemSource::new(geom(dims, 8), v.clone(), two_classes(), p.to_vec()).unwrap();
     // New probabilities in brick (1, 1, 1): class 2 everywhere in it.
-    let mut p2 = p.clone();
-    for z in 8..16 {
-        for y in 8..16 {
-            for x in 8..16 {
-                let i = (z * dims[1] + y) * dims[0] + x;
-                p2[2 * i] = 0;
-                p2[2 * i + 1] = 255;
-            }
-        }
-    }
+    let p2 = class2_in_brick_111(&p, dims);
     let grey = TfFile::preset("grey").unwrap();
     let other = tf(r#"{"space":"normalised",
         "intensity":{"color":[[0,1,0.5,0],[1,0,0.5,1]],"opacity":[[0.2,0],[1,0.6]]},

@@ -261,10 +261,14 @@ impl GpuInr {
             )));
         }
         let max = ctx.max_binding() as usize / 4;
+        // Both paths launch one workgroup per 64 samples along x (GEMM column tiles, fused
+        // blocks), so a micro-batch is at most 64 x the adapter's workgroups per dimension.
+        let most = TILE as usize * ctx.limits.max_compute_workgroups_per_dimension.max(1) as usize;
         let mut mb = opts
             .micro_batch
             .unwrap_or(if opts.train { 16384 } else { 32768 })
             .min(opts.batch.max(1))
+            .min(most)
             .max(1);
         let plan = loop {
             let p = Plan::new(
