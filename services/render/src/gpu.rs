@@ -455,24 +455,7 @@ impl<S: BrickSource> GpuRenderer<S> {
         let (w, h) = (params.width, params.height);
         let probs = params.mode.needs_probs();
         let mut stats = GpuStats::default();
-        // The atlas holds probabilities of the current classes, or none; an intensity frame
-        // keeps one that holds probabilities (and loads its new bricks with them).
-        let ids: Vec<u32> = self.source.classes().iter().map(|c| c.0).collect();
-        let keep = self.atlas.layout.as_ref().is_some_and(|l| {
-            l.geom == geom
-                && l.max_binding == self.max_binding
-                && l.budget == self.budget
-                && (l.ids == ids || (!probs && l.ids.is_empty()))
-        });
-        if !keep {
-            self.atlas = Atlas::new(Layout {
-                geom,
-                ids: if probs { ids } else { Vec::new() },
-                max_binding: self.max_binding,
-                budget: self.budget,
-            });
-        }
-        let held = self.atlas.layout.as_ref().map_or(0, |l| l.ids.len());
+        let held = self.prepare_atlas(geom, probs);
         let ch = if probs { held } else { 0 };
         // Plan: on-screen, possibly visible bricks in order; those not known, or visible and not
         // resident, are loaded in parallel.
@@ -532,29 +515,7 @@ impl<S: BrickSource> GpuRenderer<S> {
         // Per-frame tables.
         let t_gpu = Instant::now();
         let params_u = self.params(&frame, luts, ch);
-        // The intensity mode's table has its opacity corrected for the step, as on the CPU.
-        let mut lut_data: Vec<[f32; 4]> = frame.intensity_lut().table.clone();
-        let mut info: Vec<[f32; 4]> = Vec::new();
-        for n in 0..ch.max(1) {
-            match luts.classes.get(n).and_then(|c| c.as_ref()) {
-                Some(c) => {
-                    lut_data.extend(&c.probability.table);
-                    lut_data.extend(&c.intensity.table);
-                    info.push([
-                        c.probability.lo,
-                        c.probability.scale,
-                        c.intensity.lo,
-                        c.intensity.scale,
-                    ]);
-                    info.push([c.tau, 1.0, 0.0, 0.0]);
-                }
-                None => {
-                    lut_data.extend(std::iter::repeat_n([0.0f32; 4], 2 * LUT_SIZE));
-                    info.push([0.0, 1.0, 0.0, 1.0]);
-                    info.push([1.0, 0.0, 0.0, 0.0]);
-                }
-            }
-        }
+        let (lut_data, info) = tables(&frame, luts, ch);
         let acc_bytes = (w * h * 16) as u64;
         let (lut_bytes, info_bytes): (&[u8], &[u8]) =
             (bytemuck::cast_slice(&lut_data), bytemuck::cast_slice(&info));
@@ -620,26 +581,7 @@ impl<S: BrickSource> GpuRenderer<S> {
         if !open.batch.is_empty() {
             self.flush(&frame, params_u, &mut open, &mut stats)?;
         }
-        let mut enc = open
-            .enc
-            .take()
-            .unwrap_or_else(|| self.device.create_command_encoder(&Default::default()));
-        enc.copy_buffer_to_buffer(&self.bufs.acc.buf, 0, &self.bufs.read.buf, 0, acc_bytes);
-        self.queue.submit([enc.finish()]);
-        let slice = self.bufs.read.buf.slice(..acc_bytes);
-        let (tx, rx) = std::sync::mpsc::channel();
-        slice.map_async(wgpu::MapMode::Read, move |r| {
-            let _ = tx.send(r);
-        });
-        self.device
-            .poll(wgpu::PollType::wait_indefinitely())
-            .map_err(gpu_err)?;
-        rx.recv().map_err(gpu_err)?.map_err(gpu_err)?;
-        let acc: Vec<[f32; 4]> = {
-            let view = slice.get_mapped_range().map_err(gpu_err)?;
-            bytemuck::cast_slice(&view).to_vec()
-        };
-        self.bufs.read.buf.unmap();
+        let acc = self.read_back(open.enc.take(), acc_bytes)?;
         let gpu_s = t_gpu.elapsed().as_secs_f64();
         let bg = params.background;
         let img = Image {
@@ -661,6 +603,57 @@ impl<S: BrickSource> GpuRenderer<S> {
         self.last_stats = stats;
         tracing::debug!(?stats, load_s, gpu_s, "gpu frame");
         Ok(img)
+    }
+
+    /// Keeps the atlas if it fits this frame, else starts an empty one; returns the
+    /// probability channels it holds. The atlas holds probabilities of the current classes, or
+    /// none; an intensity frame keeps one that holds probabilities (and loads its new bricks
+    /// with them).
+    fn prepare_atlas(&mut self, geom: VolumeGeom, probs: bool) -> usize {
+        let ids: Vec<u32> = self.source.classes().iter().map(|c| c.0).collect();
+        let keep = self.atlas.layout.as_ref().is_some_and(|l| {
+            l.geom == geom
+                && l.max_binding == self.max_binding
+                && l.budget == self.budget
+                && (l.ids == ids || (!probs && l.ids.is_empty()))
+        });
+        if !keep {
+            self.atlas = Atlas::new(Layout {
+                geom,
+                ids: if probs { ids } else { Vec::new() },
+                max_binding: self.max_binding,
+                budget: self.budget,
+            });
+        }
+        self.atlas.layout.as_ref().map_or(0, |l| l.ids.len())
+    }
+
+    /// Submits `enc` (or a new encoder) with the copy of the accumulators to the readback
+    /// buffer, and returns the first `acc_bytes` of them.
+    fn read_back(
+        &mut self,
+        enc: Option<wgpu::CommandEncoder>,
+        acc_bytes: u64,
+    ) -> Result<Vec<[f32; 4]>> {
+        let mut enc =
+            enc.unwrap_or_else(|| self.device.create_command_encoder(&Default::default()));
+        enc.copy_buffer_to_buffer(&self.bufs.acc.buf, 0, &self.bufs.read.buf, 0, acc_bytes);
+        self.queue.submit([enc.finish()]);
+        let slice = self.bufs.read.buf.slice(..acc_bytes);
+        let (tx, rx) = std::sync::mpsc::channel();
+        slice.map_async(wgpu::MapMode::Read, move |r| {
+            let _ = tx.send(r);
+        });
+        self.device
+            .poll(wgpu::PollType::wait_indefinitely())
+            .map_err(gpu_err)?;
+        rx.recv().map_err(gpu_err)?.map_err(gpu_err)?;
+        let acc: Vec<[f32; 4]> = {
+            let view = slice.get_mapped_range().map_err(gpu_err)?;
+            bytemuck::cast_slice(&view).to_vec()
+        };
+        self.bufs.read.buf.unmap();
+        Ok(acc)
     }
 
     /// Brick `index` from the source, with the atlas's `ch` probability channels.
@@ -934,6 +927,35 @@ impl<S: BrickSource> GpuRenderer<S> {
 
 /// The batch being assembled: its bricks (index, pixel rectangle, slot), its page, and the
 /// frame's first commands (the accumulators' clear) until a batch takes them.
+/// The frame's lookup tables and per-class parameters for `ch` probability channels: the
+/// intensity table (its opacity corrected for the step, as on the CPU), then each class's
+/// probability and intensity tables; per class (lo, scale) of both and tau.
+fn tables(frame: &Frame<'_>, luts: &Luts, ch: usize) -> (Vec<[f32; 4]>, Vec<[f32; 4]>) {
+    let mut lut_data: Vec<[f32; 4]> = frame.intensity_lut().table.clone();
+    let mut info: Vec<[f32; 4]> = Vec::new();
+    for n in 0..ch.max(1) {
+        match luts.classes.get(n).and_then(|c| c.as_ref()) {
+            Some(c) => {
+                lut_data.extend(&c.probability.table);
+                lut_data.extend(&c.intensity.table);
+                info.push([
+                    c.probability.lo,
+                    c.probability.scale,
+                    c.intensity.lo,
+                    c.intensity.scale,
+                ]);
+                info.push([c.tau, 1.0, 0.0, 0.0]);
+            }
+            None => {
+                lut_data.extend(std::iter::repeat_n([0.0f32; 4], 2 * LUT_SIZE));
+                info.push([0.0, 1.0, 0.0, 1.0]);
+                info.push([1.0, 0.0, 0.0, 0.0]);
+            }
+        }
+    }
+    (lut_data, info)
+}
+
 struct Open {
     enc: Option<wgpu::CommandEncoder>,
     batch: Vec<([usize; 3], [usize; 4], usize)>,
