@@ -464,38 +464,19 @@ impl GpuContext {
         let mut enc = self.device.create_command_encoder(&Default::default());
         enc.copy_buffer_to_buffer(src, offset, &staging, 0, size.div_ceil(4) * 4);
         self.queue.submit([enc.finish()]);
-        self.map_read(&staging, size)
+        self.map_with(&staging, size, None, |b| b.to_vec())
     }
 
-    /// Maps a MAP_READ buffer whose copy was submitted, and returns its first `size` bytes.
-    pub(crate) fn map_read(&self, staging: &wgpu::Buffer, size: u64) -> Result<Vec<u8>> {
-        self.map_read_after(staging, size, None)
-    }
-
-    /// [`Self::map_read`], waiting only for submission `after` (else for all work).
-    pub(crate) fn map_read_after(
-        &self,
-        staging: &wgpu::Buffer,
-        size: u64,
-        after: Option<wgpu::SubmissionIndex>,
-    ) -> Result<Vec<u8>> {
-        self.map_with(staging, size, after, |b| b.to_vec())
-    }
-
-    /// The first `size` bytes (a multiple of 4) of a MAP_READ buffer as f32, copied once out
-    /// of the mapping, waiting only for submission `after`.
-    pub(crate) fn map_read_f32_after(
+    /// The first `size` bytes (a multiple of 4) of a MAP_READ buffer whose copy was submitted,
+    /// as f32, copied once out of the mapping; waits only for submission `after` (else for all
+    /// work).
+    pub(crate) fn map_read_f32(
         &self,
         staging: &wgpu::Buffer,
         size: u64,
         after: Option<wgpu::SubmissionIndex>,
     ) -> Result<Vec<f32>> {
-        self.map_with(staging, size, after, |b| {
-            // Mapped ranges are aligned to 4 bytes or more; fall back to a copy otherwise.
-            bytemuck::try_cast_slice::<u8, f32>(b)
-                .map(|f| f.to_vec())
-                .unwrap_or_else(|_| bytemuck::pod_collect_to_vec(b))
-        })
+        self.map_with(staging, size, after, bytemuck::pod_collect_to_vec)
     }
 
     /// Maps `staging` once `after` is done and applies `read` to its first `size` bytes.

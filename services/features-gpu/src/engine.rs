@@ -61,15 +61,6 @@ impl MlpPath {
             MlpPath::Fused => "fused",
         }
     }
-
-    /// The path named `s` (`layered` or `fused`).
-    pub fn parse(s: &str) -> Option<Self> {
-        match s {
-            "layered" => Some(MlpPath::Layered),
-            "fused" => Some(MlpPath::Fused),
-            _ => None,
-        }
-    }
 }
 
 /// How an engine is sized.
@@ -178,6 +169,15 @@ impl Program {
                 ops.push(a);
             }
             None => self.push(k, a, groups),
+        }
+    }
+
+    /// An operation only the fused program has (no kernel of its own); only while fusing.
+    fn fused_only(&mut self, op: Op, mut a: [u32; 24]) {
+        debug_assert!(self.fusing.is_some(), "{op:?} outside a fused program");
+        if let Some(ops) = &mut self.fusing {
+            a[23] = op as u32;
+            ops.push(a);
         }
     }
 
@@ -723,7 +723,7 @@ impl GpuInr {
     /// input is a multiple of 64 wide.
     fn wgrad(&self, p: &mut Program, l: &LayerSpec, dy: Mat, x: Mat, n: usize) {
         let parts = self.plan.parts;
-        let fused = self.opts.mlp == MlpPath::Fused;
+        let fused = self.fused();
         let cols = l.inp + (l.b.is_some() && !fused) as usize;
         self.gemm(
             p,
@@ -745,8 +745,7 @@ impl GpuInr {
                 self.layout.len as u32,
                 self.plan.split as u32,
             ]);
-            // Only ever fused: the layered path keeps its column of ones.
-            p.op(Op::Bias, Kernel::Fused, a, [0, 0, 0]);
+            p.fused_only(Op::Bias, a);
         }
     }
 
@@ -801,6 +800,11 @@ impl GpuInr {
         p.push(Kernel::Stage, args, [n.div_ceil(WG) as u32, 1, 1]);
     }
 
+    /// Whether the dense layers run fused.
+    fn fused(&self) -> bool {
+        self.opts.mlp == MlpPath::Fused
+    }
+
     /// The hash-grid encoding of micro-batch `j` (`n` samples, already staged).
     fn encode(&self, p: &mut Program, j: usize, n: usize) {
         let pl = &self.plan;
@@ -817,7 +821,7 @@ impl GpuInr {
     /// heads with `heads`) and, with `train_len` (the step's samples), the loss and the
     /// backward pass; one fused dispatch on the fused path.
     fn mlp(&self, p: &mut Program, j: usize, n: usize, heads: bool, train_len: Option<usize>) {
-        let fused = self.opts.mlp == MlpPath::Fused;
+        let fused = self.fused();
         if fused {
             p.begin_fuse();
         }
@@ -1350,10 +1354,8 @@ impl GpuInr {
         self.upload_tile(0, tile)?;
         self.record_tile(0, tile.voxels(), kind, &staging)?;
         let c = kind.channels_of(&self.cfg, self.grid.out_dim(), self.layout.mlp_in());
-        let b = self
-            .ctx
-            .map_read(&staging, (tile.voxels() * c * 4) as u64)?;
-        Ok(bytemuck::pod_collect_to_vec(&b))
+        self.ctx
+            .map_read_f32(&staging, (tile.voxels() * c * 4) as u64, None)
     }
 
     /// A MAP_READ buffer for the features of `voxels` voxels.

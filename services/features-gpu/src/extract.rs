@@ -100,7 +100,7 @@ pub fn write_features_gpu(
         let mut flush = |prev: Option<(usize, Brick, wgpu::SubmissionIndex)>| -> Result<()> {
             if let Some((i, b, sub)) = prev {
                 let bytes = (b.voxels() * c * 4) as u64;
-                let f = ctx.map_read_f32_after(&staging[i % 2], bytes, Some(sub))?;
+                let f = ctx.map_read_f32(&staging[i % 2], bytes, Some(sub))?;
                 out_tx
                     .send((b, f))
                     .map_err(|_| GpuError::Config("the feature writer stopped".into()))?;

@@ -409,7 +409,7 @@ impl<S: BrickSource> GpuRenderer<S> {
     }
 
     /// The source, to change it; follow with [`Self::invalidate`] for the bricks whose data
-    /// changed (or [`Self::forget`]).
+    /// changed.
     pub fn source_mut(&mut self) -> &mut S {
         &mut self.source
     }
@@ -431,20 +431,6 @@ impl<S: BrickSource> GpuRenderer<S> {
             }
         }
         Ok(())
-    }
-
-    /// Drops every resident brick (GPU memory included); the next frame uploads afresh.
-    pub fn forget(&mut self) {
-        self.atlas = Atlas::default();
-    }
-
-    /// Bytes of GPU memory the atlas holds.
-    pub fn resident_bytes(&self) -> u64 {
-        self.atlas
-            .pages
-            .iter()
-            .map(|p| p.ints.size() + p.probs.size())
-            .sum()
     }
 
     /// Renders a frame.
