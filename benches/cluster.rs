@@ -14,7 +14,8 @@
 //! deploy/test.sh or deploy/cluster.sh install). `NEUVOLEX_BENCH_BIG=0` skips the large volume.
 //! Workers are this binary re-executed with `--worker`, one process each. Results also go to
 //! `benches/results/cluster.json`. `NEUVOLEX_BENCH_WORKERS=1,2` picks the worker counts
-//! (default 1,2,4). `NEUVOLEX_BENCH_S3=1` puts the stores on an S3 server (s3s-fs from
+//! (default 1,2,4) and `NEUVOLEX_BENCH_WORKER_THREADS` each worker's threads (default: the two
+//! cores shared); `NEUVOLEX_BENCH_OUT` moves the JSON report. `NEUVOLEX_BENCH_S3=1` puts the stores on an S3 server (s3s-fs from
 //! `deploy/s3.sh install`, on loopback) instead of the local file system.
 
 use neuvolex_bricks::{BrickStore, IngestOptions};
@@ -41,7 +42,11 @@ impl Drop for Workers {
 
 fn start_workers(url: &str, n: usize) -> Workers {
     let exe = std::env::current_exe().expect("exe");
-    let threads = (2 / n).max(1);
+    // Each worker's rayon threads: `NEUVOLEX_BENCH_WORKER_THREADS`, else the 2 cores shared.
+    let threads = std::env::var("NEUVOLEX_BENCH_WORKER_THREADS")
+        .ok()
+        .and_then(|t| t.parse().ok())
+        .unwrap_or((2 / n).max(1));
     let ws = (0..n)
         .map(|i| {
             Command::new(&exe)
@@ -371,7 +376,7 @@ fn main() {
         let lab = p.join("labels/ground_truth");
         // The ingest stage reads the phantom as an uncompressed NIfTI (memory-mapped).
         let nii = tmp.path().join("big.nii");
-        neuvolex_bricks::nifti::write_nifti(
+        neuvolex_formats::nifti::write_nifti(
             &nii,
             &mut neuvolex_bricks::synth::Phantom::new(
                 params,
@@ -416,7 +421,10 @@ fn main() {
         }
     }
     drop(nats);
-    let out = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("results/cluster.json");
+    let out = std::env::var_os("NEUVOLEX_BENCH_OUT").map_or_else(
+        || PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("results/cluster.json"),
+        PathBuf::from,
+    );
     let _ = std::fs::write(
         &out,
         serde_json::to_string_pretty(&serde_json::json!({
@@ -443,7 +451,7 @@ fn scribbles(labels: &Path, dir: &Path, name: &str) -> PathBuf {
     )
     .expect("scribbles");
     let out = dir.join(format!("{name}_scr.nii.gz"));
-    neuvolex_bricks::nifti::write_nifti(&out, &mut ScribbleSource::new(s, &meta), 16)
+    neuvolex_formats::nifti::write_nifti(&out, &mut ScribbleSource::new(s, &meta), 16)
         .expect("nifti");
     out
 }

@@ -99,7 +99,7 @@ pub fn write_cta(path: &std::path::Path) {
         neuvolex_bricks::synth::Phantom::new(p, neuvolex_bricks::synth::PhantomChannel::Image);
     for z in (0..d[2]).step_by(4) {
         let s =
-            neuvolex_bricks::VolumeSource::read_slab(&mut src, z, 4.min(d[2] - z)).expect("slab");
+            neuvolex_formats::VolumeSource::read_slab(&mut src, z, 4.min(d[2] - z)).expect("slab");
         f.write_all(&s.bytes).expect("write");
     }
     f.flush().expect("flush");

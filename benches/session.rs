@@ -10,8 +10,9 @@
 
 use neuvolex_benches::{machine, peak_rss_mib, shared};
 use neuvolex_bricks::synth::{palette, ClassInfo};
-use neuvolex_bricks::{ingest, open_volume, BrickStore, IngestOptions, MemVolume};
+use neuvolex_bricks::{ingest, open_volume, BrickStore, IngestOptions};
 use neuvolex_classify::scribble::{simulate, Level, SimConfig};
+use neuvolex_formats::MemVolume;
 use neuvolex_render::BrickSource;
 use neuvolex_server::session::Session;
 use std::sync::{Arc, Mutex};

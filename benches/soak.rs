@@ -1030,7 +1030,7 @@ fn nifti_voxels(bytes: &[u8], dir: &Path, name: &str) -> Result<Vec<u8>> {
     let p = dir.join(name);
     std::fs::write(&p, bytes)?;
     let mut src = neuvolex_bricks::open_volume(&p, None)?;
-    Ok(neuvolex_bricks::MemVolume::read_all(src.as_mut())?.bytes)
+    Ok(neuvolex_formats::MemVolume::read_all(src.as_mut())?.bytes)
 }
 
 /// The final exports, checked against the final state and each other.

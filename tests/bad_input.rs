@@ -1,11 +1,11 @@
 //! Bad input: every case gets a typed error that names the file and the problem, never a
 //! panic, and never a partial or clobbered output.
 
-use neuvolex_bricks::meta::{Slab, VolumeMeta};
 use neuvolex_bricks::{
-    ingest, open_volume, BrickError, BrickStore, DType, IngestOptions, MemVolume, NonFinitePolicy,
-    RawSpec, VolumeSource,
+    ingest, open_volume, BrickError, BrickStore, IngestOptions, NonFinitePolicy,
 };
+use neuvolex_formats::meta::{Slab, VolumeMeta};
+use neuvolex_formats::{DType, FormatError, MemVolume, RawSpec, VolumeSource};
 use neuvolex_tests::{blobs, tmp, write_nifti_values};
 use std::io::Write;
 use std::path::{Path, PathBuf};
@@ -49,7 +49,7 @@ fn truncated_plain_and_gzip() {
         .unwrap();
     assert!(matches!(
         expect_err(&p, None, "truncated nii"),
-        BrickError::Truncated { .. }
+        BrickError::Format(FormatError::Truncated { .. })
     ));
     let g = nifti(d.path(), "t.nii.gz");
     let bytes = std::fs::read(&g).unwrap();
@@ -58,7 +58,8 @@ fn truncated_plain_and_gzip() {
     assert!(
         matches!(
             e,
-            BrickError::Truncated { .. } | BrickError::CorruptGzip { .. }
+            BrickError::Format(FormatError::Truncated { .. })
+                | BrickError::Format(FormatError::CorruptGzip { .. })
         ),
         "{e}"
     );
@@ -67,7 +68,7 @@ fn truncated_plain_and_gzip() {
     std::fs::write(&h, &std::fs::read(&p).unwrap()[..200]).unwrap();
     assert!(matches!(
         expect_err(&h, None, "short header"),
-        BrickError::Truncated { .. }
+        BrickError::Format(FormatError::Truncated { .. })
     ));
     // Empty file.
     let e0 = d.path().join("empty.nii");
@@ -89,7 +90,8 @@ fn corrupt_gzip() {
     assert!(
         matches!(
             e,
-            BrickError::CorruptGzip { .. } | BrickError::Truncated { .. }
+            BrickError::Format(FormatError::CorruptGzip { .. })
+                | BrickError::Format(FormatError::Truncated { .. })
         ),
         "{e}"
     );
@@ -109,19 +111,19 @@ fn size_mismatch_raw_and_nrrd() {
     };
     assert!(matches!(
         expect_err(&p, Some(&spec), "short raw"),
-        BrickError::Truncated { .. }
+        BrickError::Format(FormatError::Truncated { .. })
     ));
     std::fs::write(&p, vec![0u8; 1001]).unwrap();
     assert!(matches!(
         expect_err(&p, Some(&spec), "long raw"),
-        BrickError::SizeMismatch { .. }
+        BrickError::Format(FormatError::SizeMismatch { .. })
     ));
     // Raw without a layout.
     let q = d.path().join("mystery.raw");
     std::fs::write(&q, vec![0u8; 8]).unwrap();
     assert!(matches!(
         expect_err(&q, None, "no layout"),
-        BrickError::UnknownFormat { .. }
+        BrickError::Format(FormatError::UnknownFormat { .. })
     ));
     // NRRD whose sizes exceed its data.
     let n = d.path().join("big.nrrd");
@@ -132,7 +134,7 @@ fn size_mismatch_raw_and_nrrd() {
     drop(f);
     assert!(matches!(
         expect_err(&n, None, "nrrd short"),
-        BrickError::Truncated { .. }
+        BrickError::Format(FormatError::Truncated { .. })
     ));
 }
 
@@ -146,7 +148,8 @@ fn unknown_dtypes() {
     std::fs::write(&p, &b).unwrap();
     let e = expect_err(&p, None, "int64 nifti");
     assert!(
-        matches!(e, BrickError::UnknownDtype { .. }) && e.to_string().contains("int64"),
+        matches!(e, BrickError::Format(FormatError::UnknownDtype { .. }))
+            && e.to_string().contains("int64"),
         "{e}"
     );
     let n = d.path().join("c.nrrd");
@@ -157,7 +160,7 @@ fn unknown_dtypes() {
     .unwrap();
     assert!(matches!(
         expect_err(&n, None, "nrrd complex"),
-        BrickError::UnknownDtype { .. }
+        BrickError::Format(FormatError::UnknownDtype { .. })
     ));
     assert!(DType::parse("u64").is_none());
 }
@@ -173,7 +176,8 @@ fn zero_negative_overflowing_and_absurd_dims() {
         std::fs::write(&p, &b).unwrap();
         let e = expect_err(&p, None, word);
         assert!(
-            matches!(e, BrickError::BadDims { .. }) && e.to_string().contains(word),
+            matches!(e, BrickError::Format(FormatError::BadDims { .. }))
+                && e.to_string().contains(word),
             "{e}"
         );
     }
@@ -184,14 +188,14 @@ fn zero_negative_overflowing_and_absurd_dims() {
     std::fs::write(&p, &b).unwrap();
     assert!(matches!(
         expect_err(&p, None, "4d"),
-        BrickError::BadDims { .. }
+        BrickError::Format(FormatError::BadDims { .. })
     ));
     // NRRD with an overflowing size, and a raw spec with an absurd grid.
     let n = d.path().join("o.nrrd");
     std::fs::write(&n, b"NRRD0004\ntype: uchar\ndimension: 3\nsizes: 2 99999999999999999999999 2\nencoding: raw\n\n").unwrap();
     assert!(matches!(
         expect_err(&n, None, "overflow"),
-        BrickError::BadDims { .. }
+        BrickError::Format(FormatError::BadDims { .. })
     ));
     let r = d.path().join("absurd.raw");
     std::fs::write(&r, [0u8; 8]).unwrap();
@@ -210,7 +214,7 @@ fn zero_negative_overflowing_and_absurd_dims() {
     };
     assert!(matches!(
         expect_err(&r, Some(&spec0), "empty"),
-        BrickError::BadDims { .. }
+        BrickError::Format(FormatError::BadDims { .. })
     ));
 }
 
@@ -286,10 +290,10 @@ impl VolumeSource for Failing {
     fn path(&self) -> &Path {
         Path::new("failing.nii")
     }
-    fn read_slab(&mut self, z0: usize, depth: usize) -> Result<Slab, BrickError> {
+    fn read_slab(&mut self, z0: usize, depth: usize) -> Result<Slab, FormatError> {
         self.served += 1;
         if self.served > self.ok {
-            return Err(BrickError::Truncated {
+            return Err(FormatError::Truncated {
                 path: "failing.nii".into(),
                 expected: 1,
                 found: 0,
@@ -420,7 +424,7 @@ fn store_with_missing_chunks() {
     // The generic OME-Zarr reader reports it too.
     let mut src = open_volume(&out, None).unwrap();
     assert!(matches!(
-        src.read_slab(8, 8).unwrap_err(),
+        BrickError::from(src.read_slab(8, 8).unwrap_err()),
         BrickError::MissingChunk { .. }
     ));
     // A missing per-brick table fails at open.
@@ -481,7 +485,8 @@ fn label_volumes_must_match_and_be_integers() {
         .add_labels("gt", &mut wrong, &[], &mut |_| {})
         .unwrap_err();
     assert!(
-        matches!(e, BrickError::GridMismatch { .. }) && e.to_string().contains("wrong_labels.nii"),
+        matches!(e, BrickError::Format(FormatError::GridMismatch { .. }))
+            && e.to_string().contains("wrong_labels.nii"),
         "{e}"
     );
     let mut frac = MemVolume::from_f32([24, 24, 24], &vec![0.5; 24 * 24 * 24]);
@@ -558,6 +563,6 @@ fn bad_arguments_to_the_store() {
     std::fs::write(&txt, "hello").unwrap();
     assert!(matches!(
         load(&txt, None).unwrap_err(),
-        BrickError::UnknownFormat { .. }
+        BrickError::Format(FormatError::UnknownFormat { .. })
     ));
 }

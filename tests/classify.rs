@@ -2,7 +2,7 @@
 //! against ground truth), determinism, and every bad input the issue lists.
 
 use neuvolex_bricks::synth::{Phantom, PhantomChannel, PhantomParams};
-use neuvolex_bricks::{BrickStore, MemVolume, VolumeSource};
+use neuvolex_bricks::BrickStore;
 use neuvolex_classify::features::Quantise;
 use neuvolex_classify::{
     classify_volume, f1_scores, fit, load_scribbles, simulate, training_set, BrickFeatures,
@@ -11,6 +11,7 @@ use neuvolex_classify::{
 };
 use neuvolex_features::extract::write_features;
 use neuvolex_features::{train, Budget, FeatureKind, InrConfig, TrainConfig};
+use neuvolex_formats::{MemVolume, VolumeSource};
 use neuvolex_tests::{shared, store_of};
 use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
@@ -145,11 +146,11 @@ fn real_abdomen_ct_local_features_find_bone_and_kidneys() {
     ) else {
         return;
     };
-    let mut src = neuvolex_bricks::open::open_volume(&img, None).unwrap();
+    let mut src = neuvolex_bricks::open_volume(&img, None).unwrap();
     let (_d, store) = store_of(&mut *src, 64);
-    let mut l = neuvolex_bricks::open::open_volume(&lab, None).unwrap();
+    let mut l = neuvolex_bricks::open_volume(&lab, None).unwrap();
     let truth = truth_of(&mut *l);
-    let mut l = neuvolex_bricks::open::open_volume(&lab, None).unwrap();
+    let mut l = neuvolex_bricks::open_volume(&lab, None).unwrap();
     let (_, scr) = simulate(
         &mut *l,
         &SimConfig {
@@ -281,7 +282,7 @@ fn bad_scribble_files_and_class_tables_give_clear_errors() {
     neuvolex_tests::write_nifti_values(
         &np,
         [meta.dims[0], meta.dims[1], meta.dims[2] + 2],
-        neuvolex_bricks::DType::U8,
+        neuvolex_formats::DType::U8,
         &vec![0.0; meta.dims[0] * meta.dims[1] * (meta.dims[2] + 2)],
         None,
     );
@@ -292,9 +293,9 @@ fn bad_scribble_files_and_class_tables_give_clear_errors() {
     let mut v = vec![0.0; n];
     v[7] = 1.5;
     let fp = d.path().join("frac.nii");
-    let mut vol = MemVolume::from_f64(meta.dims, neuvolex_bricks::DType::F32, &v);
+    let mut vol = MemVolume::from_f64(meta.dims, neuvolex_formats::DType::F32, &v);
     vol.meta.spacing = meta.spacing;
-    neuvolex_bricks::nifti::write_nifti(&fp, &mut vol, 8).unwrap();
+    neuvolex_formats::nifti::write_nifti(&fp, &mut vol, 8).unwrap();
     let e = load_scribbles(&fp, &meta).unwrap_err().to_string();
     assert!(e.contains("frac.nii") && e.contains("1.5"), "{e}");
     // Class ids missing from the class table.

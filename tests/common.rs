@@ -70,18 +70,18 @@ pub fn blobs(dims: [usize; 3]) -> Vec<f32> {
 pub fn write_nifti_values(
     path: &std::path::Path,
     dims: [usize; 3],
-    dtype: neuvolex_bricks::DType,
+    dtype: neuvolex_formats::DType,
     values: &[f64],
     scaling: Option<(f64, f64)>,
 ) {
-    let mut vol = neuvolex_bricks::MemVolume::from_f64(dims, dtype, values);
+    let mut vol = neuvolex_formats::MemVolume::from_f64(dims, dtype, values);
     vol.meta.scaling = scaling;
-    neuvolex_bricks::nifti::write_nifti(path, &mut vol, 7).expect("write nifti");
+    neuvolex_formats::nifti::write_nifti(path, &mut vol, 7).expect("write nifti");
 }
 
 /// Ingests `vol` into a fresh temporary store with `brick`-sized bricks.
 pub fn store_of(
-    vol: &mut dyn neuvolex_bricks::VolumeSource,
+    vol: &mut dyn neuvolex_formats::VolumeSource,
     brick: usize,
 ) -> (tempfile::TempDir, neuvolex_bricks::BrickStore) {
     let d = tmp();

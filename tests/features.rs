@@ -2,12 +2,13 @@
 //! numerical extremes, the feature cache, and bad checkpoints/configurations.
 
 use neuvolex_bricks::synth::{Phantom, PhantomChannel, PhantomParams};
-use neuvolex_bricks::{ingest, BrickStore, IngestOptions, MemVolume};
+use neuvolex_bricks::{ingest, BrickStore, IngestOptions};
 use neuvolex_features::checkpoint::{self, Loaded};
 use neuvolex_features::extract::{extract_brick, write_features, FeatureCache, FeatureSource};
 use neuvolex_features::{
     train, Ablation, Budget, FeatureError, FeatureKind, InrConfig, TrainConfig, TrainEvent,
 };
+use neuvolex_formats::MemVolume;
 use neuvolex_tests::{blobs, shared, store_of, tmp};
 use std::sync::atomic::AtomicBool;
 use std::sync::Arc;

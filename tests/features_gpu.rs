@@ -6,7 +6,7 @@
 #![cfg(feature = "gpu")]
 
 use neuvolex_bricks::synth::{Phantom, PhantomChannel, PhantomParams};
-use neuvolex_bricks::{BrickStore, MemVolume};
+use neuvolex_bricks::BrickStore;
 use neuvolex_features::adam::TableGrad;
 use neuvolex_features::checkpoint::{self, Loaded};
 use neuvolex_features::extract::{extract_tile, write_features};
@@ -20,6 +20,7 @@ use neuvolex_features_gpu::{
     train_gpu, train_gpu_tuned, write_features_gpu, AdapterKind, EngineOptions, GpuContext,
     GpuError, GpuInr, GpuTune, MlpPath,
 };
+use neuvolex_formats::MemVolume;
 use neuvolex_tests::{blobs, store_of, tmp};
 use std::sync::atomic::AtomicBool;
 use std::sync::{Arc, OnceLock};

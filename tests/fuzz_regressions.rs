@@ -2,10 +2,12 @@
 //! header claims is checked against the file before anything is allocated for it, so an absurd
 //! dimension gives a clear error naming the file, never an out-of-memory or a hang.
 
-use neuvolex_bricks::{open_volume, BrickError, DType};
+use neuvolex_bricks::{open_volume, BrickError};
+
 use neuvolex_features::checkpoint;
 use neuvolex_features::config::InrConfig;
 use neuvolex_features::model::InrModel;
+use neuvolex_formats::{DType, FormatError};
 use neuvolex_tests::{tmp, write_nifti_values};
 use std::io::Write;
 use std::path::Path;
@@ -16,7 +18,7 @@ fn fails(p: &Path, name: &str) -> BrickError {
     let t = Instant::now();
     let r = open_volume(p, None).and_then(|mut s| {
         let nz = s.meta().dims[2];
-        s.read_slab(0, nz).map(|_| ())
+        s.read_slab(0, nz).map(|_| ()).map_err(BrickError::from)
     });
     let e = r.expect_err("must be refused");
     assert!(
@@ -50,7 +52,10 @@ fn gzip_volume_claiming_more_than_deflate_can_hold() {
     gz.write_all(&raw).unwrap();
     std::fs::write(&p, gz.finish().unwrap()).unwrap();
     let e = fails(&p, "huge.nii.gz");
-    assert!(matches!(e, BrickError::Truncated { .. }), "{e}");
+    assert!(
+        matches!(e, BrickError::Format(FormatError::Truncated { .. })),
+        "{e}"
+    );
 }
 
 /// NRRD fields the fuzzer broke: an unparsable or negative `byte skip`, an unparsable
@@ -76,7 +81,10 @@ fn nrrd_skips_and_data_files_are_checked() {
     std::fs::write(dir.join("few.raw"), b"one line\n12345678").unwrap();
     let p = dir.join("few.nhdr");
     std::fs::write(&p, format!("{head}line skip: 5\ndata file: few.raw\n\n")).unwrap();
-    assert!(matches!(fails(&p, "few.raw"), BrickError::Truncated { .. }));
+    assert!(matches!(
+        fails(&p, "few.raw"),
+        BrickError::Format(FormatError::Truncated { .. })
+    ));
     // A data file that is a folder, and one that is a device.
     std::fs::create_dir(dir.join("folder")).unwrap();
     for (name, target) in [("dir.nhdr", "folder"), ("dev.nhdr", "/dev/zero")] {
@@ -215,7 +223,11 @@ fn zarr_chunks_claiming_more_than_they_store_are_refused() {
         assert!(msg.contains(want) && msg.contains("ph.zarr"), "{msg}");
         assert!(matches!(e, BrickError::CorruptStore { .. }), "{e}");
         let e = neuvolex_bricks::omezarr::OmeZarrSource::open(&p)
-            .and_then(|mut s| neuvolex_bricks::VolumeSource::read_slab(&mut s, 0, 1).map(|_| ()))
+            .and_then(|mut s| {
+                neuvolex_formats::VolumeSource::read_slab(&mut s, 0, 1)
+                    .map(|_| ())
+                    .map_err(BrickError::from)
+            })
             .expect_err("the OME-Zarr read must be refused");
         assert!(e.to_string().contains(want), "{e}");
         assert!(t.elapsed() < Duration::from_secs(5), "{:?}", t.elapsed());

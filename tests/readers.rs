@@ -1,8 +1,9 @@
 //! Readers: NIfTI, NRRD, raw and OME-Zarr load into one volume model, checked on synthetic
 //! round trips for every type and byte order and on the real volumes in ../shared/data.
 
-use neuvolex_bricks::nrrd::write_nrrd;
-use neuvolex_bricks::{open_volume, DType, Endian, MemVolume, RawSpec};
+use neuvolex_bricks::open_volume;
+use neuvolex_formats::nrrd::write_nrrd;
+use neuvolex_formats::{DType, Endian, MemVolume, RawSpec};
 use neuvolex_tests::{shared, tmp, write_nifti_values};
 use std::path::Path;
 
@@ -14,7 +15,7 @@ fn values_for(dtype: DType, n: usize) -> Vec<f64> {
         .collect()
 }
 
-fn read_all_f64(path: &Path, raw: Option<&RawSpec>) -> (neuvolex_bricks::VolumeMeta, Vec<f64>) {
+fn read_all_f64(path: &Path, raw: Option<&RawSpec>) -> (neuvolex_formats::VolumeMeta, Vec<f64>) {
     let mut s = open_volume(path, raw).unwrap_or_else(|e| panic!("{e}"));
     let meta = s.meta().clone();
     // Read in two uneven slabs to exercise offsets.
@@ -59,10 +60,10 @@ fn nifti_scaling_is_applied() {
 /// A big-endian NIfTI file, made by byte-swapping the header fields and the data.
 #[test]
 fn nifti_big_endian() {
-    let mut meta = neuvolex_bricks::VolumeMeta::new([3, 4, 5], DType::U16);
+    let mut meta = neuvolex_formats::VolumeMeta::new([3, 4, 5], DType::U16);
     meta.spacing = [0.5, 0.5, 2.0];
-    meta.affine = neuvolex_bricks::meta::diag_affine(meta.spacing, [10.0, 20.0, 30.0]);
-    let mut h = neuvolex_bricks::nifti::build_header(&meta);
+    meta.affine = neuvolex_formats::geometry::diag_affine(meta.spacing, [10.0, 20.0, 30.0]);
+    let mut h = neuvolex_formats::nifti::build_header(&meta);
     let swap = |h: &mut Vec<u8>, o: usize, n: usize| h[o..o + n].reverse();
     swap(&mut h, 0, 4);
     for i in 0..8 {
@@ -134,7 +135,7 @@ fn raw_with_spec_sidecar_and_name() {
     let vals: Vec<f64> = (0..60).map(|i| (i * 100) as f64).collect();
     let vol = MemVolume::from_f64([5, 4, 3], DType::U16, &vals);
     let mut be = vol.bytes.clone();
-    neuvolex_bricks::dtype::to_native(&mut be, DType::U16, Endian::Big);
+    neuvolex_formats::dtype::to_native(&mut be, DType::U16, Endian::Big);
     // Explicit spec, big endian.
     let p = dir.path().join("a.raw");
     std::fs::write(&p, &be).unwrap();
@@ -267,7 +268,7 @@ fn ome_zarr_store_reads_back_through_the_reader() {
         .collect();
     let mut vol = MemVolume::from_f64(dims, DType::I16, &vals);
     vol.meta.spacing = [0.7, 0.8, 2.5];
-    vol.meta.affine = neuvolex_bricks::meta::diag_affine(vol.meta.spacing, [1.0, 2.0, 3.0]);
+    vol.meta.affine = neuvolex_formats::geometry::diag_affine(vol.meta.spacing, [1.0, 2.0, 3.0]);
     let store = dir.path().join("v.zarr");
     let opts = neuvolex_bricks::IngestOptions {
         brick: 8,

@@ -1,8 +1,9 @@
 //! The renderer: analytic cases, mode normalisation, incremental updates, determinism,
 //! extremes, bad parameters, and regression images on real data.
 
+use neuvolex_bricks::open_volume;
 use neuvolex_bricks::synth::ClassInfo;
-use neuvolex_bricks::{open_volume, MemVolume};
+use neuvolex_formats::MemVolume;
 use neuvolex_render::source::ChannelClass;
 use neuvolex_render::{
     BrickSource, Camera, Image, MemSource, Mode, Projection, RenderParams, Renderer, StoreSource,
@@ -527,7 +528,7 @@ fn real_neghip_renders_like_its_reference_image() {
     let bytes = std::fs::read(&raw).unwrap();
     let vol = MemVolume::from_f64(
         [64, 64, 64],
-        neuvolex_bricks::DType::U8,
+        neuvolex_formats::DType::U8,
         &bytes.iter().map(|&b| b as f64).collect::<Vec<_>>(),
     );
     let mut vol = vol;

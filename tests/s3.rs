@@ -8,9 +8,9 @@
 use neuvolex_bricks::lock::{break_lock, lock_holder, LockHolder, LOCK_KEY};
 use neuvolex_bricks::synth::{phantom_classes, Phantom, PhantomChannel, PhantomParams};
 use neuvolex_bricks::{
-    ingest, BrickError, BrickStore, IngestOptions, MemVolume, S3Options, StoreLocation,
-    VectorEncoding,
+    ingest, BrickError, BrickStore, IngestOptions, S3Options, StoreLocation, VectorEncoding,
 };
+use neuvolex_formats::MemVolume;
 use neuvolex_tests::{blobs, tmp, S3Server};
 use std::time::{Duration, Instant};
 
@@ -193,7 +193,7 @@ fn labels_and_ome_reader_through_a_url() {
     assert!(got.iter().zip(&want.bytes).all(|(&a, &b)| a == b as u32));
     // The OME-Zarr reader opens the label image by URL (its datasets point at the generation).
     let mut src = neuvolex_bricks::omezarr::OmeZarrSource::open(loc.join("labels/gt")).unwrap();
-    use neuvolex_bricks::VolumeSource;
+    use neuvolex_formats::VolumeSource;
     let slab = src.read_slab(0, store.info().dims[2]).unwrap();
     assert_eq!(slab.bytes, want.bytes);
     // Replacing the label image keeps one generation and the other label names.

@@ -4,9 +4,8 @@
 use neuvolex_bricks::derived::{self, Normaliser};
 use neuvolex_bricks::store::{downsample_mean, downsample_mode};
 use neuvolex_bricks::synth::{Phantom, PhantomChannel, PhantomParams};
-use neuvolex_bricks::{
-    ingest, BrickStore, DType, IngestOptions, MemVolume, VectorEncoding, VolumeSource,
-};
+use neuvolex_bricks::{ingest, BrickStore, IngestOptions, VectorEncoding};
+use neuvolex_formats::{DType, MemVolume, VolumeSource};
 use neuvolex_tests::{blobs, noise, shared, tmp};
 
 fn build(

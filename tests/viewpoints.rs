@@ -1,8 +1,10 @@
 //! Viewpoint recommendation on the paper's Cube, the tornado, real CT, and degenerate inputs;
 //! progressive aggregation against the one-shot computation.
 
-use neuvolex_bricks::{BrickStore, MemVolume};
+use neuvolex_bricks::BrickStore;
+
 use neuvolex_classify::features::BrickFeatures;
+use neuvolex_formats::MemVolume;
 use neuvolex_tests::{shared, store_of};
 use neuvolex_viewpoints::scores::{score_views, select, Aggregator, SelectConfig, Selection};
 use neuvolex_viewpoints::{fibonacci_sphere, ClusterPartial, KMeans, KMeansConfig};
@@ -168,7 +170,7 @@ fn the_tornado_and_real_ct_get_compact_view_sets() {
     let Some(ct) = shared("abdomen_ct/ct.nii.gz") else {
         return;
     };
-    let mut src = neuvolex_bricks::open::open_volume(&ct, None).unwrap();
+    let mut src = neuvolex_bricks::open_volume(&ct, None).unwrap();
     let (_d, store) = store_of(&mut *src, 32);
     let (sel, dirs, _, used) = recommend(&store, "local", 50, 1800, false);
     eprintln!(

@@ -2,6 +2,7 @@
 //!
 //! Every variant that concerns a file names it, so a user sees *which* input is bad and *why*.
 
+use neuvolex_formats::FormatError;
 use std::path::PathBuf;
 
 /// Result alias used throughout the crate.
@@ -19,48 +20,6 @@ pub enum BrickError {
         #[source]
         source: std::io::Error,
     },
-    /// The file ended before the header said it would.
-    #[error("{path}: truncated: expected {expected} bytes of voxel data, found {found}")]
-    Truncated {
-        /// The file.
-        path: PathBuf,
-        /// Bytes the header promised.
-        expected: u64,
-        /// Bytes actually present.
-        found: u64,
-    },
-    /// The file has more or fewer bytes than its declared grid needs.
-    #[error("{path}: size mismatch: {detail}")]
-    SizeMismatch {
-        /// The file.
-        path: PathBuf,
-        /// What was expected and what was found.
-        detail: String,
-    },
-    /// A header could not be parsed.
-    #[error("{path}: bad header: {detail}")]
-    BadHeader {
-        /// The file.
-        path: PathBuf,
-        /// What is wrong with it.
-        detail: String,
-    },
-    /// A voxel type this project does not read.
-    #[error("{path}: unsupported data type {dtype}")]
-    UnknownDtype {
-        /// The file.
-        path: PathBuf,
-        /// The type as the file names it.
-        dtype: String,
-    },
-    /// Zero, negative, overflowing or absurd grid dimensions.
-    #[error("{path}: invalid dimensions: {detail}")]
-    BadDims {
-        /// The file.
-        path: PathBuf,
-        /// Which dimension and why.
-        detail: String,
-    },
     /// The volume contains NaN or infinite values and the policy is to reject them.
     #[error(
         "{path}: {count} non-finite voxel value(s) (NaN/Inf), first at voxel (x={x}, y={y}, z={z}); \
@@ -77,14 +36,6 @@ pub enum BrickError {
         y: usize,
         /// First offending voxel z.
         z: usize,
-    },
-    /// gzip data that cannot be decompressed.
-    #[error("{path}: corrupt gzip stream: {detail}")]
-    CorruptGzip {
-        /// The file.
-        path: PathBuf,
-        /// The decoder's message.
-        detail: String,
     },
     /// A Zarr store whose metadata is missing or malformed.
     #[error("{path}: corrupt Zarr store: {detail}")]
@@ -112,27 +63,11 @@ pub enum BrickError {
         /// Details.
         detail: String,
     },
-    /// Two volumes that must share a grid do not.
-    #[error("{path}: grid mismatch: {detail}")]
-    GridMismatch {
-        /// The offending (usually label) volume.
-        path: PathBuf,
-        /// Which property differs.
-        detail: String,
-    },
     /// The output already exists and would be overwritten.
     #[error("{path}: already exists (refusing to overwrite; pass --force to replace it)")]
     Exists {
         /// The output path.
         path: PathBuf,
-    },
-    /// A format this project does not recognise.
-    #[error("{path}: unrecognised volume format: {detail}")]
-    UnknownFormat {
-        /// The file.
-        path: PathBuf,
-        /// Hint.
-        detail: String,
     },
     /// An argument that is out of range (e.g. a box outside the grid).
     #[error("invalid argument: {0}")]
@@ -145,6 +80,9 @@ pub enum BrickError {
         /// The zarrs error text.
         detail: String,
     },
+    /// A volume file could not be read or written.
+    #[error(transparent)]
+    Format(FormatError),
     /// The operation was cancelled by the caller.
     #[error("cancelled")]
     Cancelled,
@@ -186,14 +124,6 @@ impl BrickError {
         }
     }
 
-    /// A header error for `path`.
-    pub fn header(path: impl Into<PathBuf>, detail: impl Into<String>) -> Self {
-        BrickError::BadHeader {
-            path: path.into(),
-            detail: detail.into(),
-        }
-    }
-
     /// A zarrs error for the store at `path`.
     pub fn zarr(path: impl Into<PathBuf>, err: impl std::fmt::Display) -> Self {
         BrickError::Zarr {
@@ -221,6 +151,31 @@ impl BrickError {
         BrickError::CorruptStore {
             path: path.into(),
             detail: detail.into(),
+        }
+    }
+}
+
+impl From<FormatError> for BrickError {
+    /// A format error; a store error that travelled through a volume source
+    /// ([`FormatError::Source`]) comes back as itself.
+    fn from(e: FormatError) -> Self {
+        match e {
+            FormatError::Source(inner) => match inner.downcast::<BrickError>() {
+                Ok(b) => *b,
+                Err(other) => BrickError::Format(FormatError::Source(other)),
+            },
+            e => BrickError::Format(e),
+        }
+    }
+}
+
+impl From<BrickError> for FormatError {
+    /// A store error raised inside a volume source (an OME-Zarr store read as a volume), kept
+    /// whole ([`BrickError::from`] recovers it).
+    fn from(e: BrickError) -> Self {
+        match e {
+            BrickError::Format(f) => f,
+            e => FormatError::Source(Box::new(e)),
         }
     }
 }

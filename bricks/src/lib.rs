@@ -28,35 +28,24 @@ pub mod backend;
 pub mod commit;
 pub mod derived;
 pub mod done;
-pub mod dtype;
 pub mod error;
 pub mod location;
 pub mod lock;
 pub mod lru;
-pub mod meta;
-pub mod nifti;
-pub mod nrrd;
 pub mod omezarr;
-pub mod open;
-pub mod raw;
 pub mod rng;
 pub mod stats;
 pub mod store;
-mod stream;
-pub use stream::FileVolume;
 pub mod synth;
 
 pub use backend::{store_io, Backend, StoreIo};
 pub use commit::Commit;
 pub use derived::{DerivedBrick, HaloBrick, Normaliser};
 pub use done::{DoneMarkers, StageTag};
-pub use dtype::{DType, Endian};
 pub use error::{BrickError, Result};
 pub use location::{S3Options, StoreLocation};
 pub use lock::WriterLock;
-pub use meta::{MemVolume, Slab, VolumeMeta, VolumeSource};
-pub use open::{detect_format, open_volume, Format};
-pub use raw::RawSpec;
+pub use omezarr::open_volume;
 pub use stats::VolumeStats;
 pub use store::{
     first_raw_value, ingest, ingest_with_labels, Brick, BrickStore, IngestLabels, IngestOptions,

@@ -5,10 +5,12 @@
 //! dimensions is also accepted.
 
 use crate::backend::Backend;
-use crate::dtype::DType;
 use crate::error::{BrickError, Result};
 use crate::location::StoreLocation;
-use crate::meta::{check_slab_range, diag_affine, dims_from_i64, Slab, VolumeMeta, VolumeSource};
+use neuvolex_formats::dtype::DType;
+use neuvolex_formats::geometry::diag_affine;
+use neuvolex_formats::meta::{check_slab_range, dims_from_i64, Slab, VolumeMeta, VolumeSource};
+use neuvolex_formats::FormatError;
 use serde_json::{json, Value};
 use std::ops::Range;
 use std::path::{Path, PathBuf};
@@ -404,17 +406,19 @@ impl OmeZarrSource {
             .map_err(|e| BrickError::corrupt(&array_dir, e.to_string()))?;
         let shape = array.shape().to_vec();
         if shape.len() < 3 {
-            return Err(BrickError::BadDims {
+            return Err(FormatError::BadDims {
                 path: array_dir,
                 detail: format!("array has {} dimensions; need z, y, x", shape.len()),
-            });
+            }
+            .into());
         }
         let lead = shape.len() - 3;
         if let Some(i) = shape[..lead].iter().position(|&s| s != 1) {
-            return Err(BrickError::BadDims {
+            return Err(FormatError::BadDims {
                 path: array_dir,
                 detail: format!("leading axis {i} has size {}; only single-channel, single-time images are supported", shape[i]),
-            });
+            }
+            .into());
         }
         let to_i = |v: u64| i64::try_from(v).unwrap_or(i64::MAX);
         let dims = dims_from_i64(
@@ -426,7 +430,7 @@ impl OmeZarrSource {
             ],
         )?;
         let name = dtype_name(&array);
-        let dtype = DType::parse(&name).ok_or_else(|| BrickError::UnknownDtype {
+        let dtype = DType::parse(&name).ok_or_else(|| FormatError::UnknownDtype {
             path: array_dir.clone(),
             dtype: name,
         })?;
@@ -455,7 +459,14 @@ impl VolumeSource for OmeZarrSource {
     fn path(&self) -> &Path {
         &self.path
     }
-    fn read_slab(&mut self, z0: usize, depth: usize) -> Result<Slab> {
+    fn read_slab(&mut self, z0: usize, depth: usize) -> neuvolex_formats::Result<Slab> {
+        Ok(self.read(z0, depth)?)
+    }
+}
+
+impl OmeZarrSource {
+    /// Reads slices `z0..z0+depth` (the [`VolumeSource::read_slab`] of this source).
+    fn read(&mut self, z0: usize, depth: usize) -> Result<Slab> {
         check_slab_range(&self.meta, &self.path, z0, depth)?;
         let mut subset: Vec<Range<u64>> = vec![0..1; self.lead];
         subset.push(z0 as u64..(z0 + depth) as u64);
@@ -471,4 +482,18 @@ impl VolumeSource for OmeZarrSource {
             bytes,
         })
     }
+}
+
+/// Opens any supported volume at `path`: an OME-Zarr store (a folder, `.zarr` or `s3://` URL)
+/// as an [`OmeZarrSource`], anything else with [`neuvolex_formats::open_file`] (NIfTI, NRRD,
+/// raw; `raw` gives the layout of headerless files).
+pub fn open_volume(
+    path: &Path,
+    raw: Option<&neuvolex_formats::RawSpec>,
+) -> Result<Box<dyn VolumeSource>> {
+    if raw.is_none() && neuvolex_formats::detect_format(path)? == neuvolex_formats::Format::OmeZarr
+    {
+        return Ok(Box::new(OmeZarrSource::open(path)?));
+    }
+    Ok(neuvolex_formats::open_file(path, raw)?)
 }

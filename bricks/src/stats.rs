@@ -4,7 +4,7 @@
 //! need a second pass once min and max are known: a 65 536-bin histogram over `[min, max]`
 //! locates the percentiles to within `(max-min)/65536`, refined by linear interpolation.
 
-use crate::dtype::DType;
+use neuvolex_formats::dtype::DType;
 use serde::{Deserialize, Serialize};
 
 /// Number of bins in the stored histogram.

@@ -29,17 +29,17 @@ use crate::backend::Backend;
 use crate::commit::{group_doc, Commit};
 use crate::derived::{HaloBrick, Normaliser};
 use crate::done::{layout_of, DoneMarkers, StageTag};
-use crate::dtype::DType;
 use crate::error::{BrickError, Result};
 use crate::location::StoreLocation;
 use crate::lock::WriterLock;
 use crate::lru::Lru;
-use crate::meta::{VolumeMeta, VolumeSource};
 use crate::omezarr::{
     check_chunks_exist, multiscales, read_bytes, read_node, write_bytes, write_slab_chunks,
     zarr_dtype, ZArray,
 };
 use crate::stats::{FineHistogram, StatsAccumulator, VolumeStats};
+use neuvolex_formats::dtype::DType;
+use neuvolex_formats::meta::{VolumeMeta, VolumeSource};
 use serde::{Deserialize, Serialize};
 use serde_json::{json, Value};
 use std::ops::Range;
@@ -287,14 +287,14 @@ pub fn downsample_mean(src: &[f32], dims: [usize; 3]) -> Vec<f32> {
 }
 
 /// 2x mean downsampling of a native slab, two slices at a time, with scaling applied.
-fn downsample_slab(slab: &crate::meta::Slab, meta: &VolumeMeta) -> Vec<f32> {
+fn downsample_slab(slab: &neuvolex_formats::meta::Slab, meta: &VolumeMeta) -> Vec<f32> {
     let (nx, ny) = (meta.dims[0], meta.dims[1]);
     let sl = nx * ny * slab.dtype.size();
     let mut out = Vec::with_capacity(nx.div_ceil(2) * ny.div_ceil(2) * slab.depth.div_ceil(2));
     let mut z = 0;
     while z < slab.depth {
         let d = 2.min(slab.depth - z);
-        let pair = crate::meta::Slab {
+        let pair = neuvolex_formats::meta::Slab {
             z0: 0,
             depth: d,
             dtype: slab.dtype,
@@ -481,7 +481,7 @@ pub fn replace_file(path: &Path, bytes: &[u8]) -> Result<()> {
         std::fs::create_dir_all(d).map_err(|e| BrickError::io(d, e))?;
     }
     remove_stale_siblings(path);
-    let t = crate::nifti::tmp_name(path);
+    let t = neuvolex_formats::nifti::tmp_name(path);
     let tmp = t.with_file_name(format!(
         "{}-{}",
         t.file_name().unwrap_or_default().to_string_lossy(),
@@ -569,7 +569,7 @@ impl Scanner {
     /// accumulates it. Slabs must arrive front to back.
     pub fn add_slab(
         &mut self,
-        slab: &mut crate::meta::Slab,
+        slab: &mut neuvolex_formats::meta::Slab,
         policy: NonFinitePolicy,
         path: &Path,
     ) -> Result<()> {
@@ -601,7 +601,7 @@ impl Scanner {
                             vals[i] = 0.0;
                         }
                         self.acc.non_finite_replaced += bad.len() as u64;
-                        slab.bytes = crate::dtype::f64_to_bytes(&vals, meta.dtype);
+                        slab.bytes = neuvolex_formats::dtype::f64_to_bytes(&vals, meta.dtype);
                     }
                 }
             }
@@ -612,7 +612,7 @@ impl Scanner {
             return Ok(());
         }
         let mut first = [0.0f64];
-        crate::dtype::bytes_to_f64(&slab.bytes[..esize], meta.dtype, &mut first);
+        neuvolex_formats::dtype::bytes_to_f64(&slab.bytes[..esize], meta.dtype, &mut first);
         self.acc.set_shift_if_unset(first[0]);
         // Brick layers touched by this slab; each worker keeps its own ranges for them.
         let bz0 = slab.z0 / b;
@@ -641,7 +641,7 @@ impl Scanner {
                         lmax[i] = lmax[i].max(hi);
                     };
                     if small {
-                        crate::dtype::small_ints_to_i32(sl, meta.dtype, &mut ints);
+                        neuvolex_formats::dtype::small_ints_to_i32(sl, meta.dtype, &mut ints);
                         acc.add_ints(&ints);
                         for y in 0..meta.dims[1] {
                             let row = &ints[y * meta.dims[0]..(y + 1) * meta.dims[0]];
@@ -657,7 +657,7 @@ impl Scanner {
                             }
                         }
                     } else {
-                        crate::dtype::bytes_to_f64(sl, meta.dtype, &mut raw);
+                        neuvolex_formats::dtype::bytes_to_f64(sl, meta.dtype, &mut raw);
                         acc.add_raw(&raw);
                         // Per-slice sums: added in slice order at the end, whatever the split.
                         let (a, q) = acc.take_sums();
@@ -719,13 +719,13 @@ impl Scanner {
 /// The first raw value of a volume as [`Scanner::add_slab`] sees it (a NaN or Inf counts as 0,
 /// as the `zero` policy writes it; the `reject` policy fails on it anyway): the shift that
 /// every part's [`Scanner::with_shift`] must use. `slab` is the volume's first slab.
-pub fn first_raw_value(slab: &crate::meta::Slab) -> f64 {
+pub fn first_raw_value(slab: &neuvolex_formats::meta::Slab) -> f64 {
     let esize = slab.dtype.size();
     if slab.bytes.len() < esize {
         return 0.0;
     }
     let mut first = [0.0f64];
-    crate::dtype::bytes_to_f64(&slab.bytes[..esize], slab.dtype, &mut first);
+    neuvolex_formats::dtype::bytes_to_f64(&slab.bytes[..esize], slab.dtype, &mut first);
     if first[0].is_finite() {
         first[0]
     } else {
@@ -977,7 +977,7 @@ impl IngestTarget {
                     None
                 };
                 remove_stale_siblings(dir);
-                let tmp = crate::nifti::tmp_name(dir);
+                let tmp = neuvolex_formats::nifti::tmp_name(dir);
                 if tmp.exists() {
                     std::fs::remove_dir_all(&tmp).map_err(|e| BrickError::io(&tmp, e))?;
                 }
@@ -1196,7 +1196,7 @@ impl SlabWriter {
     pub fn write(
         &self,
         scanner: &mut Scanner,
-        slab: &mut crate::meta::Slab,
+        slab: &mut neuvolex_formats::meta::Slab,
         path: &Path,
     ) -> Result<()> {
         let meta = &self.meta;
@@ -1274,7 +1274,7 @@ impl SlabWriter {
         )
         .map_err(|e| BrickError::zarr(&self.root, e))?;
         let mut v = vec![0.0f32; bytes.len() / self.store_dtype.size()];
-        crate::dtype::bytes_to_f32(&bytes, self.store_dtype, &mut v);
+        neuvolex_formats::dtype::bytes_to_f32(&bytes, self.store_dtype, &mut v);
         let mut fine = FineHistogram::new(range.0, range.1);
         fine.add(&v);
         Ok(fine)
@@ -1451,7 +1451,7 @@ impl BrickStore {
                 ),
             ));
         }
-        crate::meta::validate_dims(root, info.dims)?;
+        neuvolex_formats::meta::validate_dims(root, info.dims)?;
         if !(8..=512).contains(&info.brick) || info.levels.is_empty() {
             return Err(BrickError::corrupt(
                 root,
@@ -1679,7 +1679,7 @@ impl BrickStore {
                 ));
             }
             let mut v = vec![0.0f32; bytes.len() / dt.size()];
-            crate::dtype::bytes_to_f32(&bytes, dt, &mut v);
+            neuvolex_formats::dtype::bytes_to_f32(&bytes, dt, &mut v);
             Ok((Arc::new(v), 1))
         })
     }
@@ -1932,12 +1932,15 @@ impl BrickStore {
                 let v = meta.scale(r);
                 if !v.is_finite() || v < 0.0 || v.fract() != 0.0 || v > max {
                     let s = meta.slice_len();
-                    return Err(BrickError::header(lpath, format!("label value {v} at voxel (x={}, y={}, z={}) is not a non-negative integer", i % dims[0], (i / dims[0]) % dims[1], z0 + i / s)));
+                    return Err(neuvolex_formats::FormatError::header(lpath, format!("label value {v} at voxel (x={}, y={}, z={}) is not a non-negative integer", i % dims[0], (i / dims[0]) % dims[1], z0 + i / s)).into());
                 }
                 lab.push(v as u32);
             }
             let to_bytes = |l: &[u32]| {
-                crate::dtype::f64_to_bytes(&l.iter().map(|&v| v as f64).collect::<Vec<_>>(), dtype)
+                neuvolex_formats::dtype::f64_to_bytes(
+                    &l.iter().map(|&v| v as f64).collect::<Vec<_>>(),
+                    dtype,
+                )
             };
             let esize = dtype.size();
             write_slab_chunks(
@@ -2044,7 +2047,7 @@ impl BrickStore {
         let bytes = read_bytes(&a, &sub).map_err(|e| BrickError::corrupt(&self.root, e))?;
         let dt = DType::parse(&crate::omezarr::dtype_name(&a)).unwrap_or(DType::U8);
         let mut v = vec![0.0f64; bytes.len() / dt.size()];
-        crate::dtype::bytes_to_f64(&bytes, dt, &mut v);
+        neuvolex_formats::dtype::bytes_to_f64(&bytes, dt, &mut v);
         Ok(v.into_iter().map(|x| x as u32).collect())
     }
 
@@ -2604,7 +2607,7 @@ pub fn check_name(what: &str, name: &str) -> Result<()> {
 #[cfg(test)]
 mod scanner_tests {
     use super::*;
-    use crate::meta::MemVolume;
+    use neuvolex_formats::meta::MemVolume;
 
     fn volume() -> MemVolume {
         let dims = [23, 17, 41];

@@ -6,9 +6,9 @@
 //! iliac branches), plus Gaussian noise. Each voxel is a pure function of its position and
 //! the seed, so the phantom streams slab by slab at any size.
 
-use crate::dtype::DType;
-use crate::error::Result;
-use crate::meta::{check_slab_range, diag_affine, Slab, VolumeMeta, VolumeSource};
+use neuvolex_formats::dtype::DType;
+use neuvolex_formats::geometry::diag_affine;
+use neuvolex_formats::meta::{check_slab_range, Slab, VolumeMeta, VolumeSource};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 
@@ -276,7 +276,7 @@ impl VolumeSource for Phantom {
     fn path(&self) -> &Path {
         &self.name
     }
-    fn read_slab(&mut self, z0: usize, depth: usize) -> Result<Slab> {
+    fn read_slab(&mut self, z0: usize, depth: usize) -> neuvolex_formats::Result<Slab> {
         check_slab_range(&self.meta, &self.name, z0, depth)?;
         let d = self.params.dims;
         let norm = |i: usize, n: usize| {

@@ -9,7 +9,7 @@ pub mod alloc_limit;
 pub mod mutate;
 pub mod targets;
 
-use neuvolex_bricks::VolumeSource;
+use neuvolex_formats::VolumeSource;
 use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
 

@@ -10,7 +10,7 @@ use std::path::Path;
 /// NIfTI-1 (`.nii`): the header parser on the raw bytes, then the file opened and read as the
 /// ingest reads it.
 pub fn nifti(data: &[u8]) {
-    let _ = neuvolex_bricks::nifti::parse_header(Path::new("fuzz.nii"), data);
+    let _ = neuvolex_formats::nifti::parse_header(Path::new("fuzz.nii"), data);
     let p = fresh("nifti").join("v.nii");
     std::fs::write(&p, data).expect("scratch write");
     open_and_read(&p);
@@ -57,10 +57,10 @@ pub fn raw(data: &[u8]) {
         // Sidecars are parsed on their own too (the layout of `--dims/--dtype` files).
         if name.extension().is_some_and(|e| e == "json") {
             if let Ok(t) = std::str::from_utf8(bytes) {
-                let _ = serde_json::from_str::<neuvolex_bricks::RawSpec>(t);
+                let _ = serde_json::from_str::<neuvolex_formats::RawSpec>(t);
             }
         }
-        let _ = neuvolex_bricks::RawSpec::from_name(Path::new(name));
+        let _ = neuvolex_formats::RawSpec::from_name(Path::new(name));
     }
     let Some((raw, _)) = files
         .iter()

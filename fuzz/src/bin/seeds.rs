@@ -6,9 +6,10 @@
 //!
 //! `seeds [DATA_DIR] [OUT_DIR]` (defaults `../shared/data` and `corpus`, relative to `fuzz/`).
 
-use neuvolex_bricks::dtype::DType;
-use neuvolex_bricks::meta::{MemVolume, VolumeMeta, VolumeSource};
-use neuvolex_bricks::{nifti, nrrd, Endian, IngestOptions};
+use neuvolex_bricks::IngestOptions;
+use neuvolex_formats::dtype::DType;
+use neuvolex_formats::meta::{MemVolume, VolumeMeta, VolumeSource};
+use neuvolex_formats::{nifti, nrrd, Endian};
 use neuvolex_fuzz::pack;
 use std::io::{Read, Write};
 use std::path::{Path, PathBuf};
@@ -222,7 +223,7 @@ fn main() {
         let mut src = neuvolex_bricks::open_volume(&nhdr, None).expect("tooth opens");
         let v = crop(src.as_mut(), 7, 6, 3);
         let mut be = v.bytes.clone();
-        neuvolex_bricks::dtype::to_native(&mut be, v.meta.dtype, Endian::Big);
+        neuvolex_formats::dtype::to_native(&mut be, v.meta.dtype, Endian::Big);
         let small = text.replace("sizes: 103 94 161", "sizes: 7 6 3");
         c.put(
             "nrrd",
@@ -326,7 +327,7 @@ fn main() {
                 &pack(&files),
             );
         }
-        let spec = neuvolex_bricks::RawSpec {
+        let spec = neuvolex_formats::RawSpec {
             dims: v.meta.dims,
             dtype: v.meta.dtype,
             endian: Endian::Little,

@@ -60,3 +60,10 @@ pub enum ClassifyError {
     #[error("{0}")]
     Input(String),
 }
+
+impl From<neuvolex_formats::FormatError> for ClassifyError {
+    /// A volume file error, as the store reports it ([`neuvolex_bricks::BrickError::Format`]).
+    fn from(e: neuvolex_formats::FormatError) -> Self {
+        ClassifyError::Volume(e.into())
+    }
+}

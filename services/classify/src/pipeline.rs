@@ -11,11 +11,11 @@ use crate::forest::Forest;
 use crate::scribble::load_scribbles;
 use crate::shard::{classify_brick, fit, output_labels, training_set, ClassTable, ClassifyConfig};
 use crate::ClassifyError;
-use neuvolex_bricks::meta::MemVolume;
 use neuvolex_bricks::store::{Brick, BrickStore, VectorArray, VectorEncoding};
 use neuvolex_bricks::synth::ClassInfo;
-use neuvolex_bricks::DType;
 use neuvolex_features::InrModel;
+use neuvolex_formats::meta::MemVolume;
+use neuvolex_formats::DType;
 use neuvolex_tasks::{
     codec, execute_ordered, fingerprint, Blob, Blobs, DeadTask, DynStage, Executor, RunEvent,
     RunReport, Stage, Task, TaskCtx, TaskError,
@@ -679,7 +679,7 @@ pub fn classify<E: Executor + ?Sized>(
         store.stage_labels(&mut commit, "classified", &mut lv, &classes, &mut |_| {})?;
         commit.publish(store.backend())?;
         if let Some(o) = &req.out {
-            neuvolex_bricks::nifti::write_nifti(o, &mut lv, 64)?;
+            neuvolex_formats::nifti::write_nifti(o, &mut lv, 64)?;
         }
     }
     Ok(ClassifyOutcome {

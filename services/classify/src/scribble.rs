@@ -4,9 +4,10 @@
 //! Label convention: 0 = unlabelled, 1..N = ROI classes, `background` (255 by default) =
 //! background/other.
 
-use neuvolex_bricks::meta::{check_slab_range, Slab, VolumeMeta, VolumeSource};
 use neuvolex_bricks::rng::Rng;
-use neuvolex_bricks::{BrickError, DType};
+use neuvolex_bricks::BrickError;
+use neuvolex_formats::meta::{check_slab_range, Slab, VolumeMeta, VolumeSource};
+use neuvolex_formats::DType;
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 
@@ -66,6 +67,13 @@ pub enum ScribbleError {
     /// A label volume that cannot be simulated from.
     #[error("{0}")]
     Labels(String),
+}
+
+impl From<neuvolex_formats::FormatError> for ScribbleError {
+    /// A volume file error, as the store reports it ([`neuvolex_bricks::BrickError::Format`]).
+    fn from(e: neuvolex_formats::FormatError) -> Self {
+        ScribbleError::Volume(e.into())
+    }
 }
 
 /// Scribbled voxels: sorted linear indices (x fastest) and their labels.
@@ -377,7 +385,7 @@ pub fn load_scribbles(path: &Path, like: &VolumeMeta) -> Result<Scribbles, Scrib
             e => e,
         });
     }
-    let mut src = neuvolex_bricks::open::open_volume(path, None)?;
+    let mut src = neuvolex_bricks::open_volume(path, None)?;
     like.check_same_grid(src.meta(), path)?;
     let dims = like.dims;
     let slice = dims[0] * dims[1];
@@ -631,7 +639,7 @@ impl VolumeSource for ScribbleSource {
     fn path(&self) -> &Path {
         &self.name
     }
-    fn read_slab(&mut self, z0: usize, depth: usize) -> Result<Slab, BrickError> {
+    fn read_slab(&mut self, z0: usize, depth: usize) -> neuvolex_formats::Result<Slab> {
         check_slab_range(&self.meta, &self.name, z0, depth)?;
         let sl = (self.meta.dims[0] * self.meta.dims[1]) as u64;
         let (lo, hi) = (z0 as u64 * sl, (z0 + depth) as u64 * sl);
@@ -647,7 +655,7 @@ impl VolumeSource for ScribbleSource {
             z0,
             depth,
             dtype: self.meta.dtype,
-            bytes: neuvolex_bricks::dtype::f64_to_bytes(&vals, self.meta.dtype),
+            bytes: neuvolex_formats::dtype::f64_to_bytes(&vals, self.meta.dtype),
         })
     }
 }
@@ -656,7 +664,7 @@ impl VolumeSource for ScribbleSource {
 mod tests {
     use super::*;
     use neuvolex_bricks::synth::{Phantom, PhantomChannel, PhantomParams};
-    use neuvolex_bricks::MemVolume;
+    use neuvolex_formats::MemVolume;
 
     #[test]
     fn rasterise_a_hand_drawn_stroke() {
@@ -928,7 +936,7 @@ mod tests {
         // Written out and read back through the NIfTI reader.
         let d = tempfile::tempdir().unwrap();
         let path = d.path().join("s.nii.gz");
-        neuvolex_bricks::nifti::write_nifti(
+        neuvolex_formats::nifti::write_nifti(
             &path,
             &mut ScribbleSource::new(a.clone(), &truth.meta),
             8,

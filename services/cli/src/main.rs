@@ -16,9 +16,9 @@ use indicatif::{ProgressBar, ProgressStyle};
 use neuvolex_bricks::store::{scan_volume, ScanReport};
 use neuvolex_bricks::synth::{phantom_classes, ClassInfo, Phantom, PhantomChannel, PhantomParams};
 use neuvolex_bricks::{
-    ingest, open_volume, BrickStore, DType, Endian, IngestOptions, NonFinitePolicy, Progress,
-    RawSpec, VolumeStats,
+    ingest, open_volume, BrickStore, IngestOptions, NonFinitePolicy, Progress, VolumeStats,
 };
+use neuvolex_formats::{DType, Endian, RawSpec};
 use std::path::{Path, PathBuf};
 
 #[derive(Parser)]
@@ -758,7 +758,7 @@ fn info(input: &Path, brick: usize, json: bool, raw: &RawArgs, quiet: bool) -> R
     println!(
         "file        : {} ({:?})",
         input.display(),
-        neuvolex_bricks::detect_format(input).ok()
+        neuvolex_formats::detect_format(input).ok()
     );
     println!(
         "dims (xyz)  : {} x {} x {} = {} voxels",
@@ -841,12 +841,12 @@ fn main() -> Result<()> {
                         );
                     }
                 }
-                neuvolex_bricks::nifti::write_nifti(
+                neuvolex_formats::nifti::write_nifti(
                     &out,
                     &mut Phantom::new(params, PhantomChannel::Image),
                     16,
                 )?;
-                neuvolex_bricks::nifti::write_nifti(
+                neuvolex_formats::nifti::write_nifti(
                     &lab,
                     &mut Phantom::new(params, PhantomChannel::Labels),
                     16,
@@ -989,7 +989,7 @@ fn main() -> Result<()> {
             };
             let (strokes, s) = simulate(src.as_mut(), &cfg)
                 .with_context(|| format!("{}: cannot simulate scribbles", labels.display()))?;
-            neuvolex_bricks::nifti::write_nifti(
+            neuvolex_formats::nifti::write_nifti(
                 &out,
                 &mut ScribbleSource::new(s.clone(), &meta),
                 16,
@@ -1084,7 +1084,7 @@ fn main() -> Result<()> {
                 );
             }
             let mut src = open_volume(&input, raw.spec()?.as_ref())?;
-            neuvolex_bricks::nifti::write_nifti(&output, src.as_mut(), 16)?;
+            neuvolex_formats::nifti::write_nifti(&output, src.as_mut(), 16)?;
             tracing::info!(output = %output.display(), "written");
         }
     }
@@ -1148,7 +1148,7 @@ fn synth_scene(
         }
         Scene::Phantom => unreachable!("the phantom has its own writer"),
     };
-    let mut vol = neuvolex_bricks::MemVolume::from_f32(dims, &values);
+    let mut vol = neuvolex_formats::MemVolume::from_f32(dims, &values);
     let name = out.to_string_lossy().to_ascii_lowercase();
     if name.ends_with(".nii") || name.ends_with(".nii.gz") {
         if out.exists() && !force {
@@ -1157,7 +1157,7 @@ fn synth_scene(
                 out.display()
             );
         }
-        neuvolex_bricks::nifti::write_nifti(out, &mut vol, 16)?;
+        neuvolex_formats::nifti::write_nifti(out, &mut vol, 16)?;
         return Ok(());
     }
     let opts = IngestOptions {
@@ -1170,7 +1170,7 @@ fn synth_scene(
     if let Some(l) = labels {
         let mut store = BrickStore::open(out)?;
         let lv: Vec<f64> = l.iter().map(|&v| v as f64).collect();
-        let mut lab = neuvolex_bricks::MemVolume::from_f64(dims, DType::U8, &lv);
+        let mut lab = neuvolex_formats::MemVolume::from_f64(dims, DType::U8, &lv);
         let classes = vec![
             ClassInfo {
                 id: 1,

@@ -2,9 +2,9 @@
 //! work directory, and the INR variants trained on it (cached beside it).
 
 use crate::{EvalError, EvalEvent, Events, InrVariant, Result};
-use neuvolex_bricks::meta::MemVolume;
 use neuvolex_bricks::store::{BrickStore, IngestOptions};
 use neuvolex_features::{FeatureKind, InrModel};
+use neuvolex_formats::meta::MemVolume;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::Instant;
@@ -84,7 +84,7 @@ impl Dataset {
         })?;
         let store_path = work.join(format!("{}.zarr", spec.name));
         if !store_path.exists() {
-            let mut src = neuvolex_bricks::open::open_volume(&spec.image, None)?;
+            let mut src = neuvolex_bricks::open_volume(&spec.image, None)?;
             neuvolex_bricks::store::ingest(
                 &mut *src,
                 &store_path,
@@ -96,7 +96,7 @@ impl Dataset {
             path: store_path.clone(),
             detail: format!("cannot open the cached store ({e}); delete it to re-ingest"),
         })?;
-        let mut lsrc = neuvolex_bricks::open::open_volume(&spec.labels, None)?;
+        let mut lsrc = neuvolex_bricks::open_volume(&spec.labels, None)?;
         store.meta().check_same_grid(lsrc.meta(), &spec.labels)?;
         let truth: Vec<u32> = MemVolume::read_all(&mut *lsrc)?
             .to_f32()
@@ -132,8 +132,8 @@ impl Dataset {
     }
 
     /// A fresh source over the ground truth (for the scribble simulator).
-    pub fn truth_source(&self) -> Result<Box<dyn neuvolex_bricks::VolumeSource>> {
-        Ok(neuvolex_bricks::open::open_volume(&self.spec.labels, None)?)
+    pub fn truth_source(&self) -> Result<Box<dyn neuvolex_formats::VolumeSource>> {
+        Ok(neuvolex_bricks::open_volume(&self.spec.labels, None)?)
     }
 }
 

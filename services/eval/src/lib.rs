@@ -57,6 +57,13 @@ pub enum EvalError {
     },
 }
 
+impl From<neuvolex_formats::FormatError> for EvalError {
+    /// A volume file error, as the store reports it ([`neuvolex_bricks::BrickError::Format`]).
+    fn from(e: neuvolex_formats::FormatError) -> Self {
+        EvalError::Volume(e.into())
+    }
+}
+
 /// Result of an evaluation step.
 pub type Result<T> = std::result::Result<T, EvalError>;
 

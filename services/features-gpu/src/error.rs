@@ -28,6 +28,13 @@ pub enum GpuError {
     Brick(#[from] neuvolex_bricks::BrickError),
 }
 
+impl From<neuvolex_formats::FormatError> for GpuError {
+    /// A volume file error, as the store reports it ([`neuvolex_bricks::BrickError::Format`]).
+    fn from(e: neuvolex_formats::FormatError) -> Self {
+        GpuError::Brick(e.into())
+    }
+}
+
 /// Result alias.
 pub type Result<T, E = GpuError> = std::result::Result<T, E>;
 

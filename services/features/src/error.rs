@@ -33,5 +33,12 @@ pub enum FeatureError {
     Cancelled,
 }
 
+impl From<neuvolex_formats::FormatError> for FeatureError {
+    /// A volume file error, as the store reports it ([`neuvolex_bricks::BrickError::Format`]).
+    fn from(e: neuvolex_formats::FormatError) -> Self {
+        FeatureError::Brick(e.into())
+    }
+}
+
 /// Result alias.
 pub type Result<T, E = FeatureError> = std::result::Result<T, E>;

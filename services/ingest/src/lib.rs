@@ -25,8 +25,9 @@
 use neuvolex_bricks::stats::FineHistogram;
 use neuvolex_bricks::{
     first_raw_value, open_volume, Backend, BrickError, IngestLabels, IngestOptions, IngestTarget,
-    RawSpec, Scanner, SlabWriter, StoreInfo, StoreLocation, VolumeMeta, VolumeSource,
+    Scanner, SlabWriter, StoreInfo, StoreLocation,
 };
+use neuvolex_formats::{RawSpec, VolumeMeta, VolumeSource};
 use neuvolex_tasks::{
     execute_ordered, plan, Blobs, DynStage, Executor, RunEvent, RunReport, Stage, Task, TaskCtx,
     TaskError,
@@ -50,6 +51,13 @@ pub enum IngestError {
     /// Tasks failed (the message names them and their errors).
     #[error("{0}")]
     Failed(String),
+}
+
+impl From<neuvolex_formats::FormatError> for IngestError {
+    /// A volume file error, as the store reports it ([`neuvolex_bricks::BrickError::Format`]).
+    fn from(e: neuvolex_formats::FormatError) -> Self {
+        IngestError::Bricks(e.into())
+    }
 }
 
 /// Result with [`IngestError`].
@@ -143,7 +151,7 @@ impl IngestStage {
     }
 
     /// Reads slices `z0..z0+depth` with a pooled source (one is opened when all are in use).
-    fn read(&self, z0: usize, depth: usize) -> neuvolex_tasks::Result<neuvolex_bricks::Slab> {
+    fn read(&self, z0: usize, depth: usize) -> neuvolex_tasks::Result<neuvolex_formats::Slab> {
         let pooled = self.sources.lock().map(|mut p| p.pop()).unwrap_or(None);
         let mut src = match pooled {
             Some(s) => s,

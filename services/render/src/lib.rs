@@ -73,6 +73,13 @@ pub enum RenderError {
     Cancelled,
 }
 
+impl From<neuvolex_formats::FormatError> for RenderError {
+    /// A volume file error, as the store reports it ([`neuvolex_bricks::BrickError::Format`]).
+    fn from(e: neuvolex_formats::FormatError) -> Self {
+        RenderError::Bricks(e.into())
+    }
+}
+
 /// Result with [`RenderError`].
 pub type Result<T, E = RenderError> = std::result::Result<T, E>;
 

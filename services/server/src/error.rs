@@ -71,11 +71,20 @@ impl ResponseError for ApiError {
 impl From<neuvolex_bricks::BrickError> for ApiError {
     fn from(e: neuvolex_bricks::BrickError) -> Self {
         match e {
-            neuvolex_bricks::BrickError::InvalidArgument(m) => ApiError::BadRequest(m),
+            neuvolex_bricks::BrickError::InvalidArgument(m)
+            | neuvolex_bricks::BrickError::Format(
+                neuvolex_formats::FormatError::InvalidArgument(m),
+            ) => ApiError::BadRequest(m),
             // Another process writes the store (`neuvolex train`, `features`, ...): named.
             e @ neuvolex_bricks::BrickError::Locked { .. } => ApiError::Conflict(e.to_string()),
             other => ApiError::write_failed(other.to_string()),
         }
+    }
+}
+
+impl From<neuvolex_formats::FormatError> for ApiError {
+    fn from(e: neuvolex_formats::FormatError) -> Self {
+        neuvolex_bricks::BrickError::from(e).into()
     }
 }
 

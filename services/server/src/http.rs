@@ -1016,11 +1016,11 @@ fn class_voxels(s: &Session, class: u32) -> ApiResult<Vec<u8>> {
 }
 
 /// A u8 volume on the session's grid.
-fn u8_volume(s: &Session, voxels: Vec<u8>, name: &str) -> neuvolex_bricks::MemVolume {
+fn u8_volume(s: &Session, voxels: Vec<u8>, name: &str) -> neuvolex_formats::MemVolume {
     let mut meta =
-        neuvolex_bricks::VolumeMeta::new(s.store.info().dims, neuvolex_bricks::DType::U8);
+        neuvolex_formats::VolumeMeta::new(s.store.info().dims, neuvolex_formats::DType::U8);
     meta.spacing = s.store.info().spacing;
-    neuvolex_bricks::MemVolume {
+    neuvolex_formats::MemVolume {
         meta,
         bytes: voxels,
         name: PathBuf::from(name),
@@ -1031,7 +1031,7 @@ fn u8_volume(s: &Session, voxels: Vec<u8>, name: &str) -> neuvolex_bricks::MemVo
 fn nifti_bytes(
     work: &std::path::Path,
     tag: &str,
-    vol: &mut neuvolex_bricks::MemVolume,
+    vol: &mut neuvolex_formats::MemVolume,
 ) -> ApiResult<Vec<u8>> {
     static SEQ: AtomicU64 = AtomicU64::new(0);
     let tmp = work.join(format!(
@@ -1039,7 +1039,7 @@ fn nifti_bytes(
         std::process::id(),
         SEQ.fetch_add(1, Ordering::SeqCst)
     ));
-    let r = neuvolex_bricks::nifti::write_nifti(&tmp, vol, 16)
+    let r = neuvolex_formats::nifti::write_nifti(&tmp, vol, 16)
         .map_err(ApiError::from)
         .and_then(|()| {
             std::fs::read(&tmp).map_err(|e| ApiError::Internal(format!("{}: {e}", tmp.display())))

@@ -681,7 +681,7 @@ async fn concurrent_appends_lose_no_stroke() {
     let p = d.path().join("s.nii.gz");
     std::fs::write(&p, &bytes).unwrap();
     let mut src = neuvolex_bricks::open_volume(&p, None).unwrap();
-    let got = neuvolex_bricks::MemVolume::read_all(src.as_mut()).unwrap();
+    let got = neuvolex_formats::MemVolume::read_all(src.as_mut()).unwrap();
     let strokes: Vec<neuvolex_classify::scribble::Stroke> =
         serde_json::from_value(Value::Array(held)).unwrap();
     let want = neuvolex_classify::scribble::rasterise(&strokes, got.meta.dims).unwrap();

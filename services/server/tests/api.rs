@@ -556,7 +556,7 @@ async fn labels_and_probabilities_export_as_nifti_and_ome_zarr() {
     let from_zarr = {
         let mut src =
             neuvolex_bricks::open_volume(&cfg.data_root.join("ph.zarr/labels/seg"), None).unwrap();
-        neuvolex_bricks::MemVolume::read_all(src.as_mut())
+        neuvolex_formats::MemVolume::read_all(src.as_mut())
             .unwrap()
             .to_f32()
     };
@@ -578,7 +578,7 @@ async fn labels_and_probabilities_export_as_nifti_and_ome_zarr() {
     let read = |f: &str| {
         let mut src = neuvolex_bricks::open_volume(&tmp.path().join(f), None).unwrap();
         assert_eq!(src.meta().dims, [48, 48, 42]);
-        neuvolex_bricks::MemVolume::read_all(src.as_mut())
+        neuvolex_formats::MemVolume::read_all(src.as_mut())
             .unwrap()
             .to_f32()
     };
@@ -766,7 +766,7 @@ fn labelled_voxels(gz: &[u8], dir: &std::path::Path, name: &str) -> usize {
     let p = dir.join(name);
     std::fs::write(&p, gz).unwrap();
     let mut src = neuvolex_bricks::open_volume(&p, None).unwrap();
-    neuvolex_bricks::MemVolume::read_all(&mut *src)
+    neuvolex_formats::MemVolume::read_all(&mut *src)
         .unwrap()
         .to_f32()
         .iter()

@@ -54,6 +54,13 @@ pub enum TaskError {
     Engine(String),
 }
 
+impl From<neuvolex_formats::FormatError> for TaskError {
+    /// A volume file error, as the store reports it ([`neuvolex_bricks::BrickError::Format`]).
+    fn from(e: neuvolex_formats::FormatError) -> Self {
+        TaskError::Bricks(e.into())
+    }
+}
+
 impl TaskError {
     /// A failure with a message.
     pub fn failed(e: impl std::fmt::Display) -> Self {

@@ -36,5 +36,12 @@ pub enum ViewpointError {
     Bricks(#[from] neuvolex_bricks::BrickError),
 }
 
+impl From<neuvolex_formats::FormatError> for ViewpointError {
+    /// A volume file error, as the store reports it ([`neuvolex_bricks::BrickError::Format`]).
+    fn from(e: neuvolex_formats::FormatError) -> Self {
+        ViewpointError::Bricks(e.into())
+    }
+}
+
 /// Result with [`ViewpointError`].
 pub type Result<T, E = ViewpointError> = std::result::Result<T, E>;

@@ -1,7 +1,7 @@
 //! The one volume model every reader produces, and the streaming source trait.
 
 use crate::dtype::{bytes_to_f32, bytes_to_f64, DType};
-use crate::error::{BrickError, Result};
+use crate::error::{FormatError, Result};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 
@@ -31,7 +31,7 @@ impl VolumeMeta {
         VolumeMeta {
             dims,
             spacing: [1.0; 3],
-            affine: diag_affine([1.0; 3], [0.0; 3]),
+            affine: crate::geometry::diag_affine([1.0; 3], [0.0; 3]),
             dtype,
             scaling: None,
         }
@@ -65,14 +65,14 @@ impl VolumeMeta {
         validate_dims(path, self.dims)?;
         for (i, s) in self.spacing.iter().enumerate() {
             if !s.is_finite() || *s <= 0.0 {
-                return Err(BrickError::header(
+                return Err(FormatError::header(
                     path,
                     format!("spacing along axis {i} is {s}; it must be finite and positive"),
                 ));
             }
         }
         if self.affine.iter().flatten().any(|v| !v.is_finite()) {
-            return Err(BrickError::header(path, "affine contains NaN or Inf"));
+            return Err(FormatError::header(path, "affine contains NaN or Inf"));
         }
         Ok(())
     }
@@ -80,7 +80,7 @@ impl VolumeMeta {
     /// Errors unless `other` (a label volume at `path`) lies on the same grid.
     pub fn check_same_grid(&self, other: &VolumeMeta, path: &Path) -> Result<()> {
         if self.dims != other.dims {
-            return Err(BrickError::GridMismatch {
+            return Err(FormatError::GridMismatch {
                 path: path.to_path_buf(),
                 detail: format!(
                     "dims {:?} differ from the image's {:?}",
@@ -91,7 +91,7 @@ impl VolumeMeta {
         for i in 0..3 {
             let (a, b) = (self.spacing[i], other.spacing[i]);
             if (a - b).abs() > 1e-3 * a.abs().max(b.abs()) {
-                return Err(BrickError::GridMismatch {
+                return Err(FormatError::GridMismatch {
                     path: path.to_path_buf(),
                     detail: format!(
                         "spacing {:?} differs from the image's {:?}",
@@ -108,7 +108,7 @@ impl VolumeMeta {
 pub fn validate_dims(path: &Path, dims: [usize; 3]) -> Result<()> {
     for (i, &d) in dims.iter().enumerate() {
         if d == 0 {
-            return Err(BrickError::BadDims {
+            return Err(FormatError::BadDims {
                 path: path.to_path_buf(),
                 detail: format!(
                     "axis {} has size 0 (empty volume)",
@@ -117,7 +117,7 @@ pub fn validate_dims(path: &Path, dims: [usize; 3]) -> Result<()> {
             });
         }
         if d > MAX_DIM {
-            return Err(BrickError::BadDims {
+            return Err(FormatError::BadDims {
                 path: path.to_path_buf(),
                 detail: format!(
                     "axis {} has size {d}, above the limit {MAX_DIM}",
@@ -128,7 +128,7 @@ pub fn validate_dims(path: &Path, dims: [usize; 3]) -> Result<()> {
     }
     let n = dims.iter().map(|&d| d as u64).product::<u64>();
     if n > MAX_VOXELS {
-        return Err(BrickError::BadDims {
+        return Err(FormatError::BadDims {
             path: path.to_path_buf(),
             detail: format!("{n} voxels exceeds the limit {MAX_VOXELS}"),
         });
@@ -141,7 +141,7 @@ pub fn dims_from_i64(path: &Path, raw: [i64; 3]) -> Result<[usize; 3]> {
     let mut dims = [0usize; 3];
     for i in 0..3 {
         if raw[i] < 0 {
-            return Err(BrickError::BadDims {
+            return Err(FormatError::BadDims {
                 path: path.to_path_buf(),
                 detail: format!(
                     "axis {} has negative size {}",
@@ -150,23 +150,13 @@ pub fn dims_from_i64(path: &Path, raw: [i64; 3]) -> Result<[usize; 3]> {
                 ),
             });
         }
-        dims[i] = usize::try_from(raw[i]).map_err(|_| BrickError::BadDims {
+        dims[i] = usize::try_from(raw[i]).map_err(|_| FormatError::BadDims {
             path: path.to_path_buf(),
             detail: format!("axis size {} overflows", raw[i]),
         })?;
     }
     validate_dims(path, dims)?;
     Ok(dims)
-}
-
-/// A diagonal affine with the given spacing and origin.
-pub fn diag_affine(spacing: [f64; 3], origin: [f64; 3]) -> [[f64; 4]; 4] {
-    [
-        [spacing[0], 0.0, 0.0, origin[0]],
-        [0.0, spacing[1], 0.0, origin[1]],
-        [0.0, 0.0, spacing[2], origin[2]],
-        [0.0, 0.0, 0.0, 1.0],
-    ]
 }
 
 /// A contiguous run of z-slices in the source's native voxel type (native byte order).
@@ -302,7 +292,7 @@ impl VolumeSource for MemVolume {
 /// Errors unless `z0..z0+depth` lies inside the volume.
 pub fn check_slab_range(meta: &VolumeMeta, path: &Path, z0: usize, depth: usize) -> Result<()> {
     if depth == 0 || z0.checked_add(depth).is_none_or(|e| e > meta.dims[2]) {
-        return Err(BrickError::InvalidArgument(format!(
+        return Err(FormatError::InvalidArgument(format!(
             "{}: slab z={z0}..{} outside 0..{}",
             path.display(),
             z0.saturating_add(depth),

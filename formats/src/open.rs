@@ -1,8 +1,11 @@
-//! Opening any supported volume by path.
+//! Opening a volume file by path: format detection and the readers of this crate.
+//!
+//! OME-Zarr is detected here but read by the store crate (`neuvolex_bricks::open_volume`
+//! opens any supported volume, Zarr included), because reading Zarr needs its storage
+//! backends.
 
-use crate::error::{BrickError, Result};
+use crate::error::{FormatError, Result};
 use crate::meta::VolumeSource;
-use crate::omezarr::OmeZarrSource;
 use crate::raw::RawSpec;
 use std::path::Path;
 
@@ -21,11 +24,11 @@ pub enum Format {
 
 /// Guesses the format of `path` from its name and content; an `s3://` URL is an OME-Zarr store.
 pub fn detect_format(path: &Path) -> Result<Format> {
-    if crate::location::StoreLocation::from(path).is_remote() {
+    if path.to_string_lossy().starts_with("s3://") {
         return Ok(Format::OmeZarr);
     }
     if !path.exists() {
-        return Err(BrickError::io(
+        return Err(FormatError::io(
             path,
             std::io::Error::new(std::io::ErrorKind::NotFound, "no such file or directory"),
         ));
@@ -48,8 +51,8 @@ pub fn detect_format(path: &Path) -> Result<Format> {
     let mut head = [0u8; 352];
     let n = {
         use std::io::Read;
-        let mut f = std::fs::File::open(path).map_err(|e| BrickError::io(path, e))?;
-        f.read(&mut head).map_err(|e| BrickError::io(path, e))?
+        let mut f = std::fs::File::open(path).map_err(|e| FormatError::io(path, e))?;
+        f.read(&mut head).map_err(|e| FormatError::io(path, e))?
     };
     if head[..n].starts_with(b"NRRD000") {
         return Ok(Format::Nrrd);
@@ -57,24 +60,31 @@ pub fn detect_format(path: &Path) -> Result<Format> {
     if n >= 348 && &head[344..348] == b"n+1\0" {
         return Ok(Format::Nifti);
     }
-    Err(BrickError::UnknownFormat {
+    Err(FormatError::UnknownFormat {
         path: path.to_path_buf(),
         detail: "expected .nii, .nii.gz, .nrrd, .nhdr, .raw (with --dims/--dtype or a sidecar) or a .zarr store".into(),
     })
 }
 
-/// Opens `path` as a volume source. `raw` gives the layout of headerless files; without it a
-/// sidecar JSON or a `name_WxHxD_dtype.raw` file name is required.
-pub fn open_volume(path: &Path, raw: Option<&RawSpec>) -> Result<Box<dyn VolumeSource>> {
+/// Opens the file `path` (NIfTI, NRRD or raw) as a volume source. `raw` gives the layout of
+/// headerless files; without it a sidecar JSON or a `name_WxHxD_dtype.raw` file name is
+/// required. An OME-Zarr store is refused with [`FormatError::UnknownFormat`]: open it with
+/// `neuvolex_bricks::open_volume`.
+pub fn open_file(path: &Path, raw: Option<&RawSpec>) -> Result<Box<dyn VolumeSource>> {
     if let Some(spec) = raw {
         return Ok(Box::new(crate::raw::open(path, spec)?));
     }
     Ok(match detect_format(path)? {
         Format::Nifti => Box::new(crate::nifti::open(path)?),
         Format::Nrrd => Box::new(crate::nrrd::open(path)?),
-        Format::OmeZarr => Box::new(OmeZarrSource::open(path)?),
+        Format::OmeZarr => {
+            return Err(FormatError::UnknownFormat {
+                path: path.to_path_buf(),
+                detail: "an OME-Zarr store is not a file: open it with the store crate".into(),
+            })
+        }
         Format::Raw => {
-            let spec = RawSpec::discover(path)?.ok_or_else(|| BrickError::UnknownFormat {
+            let spec = RawSpec::discover(path)?.ok_or_else(|| FormatError::UnknownFormat {
                 path: path.to_path_buf(),
                 detail:
                     "raw file without layout: pass --dims X,Y,Z --dtype T [--endian big|little], \

@@ -2,7 +2,7 @@
 //! either byte order, 3-D scalar volumes.
 
 use crate::dtype::{to_native, DType, Endian};
-use crate::error::{BrickError, Result};
+use crate::error::{FormatError, Result};
 use crate::meta::{dims_from_i64, VolumeMeta};
 use crate::stream::{ByteStream, FileVolume};
 use std::collections::HashMap;
@@ -15,14 +15,14 @@ fn parse_vec(path: &Path, s: &str) -> Result<Vec<f64>> {
         .map(|v| {
             v.trim()
                 .parse::<f64>()
-                .map_err(|_| BrickError::header(path, format!("bad vector '{s}'")))
+                .map_err(|_| FormatError::header(path, format!("bad vector '{s}'")))
         })
         .collect()
 }
 
 /// Opens an NRRD file, following `data file:` for detached headers.
 pub fn open(path: &Path) -> Result<FileVolume> {
-    let file = std::fs::File::open(path).map_err(|e| BrickError::io(path, e))?;
+    let file = std::fs::File::open(path).map_err(|e| FormatError::io(path, e))?;
     let mut rd = BufReader::new(file);
     let mut consumed = 0u64;
     let mut line = Vec::new();
@@ -31,13 +31,13 @@ pub fn open(path: &Path) -> Result<FileVolume> {
             line.clear();
             let n = rd
                 .read_until(b'\n', &mut line)
-                .map_err(|e| BrickError::io(path, e))?;
+                .map_err(|e| FormatError::io(path, e))?;
             if n == 0 {
                 return Ok(None);
             }
             *consumed += n as u64;
             if line.len() > 1 << 16 {
-                return Err(BrickError::header(path, "header line longer than 64 KiB"));
+                return Err(FormatError::header(path, "header line longer than 64 KiB"));
             }
             Ok(Some(
                 String::from_utf8_lossy(&line)
@@ -47,7 +47,7 @@ pub fn open(path: &Path) -> Result<FileVolume> {
         };
     let magic = read_line(&mut rd, &mut consumed)?.unwrap_or_default();
     if !magic.starts_with("NRRD000") {
-        return Err(BrickError::header(
+        return Err(FormatError::header(
             path,
             format!(
                 "first line '{}' is not an NRRD magic",
@@ -69,39 +69,39 @@ pub fn open(path: &Path) -> Result<FileVolume> {
             continue; // key/value pairs carry no geometry
         }
         let Some((k, v)) = l.split_once(": ") else {
-            return Err(BrickError::header(
+            return Err(FormatError::header(
                 path,
                 format!("malformed header line '{l}'"),
             ));
         };
         fields.insert(k.trim().to_ascii_lowercase(), v.trim().to_string());
         if fields.len() > 256 {
-            return Err(BrickError::header(path, "too many header fields"));
+            return Err(FormatError::header(path, "too many header fields"));
         }
     }
     let get = |k: &str| fields.get(k).map(|s| s.as_str());
     let need = |k: &str| {
-        get(k).ok_or_else(|| BrickError::header(path, format!("missing required field '{k}'")))
+        get(k).ok_or_else(|| FormatError::header(path, format!("missing required field '{k}'")))
     };
     let ty = need("type")?;
-    let dtype = DType::parse(ty).ok_or_else(|| BrickError::UnknownDtype {
+    let dtype = DType::parse(ty).ok_or_else(|| FormatError::UnknownDtype {
         path: path.to_path_buf(),
         dtype: ty.to_string(),
     })?;
     let ndim: usize = need("dimension")?
         .parse()
-        .map_err(|_| BrickError::header(path, "dimension is not an integer"))?;
+        .map_err(|_| FormatError::header(path, "dimension is not an integer"))?;
     let sizes: Vec<i64> = need("sizes")?
         .split_whitespace()
         .map(|s| {
-            s.parse::<i64>().map_err(|_| BrickError::BadDims {
+            s.parse::<i64>().map_err(|_| FormatError::BadDims {
                 path: path.to_path_buf(),
                 detail: format!("size '{s}' is not an integer"),
             })
         })
         .collect::<Result<_>>()?;
     if sizes.len() != ndim {
-        return Err(BrickError::header(
+        return Err(FormatError::header(
             path,
             format!("dimension {ndim} but {} sizes", sizes.len()),
         ));
@@ -115,7 +115,7 @@ pub fn open(path: &Path) -> Result<FileVolume> {
         s.remove(i);
         s
     } else {
-        return Err(BrickError::BadDims {
+        return Err(FormatError::BadDims {
             path: path.to_path_buf(),
             detail: format!(
                 "dimension {ndim} with sizes {sizes:?}: only 3-D scalar volumes are supported"
@@ -128,7 +128,7 @@ pub fn open(path: &Path) -> Result<FileVolume> {
         "raw" => false,
         "gzip" | "gz" => true,
         other => {
-            return Err(BrickError::header(
+            return Err(FormatError::header(
                 path,
                 format!("encoding '{other}' is not supported (raw and gzip are)"),
             ))
@@ -139,27 +139,26 @@ pub fn open(path: &Path) -> Result<FileVolume> {
     } else {
         let e = need("endian")?;
         Endian::parse(e).ok_or_else(|| {
-            BrickError::header(path, format!("endian '{e}' is neither little nor big"))
+            FormatError::header(path, format!("endian '{e}' is neither little nor big"))
         })?
     };
     let mut spacing = [1.0f64; 3];
-    let mut affine = crate::meta::diag_affine(spacing, [0.0; 3]);
+    let mut affine = crate::geometry::diag_affine(spacing, [0.0; 3]);
     if let Some(dirs) = get("space directions") {
         let vecs: Vec<&str> = dirs.split_whitespace().filter(|s| *s != "none").collect();
         if vecs.len() == 3 {
+            let mut d3 = [[0.0; 3]; 3];
             for (j, v) in vecs.iter().enumerate() {
                 let d = parse_vec(path, v)?;
                 if d.len() != 3 {
-                    return Err(BrickError::header(
+                    return Err(FormatError::header(
                         path,
                         format!("space direction '{v}' is not 3-D"),
                     ));
                 }
-                for i in 0..3 {
-                    affine[i][j] = d[i];
-                }
-                spacing[j] = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+                d3[j] = [d[0], d[1], d[2]];
             }
+            (affine, spacing) = crate::geometry::affine_from_directions(d3, [0.0; 3]);
         }
     } else if let Some(sp) = get("spacings") {
         let v: Vec<f64> = sp
@@ -167,12 +166,12 @@ pub fn open(path: &Path) -> Result<FileVolume> {
             .filter(|s| !s.eq_ignore_ascii_case("nan"))
             .map(|s| {
                 s.parse::<f64>()
-                    .map_err(|_| BrickError::header(path, format!("bad spacing '{s}'")))
+                    .map_err(|_| FormatError::header(path, format!("bad spacing '{s}'")))
             })
             .collect::<Result<_>>()?;
         if v.len() == 3 {
             spacing = [v[0], v[1], v[2]];
-            affine = crate::meta::diag_affine(spacing, [0.0; 3]);
+            affine = crate::geometry::diag_affine(spacing, [0.0; 3]);
         }
     }
     if let Some(o) = get("space origin") {
@@ -195,7 +194,7 @@ pub fn open(path: &Path) -> Result<FileVolume> {
     let line_skip: u64 = match get("line skip").or(get("lineskip")) {
         None => 0,
         Some(v) => v.parse().map_err(|_| {
-            BrickError::header(path, format!("line skip '{v}' is not a count of lines"))
+            FormatError::header(path, format!("line skip '{v}' is not a count of lines"))
         })?,
     };
     let byte_skip: i64 = match get("byte skip").or(get("byteskip")) {
@@ -203,7 +202,7 @@ pub fn open(path: &Path) -> Result<FileVolume> {
         Some(v) => match v.parse::<i64>() {
             Ok(b) if b >= -1 => b,
             _ => {
-                return Err(BrickError::header(
+                return Err(FormatError::header(
                     path,
                     format!("byte skip '{v}' must be -1 or a count of bytes"),
                 ))
@@ -214,7 +213,7 @@ pub fn open(path: &Path) -> Result<FileVolume> {
     let (data_path, start) = match data_file {
         Some(f) => {
             if f.starts_with("LIST") || f.contains('%') {
-                return Err(BrickError::header(
+                return Err(FormatError::header(
                     path,
                     format!("multi-file data '{f}' is not supported"),
                 ));
@@ -224,7 +223,7 @@ pub fn open(path: &Path) -> Result<FileVolume> {
         }
         None => {
             if !ended_blank {
-                return Err(BrickError::Truncated {
+                return Err(FormatError::Truncated {
                     path: path.to_path_buf(),
                     expected: len,
                     found: 0,
@@ -234,7 +233,7 @@ pub fn open(path: &Path) -> Result<FileVolume> {
         }
     };
     if data_path != path && !data_path.is_file() {
-        return Err(BrickError::header(
+        return Err(FormatError::header(
             path,
             format!("data file '{}' is not a regular file", data_path.display()),
         ));
@@ -242,19 +241,19 @@ pub fn open(path: &Path) -> Result<FileVolume> {
     let mut start = start;
     if line_skip > 0 {
         // Skip whole lines in the data file before the data.
-        let f = std::fs::File::open(&data_path).map_err(|e| BrickError::io(&data_path, e))?;
+        let f = std::fs::File::open(&data_path).map_err(|e| FormatError::io(&data_path, e))?;
         let mut r = BufReader::new(f);
         use std::io::Seek;
         r.seek(std::io::SeekFrom::Start(start))
-            .map_err(|e| BrickError::io(&data_path, e))?;
+            .map_err(|e| FormatError::io(&data_path, e))?;
         let mut buf = Vec::new();
         for _ in 0..line_skip {
             buf.clear();
             let n = r
                 .read_until(b'\n', &mut buf)
-                .map_err(|e| BrickError::io(&data_path, e))?;
+                .map_err(|e| FormatError::io(&data_path, e))?;
             if n == 0 {
-                return Err(BrickError::Truncated {
+                return Err(FormatError::Truncated {
                     path: data_path,
                     expected: len,
                     found: 0,
@@ -267,10 +266,10 @@ pub fn open(path: &Path) -> Result<FileVolume> {
         ByteStream::gzip(&data_path, start, byte_skip.max(0) as u64, len)?
     } else if byte_skip == -1 {
         let flen = std::fs::metadata(&data_path)
-            .map_err(|e| BrickError::io(&data_path, e))?
+            .map_err(|e| FormatError::io(&data_path, e))?
             .len();
         if flen < len {
-            return Err(BrickError::Truncated {
+            return Err(FormatError::Truncated {
                 path: data_path,
                 expected: len,
                 found: flen,
@@ -300,8 +299,8 @@ pub fn write_nrrd(
     }
     let data = if encoding == "gzip" {
         let mut e = flate2::write::GzEncoder::new(Vec::new(), flate2::Compression::fast());
-        e.write_all(&bytes).map_err(|e| BrickError::io(path, e))?;
-        e.finish().map_err(|e| BrickError::io(path, e))?
+        e.write_all(&bytes).map_err(|e| FormatError::io(path, e))?;
+        e.finish().map_err(|e| FormatError::io(path, e))?
     } else {
         bytes
     };
@@ -324,14 +323,14 @@ pub fn write_nrrd(
         Some(name) => {
             h.push_str(&format!("data file: {name}\n"));
             let dp = path.parent().unwrap_or(Path::new(".")).join(name);
-            std::fs::write(&dp, &data).map_err(|e| BrickError::io(&dp, e))?;
-            std::fs::write(path, h).map_err(|e| BrickError::io(path, e))
+            std::fs::write(&dp, &data).map_err(|e| FormatError::io(&dp, e))?;
+            std::fs::write(path, h).map_err(|e| FormatError::io(path, e))
         }
         None => {
             h.push('\n');
             let mut out = h.into_bytes();
             out.extend_from_slice(&data);
-            std::fs::write(path, out).map_err(|e| BrickError::io(path, e))
+            std::fs::write(path, out).map_err(|e| FormatError::io(path, e))
         }
     }
 }

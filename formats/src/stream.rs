@@ -4,7 +4,7 @@
 //! restarted when a caller seeks backwards. Either way only the requested bytes are resident.
 
 use crate::dtype::{to_native, Endian};
-use crate::error::{BrickError, Result};
+use crate::error::{FormatError, Result};
 use crate::meta::{check_slab_range, Slab, VolumeMeta, VolumeSource};
 use flate2::bufread::MultiGzDecoder;
 use memmap2::Mmap;
@@ -37,9 +37,9 @@ const GZIP_MAX_RATIO: u64 = 1032;
 /// The length of `path`, which must be a regular file (a header may name any path as its data
 /// file; a device or pipe would block or never end).
 fn regular_len(path: &Path) -> Result<u64> {
-    let m = std::fs::metadata(path).map_err(|e| BrickError::io(path, e))?;
+    let m = std::fs::metadata(path).map_err(|e| FormatError::io(path, e))?;
     if !m.is_file() {
-        return Err(BrickError::io(
+        return Err(FormatError::io(
             path,
             std::io::Error::new(
                 std::io::ErrorKind::InvalidInput,
@@ -51,23 +51,23 @@ fn regular_len(path: &Path) -> Result<u64> {
 }
 
 fn open_file(path: &Path) -> Result<File> {
-    File::open(path).map_err(|e| BrickError::io(path, e))
+    File::open(path).map_err(|e| FormatError::io(path, e))
 }
 
-fn gz_err(path: &Path, e: std::io::Error, expected: u64, found: u64) -> BrickError {
+fn gz_err(path: &Path, e: std::io::Error, expected: u64, found: u64) -> FormatError {
     match e.kind() {
-        std::io::ErrorKind::UnexpectedEof => BrickError::Truncated {
+        std::io::ErrorKind::UnexpectedEof => FormatError::Truncated {
             path: path.to_path_buf(),
             expected,
             found,
         },
         std::io::ErrorKind::InvalidInput | std::io::ErrorKind::InvalidData => {
-            BrickError::CorruptGzip {
+            FormatError::CorruptGzip {
                 path: path.to_path_buf(),
                 detail: e.to_string(),
             }
         }
-        _ => BrickError::io(path, e),
+        _ => FormatError::io(path, e),
     }
 }
 
@@ -77,19 +77,21 @@ impl ByteStream {
     pub(crate) fn plain(path: &Path, offset: u64, len: u64, exact: bool) -> Result<Self> {
         let flen = regular_len(path)?;
         let file = open_file(path)?;
-        let need = offset.checked_add(len).ok_or_else(|| BrickError::BadDims {
-            path: path.to_path_buf(),
-            detail: "byte size overflows".into(),
-        })?;
+        let need = offset
+            .checked_add(len)
+            .ok_or_else(|| FormatError::BadDims {
+                path: path.to_path_buf(),
+                detail: "byte size overflows".into(),
+            })?;
         if flen < need {
-            return Err(BrickError::Truncated {
+            return Err(FormatError::Truncated {
                 path: path.to_path_buf(),
                 expected: len,
                 found: flen.saturating_sub(offset),
             });
         }
         if exact && flen != need {
-            return Err(BrickError::SizeMismatch {
+            return Err(FormatError::SizeMismatch {
                 path: path.to_path_buf(),
                 detail: format!(
                     "file has {flen} bytes but the grid and type need {need} ({len} voxel bytes after an offset of {offset})"
@@ -98,7 +100,7 @@ impl ByteStream {
         }
         // SAFETY: the map is read-only; concurrent truncation by another process is the
         // usual caveat of memory-mapped I/O and is documented for users.
-        let map = unsafe { Mmap::map(&file) }.map_err(|e| BrickError::io(path, e))?;
+        let map = unsafe { Mmap::map(&file) }.map_err(|e| FormatError::io(path, e))?;
         Ok(ByteStream {
             path: path.to_path_buf(),
             kind: Kind::Mmap(map),
@@ -116,7 +118,7 @@ impl ByteStream {
         let most = flen.saturating_sub(start).saturating_mul(GZIP_MAX_RATIO);
         let need = offset.saturating_add(len);
         if need > most {
-            return Err(BrickError::Truncated {
+            return Err(FormatError::Truncated {
                 path: path.to_path_buf(),
                 expected: len,
                 found: most.saturating_sub(offset),
@@ -138,7 +140,7 @@ impl ByteStream {
     fn open_gz(path: &Path, start: u64) -> Result<MultiGzDecoder<BufReader<File>>> {
         let mut f = open_file(path)?;
         f.seek(SeekFrom::Start(start))
-            .map_err(|e| BrickError::io(path, e))?;
+            .map_err(|e| FormatError::io(path, e))?;
         Ok(MultiGzDecoder::new(BufReader::with_capacity(1 << 16, f)))
     }
 
@@ -146,7 +148,7 @@ impl ByteStream {
     pub(crate) fn read_at(&mut self, at: u64, buf: &mut [u8]) -> Result<()> {
         let want = at + buf.len() as u64;
         if want > self.len {
-            return Err(BrickError::InvalidArgument(format!(
+            return Err(FormatError::InvalidArgument(format!(
                 "{}: read past the end of the voxel data",
                 self.path.display()
             )));
@@ -179,7 +181,7 @@ impl ByteStream {
                         })?;
                     *pos += copied;
                     if copied < skip {
-                        return Err(BrickError::Truncated {
+                        return Err(FormatError::Truncated {
                             path: self.path.clone(),
                             expected: self.len,
                             found: pos.saturating_sub(self.offset),
@@ -190,7 +192,7 @@ impl ByteStream {
                 while filled < buf.len() {
                     match dec.read(&mut buf[filled..]) {
                         Ok(0) => {
-                            return Err(BrickError::Truncated {
+                            return Err(FormatError::Truncated {
                                 path: self.path.clone(),
                                 expected: self.len,
                                 found: (*pos + filled as u64).saturating_sub(self.offset),
@@ -254,7 +256,7 @@ pub(crate) fn is_gzip_file(path: &Path) -> Result<bool> {
     match f.read_exact(&mut magic) {
         Ok(()) => Ok(magic == [0x1f, 0x8b]),
         Err(e) if e.kind() == std::io::ErrorKind::UnexpectedEof => Ok(false),
-        Err(e) => Err(BrickError::io(path, e)),
+        Err(e) => Err(FormatError::io(path, e)),
     }
 }
 

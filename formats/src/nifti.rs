@@ -5,7 +5,7 @@
 //! else pixdim. 4-D files are accepted when every axis past z has size 1.
 
 use crate::dtype::{to_native, DType, Endian};
-use crate::error::{BrickError, Result};
+use crate::error::{FormatError, Result};
 use crate::meta::{dims_from_i64, VolumeMeta, VolumeSource};
 use crate::stream::{is_gzip_file, ByteStream, FileVolume};
 use flate2::read::MultiGzDecoder;
@@ -87,7 +87,7 @@ impl Hdr<'_> {
 /// Parses a 348-byte NIfTI-1 header. Returns the metadata, file byte order and data offset.
 pub fn parse_header(path: &Path, b: &[u8]) -> Result<(VolumeMeta, Endian, u64)> {
     if b.len() < HEADER_LEN {
-        return Err(BrickError::Truncated {
+        return Err(FormatError::Truncated {
             path: path.to_path_buf(),
             expected: HEADER_LEN as u64,
             found: b.len() as u64,
@@ -99,7 +99,7 @@ pub fn parse_header(path: &Path, b: &[u8]) -> Result<(VolumeMeta, Endian, u64)> 
         (348, _) => false,
         (_, 348) => true,
         _ => {
-            return Err(BrickError::header(
+            return Err(FormatError::header(
                 path,
                 format!("sizeof_hdr is {le}, not 348: not a NIfTI-1 file"),
             ))
@@ -108,7 +108,7 @@ pub fn parse_header(path: &Path, b: &[u8]) -> Result<(VolumeMeta, Endian, u64)> 
     let h = Hdr { b, big };
     let magic = &b[344..348];
     if magic != b"n+1\0" && magic != b"ni1\0" {
-        return Err(BrickError::header(
+        return Err(FormatError::header(
             path,
             format!(
                 "magic {:?} is not n+1 or ni1",
@@ -117,14 +117,14 @@ pub fn parse_header(path: &Path, b: &[u8]) -> Result<(VolumeMeta, Endian, u64)> 
         ));
     }
     if magic == b"ni1\0" {
-        return Err(BrickError::UnknownFormat {
+        return Err(FormatError::UnknownFormat {
             path: path.to_path_buf(),
             detail: "two-file NIfTI (.hdr/.img) is not supported; convert to .nii".into(),
         });
     }
     let ndim = h.i16(40);
     if !(1..=7).contains(&ndim) {
-        return Err(BrickError::BadDims {
+        return Err(FormatError::BadDims {
             path: path.to_path_buf(),
             detail: format!("dim[0] = {ndim}, must be 1..7"),
         });
@@ -134,7 +134,7 @@ pub fn parse_header(path: &Path, b: &[u8]) -> Result<(VolumeMeta, Endian, u64)> 
         *v = h.i16(42 + 2 * i) as i64;
     }
     if let Some(extra) = d[3..].iter().position(|&v| v != 1) {
-        return Err(BrickError::BadDims {
+        return Err(FormatError::BadDims {
             path: path.to_path_buf(),
             detail: format!(
                 "axis {} has size {}; only 3-D volumes (extra axes of size 1) are supported",
@@ -145,13 +145,13 @@ pub fn parse_header(path: &Path, b: &[u8]) -> Result<(VolumeMeta, Endian, u64)> 
     }
     let dims = dims_from_i64(path, [d[0], d[1], d[2]])?;
     let code = h.i16(70);
-    let dtype = code_to_dtype(code).ok_or_else(|| BrickError::UnknownDtype {
+    let dtype = code_to_dtype(code).ok_or_else(|| FormatError::UnknownDtype {
         path: path.to_path_buf(),
         dtype: code_name(code),
     })?;
     let bitpix = h.i16(72);
     if bitpix as usize != dtype.size() * 8 {
-        return Err(BrickError::header(
+        return Err(FormatError::header(
             path,
             format!("bitpix {bitpix} does not match datatype {dtype}"),
         ));
@@ -165,7 +165,7 @@ pub fn parse_header(path: &Path, b: &[u8]) -> Result<(VolumeMeta, Endian, u64)> 
     }
     let vox_offset = h.f32(108);
     if !vox_offset.is_finite() || vox_offset < 0.0 {
-        return Err(BrickError::header(
+        return Err(FormatError::header(
             path,
             format!("vox_offset {vox_offset} is invalid"),
         ));
@@ -194,38 +194,14 @@ pub fn parse_header(path: &Path, b: &[u8]) -> Result<(VolumeMeta, Endian, u64)> 
         a[3] = [0.0, 0.0, 0.0, 1.0];
         a
     } else if qform > 0 {
-        let (qb, qc, qd) = (h.f32(256), h.f32(260), h.f32(264));
-        let qa = (1.0 - (qb * qb + qc * qc + qd * qd)).max(0.0).sqrt();
-        let r = [
-            [
-                qa * qa + qb * qb - qc * qc - qd * qd,
-                2.0 * (qb * qc - qa * qd),
-                2.0 * (qb * qd + qa * qc),
-            ],
-            [
-                2.0 * (qb * qc + qa * qd),
-                qa * qa + qc * qc - qb * qb - qd * qd,
-                2.0 * (qc * qd - qa * qb),
-            ],
-            [
-                2.0 * (qb * qd - qa * qc),
-                2.0 * (qc * qd + qa * qb),
-                qa * qa + qd * qd - qc * qc - qb * qb,
-            ],
-        ];
-        let sc = [spacing[0], spacing[1], spacing[2] * qfac];
-        let o = [h.f32(268), h.f32(272), h.f32(276)];
-        let mut a = [[0.0; 4]; 4];
-        for i in 0..3 {
-            for j in 0..3 {
-                a[i][j] = r[i][j] * sc[j];
-            }
-            a[i][3] = o[i];
-        }
-        a[3] = [0.0, 0.0, 0.0, 1.0];
-        a
+        crate::geometry::quatern_affine(
+            [h.f32(256), h.f32(260), h.f32(264)],
+            spacing,
+            qfac,
+            [h.f32(268), h.f32(272), h.f32(276)],
+        )
     } else {
-        crate::meta::diag_affine(spacing, [0.0; 3])
+        crate::geometry::diag_affine(spacing, [0.0; 3])
     };
     let meta = VolumeMeta {
         dims,
@@ -246,7 +222,7 @@ pub fn parse_header(path: &Path, b: &[u8]) -> Result<(VolumeMeta, Endian, u64)> 
 pub fn open(path: &Path) -> Result<FileVolume> {
     let gz = is_gzip_file(path)?;
     let mut head = vec![0u8; HEADER_LEN];
-    let f = File::open(path).map_err(|e| BrickError::io(path, e))?;
+    let f = File::open(path).map_err(|e| FormatError::io(path, e))?;
     let mut reader: Box<dyn Read> = if gz {
         Box::new(MultiGzDecoder::new(std::io::BufReader::new(f)))
     } else {
@@ -259,12 +235,12 @@ pub fn open(path: &Path) -> Result<FileVolume> {
             Ok(n) => got += n,
             Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
             Err(e) if gz => {
-                return Err(BrickError::CorruptGzip {
+                return Err(FormatError::CorruptGzip {
                     path: path.to_path_buf(),
                     detail: e.to_string(),
                 })
             }
-            Err(e) => return Err(BrickError::io(path, e)),
+            Err(e) => return Err(FormatError::io(path, e)),
         }
     }
     head.truncate(got);
@@ -321,14 +297,14 @@ pub fn build_header(meta: &VolumeMeta) -> Vec<u8> {
 pub fn write_nifti(path: &Path, source: &mut dyn VolumeSource, slab_depth: usize) -> Result<()> {
     let meta = source.meta().clone();
     if meta.dims.iter().any(|&d| d > i16::MAX as usize) {
-        return Err(BrickError::BadDims {
+        return Err(FormatError::BadDims {
             path: path.to_path_buf(),
             detail: format!("{:?} exceeds NIfTI-1's limit of 32767 per axis", meta.dims),
         });
     }
     let tmp = tmp_name(path);
     let res = (|| -> Result<()> {
-        let file = File::create(&tmp).map_err(|e| BrickError::io(&tmp, e))?;
+        let file = File::create(&tmp).map_err(|e| FormatError::io(&tmp, e))?;
         let buf = BufWriter::with_capacity(1 << 20, file);
         let gz = path.extension().is_some_and(|e| e == "gz");
         let mut w: Box<dyn Write> = if gz {
@@ -337,7 +313,7 @@ pub fn write_nifti(path: &Path, source: &mut dyn VolumeSource, slab_depth: usize
             Box::new(buf)
         };
         w.write_all(&build_header(&meta))
-            .map_err(|e| BrickError::io(&tmp, e))?;
+            .map_err(|e| FormatError::io(&tmp, e))?;
         let mut z = 0;
         while z < meta.dims[2] {
             let d = slab_depth.max(1).min(meta.dims[2] - z);
@@ -347,15 +323,15 @@ pub fn write_nifti(path: &Path, source: &mut dyn VolumeSource, slab_depth: usize
                 to_native(&mut slab.bytes, meta.dtype, Endian::Big);
             }
             w.write_all(&slab.bytes)
-                .map_err(|e| BrickError::io(&tmp, e))?;
+                .map_err(|e| FormatError::io(&tmp, e))?;
             z += d;
         }
-        w.flush().map_err(|e| BrickError::io(&tmp, e))?;
+        w.flush().map_err(|e| FormatError::io(&tmp, e))?;
         drop(w);
         Ok(())
     })();
     match res {
-        Ok(()) => std::fs::rename(&tmp, path).map_err(|e| BrickError::io(path, e)),
+        Ok(()) => std::fs::rename(&tmp, path).map_err(|e| FormatError::io(path, e)),
         Err(e) => {
             let _ = std::fs::remove_file(&tmp);
             Err(e)
@@ -364,7 +340,7 @@ pub fn write_nifti(path: &Path, source: &mut dyn VolumeSource, slab_depth: usize
 }
 
 /// A sibling temporary name for atomic writes: `.<name>.partial-<pid>`.
-pub(crate) fn tmp_name(path: &Path) -> PathBuf {
+pub fn tmp_name(path: &Path) -> PathBuf {
     let name = path
         .file_name()
         .map(|n| n.to_string_lossy().into_owned())
@@ -380,7 +356,7 @@ mod tests {
     fn header_roundtrip() {
         let mut meta = VolumeMeta::new([5, 6, 7], DType::I16);
         meta.spacing = [0.5, 0.75, 2.0];
-        meta.affine = crate::meta::diag_affine(meta.spacing, [1.0, 2.0, 3.0]);
+        meta.affine = crate::geometry::diag_affine(meta.spacing, [1.0, 2.0, 3.0]);
         meta.scaling = Some((2.0, -1024.0));
         let h = build_header(&meta);
         let (m, e, off) = parse_header(Path::new("x.nii"), &h).unwrap();
@@ -403,7 +379,7 @@ mod tests {
         let mut h = build_header(&meta);
         h[70..72].copy_from_slice(&32i16.to_le_bytes());
         let err = parse_header(Path::new("c.nii"), &h).unwrap_err();
-        assert!(matches!(err, BrickError::UnknownDtype { .. }), "{err}");
+        assert!(matches!(err, FormatError::UnknownDtype { .. }), "{err}");
         let mut h = build_header(&meta);
         h[42..44].copy_from_slice(&(-4i16).to_le_bytes());
         let err = parse_header(Path::new("d.nii"), &h).unwrap_err();

@@ -4,8 +4,9 @@
 //! `X.json`), or a file name of the form `name_WxHxD_dtype.raw` (as the Open SciVis data sets are named).
 
 use crate::dtype::{DType, Endian};
-use crate::error::{BrickError, Result};
-use crate::meta::{diag_affine, validate_dims, VolumeMeta};
+use crate::error::{FormatError, Result};
+use crate::geometry::diag_affine;
+use crate::meta::{validate_dims, VolumeMeta};
 use crate::stream::{ByteStream, FileVolume};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
@@ -39,9 +40,9 @@ impl RawSpec {
         candidates.push(path.with_extension("json"));
         for c in candidates {
             if c.is_file() {
-                let text = std::fs::read_to_string(&c).map_err(|e| BrickError::io(&c, e))?;
+                let text = std::fs::read_to_string(&c).map_err(|e| FormatError::io(&c, e))?;
                 let spec: RawSpec = serde_json::from_str(&text)
-                    .map_err(|e| BrickError::header(&c, format!("raw sidecar JSON: {e}")))?;
+                    .map_err(|e| FormatError::header(&c, format!("raw sidecar JSON: {e}")))?;
                 return Ok(Some(spec));
             }
         }
