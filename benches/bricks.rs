@@ -4,8 +4,9 @@
 //! 3. peak RSS while ingesting a 512x512x452 u16 raw volume written by the bench itself.
 
 use neuvolex_benches::{machine, median, peak_rss_mib, shared};
-use neuvolex_bricks::{ingest, open_volume, BrickStore, IngestOptions};
+use neuvolex_bricks::{open_volume, BrickStore};
 use neuvolex_formats::{DType, Endian, RawSpec, VolumeSource};
+use neuvolex_ingest::{ingest, IngestOptions};
 use std::io::Write;
 use std::path::Path;
 use std::time::Instant;

@@ -18,10 +18,12 @@
 //! cores shared); `NEUVOLEX_BENCH_OUT` moves the JSON report. `NEUVOLEX_BENCH_S3=1` puts the stores on an S3 server (s3s-fs from
 //! `deploy/s3.sh install`, on loopback) instead of the local file system.
 
-use neuvolex_bricks::{BrickStore, IngestOptions};
+use neuvolex_bricks::BrickStore;
+
 use neuvolex_classify::pipeline::{classify, ClassifyRequest, FeatureSpec, OpenedFeatures};
 use neuvolex_classify::{ClassifyConfig, FeatureSet};
 use neuvolex_cluster::{ClusterExecutor, EngineConfig, WorkerOptions};
+use neuvolex_ingest::IngestOptions;
 use neuvolex_tasks::{plan, DynStage, Executor, LocalExecutor, RunReport, Stage, Task, TaskCtx};
 use neuvolex_viewpoints::distributed::recommend_on;
 use neuvolex_viewpoints::{KMeansConfig, RecommendConfig};
@@ -345,7 +347,7 @@ fn main() {
     ) {
         let p = root("abdomen.zarr");
         let mut src = neuvolex_bricks::open_volume(&ct, None).expect("ct");
-        neuvolex_bricks::ingest(src.as_mut(), &p, &IngestOptions::default(), &mut |_| {})
+        neuvolex_ingest::ingest(src.as_mut(), &p, &IngestOptions::default(), &mut |_| {})
             .expect("ingest");
         let s = BrickStore::open(&p).expect("store");
         let model = neuvolex_benches::train_one_epoch(&s);
@@ -371,7 +373,7 @@ fn main() {
             dims: [512, 512, 452],
             ..neuvolex_bricks::synth::PhantomParams::with_size(512, 0)
         };
-        neuvolex_bricks::synth::phantom_store(&p, params, &IngestOptions::default(), &mut |_| {})
+        neuvolex_ingest::phantom_store(&p, params, &IngestOptions::default(), &mut |_| {})
             .expect("phantom");
         let lab = p.join("labels/ground_truth");
         // The ingest stage reads the phantom as an uncompressed NIfTI (memory-mapped).

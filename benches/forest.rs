@@ -10,11 +10,12 @@
 //! (or `python3`) imports it.
 
 use neuvolex_benches::{machine, shared};
-use neuvolex_bricks::{ingest, open_volume, BrickStore, IngestOptions};
+use neuvolex_bricks::{open_volume, BrickStore};
 use neuvolex_classify::{Dataset, Forest, ForestConfig};
 use neuvolex_features::extract::extract_brick;
 use neuvolex_features::rng::Rng;
 use neuvolex_features::FeatureKind;
+use neuvolex_ingest::{ingest, IngestOptions};
 use std::time::Instant;
 
 fn f1_mean(pred: &[u16], truth: &[u16], classes: usize) -> (f64, Vec<f64>) {

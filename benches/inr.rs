@@ -9,11 +9,12 @@
 //! `--quick` skips the 512x512x452 run.
 
 use neuvolex_benches::{machine, peak_rss_mib, shared};
-use neuvolex_bricks::{ingest, open_volume, BrickStore, IngestOptions};
+use neuvolex_bricks::{open_volume, BrickStore};
 use neuvolex_features::extract::write_features;
 use neuvolex_features::{
     train, Budget, FeatureKind, InrConfig, TableAdam, TrainConfig, TrainEvent,
 };
+use neuvolex_ingest::{ingest, IngestOptions};
 use std::path::Path;
 use std::sync::atomic::AtomicBool;
 use std::time::Instant;

@@ -25,7 +25,7 @@
 //! not speed, and the bench says so.
 
 use neuvolex_benches::{machine, shared};
-use neuvolex_bricks::{ingest, open_volume, BrickStore, IngestOptions};
+use neuvolex_bricks::{open_volume, BrickStore};
 use neuvolex_features::tile::Tile;
 use neuvolex_features::train::training_bricks;
 use neuvolex_features::{train, Budget, FeatureKind, InrConfig, TrainConfig, TrainEvent};
@@ -33,6 +33,7 @@ use neuvolex_features_gpu::{
     train_gpu, train_gpu_tuned, write_features_gpu, AdapterKind, EngineOptions, GpuContext, GpuInr,
     GpuTune, MlpPath,
 };
+use neuvolex_ingest::{ingest, IngestOptions};
 use serde_json::{json, Value};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::AtomicBool;

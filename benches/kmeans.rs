@@ -9,10 +9,11 @@
 //! score 1800 views and select.
 
 use neuvolex_benches::{machine, shared};
-use neuvolex_bricks::{ingest, open_volume, BrickStore, IngestOptions};
+use neuvolex_bricks::{open_volume, BrickStore};
 use neuvolex_classify::features::BrickFeatures;
 use neuvolex_features::extract::extract_brick;
 use neuvolex_features::FeatureKind;
+use neuvolex_ingest::{ingest, IngestOptions};
 use neuvolex_viewpoints::kmeans::Algorithm;
 use neuvolex_viewpoints::scores::{score_views, select, Aggregator, SelectConfig};
 use neuvolex_viewpoints::{fibonacci_sphere, ClusterPartial, KMeans, KMeansConfig};

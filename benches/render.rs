@@ -15,7 +15,8 @@
 
 use neuvolex_benches::{machine, shared};
 use neuvolex_bricks::synth::ClassInfo;
-use neuvolex_bricks::{ingest, open_volume, BrickStore, IngestOptions};
+use neuvolex_bricks::{open_volume, BrickStore};
+use neuvolex_ingest::{ingest, IngestOptions};
 use neuvolex_render::tf::Space;
 use neuvolex_render::{BrickSource, Image, Mode, RenderParams, Renderer, StoreSource, TfFile};
 use std::io::{BufRead, BufReader, Write};

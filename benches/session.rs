@@ -10,9 +10,10 @@
 
 use neuvolex_benches::{machine, peak_rss_mib, shared};
 use neuvolex_bricks::synth::{palette, ClassInfo};
-use neuvolex_bricks::{ingest, open_volume, BrickStore, IngestOptions};
+use neuvolex_bricks::{open_volume, BrickStore};
 use neuvolex_classify::scribble::{simulate, Level, SimConfig};
 use neuvolex_formats::MemVolume;
+use neuvolex_ingest::{ingest, IngestOptions};
 use neuvolex_render::BrickSource;
 use neuvolex_server::session::Session;
 use std::sync::{Arc, Mutex};

@@ -1,11 +1,11 @@
 //! Bad input: every case gets a typed error that names the file and the problem, never a
 //! panic, and never a partial or clobbered output.
 
-use neuvolex_bricks::{
-    ingest, open_volume, BrickError, BrickStore, IngestOptions, NonFinitePolicy,
-};
+use neuvolex_bricks::{open_volume, BrickError, BrickStore};
+
 use neuvolex_formats::meta::{Slab, VolumeMeta};
 use neuvolex_formats::{DType, FormatError, MemVolume, RawSpec, VolumeSource};
+use neuvolex_ingest::{ingest, IngestOptions, NonFinitePolicy};
 use neuvolex_tests::{blobs, tmp, write_nifti_values};
 use std::io::Write;
 use std::path::{Path, PathBuf};

@@ -86,10 +86,10 @@ pub fn store_of(
 ) -> (tempfile::TempDir, neuvolex_bricks::BrickStore) {
     let d = tmp();
     let p = d.path().join("s.zarr");
-    neuvolex_bricks::ingest(
+    neuvolex_ingest::ingest(
         vol,
         &p,
-        &neuvolex_bricks::IngestOptions {
+        &neuvolex_ingest::IngestOptions {
             brick,
             ..Default::default()
         },

@@ -2,13 +2,14 @@
 //! numerical extremes, the feature cache, and bad checkpoints/configurations.
 
 use neuvolex_bricks::synth::{Phantom, PhantomChannel, PhantomParams};
-use neuvolex_bricks::{ingest, BrickStore, IngestOptions};
+use neuvolex_bricks::BrickStore;
 use neuvolex_features::checkpoint::{self, Loaded};
 use neuvolex_features::extract::{extract_brick, write_features, FeatureCache, FeatureSource};
 use neuvolex_features::{
     train, Ablation, Budget, FeatureError, FeatureKind, InrConfig, TrainConfig, TrainEvent,
 };
 use neuvolex_formats::MemVolume;
+use neuvolex_ingest::{ingest, IngestOptions};
 use neuvolex_tests::{blobs, shared, store_of, tmp};
 use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
@@ -212,7 +213,7 @@ fn nan_input_is_rejected_or_zeroed_never_nan_features() {
     // Replaced by zero on request: training and features stay finite.
     let opts = IngestOptions {
         brick: 8,
-        non_finite: neuvolex_bricks::NonFinitePolicy::Zero,
+        non_finite: neuvolex_ingest::NonFinitePolicy::Zero,
         ..Default::default()
     };
     ingest(&mut MemVolume::from_f32(dims, &v), &p, &opts, &mut |_| {}).unwrap();

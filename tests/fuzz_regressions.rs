@@ -163,10 +163,10 @@ fn ome_zarr_dataset_paths_stay_inside_the_group() {
 /// applied to its files.
 fn phantom_store_edited(d: &Path, edit: impl FnOnce(&Path)) -> std::path::PathBuf {
     let p = d.join("ph.zarr");
-    neuvolex_bricks::synth::phantom_store(
+    neuvolex_ingest::phantom_store(
         &p,
         neuvolex_bricks::synth::PhantomParams::with_size(16, 0),
-        &neuvolex_bricks::IngestOptions {
+        &neuvolex_ingest::IngestOptions {
             brick: 8,
             ..Default::default()
         },

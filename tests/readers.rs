@@ -270,11 +270,11 @@ fn ome_zarr_store_reads_back_through_the_reader() {
     vol.meta.spacing = [0.7, 0.8, 2.5];
     vol.meta.affine = neuvolex_formats::geometry::diag_affine(vol.meta.spacing, [1.0, 2.0, 3.0]);
     let store = dir.path().join("v.zarr");
-    let opts = neuvolex_bricks::IngestOptions {
+    let opts = neuvolex_ingest::IngestOptions {
         brick: 8,
         ..Default::default()
     };
-    neuvolex_bricks::ingest(&mut vol, &store, &opts, &mut |_| {}).unwrap();
+    neuvolex_ingest::ingest(&mut vol, &store, &opts, &mut |_| {}).unwrap();
     let (m, back) = read_all_f64(&store, None);
     assert_eq!(m.dims, dims);
     assert_eq!(m.dtype, DType::I16);

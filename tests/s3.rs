@@ -7,10 +7,9 @@
 
 use neuvolex_bricks::lock::{break_lock, lock_holder, LockHolder, LOCK_KEY};
 use neuvolex_bricks::synth::{phantom_classes, Phantom, PhantomChannel, PhantomParams};
-use neuvolex_bricks::{
-    ingest, BrickError, BrickStore, IngestOptions, S3Options, StoreLocation, VectorEncoding,
-};
+use neuvolex_bricks::{BrickError, BrickStore, S3Options, StoreLocation, VectorEncoding};
 use neuvolex_formats::MemVolume;
+use neuvolex_ingest::{ingest, IngestOptions};
 use neuvolex_tests::{blobs, tmp, S3Server};
 use std::time::{Duration, Instant};
 

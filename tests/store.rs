@@ -2,10 +2,12 @@
 //! a direct whole-volume computation at borders and across brick seams), vectors, occupancy.
 
 use neuvolex_bricks::derived::{self, Normaliser};
-use neuvolex_bricks::store::{downsample_mean, downsample_mode};
+use neuvolex_bricks::layout::downsample_mode;
 use neuvolex_bricks::synth::{Phantom, PhantomChannel, PhantomParams};
-use neuvolex_bricks::{ingest, BrickStore, IngestOptions, VectorEncoding};
+use neuvolex_bricks::{BrickStore, VectorEncoding};
 use neuvolex_formats::{DType, MemVolume, VolumeSource};
+use neuvolex_ingest::downsample_mean;
+use neuvolex_ingest::{ingest, IngestOptions};
 use neuvolex_tests::{blobs, noise, shared, tmp};
 
 fn build(

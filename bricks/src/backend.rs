@@ -19,16 +19,18 @@ use object_store::path::Path as ObjPath;
 use object_store::{ObjectStore, ObjectStoreExt, PutMode, PutOptions, PutPayload};
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, OnceLock};
 use zarrs::storage::{
-    byte_range::ByteRangeIterator, Bytes, ListableStorageTraits, MaybeBytesIterator,
-    OffsetBytesIterator, ReadableStorageTraits, ReadableWritableListableStorage, StorageError,
-    StoreKey, StoreKeys, StoreKeysPrefixes, StorePrefix, WritableStorageTraits,
+    Bytes, ListableStorageTraits, ReadableStorageTraits, ReadableWritableListableStorage, StoreKey,
+    StorePrefix, WritableStorageTraits,
 };
 use zarrs_storage::storage_adapter::async_to_sync::{
     AsyncToSyncBlockOn, AsyncToSyncStorageAdapter,
 };
+
+pub use crate::fsstore::{AtomicFsStore, TMP_DIR};
+use crate::io::{count, Counted, IO_READ, IO_WRITE};
+pub use crate::io::{store_io, StoreIo};
 
 /// The storage of one store (or of the folder holding a file).
 pub struct Backend {
@@ -300,6 +302,14 @@ impl Backend {
         Ok((keys, dirs))
     }
 
+    /// Deletes the object or folder `key` (a path of `/`-separated names).
+    pub fn delete_node(&self, key: &str) -> Result<()> {
+        match key.trim_matches('/').rsplit_once('/') {
+            Some((parent, name)) => self.delete_child(parent, name),
+            None => self.delete_child("", key.trim_matches('/')),
+        }
+    }
+
     /// Deletes child `name` of folder `parent`: the object of that name and everything under
     /// the folder of that name.
     pub fn delete_child(&self, parent: &str, name: &str) -> Result<()> {
@@ -509,335 +519,6 @@ fn s3_client(
     Ok(client)
 }
 
-/// Bytes and requests that went through the stores of this process so far (every
-/// [`Backend`], file system and S3 alike): what a task or a stage moved is the difference of
-/// two readings ([`StoreIo::since`]).
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
-pub struct StoreIo {
-    /// Bytes read (whole and partial gets).
-    pub bytes_read: u64,
-    /// Bytes written.
-    pub bytes_written: u64,
-    /// Read requests.
-    pub reads: u64,
-    /// Write requests.
-    pub writes: u64,
-}
-
-impl StoreIo {
-    /// What moved between `earlier` and this reading.
-    pub fn since(&self, earlier: &StoreIo) -> StoreIo {
-        StoreIo {
-            bytes_read: self.bytes_read.saturating_sub(earlier.bytes_read),
-            bytes_written: self.bytes_written.saturating_sub(earlier.bytes_written),
-            reads: self.reads.saturating_sub(earlier.reads),
-            writes: self.writes.saturating_sub(earlier.writes),
-        }
-    }
-}
-
-/// (bytes, requests) read and written through every store of the process.
-static IO_READ: [AtomicU64; 2] = [AtomicU64::new(0), AtomicU64::new(0)];
-static IO_WRITE: [AtomicU64; 2] = [AtomicU64::new(0), AtomicU64::new(0)];
-
-fn count(c: &[AtomicU64; 2], bytes: usize) {
-    c[0].fetch_add(bytes as u64, Ordering::Relaxed);
-    c[1].fetch_add(1, Ordering::Relaxed);
-}
-
-/// The store traffic of this process so far.
-pub fn store_io() -> StoreIo {
-    StoreIo {
-        bytes_read: IO_READ[0].load(Ordering::Relaxed),
-        bytes_written: IO_WRITE[0].load(Ordering::Relaxed),
-        reads: IO_READ[1].load(Ordering::Relaxed),
-        writes: IO_WRITE[1].load(Ordering::Relaxed),
-    }
-}
-
-/// A zarrs storage that counts the bytes passing through it into [`store_io`].
-struct Counted<T>(T);
-
-impl<T: ReadableStorageTraits> ReadableStorageTraits for Counted<T> {
-    fn get(&self, key: &StoreKey) -> std::result::Result<Option<Bytes>, StorageError> {
-        let v = self.0.get(key)?;
-        if let Some(b) = &v {
-            count(&IO_READ, b.len());
-        }
-        Ok(v)
-    }
-
-    fn get_partial_many<'a>(
-        &'a self,
-        key: &StoreKey,
-        byte_ranges: ByteRangeIterator<'a>,
-    ) -> std::result::Result<MaybeBytesIterator<'a>, StorageError> {
-        let Some(parts) = self.0.get_partial_many(key, byte_ranges)? else {
-            return Ok(None);
-        };
-        let parts: Vec<_> = parts.collect();
-        count(
-            &IO_READ,
-            parts.iter().map(|b| b.as_ref().map_or(0, Bytes::len)).sum(),
-        );
-        Ok(Some(Box::new(parts.into_iter())))
-    }
-
-    fn size_key(&self, key: &StoreKey) -> std::result::Result<Option<u64>, StorageError> {
-        self.0.size_key(key)
-    }
-
-    fn supports_get_partial(&self) -> bool {
-        self.0.supports_get_partial()
-    }
-}
-
-impl<T: WritableStorageTraits> WritableStorageTraits for Counted<T> {
-    fn set(&self, key: &StoreKey, value: Bytes) -> std::result::Result<(), StorageError> {
-        count(&IO_WRITE, value.len());
-        self.0.set(key, value)
-    }
-
-    fn set_partial_many(
-        &self,
-        key: &StoreKey,
-        offset_values: OffsetBytesIterator,
-    ) -> std::result::Result<(), StorageError> {
-        let parts: Vec<_> = offset_values.collect();
-        count(&IO_WRITE, parts.iter().map(|(_, b)| b.len()).sum());
-        self.0.set_partial_many(key, Box::new(parts.into_iter()))
-    }
-
-    fn erase(&self, key: &StoreKey) -> std::result::Result<(), StorageError> {
-        self.0.erase(key)
-    }
-
-    fn erase_many(&self, keys: &[StoreKey]) -> std::result::Result<(), StorageError> {
-        self.0.erase_many(keys)
-    }
-
-    fn erase_prefix(&self, prefix: &StorePrefix) -> std::result::Result<(), StorageError> {
-        self.0.erase_prefix(prefix)
-    }
-
-    fn supports_set_partial(&self) -> bool {
-        self.0.supports_set_partial()
-    }
-}
-
-impl<T: ListableStorageTraits> ListableStorageTraits for Counted<T> {
-    fn list(&self) -> std::result::Result<StoreKeys, StorageError> {
-        self.0.list()
-    }
-
-    fn list_prefix(&self, prefix: &StorePrefix) -> std::result::Result<StoreKeys, StorageError> {
-        self.0.list_prefix(prefix)
-    }
-
-    fn list_dir(
-        &self,
-        prefix: &StorePrefix,
-    ) -> std::result::Result<StoreKeysPrefixes, StorageError> {
-        self.0.list_dir(prefix)
-    }
-
-    fn size_prefix(&self, prefix: &StorePrefix) -> std::result::Result<u64, StorageError> {
-        self.0.size_prefix(prefix)
-    }
-
-    fn size(&self) -> std::result::Result<u64, StorageError> {
-        self.0.size()
-    }
-}
-
-/// Folder of a local store holding the temporaries of atomic writes.
-pub const TMP_DIR: &str = ".neuvolex-tmp";
-
-/// This host's name as used in temporary names (letters, digits, '.', '_').
-fn tmp_host() -> String {
-    crate::lock::host_name()
-        .chars()
-        .map(|c| {
-            if c.is_ascii_alphanumeric() || c == '.' {
-                c
-            } else {
-                '_'
-            }
-        })
-        .collect()
-}
-
-/// zarrs' file-system store with atomic writes: each value is written to a unique temporary
-/// file (`.neuvolex-tmp/HOST-PID-N` in the store), synced, and renamed over its key; the
-/// temporaries of killed writers are removed when the writer lock is next taken.
-///
-/// Reads, listing and erasing are zarrs' own. zarrs' handle cache stays off, so replacing a
-/// file by rename never leaves a stale open handle.
-pub struct AtomicFsStore {
-    root: PathBuf,
-    inner: zarrs::filesystem::FilesystemStore,
-}
-
-impl AtomicFsStore {
-    /// The store rooted at directory `root` (created on the first write).
-    pub fn new(root: &Path) -> Result<Self> {
-        let inner =
-            zarrs::filesystem::FilesystemStore::new(root).map_err(|e| BrickError::zarr(root, e))?;
-        Ok(AtomicFsStore {
-            root: root.to_path_buf(),
-            inner,
-        })
-    }
-
-    fn path(&self, key: &str) -> PathBuf {
-        self.root.join(key.trim_start_matches('/'))
-    }
-
-    /// Where temporaries go: one folder per store, so those of killed writers are found
-    /// without walking the store.
-    fn tmp_dir(&self) -> PathBuf {
-        self.root.join(TMP_DIR)
-    }
-
-    fn tmp_path(&self) -> PathBuf {
-        static N: AtomicU64 = AtomicU64::new(0);
-        self.tmp_dir().join(format!(
-            "{}-{}-{}",
-            tmp_host(),
-            std::process::id(),
-            N.fetch_add(1, Ordering::Relaxed)
-        ))
-    }
-
-    /// Deletes the temporaries that writers on this host left when they were killed (their
-    /// process is gone). Called when the writer lock is taken. Linux only; elsewhere a no-op.
-    pub fn remove_stale_temporaries(&self) {
-        let Ok(rd) = std::fs::read_dir(self.tmp_dir()) else {
-            return;
-        };
-        let prefix = format!("{}-", tmp_host());
-        for e in rd.flatten() {
-            let name = e.file_name().to_string_lossy().into_owned();
-            let pid = name
-                .strip_prefix(&prefix)
-                .and_then(|r| r.split('-').next())
-                .and_then(|p| p.parse::<u32>().ok());
-            if let Some(pid) = pid {
-                if cfg!(target_os = "linux")
-                    && pid != std::process::id()
-                    && !Path::new(&format!("/proc/{pid}")).exists()
-                {
-                    tracing::debug!(path = %e.path().display(), "removing a killed writer's temporary");
-                    let _ = std::fs::remove_file(e.path());
-                }
-            }
-        }
-    }
-
-    fn write_tmp(&self, dst: &Path, value: &[u8], create_new: bool) -> std::io::Result<PathBuf> {
-        use std::io::Write;
-        if let Some(dir) = dst.parent() {
-            std::fs::create_dir_all(dir)?;
-        }
-        std::fs::create_dir_all(self.tmp_dir())?;
-        let tmp = self.tmp_path();
-        let res = (|| {
-            let mut f = std::fs::OpenOptions::new()
-                .write(true)
-                .create_new(true)
-                .open(&tmp)?;
-            f.write_all(value)?;
-            f.sync_all()?;
-            if create_new {
-                // link(2) fails if the destination exists: an atomic create-if-absent.
-                std::fs::hard_link(&tmp, dst)?;
-                std::fs::remove_file(&tmp)?;
-            } else {
-                std::fs::rename(&tmp, dst)?;
-            }
-            Ok(())
-        })();
-        if res.is_err() {
-            let _ = std::fs::remove_file(&tmp);
-        }
-        res.map(|_| tmp)
-    }
-
-    fn create_new(&self, key: &str, value: &[u8]) -> std::io::Result<bool> {
-        match self.write_tmp(&self.path(key), value, true) {
-            Ok(_) => Ok(true),
-            Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => Ok(false),
-            Err(e) => Err(e),
-        }
-    }
-}
-
-impl ReadableStorageTraits for AtomicFsStore {
-    fn get_partial_many<'a>(
-        &'a self,
-        key: &StoreKey,
-        byte_ranges: ByteRangeIterator<'a>,
-    ) -> std::result::Result<MaybeBytesIterator<'a>, StorageError> {
-        self.inner.get_partial_many(key, byte_ranges)
-    }
-
-    fn size_key(&self, key: &StoreKey) -> std::result::Result<Option<u64>, StorageError> {
-        self.inner.size_key(key)
-    }
-
-    fn supports_get_partial(&self) -> bool {
-        self.inner.supports_get_partial()
-    }
-}
-
-impl WritableStorageTraits for AtomicFsStore {
-    fn set(&self, key: &StoreKey, value: Bytes) -> std::result::Result<(), StorageError> {
-        self.write_tmp(&self.path(key.as_str()), &value, false)?;
-        Ok(())
-    }
-
-    fn set_partial_many(
-        &self,
-        key: &StoreKey,
-        offset_values: OffsetBytesIterator,
-    ) -> std::result::Result<(), StorageError> {
-        // Read, patch and replace the whole value, so the update stays atomic.
-        zarrs::storage::store_set_partial_many(self, key, offset_values)
-    }
-
-    fn erase(&self, key: &StoreKey) -> std::result::Result<(), StorageError> {
-        self.inner.erase(key)
-    }
-
-    fn erase_prefix(&self, prefix: &StorePrefix) -> std::result::Result<(), StorageError> {
-        self.inner.erase_prefix(prefix)
-    }
-
-    fn supports_set_partial(&self) -> bool {
-        false
-    }
-}
-
-impl ListableStorageTraits for AtomicFsStore {
-    fn list(&self) -> std::result::Result<StoreKeys, StorageError> {
-        self.inner.list()
-    }
-
-    fn list_prefix(&self, prefix: &StorePrefix) -> std::result::Result<StoreKeys, StorageError> {
-        self.inner.list_prefix(prefix)
-    }
-
-    fn list_dir(
-        &self,
-        prefix: &StorePrefix,
-    ) -> std::result::Result<StoreKeysPrefixes, StorageError> {
-        self.inner.list_dir(prefix)
-    }
-
-    fn size_prefix(&self, prefix: &StorePrefix) -> std::result::Result<u64, StorageError> {
-        self.inner.size_prefix(prefix)
-    }
-}
 
 #[cfg(test)]
 mod tests {
@@ -891,5 +572,17 @@ mod tests {
         assert_eq!(names, vec!["b.json".to_string(), "lock".to_string()]);
         b.delete_prefix("a").unwrap();
         assert!(b.list("").unwrap().is_empty());
+    }
+}
+
+impl StoreLocation {
+    /// True if a file, directory or object exists at this location (false on any error).
+    pub fn exists(&self) -> bool {
+        match self {
+            StoreLocation::Local(p) => p.exists(),
+            StoreLocation::S3(_) => Backend::for_file(self)
+                .and_then(|(b, key)| b.exists(&key))
+                .unwrap_or(false),
+        }
     }
 }

@@ -22,6 +22,7 @@ use crate::lock::WriterLock;
 use crate::omezarr::read_node;
 use serde::{Deserialize, Serialize};
 use serde_json::{json, Value};
+use std::sync::Arc;
 
 /// Key of the commit record inside a store.
 pub const COMMIT_KEY: &str = "neuvolex/commit.json";
@@ -138,7 +139,7 @@ impl Commit {
             backend.put(&node_key(&w.node), bytes)?;
         }
         for k in &self.keep {
-            crate::store::drop_other_generations(backend, &k.node, &k.generation)?;
+            drop_other_generations(backend, &k.node, &k.generation)?;
         }
         Ok(())
     }
@@ -185,6 +186,63 @@ pub fn read_committed_node(backend: &Backend, node: &str) -> Result<Value> {
 /// The document an outstanding commit record holds for `node`, if any.
 pub fn committed_doc(backend: &Backend, node: &str) -> Result<Option<Value>> {
     Ok(outstanding(backend)?.and_then(|c| c.doc(node).cloned()))
+}
+
+/// The generation number of a child name `vN`.
+pub(crate) fn generation_number(name: &str) -> Option<u64> {
+    name.strip_prefix('v')
+        .filter(|d| !d.is_empty() && d.bytes().all(|c| c.is_ascii_digit()))
+        .and_then(|d| d.parse().ok())
+}
+
+/// The next free generation name (`v1`, `v2`, ...) under node `node`.
+pub(crate) fn next_generation(backend: &Backend, node: &str) -> Result<String> {
+    let n = backend
+        .list_dir(node)?
+        .iter()
+        .filter_map(|c| generation_number(c.strip_suffix(".done").unwrap_or(c)))
+        .max()
+        .unwrap_or(0);
+    Ok(format!("v{}", n + 1))
+}
+
+/// Deletes every child of `node` except its `zarr.json` and generation `keep`: older
+/// generations, abandoned pending ones, their markers, and the arrays of the layout before
+/// generations.
+pub(crate) fn drop_other_generations(backend: &Backend, node: &str, keep: &str) -> Result<()> {
+    for child in backend.list_dir(node)? {
+        if child == "zarr.json" || (!keep.is_empty() && child == keep) || child.starts_with('.') {
+            continue;
+        }
+        let key = format!("{node}/{child}");
+        if !child.ends_with(".done") {
+            backend.delete_node(&key)?;
+            continue;
+        }
+        // Done markers of a finished generation: a cluster worker running a late duplicate of a
+        // task (redelivered after its first worker went quiet) may still add one while they are
+        // deleted. They are no longer read, so a folder that will not go is left, with a warning.
+        let mut tries = 0;
+        while let Err(e) = backend.delete_node(&key) {
+            tries += 1;
+            if tries == 5 {
+                tracing::warn!("{}: left in place: {e}", backend.key_path(&key).display());
+                break;
+            }
+            std::thread::sleep(std::time::Duration::from_millis(100));
+        }
+    }
+    Ok(())
+}
+
+impl WriterLock {
+    /// Takes the writer lock of the store at `backend` for `purpose`, or fails at once with
+    /// [`BrickError::Locked`] naming the holder. A commit a killed writer left after its
+    /// commit point is finished ([`recover`]) before anything else is written; if that fails,
+    /// the lock is released with the error.
+    pub fn acquire(backend: &Arc<Backend>, purpose: &str) -> Result<WriterLock> {
+        WriterLock::acquire_then(backend, purpose, &|b| recover(b).map(|_| ()))
+    }
 }
 
 #[cfg(test)]

@@ -13,7 +13,7 @@
 
 use crate::backend::Backend;
 use crate::error::{BrickError, Result};
-use crate::store::Brick;
+use crate::layout::Brick;
 use serde::{Deserialize, Serialize};
 use std::collections::HashSet;
 use std::sync::Arc;

@@ -253,16 +253,6 @@ impl StoreLocation {
             StoreLocation::S3(u) => u.validate(),
         }
     }
-
-    /// True if a file, directory or object exists at this location (false on any error).
-    pub fn exists(&self) -> bool {
-        match self {
-            StoreLocation::Local(p) => p.exists(),
-            StoreLocation::S3(_) => crate::backend::Backend::for_file(self)
-                .and_then(|(b, key)| b.exists(&key))
-                .unwrap_or(false),
-        }
-    }
 }
 
 fn split_s3(text: &str) -> Option<(&str, &str)> {

@@ -11,7 +11,7 @@
 //!   `neuvolex unlock STORE` ([`break_lock`]) deletes a lock by hand.
 //!
 //! Taking the lock finishes a store-level commit that a killed writer left after its commit
-//! point ([`crate::commit::recover`]).
+//! point (`commit::recover`, which `WriterLock::acquire` runs).
 //!
 //! Within one process the lock is shared: acquiring a store's lock while this process already
 //! holds it returns another handle to the same lock, released when the last handle drops.
@@ -89,15 +89,6 @@ fn fmt_time(unix: u64) -> String {
     )
 }
 
-pub(crate) fn host_name() -> String {
-    std::fs::read_to_string("/proc/sys/kernel/hostname")
-        .ok()
-        .or_else(|| std::env::var("HOSTNAME").ok())
-        .map(|s| s.trim().to_string())
-        .filter(|s| !s.is_empty())
-        .unwrap_or_else(|| "unknown-host".into())
-}
-
 fn new_token() -> String {
     use std::hash::{BuildHasher, Hasher};
     let mut h = std::collections::hash_map::RandomState::new().build_hasher();
@@ -154,8 +145,15 @@ fn registry() -> &'static Mutex<HashMap<String, Weak<Held>>> {
 
 impl WriterLock {
     /// Takes the writer lock of the store at `backend` for `purpose`, or fails at once with
-    /// [`BrickError::Locked`] naming the holder.
-    pub fn acquire(backend: &Arc<Backend>, purpose: &str) -> Result<WriterLock> {
+    /// [`BrickError::Locked`] naming the holder; `on_acquired` runs once the lock is held and
+    /// before it is shared in this process (if it fails, the lock is released with its error).
+    /// Writers call `WriterLock::acquire` (module `commit`), which finishes an outstanding
+    /// commit there.
+    pub(crate) fn acquire_then(
+        backend: &Arc<Backend>,
+        purpose: &str,
+        on_acquired: &dyn Fn(&Backend) -> Result<()>,
+    ) -> Result<WriterLock> {
         let id = match backend.local_root() {
             Some(r) => std::fs::canonicalize(r)
                 .unwrap_or_else(|_| r.to_path_buf())
@@ -168,7 +166,7 @@ impl WriterLock {
             return Ok(WriterLock { held: h });
         }
         let holder = LockHolder {
-            host: host_name(),
+            host: crate::fsstore::host_name(),
             pid: std::process::id(),
             purpose: purpose.to_string(),
             token: new_token(),
@@ -184,9 +182,7 @@ impl WriterLock {
             }
             None => acquire_object(backend, holder, id.clone())?,
         });
-        // A commit a killed writer left after its commit point is finished before anything
-        // else is written (if that fails, the lock is released with the error).
-        crate::commit::recover(backend)?;
+        on_acquired(backend)?;
         reg.insert(id, Arc::downgrade(&held));
         Ok(WriterLock { held })
     }

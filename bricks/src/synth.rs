@@ -513,26 +513,3 @@ mod scene_tests {
         assert!(l.contains(&2));
     }
 }
-
-/// Writes the labelled phantom as a brick store at `path`: the image, plus its ground truth
-/// under `labels/ground_truth` with the class table.
-pub fn phantom_store(
-    path: &std::path::Path,
-    params: PhantomParams,
-    opts: &crate::IngestOptions,
-    progress: &mut dyn FnMut(crate::Progress),
-) -> crate::Result<crate::BrickStore> {
-    crate::ingest_with_labels(
-        &mut Phantom::new(params, PhantomChannel::Image),
-        Some(crate::IngestLabels {
-            name: "ground_truth",
-            source: &mut Phantom::new(params, PhantomChannel::Labels),
-            classes: &phantom_classes(),
-        }),
-        path,
-        opts,
-        progress,
-    )?;
-    let store = crate::BrickStore::open(path)?;
-    Ok(store)
-}

@@ -6,11 +6,11 @@
 //!
 //! `seeds [DATA_DIR] [OUT_DIR]` (defaults `../shared/data` and `corpus`, relative to `fuzz/`).
 
-use neuvolex_bricks::IngestOptions;
 use neuvolex_formats::dtype::DType;
 use neuvolex_formats::meta::{MemVolume, VolumeMeta, VolumeSource};
 use neuvolex_formats::{nifti, nrrd, Endian};
 use neuvolex_fuzz::pack;
+use neuvolex_ingest::IngestOptions;
 use std::io::{Read, Write};
 use std::path::{Path, PathBuf};
 
@@ -80,7 +80,7 @@ fn file_bytes(p: &Path) -> Vec<u8> {
 fn widened_store(tmp: &Path) -> PathBuf {
     use neuvolex_bricks::{BrickStore, Commit, VectorEncoding};
     let p = tmp.join("ph_wide.zarr");
-    neuvolex_bricks::synth::phantom_store(
+    neuvolex_ingest::phantom_store(
         &p,
         neuvolex_bricks::synth::PhantomParams::with_size(16, 0),
         &IngestOptions {
@@ -359,7 +359,7 @@ fn main() {
         ..Default::default()
     };
     let ph = tmp.join("ph.zarr");
-    neuvolex_bricks::synth::phantom_store(
+    neuvolex_ingest::phantom_store(
         &ph,
         neuvolex_bricks::synth::PhantomParams::with_size(16, 0),
         &opts,
@@ -394,7 +394,7 @@ fn main() {
         for shard in [None, Some(2)] {
             let p = tmp.join(format!("ct{}.zarr", shard.is_some()));
             let mut vv = v.clone();
-            neuvolex_bricks::ingest(
+            neuvolex_ingest::ingest(
                 &mut vv,
                 &p,
                 &IngestOptions {

@@ -2,7 +2,7 @@
 //! concatenation of them, computed brick by brick.
 
 use crate::ClassifyError;
-use neuvolex_bricks::store::{Brick, BrickStore, VectorArray};
+use neuvolex_bricks::{Brick, BrickStore, VectorArray};
 use neuvolex_features::extract::{extract_brick, vectors_name};
 use neuvolex_features::{FeatureKind, InrModel};
 use neuvolex_filters::context::Offsets;

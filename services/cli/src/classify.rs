@@ -2,7 +2,7 @@
 
 use anyhow::{bail, Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
-use neuvolex_bricks::store::BrickStore;
+use neuvolex_bricks::BrickStore;
 use neuvolex_classify::pipeline::ClassifyRequest;
 use neuvolex_classify::{ClassWeight, ClassifyConfig};
 use neuvolex_features::InrModel;

@@ -13,12 +13,11 @@ mod viewpoints;
 use anyhow::{bail, Context, Result};
 use clap::{Parser, Subcommand, ValueEnum};
 use indicatif::{ProgressBar, ProgressStyle};
-use neuvolex_bricks::store::{scan_volume, ScanReport};
 use neuvolex_bricks::synth::{phantom_classes, ClassInfo, Phantom, PhantomChannel, PhantomParams};
-use neuvolex_bricks::{
-    ingest, open_volume, BrickStore, IngestOptions, NonFinitePolicy, Progress, VolumeStats,
-};
+use neuvolex_bricks::{open_volume, BrickStore, Progress, VolumeStats};
 use neuvolex_formats::{DType, Endian, RawSpec};
+use neuvolex_ingest::{ingest, IngestOptions, NonFinitePolicy};
+use neuvolex_ingest::{scan_volume, ScanReport};
 use std::path::{Path, PathBuf};
 
 #[derive(Parser)]
@@ -861,7 +860,7 @@ fn main() -> Result<()> {
                     ..IngestOptions::default()
                 };
                 let mut sink = progress_sink(quiet);
-                neuvolex_bricks::synth::phantom_store(&out, params, &opts, &mut sink)?;
+                neuvolex_ingest::phantom_store(&out, params, &opts, &mut sink)?;
                 tracing::info!(store = %out.display(), dims = ?params.dims, "phantom store written with labels/ground_truth");
             }
         }
@@ -906,7 +905,7 @@ fn main() -> Result<()> {
             };
             let t = std::time::Instant::now();
             let mut sink = progress_sink(quiet);
-            let labels = lab.as_mut().map(|l| neuvolex_bricks::IngestLabels {
+            let labels = lab.as_mut().map(|l| neuvolex_ingest::IngestLabels {
                 name: &labels_name,
                 source: l.as_mut(),
                 classes: &classes,
@@ -927,7 +926,7 @@ fn main() -> Result<()> {
                 bar.finish();
                 info
             } else {
-                neuvolex_bricks::ingest_with_labels(
+                neuvolex_ingest::ingest_with_labels(
                     src.as_mut(),
                     labels,
                     &output,

@@ -87,12 +87,12 @@ pub fn run_serve(a: &ServeArgs) -> Result<()> {
         let p = d.join("phantom.zarr");
         if neuvolex_bricks::BrickStore::open(&p).is_err() {
             std::fs::create_dir_all(&d)?;
-            let opts = neuvolex_bricks::IngestOptions {
+            let opts = neuvolex_ingest::IngestOptions {
                 brick: 32,
                 overwrite: true,
                 ..Default::default()
             };
-            neuvolex_bricks::synth::phantom_store(
+            neuvolex_ingest::phantom_store(
                 &p,
                 neuvolex_bricks::synth::PhantomParams::with_size(128, 0),
                 &opts,

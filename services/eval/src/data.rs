@@ -2,9 +2,10 @@
 //! work directory, and the INR variants trained on it (cached beside it).
 
 use crate::{EvalError, EvalEvent, Events, InrVariant, Result};
-use neuvolex_bricks::store::{BrickStore, IngestOptions};
+use neuvolex_bricks::BrickStore;
 use neuvolex_features::{FeatureKind, InrModel};
 use neuvolex_formats::meta::MemVolume;
+use neuvolex_ingest::IngestOptions;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::Instant;
@@ -85,7 +86,7 @@ impl Dataset {
         let store_path = work.join(format!("{}.zarr", spec.name));
         if !store_path.exists() {
             let mut src = neuvolex_bricks::open_volume(&spec.image, None)?;
-            neuvolex_bricks::store::ingest(
+            neuvolex_ingest::ingest(
                 &mut *src,
                 &store_path,
                 &IngestOptions::default(),

@@ -181,7 +181,7 @@ impl ScaleField {
 #[cfg(test)]
 pub(crate) mod tests {
     use super::*;
-    use neuvolex_bricks::store::downsample_mean;
+    use neuvolex_ingest::downsample_mean;
 
     /// A pyramid of `n` levels over `v`.
     pub(crate) fn pyramid(v: &[f32], d: [usize; 3], n: usize) -> (Vec<Vec<f32>>, Vec<[usize; 3]>) {

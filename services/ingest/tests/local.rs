@@ -1,7 +1,9 @@
 //! The ingest stage on the in-process executor writes the same store, byte for byte, as the
 //! sequential ingest, whatever the number of slabs a task; a failed task publishes nothing.
 
-use neuvolex_bricks::{ingest, IngestOptions, StoreLocation};
+use neuvolex_bricks::StoreLocation;
+
+use neuvolex_ingest::{ingest, IngestOptions};
 
 use neuvolex_formats::MemVolume;
 use neuvolex_tasks::LocalExecutor;

@@ -5,7 +5,9 @@
 //! reused), renders one cold frame and FRAMES warm ones with the benchmark's view, and prints
 //! the milliseconds of each and a checksum of the last image.
 
-use neuvolex_bricks::{ingest, open_volume, BrickStore, IngestOptions};
+use neuvolex_bricks::{open_volume, BrickStore};
+
+use neuvolex_ingest::{ingest, IngestOptions};
 use neuvolex_render::{BrickSource, RenderParams, Renderer, StoreSource, TfFile};
 use std::path::PathBuf;
 use std::sync::Arc;

@@ -471,7 +471,7 @@ async fn ingester(rx: Inbox<IngestJob>, hub: Hub) {
     }
 }
 
-/// Ingests one file (the pure work is `neuvolex_bricks::ingest`), publishing progress.
+/// Ingests one file (the pure work is `neuvolex_ingest::ingest`), publishing progress.
 fn ingest_one(
     source: &Path,
     dest: &Path,
@@ -501,10 +501,10 @@ fn ingest_one(
     }
     let (mut stage, mut total) = ("", 0u64);
     let mut last = std::time::Instant::now();
-    neuvolex_bricks::ingest(
+    neuvolex_ingest::ingest(
         src.as_mut(),
         dest,
-        &neuvolex_bricks::IngestOptions {
+        &neuvolex_ingest::IngestOptions {
             brick: 32,
             overwrite: true,
             ..Default::default()

@@ -318,7 +318,7 @@ fn save_state(work: &std::path::Path, s: &Session) -> std::io::Result<PathBuf> {
     if state.strokes.is_empty() && state.tf.is_none() {
         return Ok(p);
     }
-    neuvolex_bricks::store::replace_file(&p, state.to_json().as_bytes())
+    neuvolex_bricks::atomic::replace_file(&p, state.to_json().as_bytes())
         .map_err(std::io::Error::other)?;
     Ok(p)
 }

@@ -4,7 +4,7 @@
 
 use actix_web::test;
 use neuvolex_bricks::synth::PhantomParams;
-use neuvolex_bricks::IngestOptions;
+use neuvolex_ingest::IngestOptions;
 use neuvolex_server::ServerConfig;
 use serde_json::{json, Value};
 use std::time::{Duration, Instant};
@@ -16,7 +16,7 @@ pub fn data() -> (tempfile::TempDir, ServerConfig) {
     let work = d.path().join("work");
     std::fs::create_dir_all(&root).unwrap();
     std::fs::create_dir_all(&work).unwrap();
-    neuvolex_bricks::synth::phantom_store(
+    neuvolex_ingest::phantom_store(
         &root.join("ph.zarr"),
         PhantomParams::with_size(48, 0),
         &IngestOptions {
