@@ -519,6 +519,17 @@ fn s3_client(
     Ok(client)
 }
 
+impl StoreLocation {
+    /// True if a file, directory or object exists at this location (false on any error).
+    pub fn exists(&self) -> bool {
+        match self {
+            StoreLocation::Local(p) => p.exists(),
+            StoreLocation::S3(_) => Backend::for_file(self)
+                .and_then(|(b, key)| b.exists(&key))
+                .unwrap_or(false),
+        }
+    }
+}
 
 #[cfg(test)]
 mod tests {
@@ -572,17 +583,5 @@ mod tests {
         assert_eq!(names, vec!["b.json".to_string(), "lock".to_string()]);
         b.delete_prefix("a").unwrap();
         assert!(b.list("").unwrap().is_empty());
-    }
-}
-
-impl StoreLocation {
-    /// True if a file, directory or object exists at this location (false on any error).
-    pub fn exists(&self) -> bool {
-        match self {
-            StoreLocation::Local(p) => p.exists(),
-            StoreLocation::S3(_) => Backend::for_file(self)
-                .and_then(|(b, key)| b.exists(&key))
-                .unwrap_or(false),
-        }
     }
 }
