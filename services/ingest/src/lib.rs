@@ -35,6 +35,7 @@ mod options;
 mod run;
 mod scan;
 mod stage;
+pub mod stats;
 mod target;
 mod writer;
 

@@ -5,10 +5,10 @@
 use crate::options::IngestOptions;
 use crate::scan::{first_raw_value, Scanner};
 use crate::stage::{dead_error, IngestParams, IngestPartial, IngestStage};
+use crate::stats::FineHistogram;
 use crate::target::IngestTarget;
 use crate::writer::SlabWriter;
 use crate::{IngestError, Result};
-use neuvolex_bricks::stats::FineHistogram;
 use neuvolex_bricks::synth::ClassInfo;
 use neuvolex_bricks::{BrickError, BrickStore, Progress, StoreInfo, StoreLocation};
 use neuvolex_formats::{RawSpec, VolumeMeta, VolumeSource};

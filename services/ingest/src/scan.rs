@@ -2,8 +2,9 @@
 //! split, the percentile pass of wide types, and `neuvolex info`'s scan of a file.
 
 use crate::options::NonFinitePolicy;
+use crate::stats::{FineHistogram, StatsAccumulator};
 use neuvolex_bricks::layout::grid_of;
-use neuvolex_bricks::stats::{FineHistogram, StatsAccumulator, VolumeStats};
+use neuvolex_bricks::stats::VolumeStats;
 use neuvolex_bricks::{BrickError, Progress, Result};
 use neuvolex_formats::meta::{VolumeMeta, VolumeSource};
 use serde::{Deserialize, Serialize};

@@ -4,9 +4,9 @@
 
 use crate::options::IngestOptions;
 use crate::scan::Scanner;
+use crate::stats::FineHistogram;
 use crate::writer::SlabWriter;
 use crate::{IngestError, Result, STAGE};
-use neuvolex_bricks::stats::FineHistogram;
 use neuvolex_bricks::{open_volume, Backend, StoreLocation};
 use neuvolex_formats::{RawSpec, VolumeMeta, VolumeSource};
 use neuvolex_tasks::{Blobs, DynStage, RunReport, Stage, Task, TaskCtx, TaskError};

@@ -2,12 +2,12 @@
 
 use crate::options::IngestOptions;
 use crate::scan::{background_threshold, Scanner};
+use crate::stats::FineHistogram;
 use crate::target::IngestTarget;
 use neuvolex_bricks::layout::{
     build_array, grid_of, level_chunk, write_root_attrs, zyx, StoreInfo, STORE_VERSION,
 };
 use neuvolex_bricks::omezarr::{read_bytes, write_bytes, write_slab_chunks, ZArray};
-use neuvolex_bricks::stats::FineHistogram;
 use neuvolex_bricks::{Backend, BrickError, Result};
 use neuvolex_formats::dtype::DType;
 use neuvolex_formats::meta::VolumeMeta;
