@@ -42,6 +42,13 @@ if command -v npm >/dev/null 2>&1 && ! [ -d target/e2e/node_modules/playwright-c
   (cd target/e2e && { [ -f package.json ] || npm init -y >/dev/null 2>&1; } && npm install --silent --no-audit --no-fund playwright-core@1 >/dev/null 2>&1) ||
     missing "could not install playwright-core" "the browser test"
 fi
+# The world-geometry test reads the exports with an independent NIfTI reader: nibabel, in a
+# venv under target/ (installed once).
+if ! [ -x target/pyenv/bin/python ] || ! target/pyenv/bin/python -c 'import nibabel' >/dev/null 2>&1; then
+  echo "installing nibabel into target/pyenv for the world-geometry test"
+  { python3 -m venv target/pyenv && target/pyenv/bin/pip install -q nibabel >/dev/null 2>&1; } ||
+    missing "could not install nibabel" "the world-geometry test"
+fi
 # The object-store tests: s3s-fs (a real S3 server over a directory, from crates.io), built once
 # into target/tools; each S3 test starts its own on a loopback port. Without it they skip (and
 # fail under CI=true).

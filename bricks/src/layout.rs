@@ -70,6 +70,10 @@ pub struct StoreInfo {
     /// Label images under `labels/`.
     #[serde(default)]
     pub labels: Vec<String>,
+    /// The source's NIfTI sform and qform codes and qform (a NIfTI source only), so exports
+    /// carry the same frames.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub nifti: Option<neuvolex_formats::geometry::NiftiFrame>,
 }
 
 impl StoreInfo {

@@ -440,6 +440,7 @@ impl OmeZarrSource {
             affine: diag_affine(spacing, origin),
             dtype,
             scaling: None,
+            nifti: None,
         };
         meta.validate(path)?;
         Ok(OmeZarrSource {

@@ -228,6 +228,7 @@ impl BrickStore {
             affine: self.info.affine,
             dtype: self.info.dtype,
             scaling: None,
+            nifti: self.info.nifti.clone(),
         }
     }
 

@@ -112,6 +112,7 @@ impl Phantom {
             affine: diag_affine(spacing, [0.0; 3]),
             dtype,
             scaling: None,
+            nifti: None,
         };
         let name = PathBuf::from(match channel {
             PhantomChannel::Image => "<phantom>",

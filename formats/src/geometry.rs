@@ -74,6 +74,114 @@ pub fn origin(affine: &[[f64; 4]; 4]) -> [f64; 3] {
     [affine[0][3], affine[1][3], affine[2][3]]
 }
 
+/// The NIfTI-1 coordinate frames of a volume read from NIfTI, kept so that a file written for
+/// it (exported labels, probabilities) carries the same sform and qform codes and matrices.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct NiftiFrame {
+    /// `qform_code` (0 unknown, 1 scanner, 2 aligned, 3 Talairach, 4 MNI, 5 template).
+    pub qform_code: i16,
+    /// `sform_code` (same codes); the sform matrix is the volume's affine.
+    pub sform_code: i16,
+    /// The qform as an affine ([`quatern_affine`]), when `qform_code > 0`.
+    pub qform: Option<[[f64; 4]; 4]>,
+}
+
+/// The NIfTI quaternion form of an affine: `(b, c, d)`, the voxel spacing, `qfac` (±1) and the
+/// offset, such that [`quatern_affine`] gives the affine back when its columns are orthogonal
+/// (a rotation, a reflection of z and a scaling). Columns that are not orthogonal (shear) are
+/// orthogonalised first, as `nifti_mat44_to_quatern` does, so the qform is the nearest rigid
+/// frame; the sform keeps the exact affine.
+pub fn affine_quatern(a: &[[f64; 4]; 4]) -> ([f64; 3], [f64; 3], f64, [f64; 3]) {
+    let col = |j: usize| [a[0][j], a[1][j], a[2][j]];
+    let norm = |v: [f64; 3]| (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
+    let unit = |v: [f64; 3], fallback: [f64; 3]| {
+        let n = norm(v);
+        if n > 0.0 {
+            [v[0] / n, v[1] / n, v[2] / n]
+        } else {
+            fallback
+        }
+    };
+    let dot = |u: [f64; 3], v: [f64; 3]| u[0] * v[0] + u[1] * v[1] + u[2] * v[2];
+    let spacing = [norm(col(0)), norm(col(1)), norm(col(2))];
+    // Gram-Schmidt on x, then y, then z (exact for orthogonal columns).
+    let x = unit(col(0), [1.0, 0.0, 0.0]);
+    let y0 = col(1);
+    let y = unit(
+        [
+            y0[0] - dot(x, y0) * x[0],
+            y0[1] - dot(x, y0) * x[1],
+            y0[2] - dot(x, y0) * x[2],
+        ],
+        [0.0, 1.0, 0.0],
+    );
+    let z0 = col(2);
+    let (zx, zy) = (dot(x, z0), dot(y, z0));
+    let mut z = unit(
+        [
+            z0[0] - zx * x[0] - zy * y[0],
+            z0[1] - zx * x[1] - zy * y[1],
+            z0[2] - zx * x[2] - zy * y[2],
+        ],
+        [0.0, 0.0, 1.0],
+    );
+    // A left-handed frame is a reflection of z: qfac = -1.
+    let cross = [
+        x[1] * y[2] - x[2] * y[1],
+        x[2] * y[0] - x[0] * y[2],
+        x[0] * y[1] - x[1] * y[0],
+    ];
+    let qfac = if dot(cross, z) < 0.0 {
+        z = [-z[0], -z[1], -z[2]];
+        -1.0
+    } else {
+        1.0
+    };
+    // Rotation matrix (columns x, y, z) to a unit quaternion with a >= 0.
+    let r = [[x[0], y[0], z[0]], [x[1], y[1], z[1]], [x[2], y[2], z[2]]];
+    let trace = r[0][0] + r[1][1] + r[2][2];
+    let (qa, qb, qc, qd);
+    if trace > 0.0 {
+        let s = 0.5 / (trace + 1.0).sqrt();
+        qa = 0.25 / s;
+        qb = (r[2][1] - r[1][2]) * s;
+        qc = (r[0][2] - r[2][0]) * s;
+        qd = (r[1][0] - r[0][1]) * s;
+    } else if r[0][0] > r[1][1] && r[0][0] > r[2][2] {
+        let s = 2.0 * (1.0 + r[0][0] - r[1][1] - r[2][2]).sqrt();
+        qa = (r[2][1] - r[1][2]) / s;
+        qb = 0.25 * s;
+        qc = (r[0][1] + r[1][0]) / s;
+        qd = (r[0][2] + r[2][0]) / s;
+    } else if r[1][1] > r[2][2] {
+        let s = 2.0 * (1.0 + r[1][1] - r[0][0] - r[2][2]).sqrt();
+        qa = (r[0][2] - r[2][0]) / s;
+        qb = (r[0][1] + r[1][0]) / s;
+        qc = 0.25 * s;
+        qd = (r[1][2] + r[2][1]) / s;
+    } else {
+        let s = 2.0 * (1.0 + r[2][2] - r[0][0] - r[1][1]).sqrt();
+        qa = (r[1][0] - r[0][1]) / s;
+        qb = (r[0][2] + r[2][0]) / s;
+        qc = (r[1][2] + r[2][1]) / s;
+        qd = 0.25 * s;
+    }
+    let sign = if qa < 0.0 { -1.0 } else { 1.0 };
+    ([sign * qb, sign * qc, sign * qd], spacing, qfac, origin(a))
+}
+
+/// Per-axis signs that turn coordinates of an NRRD `space` into NIfTI's RAS+ world (+x toward
+/// the patient's right, +y anterior, +z superior): LPS (DICOM's) flips x and y. `None` for spaces
+/// without anatomical axes (`scanner-xyz`, `3D-right-handed`, ...), taken as they are.
+pub fn nrrd_space_to_ras(space: &str) -> Option<[f64; 3]> {
+    match space.trim().to_ascii_lowercase().as_str() {
+        "right-anterior-superior" | "ras" => Some([1.0, 1.0, 1.0]),
+        "left-anterior-superior" | "las" => Some([-1.0, 1.0, 1.0]),
+        "left-posterior-superior" | "lps" => Some([-1.0, -1.0, 1.0]),
+        _ => None,
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -91,6 +199,73 @@ mod tests {
         // b = c = 0, d = 1: a = 0, a rotation by pi about z.
         let a = quatern_affine([0.0, 0.0, 1.0], [2.0, 3.0, 4.0], 1.0, [0.0; 3]);
         assert_eq!([a[0][0], a[1][1], a[2][2]], [-2.0, -3.0, 4.0]);
+    }
+
+    fn close(a: &[[f64; 4]; 4], b: &[[f64; 4]; 4], tol: f64) -> bool {
+        (0..4).all(|i| (0..4).all(|j| (a[i][j] - b[i][j]).abs() <= tol))
+    }
+
+    #[test]
+    fn quaternions_round_trip_oblique_and_reflected_affines() {
+        // Rotations about each axis and an oblique one, with anisotropic spacing, an offset,
+        // and both handednesses.
+        let angles = [
+            (0.3, 0.0, 0.0),
+            (0.0, 2.5, 0.0),
+            (0.0, 0.0, -1.2),
+            (0.4, -0.7, 2.9),
+        ];
+        for &(ax, ay, az) in &angles {
+            for qfac in [1.0, -1.0] {
+                let (sx, cx, sy, cy, sz, cz) = (
+                    f64::sin(ax),
+                    f64::cos(ax),
+                    f64::sin(ay),
+                    f64::cos(ay),
+                    f64::sin(az),
+                    f64::cos(az),
+                );
+                let rx = [[1.0, 0.0, 0.0], [0.0, cx, -sx], [0.0, sx, cx]];
+                let ry = [[cy, 0.0, sy], [0.0, 1.0, 0.0], [-sy, 0.0, cy]];
+                let rz = [[cz, -sz, 0.0], [sz, cz, 0.0], [0.0, 0.0, 1.0]];
+                let mul = |a: [[f64; 3]; 3], b: [[f64; 3]; 3]| {
+                    let mut m = [[0.0; 3]; 3];
+                    for i in 0..3 {
+                        for j in 0..3 {
+                            m[i][j] = (0..3).map(|k| a[i][k] * b[k][j]).sum();
+                        }
+                    }
+                    m
+                };
+                let r = mul(rz, mul(ry, rx));
+                let sp = [0.7, 1.3, 3.0];
+                let mut a = [[0.0; 4]; 4];
+                for i in 0..3 {
+                    for j in 0..3 {
+                        a[i][j] = r[i][j] * sp[j] * if j == 2 { qfac } else { 1.0 };
+                    }
+                }
+                a[0][3] = -178.0;
+                a[1][3] = 11.3;
+                a[2][3] = 94.3;
+                a[3][3] = 1.0;
+                let (q, s, f, o) = affine_quatern(&a);
+                assert_eq!(f, qfac);
+                assert!((s[0] - 0.7).abs() < 1e-12 && (s[2] - 3.0).abs() < 1e-12);
+                let back = quatern_affine(q, s, f, o);
+                assert!(close(&a, &back, 1e-9), "{a:?} vs {back:?}");
+            }
+        }
+    }
+
+    #[test]
+    fn nrrd_spaces_map_to_ras() {
+        assert_eq!(
+            nrrd_space_to_ras("left-posterior-superior"),
+            Some([-1.0, -1.0, 1.0])
+        );
+        assert_eq!(nrrd_space_to_ras("RAS"), Some([1.0, 1.0, 1.0]));
+        assert_eq!(nrrd_space_to_ras("scanner-xyz"), None);
     }
 
     #[test]

@@ -23,6 +23,10 @@ pub struct VolumeMeta {
     pub dtype: DType,
     /// Linear intensity scaling `(slope, intercept)` applied on read (NIfTI `scl_*`); identity if `None`.
     pub scaling: Option<(f64, f64)>,
+    /// The NIfTI sform and qform codes (and qform) of a volume read from NIfTI, so that files
+    /// written for it carry the same frames; `None` for other sources.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub nifti: Option<crate::geometry::NiftiFrame>,
 }
 
 impl VolumeMeta {
@@ -34,6 +38,7 @@ impl VolumeMeta {
             affine: crate::geometry::diag_affine([1.0; 3], [0.0; 3]),
             dtype,
             scaling: None,
+            nifti: None,
         }
     }
 

@@ -184,6 +184,14 @@ pub fn parse_header(path: &Path, b: &[u8]) -> Result<(VolumeMeta, Endian, u64)> 
     };
     let qform = h.i16(252);
     let sform = h.i16(254);
+    let qform_affine = (qform > 0).then(|| {
+        crate::geometry::quatern_affine(
+            [h.f32(256), h.f32(260), h.f32(264)],
+            spacing,
+            qfac,
+            [h.f32(268), h.f32(272), h.f32(276)],
+        )
+    });
     let affine = if sform > 0 {
         let mut a = [[0.0; 4]; 4];
         for (r, row) in a.iter_mut().enumerate().take(3) {
@@ -193,22 +201,23 @@ pub fn parse_header(path: &Path, b: &[u8]) -> Result<(VolumeMeta, Endian, u64)> 
         }
         a[3] = [0.0, 0.0, 0.0, 1.0];
         a
-    } else if qform > 0 {
-        crate::geometry::quatern_affine(
-            [h.f32(256), h.f32(260), h.f32(264)],
-            spacing,
-            qfac,
-            [h.f32(268), h.f32(272), h.f32(276)],
-        )
+    } else if let Some(q) = qform_affine {
+        q
     } else {
         crate::geometry::diag_affine(spacing, [0.0; 3])
     };
+    let nifti = Some(crate::geometry::NiftiFrame {
+        qform_code: qform,
+        sform_code: sform,
+        qform: qform_affine,
+    });
     let meta = VolumeMeta {
         dims,
         spacing,
         affine,
         dtype,
         scaling,
+        nifti,
     };
     meta.validate(path)?;
     Ok((
@@ -254,7 +263,10 @@ pub fn open(path: &Path) -> Result<FileVolume> {
     Ok(FileVolume::new(path, meta, endian, stream))
 }
 
-/// Builds a little-endian NIfTI-1 header for `meta` (sform and qform both set from the affine).
+/// Builds a little-endian NIfTI-1 header for `meta`. The sform is the affine. A volume read
+/// from NIfTI keeps its source's sform and qform codes and its qform ([`VolumeMeta::nifti`]);
+/// any other gets both codes 2 (aligned) with the qform of the affine
+/// ([`crate::geometry::affine_quatern`]), so readers that prefer either frame agree.
 pub fn build_header(meta: &VolumeMeta) -> Vec<u8> {
     let mut b = vec![0u8; 352];
     let put_i16 = |b: &mut [u8], o: usize, v: i16| b[o..o + 2].copy_from_slice(&v.to_le_bytes());
@@ -271,7 +283,12 @@ pub fn build_header(meta: &VolumeMeta) -> Vec<u8> {
     let (code, bitpix) = dtype_to_code(meta.dtype);
     put_i16(&mut b, 70, code);
     put_i16(&mut b, 72, bitpix);
-    put_f32(&mut b, 76, 1.0);
+    let (qform_code, sform_code, qform) = match &meta.nifti {
+        Some(f) => (f.qform_code, f.sform_code, f.qform),
+        None => (2, 2, Some(meta.affine)),
+    };
+    let (quatern, _, qfac, offset) = crate::geometry::affine_quatern(&qform.unwrap_or(meta.affine));
+    put_f32(&mut b, 76, qfac);
     for i in 0..3 {
         put_f32(&mut b, 80 + 4 * i, meta.spacing[i]);
     }
@@ -280,7 +297,14 @@ pub fn build_header(meta: &VolumeMeta) -> Vec<u8> {
     put_f32(&mut b, 112, slope);
     put_f32(&mut b, 116, inter);
     b[123] = 10; // xyzt_units: mm + s
-    put_i16(&mut b, 254, 2); // sform_code: aligned
+    put_i16(&mut b, 252, qform_code);
+    put_i16(&mut b, 254, sform_code);
+    if qform.is_some() {
+        for i in 0..3 {
+            put_f32(&mut b, 256 + 4 * i, quatern[i]);
+            put_f32(&mut b, 268 + 4 * i, offset[i]);
+        }
+    }
     for r in 0..3 {
         for c in 0..4 {
             put_f32(&mut b, 280 + 16 * r + 4 * c, meta.affine[r][c]);
@@ -360,9 +384,50 @@ mod tests {
         meta.scaling = Some((2.0, -1024.0));
         let h = build_header(&meta);
         let (m, e, off) = parse_header(Path::new("x.nii"), &h).unwrap();
-        assert_eq!(m, meta);
+        // A volume without NIfTI frames is written with both codes 2 and the affine as both.
+        let frame = m.nifti.clone().unwrap();
+        assert_eq!((frame.qform_code, frame.sform_code), (2, 2));
+        assert_eq!(frame.qform, Some(meta.affine));
+        assert_eq!(VolumeMeta { nifti: None, ..m }, meta);
         assert_eq!(e, Endian::Little);
         assert_eq!(off, 352);
+    }
+
+    /// An oblique, reflected source with different sform and qform codes and frames: written
+    /// for it, a file carries the same codes and matrices (to f32 precision).
+    #[test]
+    fn source_frames_survive_a_write() {
+        use crate::geometry::{quatern_affine, NiftiFrame};
+        let spacing = [0.8, 1.1, 3.0];
+        let (s, c) = (0.3f64.sin(), 0.3f64.cos());
+        let mut sform = [[0.0; 4]; 4];
+        let rot = [[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]];
+        for i in 0..3 {
+            for j in 0..3 {
+                sform[i][j] = rot[i][j] * spacing[j] * if j == 2 { -1.0 } else { 1.0 };
+            }
+        }
+        sform[0][3] = -178.0;
+        sform[1][3] = 11.3;
+        sform[2][3] = 94.3;
+        sform[3][3] = 1.0;
+        let qform = quatern_affine([0.1, 0.0, 0.2], spacing, -1.0, [-170.0, 10.0, 90.0]);
+        let mut meta = VolumeMeta::new([9, 7, 5], DType::U8);
+        meta.spacing = spacing;
+        meta.affine = sform;
+        meta.nifti = Some(NiftiFrame {
+            qform_code: 1,
+            sform_code: 4,
+            qform: Some(qform),
+        });
+        let (m, _, _) = parse_header(Path::new("o.nii"), &build_header(&meta)).unwrap();
+        let f = m.nifti.unwrap();
+        assert_eq!((f.qform_code, f.sform_code), (1, 4));
+        let close = |a: &[[f64; 4]; 4], b: &[[f64; 4]; 4]| {
+            (0..4).all(|i| (0..4).all(|j| (a[i][j] - b[i][j]).abs() < 1e-4))
+        };
+        assert!(close(&m.affine, &sform), "{:?}", m.affine);
+        assert!(close(&f.qform.unwrap(), &qform), "{:?}", f.qform);
     }
 
     #[test]

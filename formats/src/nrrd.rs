@@ -182,12 +182,28 @@ pub fn open(path: &Path) -> Result<FileVolume> {
             }
         }
     }
+    // An anatomical `space` (LPS for most medical NRRDs) is turned into NIfTI's RAS+ world,
+    // so the volume lies where a NIfTI of it would: the rows of the affine flip.
+    let mut nifti = None;
+    if let Some(signs) = get("space").and_then(crate::geometry::nrrd_space_to_ras) {
+        for (row, sign) in affine.iter_mut().zip(signs) {
+            for v in row.iter_mut() {
+                *v *= sign;
+            }
+        }
+        nifti = Some(crate::geometry::NiftiFrame {
+            qform_code: 1,
+            sform_code: 1,
+            qform: Some(affine),
+        });
+    }
     let meta = VolumeMeta {
         dims,
         spacing,
         affine,
         dtype,
         scaling: None,
+        nifti,
     };
     meta.validate(path)?;
     let len = meta.voxels() * dtype.size() as u64;
@@ -332,5 +348,33 @@ pub fn write_nrrd(
             out.extend_from_slice(&data);
             std::fs::write(path, out).map_err(|e| FormatError::io(path, e))
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::meta::VolumeSource;
+
+    /// An LPS NRRD (as 3D Slicer writes them) lies in NIfTI's RAS+ world with x and y flipped.
+    #[test]
+    fn lps_space_becomes_ras() {
+        let d = tempfile::tempdir().unwrap();
+        let p = d.path().join("v.nhdr");
+        std::fs::write(d.path().join("v.raw"), [0u8; 24]).unwrap();
+        std::fs::write(
+            &p,
+            "NRRD0004\ntype: uchar\ndimension: 3\nspace: left-posterior-superior\nsizes: 2 3 4\n\
+             space directions: (0.5,0,0) (0,0.7,0) (0,0,2.5)\nspace origin: (10,-20,30)\n\
+             encoding: raw\ndata file: v.raw\n",
+        )
+        .unwrap();
+        let v = open(&p).unwrap();
+        let a = v.meta().affine;
+        assert_eq!([a[0][0], a[1][1], a[2][2]], [-0.5, -0.7, 2.5]);
+        assert_eq!(crate::geometry::origin(&a), [-10.0, 20.0, 30.0]);
+        assert_eq!(v.meta().spacing, [0.5, 0.7, 2.5]);
+        let f = v.meta().nifti.clone().unwrap();
+        assert_eq!((f.qform_code, f.sform_code), (1, 1));
     }
 }

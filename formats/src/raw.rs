@@ -83,6 +83,7 @@ pub fn open(path: &Path, spec: &RawSpec) -> Result<FileVolume> {
         affine: diag_affine(spec.spacing, [0.0; 3]),
         dtype: spec.dtype,
         scaling: None,
+        nifti: None,
     };
     meta.validate(path)?;
     let len = meta.voxels() * spec.dtype.size() as u64;

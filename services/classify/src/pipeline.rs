@@ -434,6 +434,7 @@ fn label_volume(store: &BrickStore, labels: &[u16]) -> MemVolume {
     let meta = store.meta();
     m.meta.spacing = meta.spacing;
     m.meta.affine = meta.affine;
+    m.meta.nifti = meta.nifti;
     m.name = PathBuf::from("<classified>");
     m
 }

@@ -332,6 +332,7 @@ impl SlabWriter {
             stats,
             background,
             labels: vec![],
+            nifti: meta.nifti.clone(),
         };
         if target.tmp.is_none() {
             if let Some(l) = &target.lock {

@@ -1015,11 +1015,12 @@ fn class_voxels(s: &Session, class: u32) -> ApiResult<Vec<u8>> {
     per_voxel(s, |_, px| px[k])
 }
 
-/// A u8 volume on the session's grid.
+/// A u8 volume on the session's grid, in the source's world geometry (spacing, affine and,
+/// for a NIfTI source, its sform and qform codes), so exports overlay the scan.
 fn u8_volume(s: &Session, voxels: Vec<u8>, name: &str) -> neuvolex_formats::MemVolume {
-    let mut meta =
-        neuvolex_formats::VolumeMeta::new(s.store.info().dims, neuvolex_formats::DType::U8);
-    meta.spacing = s.store.info().spacing;
+    let mut meta = s.store.meta();
+    meta.dtype = neuvolex_formats::DType::U8;
+    meta.scaling = None;
     neuvolex_formats::MemVolume {
         meta,
         bytes: voxels,

@@ -858,3 +858,157 @@ async fn the_suggested_slice_and_the_prior_toggle() {
     let r = test::call_service(&app, get("/api/sessions/nope/suggest".into())).await;
     assert_eq!(r.status(), 404);
 }
+
+/// nibabel's Python (`deploy/test.sh` installs it into `target/pyenv`), or `None` with a
+/// visible skip (a failure under `CI=true`).
+fn nibabel_python() -> Option<std::path::PathBuf> {
+    let py = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../target/pyenv/bin/python");
+    let ok = std::process::Command::new(&py)
+        .args(["-c", "import nibabel"])
+        .output()
+        .is_ok_and(|o| o.status.success());
+    if ok {
+        return Some(py);
+    }
+    let why = "nibabel is not installed in target/pyenv (deploy/test.sh installs it)";
+    assert!(std::env::var("CI").as_deref() != Ok("true"), "{why}");
+    eprintln!("SKIP: {why}");
+    None
+}
+
+/// The session's exports lie on their source in world space, as an independent reader
+/// (nibabel) sees them: a NIfTI source written by nibabel with an oblique, reflected affine,
+/// anisotropic spacing, a non-zero origin and different sform and qform codes, and an NRRD
+/// source in LPS space, oblique (rotated about x), with an origin. For each, the exported labels, probabilities and
+/// scribbles have the source's grid, and their sform and qform (codes and matrices) equal the
+/// source's (NIfTI) or the RAS+ equivalent of the NRRD's space directions and origin.
+#[actix_web::test]
+async fn exports_lie_on_the_source_in_world_space() {
+    let Some(py) = nibabel_python() else {
+        return;
+    };
+    let (d, cfg) = data();
+    let root = cfg.data_root.clone();
+    let dims = [48usize, 48, 42];
+    // The phantom's image as plain NIfTI, then re-saved by nibabel with the oblique geometry.
+    let plain = d.path().join("plain.nii");
+    neuvolex_formats::nifti::write_nifti(
+        &plain,
+        &mut neuvolex_bricks::synth::Phantom::new(
+            neuvolex_bricks::synth::PhantomParams::with_size(48, 0),
+            neuvolex_bricks::synth::PhantomChannel::Image,
+        ),
+        16,
+    )
+    .unwrap();
+    let nii = root.join("oblique.nii.gz");
+    let make = format!(
+        r#"
+import nibabel as nib, numpy as np
+img = nib.load({plain:?})
+t = 0.3
+rot = np.array([[np.cos(t), -np.sin(t), 0], [np.sin(t), np.cos(t), 0], [0, 0, 1]])
+a = np.eye(4)
+a[:3, :3] = rot @ np.diag([0.8, 1.1, -3.0])
+a[:3, 3] = [-178.0, 11.3, 94.3]
+q = np.eye(4)
+q[:3, :3] = np.diag([0.8, 1.1, 3.0])
+q[:3, 3] = [-170.0, 10.0, 90.0]
+out = nib.Nifti1Image(np.asanyarray(img.dataobj), None)
+out.set_sform(a, code=1)
+out.set_qform(q, code=2)
+nib.save(out, {nii:?})
+"#,
+        plain = plain.to_str().unwrap(),
+        nii = nii.to_str().unwrap()
+    );
+    let r = std::process::Command::new(&py)
+        .args(["-c", &make])
+        .output()
+        .unwrap();
+    assert!(r.status.success(), "{}", String::from_utf8_lossy(&r.stderr));
+    // The same voxels as an LPS NRRD with its own directions and origin.
+    let raw = std::fs::read(&plain).unwrap()[352..].to_vec();
+    std::fs::write(root.join("lps.raw"), &raw).unwrap();
+    std::fs::write(
+        root.join("lps.nhdr"),
+        format!(
+            "NRRD0004\ntype: short\ndimension: 3\nspace: left-posterior-superior\nsizes: {} {} {}\n\
+             space directions: (0.7,0,0) (0,0.88205992,0.1788024) (0,-0.49667333,2.45016644)\n\
+             space origin: (12.5,-30,40)\n\
+             endian: little\nencoding: raw\ndata file: lps.raw\n",
+            dims[0], dims[1], dims[2]
+        ),
+    )
+    .unwrap();
+    let app = app!(cfg);
+    let out = tempfile::tempdir().unwrap();
+    for volume in ["oblique.nii.gz", "lps.nhdr"] {
+        let req = test::TestRequest::post()
+            .uri("/api/sessions")
+            .set_json(json!({ "volume": volume }))
+            .to_request();
+        let s: Value = test::call_and_read_body_json(&app, req).await;
+        let id = s["id"]
+            .as_str()
+            .unwrap_or_else(|| panic!("{s}"))
+            .to_string();
+        assert_eq!(s["dims"], json!(dims), "{s}");
+        let g = put_strokes(&app, &id, 0).await;
+        wait_done(&app, &id, g).await;
+        for (uri, file) in [
+            ("export/labels.nii.gz", "labels"),
+            ("export/probability/1.nii.gz", "p1"),
+            ("export/scribbles.nii.gz", "scribbles"),
+        ] {
+            let r = test::call_service(
+                &app,
+                test::TestRequest::get()
+                    .uri(&format!("/api/sessions/{id}/{uri}"))
+                    .to_request(),
+            )
+            .await;
+            assert_eq!(r.status(), 200, "{volume} {uri}");
+            let name = format!("{}_{file}.nii.gz", volume.split('.').next().unwrap());
+            std::fs::write(out.path().join(name), test::read_body(r).await).unwrap();
+        }
+    }
+    // nibabel compares: the NIfTI exports' frames with the source's; the NRRD exports' with
+    // the RAS+ affine computed here from the NRRD header (x and y of LPS flipped).
+    let check = format!(
+        r#"
+import nibabel as nib, numpy as np, glob, os
+src = nib.load({nii:?})
+lps = np.eye(4)
+lps[:3, :3] = np.array([[0.7, 0, 0], [0, 0.88205992, 0.1788024], [0, -0.49667333, 2.45016644]]).T
+lps[:3, 3] = [12.5, -30, 40]
+ras = np.diag([-1.0, -1.0, 1.0, 1.0]) @ lps
+files = sorted(glob.glob(os.path.join({out:?}, "*.nii.gz")))
+assert len(files) == 6, files
+for f in files:
+    img = nib.load(f)
+    assert img.shape == src.shape, (f, img.shape)
+    (s, sc), (q, qc) = img.get_sform(coded=True), img.get_qform(coded=True)
+    if os.path.basename(f).startswith("oblique"):
+        (ws, wsc), (wq, wqc) = src.get_sform(coded=True), src.get_qform(coded=True)
+    else:
+        ws, wsc, wq, wqc = ras, 1, ras, 1
+    assert (int(sc), int(qc)) == (int(wsc), int(wqc)), (f, sc, qc, wsc, wqc)
+    assert np.allclose(s, ws, atol=1e-4), (f, s, ws)
+    assert np.allclose(q, wq, atol=1e-4), (f, q, wq)
+print("ok", len(files))
+"#,
+        nii = nii.to_str().unwrap(),
+        out = out.path().to_str().unwrap()
+    );
+    let r = std::process::Command::new(&py)
+        .args(["-c", &check])
+        .output()
+        .unwrap();
+    assert!(
+        r.status.success(),
+        "nibabel: {}{}",
+        String::from_utf8_lossy(&r.stdout),
+        String::from_utf8_lossy(&r.stderr)
+    );
+}
