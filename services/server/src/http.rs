@@ -921,27 +921,68 @@ async fn events(st: web::Data<AppState>, q: web::Query<EventsQuery>) -> HttpResp
         .streaming(stream)
 }
 
+/// The share of each class among the voxels classified so far, counted on the labels the
+/// overlays and the label export show: each voxel's label ([`crate::assist::label_of`]) with
+/// the spatial prior's changes when it is on. Unlabelled voxels (the background, or no class
+/// reaching 0.5) count as the background, or as id 0 ("unlabelled") when no background was
+/// scribbled.
 async fn fractions(st: web::Data<AppState>, id: web::Path<String>) -> ApiResult<HttpResponse> {
     let s = st.session(&id)?;
-    let p = s.probs.read().unwrap_or_else(|p| p.into_inner());
-    let c = p.ids.len();
-    let mut counts = vec![0u64; c];
-    let mut total = 0u64;
-    for v in p.bricks.values() {
-        for px in v.chunks_exact(c.max(1)) {
-            if let Some((k, _)) = px.iter().enumerate().max_by_key(|(_, &v)| v) {
-                counts[k] += 1;
+    let body = blocking(move || {
+        let p = s.probs.read().unwrap_or_else(|p| p.into_inner());
+        let prior = crate::assist::active_prior(&s, &p);
+        let c = p.ids.len().max(1);
+        let slot = |label: u32| {
+            let id = if label == 0 {
+                crate::session::BACKGROUND
+            } else {
+                label
+            };
+            p.ids.iter().position(|&i| i == id)
+        };
+        let mut counts = vec![0u64; p.ids.len()];
+        let mut unlabelled = 0u64;
+        let mut total = 0u64;
+        let mut labels = Vec::new();
+        for (idx, v) in &p.bricks {
+            labels.clear();
+            labels.extend(
+                v.chunks_exact(c)
+                    .map(|px| crate::assist::label_of(&p.ids, px)),
+            );
+            if let Some(changed) = prior.as_ref().and_then(|pr| pr.changed.get(idx)) {
+                for &(i, l) in changed.iter() {
+                    if let Some(x) = labels.get_mut(i as usize) {
+                        *x = l as u32;
+                    }
+                }
             }
-            total += 1;
+            for &l in &labels {
+                match slot(l) {
+                    Some(k) => counts[k] += 1,
+                    None => unlabelled += 1,
+                }
+                total += 1;
+            }
         }
-    }
-    let out: Vec<serde_json::Value> = p
-        .ids
-        .iter()
-        .zip(&counts)
-        .map(|(id, n)| serde_json::json!({"id": id, "fraction": *n as f64 / total.max(1) as f64}))
-        .collect();
-    Ok(HttpResponse::Ok().json(serde_json::json!({"classified_voxels": total, "classes": out})))
+        let share = |n: u64| n as f64 / total.max(1) as f64;
+        let mut classes: Vec<serde_json::Value> = p
+            .ids
+            .iter()
+            .zip(&counts)
+            .map(|(id, n)| serde_json::json!({"id": id, "fraction": share(*n)}))
+            .collect();
+        if unlabelled > 0 {
+            classes.push(serde_json::json!({"id": 0, "fraction": share(unlabelled)}));
+        }
+        Ok(serde_json::json!({
+            "classified_voxels": total,
+            "prior": prior.is_some(),
+            "classes": classes,
+        }))
+    })
+    .await?;
+    Ok(HttpResponse::Ok().json(body))
 }
 
 /// Every brick's probabilities, or a conflict while classification has not reached them all.

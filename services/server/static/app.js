@@ -125,7 +125,7 @@ async function fractions() {
   if (!S.id) return;
   const f = await api("GET", `/api/sessions/${S.id}/fractions`);
   $("fractions").innerHTML = f.classes.map((c) => {
-    const k = S.info.classes.find((x) => x.id === c.id); const name = c.id === 255 ? "background" : k ? k.name : c.id;
+    const k = S.info.classes.find((x) => x.id === c.id); const name = c.id === 255 ? "background" : c.id === 0 ? "unlabelled" : k ? k.name : c.id;
     return `<tr><td>${name}</td><td>${(100 * c.fraction).toFixed(2)}%</td></tr>`;
   }).join("");
 }

@@ -761,6 +761,18 @@ async fn the_gpu_backend_trains_and_renders() {
     assert_eq!(s["trained"], true, "{s}");
 }
 
+/// Voxels of a class (not the background, not unlabelled) by `/fractions`.
+fn labelled_by_fractions(f: &Value) -> usize {
+    let total = f["classified_voxels"].as_f64().unwrap();
+    f["classes"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|c| c["id"] != 255 && c["id"] != 0)
+        .map(|c| (c["fraction"].as_f64().unwrap() * total).round() as usize)
+        .sum()
+}
+
 /// Non-zero voxels of an exported label volume.
 fn labelled_voxels(gz: &[u8], dir: &std::path::Path, name: &str) -> usize {
     let p = dir.join(name);
@@ -820,6 +832,8 @@ async fn the_suggested_slice_and_the_prior_toggle() {
         .await,
     )
     .await;
+    let f_on: Value =
+        test::call_and_read_body_json(&app, get(format!("/api/sessions/{id}/fractions"))).await;
     let req = test::TestRequest::put()
         .uri(&format!("/api/sessions/{id}/prior"))
         .set_json(json!({"enabled": false}))
@@ -836,6 +850,14 @@ async fn the_suggested_slice_and_the_prior_toggle() {
     .await;
     let n_on = labelled_voxels(&on, d.path(), "on.nii.gz");
     let n_off = labelled_voxels(&all, d.path(), "off.nii.gz");
+    // The class fractions count the same labels as the export, prior on and off.
+    assert_eq!(labelled_by_fractions(&f_on), n_on, "{f_on}");
+    assert_eq!(f_on["prior"], true, "{f_on}");
+    let f_off: Value =
+        test::call_and_read_body_json(&app, get(format!("/api/sessions/{id}/fractions"))).await;
+    assert_eq!(f_off["prior"], false, "{f_off}");
+    assert_eq!(labelled_by_fractions(&f_off), n_off, "{f_off}");
+    assert_ne!(n_on, n_off, "the prior changed nothing to compare");
     assert_eq!(
         n_off as i64 - n_on as i64,
         p["voxels_cleared"].as_i64().unwrap() - p["voxels_grown"].as_i64().unwrap(),
