@@ -15,7 +15,7 @@ use neuvolex_bricks::synth::ClassInfo;
 use neuvolex_bricks::{Brick, BrickStore, VectorArray, VectorEncoding};
 use neuvolex_features::InrModel;
 use neuvolex_formats::meta::MemVolume;
-use neuvolex_formats::DType;
+use neuvolex_formats::{DType, VolumeMeta};
 use neuvolex_tasks::{
     codec, execute_ordered, fingerprint, Blob, Blobs, DeadTask, DynStage, Executor, RunEvent,
     RunReport, Stage, Task, TaskCtx, TaskError,
@@ -431,10 +431,12 @@ fn label_volume(store: &BrickStore, labels: &[u16]) -> MemVolume {
     let v: Vec<f64> = labels.iter().map(|&l| l as f64).collect();
     let dtype = if max <= 255 { DType::U8 } else { DType::U16 };
     let mut m = MemVolume::from_f64(store.info().dims, dtype, &v);
-    let meta = store.meta();
-    m.meta.spacing = meta.spacing;
-    m.meta.affine = meta.affine;
-    m.meta.nifti = meta.nifti;
+    // The store's whole geometry (spacing, affine, NIfTI frames), in the labels' type.
+    m.meta = VolumeMeta {
+        dtype,
+        scaling: None,
+        ..store.meta()
+    };
     m.name = PathBuf::from("<classified>");
     m
 }

@@ -38,12 +38,13 @@ trait Rounds<E> {
         writer: &SlabWriter,
         range: (f64, f64),
     ) -> Result<FineHistogram, E>;
+    /// Reports the progress of the label image written after the rounds (nothing by default).
+    fn progress(&mut self, _: Progress) {}
 }
 
 /// The coordinator: checks, prepares the target, runs the rounds, writes the per-brick ranges
 /// and the root metadata, adds the label image, and publishes (or leaves the previous store
 /// untouched on any error).
-#[allow(clippy::too_many_arguments)]
 fn run<E: From<BrickError>>(
     meta: &VolumeMeta,
     source_name: &Path,
@@ -51,7 +52,6 @@ fn run<E: From<BrickError>>(
     out: &StoreLocation,
     opts: &IngestOptions,
     rounds: &mut dyn Rounds<E>,
-    label_progress: &mut dyn FnMut(Progress),
 ) -> Result<StoreInfo, E> {
     meta.validate(source_name).map_err(BrickError::from)?;
     if let Some(l) = &labels {
@@ -72,7 +72,7 @@ fn run<E: From<BrickError>>(
         match labels {
             Some(l) => {
                 let mut store = BrickStore::open(target.location().clone())?;
-                store.add_labels(l.name, l.source, l.classes, label_progress)?;
+                store.add_labels(l.name, l.source, l.classes, &mut |p| rounds.progress(p))?;
                 Ok(store.info().clone())
             }
             None => Ok(info),
@@ -137,6 +137,10 @@ impl Rounds<BrickError> for Stream<'_> {
         }
         Ok(fine)
     }
+
+    fn progress(&mut self, p: Progress) {
+        (self.progress)(p)
+    }
 }
 
 /// Streams `source` into a new brick store at `out` (a path or an `s3://` URL). Peak memory
@@ -169,21 +173,13 @@ pub fn ingest_with_labels(
 ) -> neuvolex_bricks::Result<StoreInfo> {
     let meta = source.meta().clone();
     let name = source.path().to_path_buf();
-    // The label pass reports through the same callback once the image rounds are done.
-    let progress = std::cell::RefCell::new(progress);
-    let mut label_progress = |p: Progress| (*progress.borrow_mut())(p);
-    let mut stream_progress = |p: Progress| (*progress.borrow_mut())(p);
     run(
         &meta,
         &name,
         labels,
         &out.into(),
         opts,
-        &mut Stream {
-            source,
-            progress: &mut stream_progress,
-        },
-        &mut label_progress,
+        &mut Stream { source, progress },
     )
 }
 
@@ -296,6 +292,6 @@ pub fn ingest_on<E: Executor + ?Sized>(
         report: RunReport::default(),
         progress,
     };
-    let info = run(&meta, source, labels, out, opts, &mut rounds, &mut |_| {})?;
+    let info = run(&meta, source, labels, out, opts, &mut rounds)?;
     Ok((info, rounds.report))
 }
