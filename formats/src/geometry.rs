@@ -182,9 +182,101 @@ pub fn nrrd_space_to_ras(space: &str) -> Option<[f64; 3]> {
     }
 }
 
+/// The anatomical direction each voxel axis (x, y, z) increases toward in the RAS+ world of
+/// `affine`: one of `R`/`L`, `A`/`P`, `S`/`I` per axis, each world axis used once. An oblique
+/// axis takes the world axis it is closest to, choosing the assignment that is closest over
+/// all three (so two axes 45° apart never land on one world axis).
+pub fn axis_directions(affine: &[[f64; 4]; 4]) -> [char; 3] {
+    const PERMS: [[usize; 3]; 6] = [
+        [0, 1, 2],
+        [0, 2, 1],
+        [1, 0, 2],
+        [1, 2, 0],
+        [2, 0, 1],
+        [2, 1, 0],
+    ];
+    // Cosines of each voxel axis (a column) with each world axis (a row).
+    let cos = |world: usize, axis: usize| {
+        let n = (0..3).map(|r| affine[r][axis].powi(2)).sum::<f64>().sqrt();
+        if n > 0.0 && n.is_finite() {
+            affine[world][axis] / n
+        } else {
+            (world == axis) as u8 as f64
+        }
+    };
+    let best = PERMS
+        .iter()
+        .max_by(|a, b| {
+            let score = |p: &[usize; 3]| (0..3).map(|ax| cos(p[ax], ax).abs()).sum::<f64>();
+            score(a).total_cmp(&score(b))
+        })
+        .copied()
+        .unwrap_or([0, 1, 2]);
+    std::array::from_fn(|ax| {
+        let w = best[ax];
+        let positive = cos(w, ax) >= 0.0;
+        match (w, positive) {
+            (0, true) => 'R',
+            (0, false) => 'L',
+            (1, true) => 'A',
+            (1, false) => 'P',
+            (2, true) => 'S',
+            _ => 'I',
+        }
+    })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn axis_directions_follow_the_affine() {
+        assert_eq!(
+            axis_directions(&diag_affine([1.0; 3], [0.0; 3])),
+            ['R', 'A', 'S']
+        );
+        // DICOM's LPS grid as NIfTI's RAS+ world: x toward the left, y posterior.
+        assert_eq!(
+            axis_directions(&diag_affine([-0.7, -0.7, 3.0], [0.0; 3])),
+            ['L', 'P', 'S']
+        );
+        // A sagittal acquisition: x runs posterior → anterior, y inferior → superior, z left.
+        let sag = [
+            [0.0, 0.0, -1.0, 0.0],
+            [1.0, 0.0, 0.0, 0.0],
+            [0.0, 1.0, 0.0, 0.0],
+            [0.0, 0.0, 0.0, 1.0],
+        ];
+        assert_eq!(axis_directions(&sag), ['A', 'S', 'L']);
+        // 30° oblique about z stays the nearest axes; exactly 45° still gives a permutation.
+        let (c, s) = (30f64.to_radians().cos(), 30f64.to_radians().sin());
+        let ob = [
+            [c, -s, 0.0, 0.0],
+            [s, c, 0.0, 0.0],
+            [0.0, 0.0, 1.0, 0.0],
+            [0.0, 0.0, 0.0, 1.0],
+        ];
+        assert_eq!(axis_directions(&ob), ['R', 'A', 'S']);
+        let h = std::f64::consts::FRAC_1_SQRT_2;
+        let d = axis_directions(&[
+            [h, -h, 0.0, 0.0],
+            [h, h, 0.0, 0.0],
+            [0.0, 0.0, 1.0, 0.0],
+            [0.0, 0.0, 0.0, 1.0],
+        ]);
+        let mut w: Vec<char> = d
+            .iter()
+            .map(|c| match c {
+                'L' => 'R',
+                'P' => 'A',
+                'I' => 'S',
+                o => *o,
+            })
+            .collect();
+        w.sort();
+        assert_eq!(w, vec!['A', 'R', 'S']);
+    }
 
     #[test]
     fn identity_quaternion_is_the_diagonal_affine() {

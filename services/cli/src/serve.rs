@@ -47,6 +47,10 @@ pub struct ServeArgs {
     /// Seconds a request may take before it is answered with 503 (event streams excepted).
     #[arg(long, default_value_t = 60.0)]
     request_timeout: f64,
+    /// Minutes a session may sit unused (no request naming it, no training) before it is
+    /// saved and closed, giving its share of the caches back; 0 keeps sessions open.
+    #[arg(long, default_value_t = 30.0)]
+    idle_minutes: f64,
     /// Port (0 picks a free one).
     #[arg(long, default_value_t = 8080)]
     port: u16,
@@ -150,6 +154,12 @@ pub fn run_serve(a: &ServeArgs) -> Result<()> {
     cfg.max_sessions = a.max_sessions;
     cfg.max_trainings = a.max_trainings;
     cfg.request_timeout = Duration::from_secs_f64(a.request_timeout);
+    anyhow::ensure!(
+        a.idle_minutes.is_finite() && (0.0..=525_600.0).contains(&a.idle_minutes),
+        "--idle-minutes {} must be in [0, 525600]",
+        a.idle_minutes
+    );
+    cfg.idle_close = (a.idle_minutes > 0.0).then(|| Duration::from_secs_f64(a.idle_minutes * 60.0));
     let addrs: Vec<std::net::SocketAddr> =
         std::net::ToSocketAddrs::to_socket_addrs(&(a.host.as_str(), a.port))
             .with_context(|| format!("cannot resolve --host {}", a.host))?
@@ -179,6 +189,7 @@ pub fn run_serve(a: &ServeArgs) -> Result<()> {
         let state = AppState::new(cfg.clone());
         let engines = state.actors.compute().clone();
         let st = state.clone();
+        actix_web::rt::spawn(AppState::reap_idle(state.clone()));
         let server = actix_web::HttpServer::new(move || {
             actix_web::App::new()
                 .app_data(state.clone())

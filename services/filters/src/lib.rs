@@ -197,8 +197,128 @@ pub fn gaussian_kernel(sigma: f32) -> Vec<f32> {
     w.iter().map(|v| (v / sum) as f32).collect()
 }
 
-/// Convolves along x (contiguous rows), clamping at the ends of each row.
-fn conv_x(src: &[f32], p: [usize; 3], w: &[f32]) -> Vec<f32> {
+/// A box of a padded grid, `lo..hi` per axis: the voxels a step computes.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+struct Region {
+    lo: [usize; 3],
+    hi: [usize; 3],
+}
+
+impl Region {
+    /// The whole grid.
+    fn all(p: [usize; 3]) -> Region {
+        Region { lo: [0; 3], hi: p }
+    }
+
+    /// Grown by `r` along the axes in `axes`, within the grid `p`.
+    fn grow(self, r: usize, p: [usize; 3], axes: [bool; 3]) -> Region {
+        Region {
+            lo: std::array::from_fn(|k| {
+                if axes[k] {
+                    self.lo[k].saturating_sub(r)
+                } else {
+                    self.lo[k]
+                }
+            }),
+            hi: std::array::from_fn(|k| {
+                if axes[k] {
+                    (self.hi[k] + r).min(p[k])
+                } else {
+                    self.hi[k]
+                }
+            }),
+        }
+    }
+
+    /// Grown by `r` along every axis.
+    fn grow_all(self, r: usize, p: [usize; 3]) -> Region {
+        self.grow(r, p, [true; 3])
+    }
+}
+
+/// Convolves along x (contiguous rows) over `reg` (reading whole rows of `src`) into `dst`,
+/// clamping at the ends of each row; `dst` outside `reg` is left as it was.
+fn conv_x_into(src: &[f32], p: [usize; 3], w: &[f32], reg: Region, dst: &mut [f32]) {
+    let r = w.len() / 2;
+    let plane = p[0] * p[1];
+    dst.par_chunks_mut(plane)
+        .zip(src.par_chunks(plane))
+        .enumerate()
+        .filter(|(z, _)| (reg.lo[2]..reg.hi[2]).contains(z))
+        .for_each(|(_, (dp, sp))| {
+            let mut row = vec![0.0f32; p[0] + 2 * r];
+            let (x0, x1) = (reg.lo[0], reg.hi[0]);
+            for y in reg.lo[1]..reg.hi[1] {
+                let s = &sp[y * p[0]..(y + 1) * p[0]];
+                row[..r].fill(s[0]);
+                row[r..r + p[0]].copy_from_slice(s);
+                row[r + p[0]..].fill(s[p[0] - 1]);
+                // Tap by tap over the whole row (vectorised), each output the same sum as
+                // `sum` of the products in tap order: from -0.0, as `Iterator::sum` starts.
+                let d = &mut dp[y * p[0] + x0..y * p[0] + x1];
+                d.fill(-0.0);
+                for (t, &wt) in w.iter().enumerate() {
+                    let src = &row[x0 + t..x1 + t];
+                    d.iter_mut().zip(src).for_each(|(a, b)| *a += wt * b);
+                }
+            }
+        });
+}
+
+/// [`conv_x_into`] a new grid (0 outside `reg`).
+#[cfg(test)]
+fn conv_x(src: &[f32], p: [usize; 3], w: &[f32], reg: Region) -> Vec<f32> {
+    let mut dst = vec![0.0f32; src.len()];
+    conv_x_into(src, p, w, reg, &mut dst);
+    dst
+}
+
+/// Convolves along y (`axis` 1) or z (`axis` 2) over `reg` into `dst` as weighted sums of
+/// rows, clamping at the grid's ends; `dst` outside `reg` is left as it was. Reads `src` only
+/// within `reg` grown by the kernel's radius along `axis`.
+fn conv_lines_into(
+    src: &[f32],
+    p: [usize; 3],
+    axis: usize,
+    w: &[f32],
+    reg: Region,
+    dst: &mut [f32],
+) {
+    let r = w.len() as isize / 2;
+    let plane = p[0] * p[1];
+    let (x0, x1) = (reg.lo[0], reg.hi[0]);
+    dst.par_chunks_mut(plane)
+        .enumerate()
+        .filter(|(z, _)| (reg.lo[2]..reg.hi[2]).contains(z))
+        .for_each(|(z, dp)| {
+            for y in reg.lo[1]..reg.hi[1] {
+                let d = &mut dp[y * p[0] + x0..y * p[0] + x1];
+                d.fill(0.0);
+                let (c, n) = if axis == 1 { (y, p[1]) } else { (z, p[2]) };
+                for (t, &wt) in w.iter().enumerate() {
+                    let j = (c as isize + t as isize - r).clamp(0, n as isize - 1) as usize;
+                    let row = if axis == 1 {
+                        (z * p[1] + j) * p[0]
+                    } else {
+                        (j * p[1] + y) * p[0]
+                    };
+                    let s = &src[row + x0..row + x1];
+                    d.iter_mut().zip(s).for_each(|(a, b)| *a += wt * b);
+                }
+            }
+        });
+}
+
+/// [`conv_lines_into`] a new grid (0 outside `reg`).
+fn conv_lines(src: &[f32], p: [usize; 3], axis: usize, w: &[f32], reg: Region) -> Vec<f32> {
+    let mut dst = vec![0.0f32; src.len()];
+    conv_lines_into(src, p, axis, w, reg, &mut dst);
+    dst
+}
+
+/// The row pass as written first: one dot product per output, over the whole grid (the
+/// reference path of [`filter_bank_reference`]).
+fn conv_x_dot(src: &[f32], p: [usize; 3], w: &[f32]) -> Vec<f32> {
     let r = w.len() / 2;
     let mut dst = vec![0.0f32; src.len()];
     dst.par_chunks_mut(p[0] * p[1])
@@ -217,34 +337,46 @@ fn conv_x(src: &[f32], p: [usize; 3], w: &[f32]) -> Vec<f32> {
     dst
 }
 
-/// Convolves along y (`axis` 1) or z (`axis` 2) as weighted sums of whole rows or planes,
-/// clamping at the ends.
-fn conv_lines(src: &[f32], p: [usize; 3], axis: usize, w: &[f32]) -> Vec<f32> {
-    let (n, inner) = if axis == 1 {
-        (p[1], p[0])
-    } else {
-        (p[2], p[0] * p[1])
-    };
-    let r = w.len() as isize / 2;
-    let mut dst = vec![0.0f32; src.len()];
-    dst.par_chunks_mut(inner).enumerate().for_each(|(k, d)| {
-        let (o, i) = (k / n, (k % n) as isize);
-        let base = o * n * inner;
-        for (t, &wt) in w.iter().enumerate() {
-            let j = (i + t as isize - r).clamp(0, n as isize - 1) as usize;
-            let s = &src[base + j * inner..base + (j + 1) * inner];
-            d.iter_mut().zip(s).for_each(|(a, b)| *a += wt * b);
+/// Two grids of scratch space for [`Scratch::smooth`]: a filter bank allocates its grids once,
+/// not per pass (fresh multi-megabyte buffers cost page faults and TLB flushes).
+struct Scratch {
+    a: Vec<f32>,
+    b: Vec<f32>,
+}
+
+impl Scratch {
+    fn new(len: usize) -> Scratch {
+        Scratch {
+            a: vec![0.0; len],
+            b: vec![0.0; len],
         }
-    });
-    dst
+    }
+
+    /// Separable Gaussian smoothing of a `p`-sized grid, clamped at its edges, into `dst` for
+    /// the voxels of `out` only (each pass over just what the next one reads; `dst` elsewhere
+    /// is left as it was). A voxel's value does not depend on `out`: the same sums in the same
+    /// order.
+    fn smooth(&mut self, src: &[f32], p: [usize; 3], sigma: f32, out: Region, dst: &mut [f32]) {
+        let w = gaussian_kernel(sigma);
+        let r = w.len() / 2;
+        conv_x_into(src, p, &w, out.grow(r, p, [false, true, true]), &mut self.a);
+        conv_lines_into(
+            &self.a,
+            p,
+            1,
+            &w,
+            out.grow(r, p, [false, false, true]),
+            &mut self.b,
+        );
+        conv_lines_into(&self.b, p, 2, &w, out, dst);
+    }
 }
 
 /// Separable Gaussian smoothing of a `p`-sized grid, clamped at its edges.
 pub fn smooth(src: &[f32], p: [usize; 3], sigma: f32) -> Vec<f32> {
-    let w = gaussian_kernel(sigma);
-    let a = conv_x(src, p, &w);
-    let a = conv_lines(&a, p, 1, &w);
-    conv_lines(&a, p, 2, &w)
+    let mut dst = vec![0.0f32; src.len()];
+    Scratch::new(src.len()).smooth(src, p, sigma, Region::all(p), &mut dst);
+    dst
 }
 
 /// Eigenvalues of the symmetric matrix `(xx, yy, zz, xy, xz, yz)`, descending. Closed form
@@ -291,6 +423,21 @@ fn diff(s: &[f32], i: usize, c: usize, n: usize, stride: usize) -> f32 {
 
 /// The filter bank of one brick (normalised intensities `n` over the padded grid).
 fn filter_bank(b: &HaloBrick, n: &[f32]) -> Vec<f32> {
+    filter_bank_over(b, n, true)
+}
+
+/// The filter bank of `b` with every intermediate step over the whole padded grid: the
+/// straightforward algorithm, equal bit for bit to [`compute`]'s (which restricts each step to
+/// what the core reads), kept as the reference for tests and benchmarks.
+pub fn filter_bank_reference(b: &HaloBrick, norm: &Normaliser) -> Vec<f32> {
+    let n: Vec<f32> = b.data.iter().map(|&v| norm.apply(v)).collect();
+    filter_bank_over(b, &n, false)
+}
+
+/// [`filter_bank`], its intermediate steps computed only where the core reads them
+/// (`restrict`) or over the whole padded grid (the reference the restricted steps must equal
+/// bit for bit).
+fn filter_bank_over(b: &HaloBrick, n: &[f32], restrict: bool) -> Vec<f32> {
     let p = b.padded();
     let (sx, sy, sz) = (1, p[0], p[0] * p[1]);
     let core: usize = b.size.iter().product();
@@ -299,15 +446,49 @@ fn filter_bank(b: &HaloBrick, n: &[f32]) -> Vec<f32> {
     let h = b.halo;
     let coord = |i: usize| [i % p[0], (i / p[0]) % p[1], i / sz];
     let core_index = |x: usize, y: usize, z: usize| ((z + h) * p[1] + y + h) * p[0] + x + h;
+    // Each step computes only what the core's features read: the smoothed image one voxel
+    // around the core (second differences), the structure tensor's products a kernel radius
+    // around it, their gradients one more. A thin box (one slice) costs a thin slab, and a
+    // brick far less than its whole halo read; every value is the same sum as over the whole grid.
+    // The reference smooths every voxel of the grid with the per-output dot product.
+    let mut scratch = Scratch::new(if restrict { n.len() } else { 0 });
+    let mut smooth_in = |src: &[f32], sigma: f32, out: Region, dst: &mut [f32]| {
+        if restrict {
+            scratch.smooth(src, p, sigma, out, dst)
+        } else {
+            let w = gaussian_kernel(sigma);
+            let a = conv_x_dot(src, p, &w);
+            let a = conv_lines(&a, p, 1, &w, Region::all(p));
+            conv_lines_into(&a, p, 2, &w, Region::all(p), dst)
+        }
+    };
+    let core = if restrict {
+        Region {
+            lo: [h; 3],
+            hi: std::array::from_fn(|k| h + b.size[k]),
+        }
+    } else {
+        Region::all(p)
+    };
+    let grid = || vec![0.0f32; n.len()];
+    let (mut s, mut s_in, mut g) = (grid(), grid(), grid());
+    let mut prod: [Vec<f32>; 6] = std::array::from_fn(|_| grid());
+    let mut st: [Vec<f32>; 6] = std::array::from_fn(|_| grid());
     for (si, &sigma) in SIGMAS.iter().enumerate() {
-        let s = smooth(n, p, sigma);
-        let s_in = smooth(n, p, DOG_RATIO * sigma);
+        let rs = radius(sigma);
+        smooth_in(n, sigma, core.grow_all(1, p), &mut s);
+        smooth_in(n, DOG_RATIO * sigma, core, &mut s_in);
         // Structure tensor: gradient at the inner scale, products smoothed at the outer scale.
-        let g = smooth(n, p, 0.5 * sigma);
-        let mut prod: [Vec<f32>; 6] = std::array::from_fn(|_| vec![0.0f32; n.len()]);
+        let around = core.grow_all(rs, p);
+        smooth_in(n, 0.5 * sigma, around.grow_all(1, p), &mut g);
         {
             let [pxx, pyy, pzz, pxy, pxz, pyz] = &mut prod;
-            for i in 0..n.len() {
+            let inside = (around.lo[2]..around.hi[2]).flat_map(|z| {
+                (around.lo[1]..around.hi[1]).flat_map(move |y| {
+                    (around.lo[0]..around.hi[0]).map(move |x| (z * p[1] + y) * p[0] + x)
+                })
+            });
+            for i in inside {
                 let c = coord(i);
                 let gx = diff(&g, i, c[0], p[0], sx);
                 let gy = diff(&g, i, c[1], p[1], sy);
@@ -320,7 +501,10 @@ fn filter_bank(b: &HaloBrick, n: &[f32]) -> Vec<f32> {
                 pyz[i] = gy * gz;
             }
         }
-        let st: Vec<Vec<f32>> = prod.par_iter().map(|c| smooth(c, p, sigma)).collect();
+        for (c, t) in prod.iter().zip(st.iter_mut()) {
+            smooth_in(c, sigma, core, t);
+        }
+        let (s, s_in, st) = (&s, &s_in, &st);
         let base = si * PER_SIGMA;
         out.par_chunks_mut(b.size[0] * b.size[1] * ch)
             .enumerate()
@@ -461,6 +645,83 @@ mod tests {
                     }
                 }
             }
+        }
+    }
+
+    #[test]
+    fn the_row_pass_is_the_dot_product_in_tap_order_bit_for_bit() {
+        // Against the plain per-output dot product (`sum` of the products in tap order), on
+        // rows with signed zeros, tiny and huge values.
+        let p = [37, 3, 2];
+        let mut x = 99u64;
+        let src: Vec<f32> = (0..p.iter().product::<usize>())
+            .map(|i| {
+                x = x
+                    .wrapping_mul(6364136223846793005)
+                    .wrapping_add(1442695040888963407);
+                let u = (x >> 40) as f32 / (1u64 << 24) as f32 - 0.5;
+                match i % 7 {
+                    0 => -0.0,
+                    1 => 0.0,
+                    2 => u * 1e-30,
+                    3 => u * 1e20,
+                    _ => u,
+                }
+            })
+            .collect();
+        for sigma in [0.35, 1.0, 2.5, 5.0] {
+            let w = gaussian_kernel(sigma);
+            let r = w.len() / 2;
+            let got = conv_x(&src, p, &w, Region::all(p));
+            for (k, line) in src.chunks(p[0]).enumerate() {
+                let at = |i: isize| line[i.clamp(0, p[0] as isize - 1) as usize];
+                for i in 0..p[0] {
+                    let want: f32 = w
+                        .iter()
+                        .enumerate()
+                        .map(|(t, wt)| wt * at(i as isize + t as isize - r as isize))
+                        .sum();
+                    assert_eq!(
+                        got[k * p[0] + i].to_bits(),
+                        want.to_bits(),
+                        "sigma {sigma} row {k} x {i}"
+                    );
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn restricted_steps_give_the_whole_grid_values_bit_for_bit() {
+        let d = [40, 37, 45];
+        let mut v = volume(d);
+        // Some noise and a step, so every channel varies.
+        let mut x = 12345u64;
+        for (i, e) in v.iter_mut().enumerate() {
+            x = x
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            *e += ((x >> 40) as f32 / (1u64 << 24) as f32 - 0.5) * 0.3
+                + if i % 40 > 20 { 1.0 } else { 0.0 };
+        }
+        let h = Classic::Filters.halo();
+        // A brick inside, one at the volume's corner, a one-slice box, and a wider halo.
+        for (o, s, halo) in [
+            ([8, 6, 10], [16, 16, 16], h),
+            ([0, 0, 0], [12, 9, 7], h),
+            ([3, 0, 22], [37, 37, 1], h),
+            ([5, 5, 5], [8, 8, 8], h + 3),
+        ] {
+            let b = halo_from_volume(&v, d, o, s, halo);
+            let n: Vec<f32> = b.data.iter().map(|&x| norm().apply(x)).collect();
+            let fast = filter_bank_over(&b, &n, true);
+            let full = filter_bank_over(&b, &n, false);
+            assert_eq!(fast.len(), full.len());
+            let same = fast
+                .iter()
+                .zip(&full)
+                .all(|(a, b)| a.to_bits() == b.to_bits());
+            assert!(same, "box {o:?} {s:?}: restricted steps changed a value");
         }
     }
 

@@ -480,7 +480,7 @@ impl TfFile {
                     t
                 };
                 let prob = entry.and_then(|c| c.probability.clone()).map_or_else(
-                    || Tf1d::constant_color(color, vec![(0.0, 0.0), (0.2, 0.0), (1.0, 0.6)]),
+                    || Tf1d::constant_color(color, DEFAULT_PROBABILITY_OPACITY.to_vec()),
                     with_color,
                 );
                 let int = match entry.and_then(|c| c.intensity.as_ref()) {
@@ -503,6 +503,64 @@ impl TfFile {
         }
     }
 }
+
+impl TfFile {
+    /// The tables of the label view (drawn in [`crate::Mode::ProbIntensity`] over one-hot
+    /// label channels): each class solid in its colour at opacity `solid`, and the channel
+    /// flagged background (unlabelled voxels) as a faint context, this file's intensity map
+    /// with its opacity times `context`. A class's own intensity map, when the file has one,
+    /// shapes its opacity instead, so bone can stay bone inside a label.
+    pub fn compile_labels(
+        &self,
+        norm: &Normaliser,
+        classes: &[(u32, [f32; 3], bool)],
+        solid: f32,
+        context: f32,
+    ) -> Luts {
+        let base = self.compile(norm, &[]);
+        let flat = |rgb: [f32; 3], a: f32| Lut::from_tf(&Tf1d::constant_color(rgb, vec![(0.0, a)]));
+        let class_luts = classes
+            .iter()
+            .map(|&(id, rgb, background)| {
+                let intensity = if background {
+                    let mut t = base.intensity.clone();
+                    for e in &mut t.table {
+                        e[3] *= context;
+                    }
+                    t
+                } else {
+                    let entry = self.classes.iter().find(|c| c.id == id);
+                    let color = entry.and_then(|c| c.color).unwrap_or(rgb);
+                    match entry.and_then(|c| c.intensity.as_ref()) {
+                        Some(t) => {
+                            let mut t = match self.space {
+                                Space::Raw => t.map_x(|x| (x - norm.lo) / (norm.hi - norm.lo)),
+                                Space::Normalised => t.clone(),
+                            };
+                            t.color = vec![(0.0, color)];
+                            Lut::from_tf(&t)
+                        }
+                        None => flat(color, solid),
+                    }
+                };
+                Some(ClassLut {
+                    probability: flat(rgb, solid),
+                    intensity,
+                    tau: 0.5,
+                })
+            })
+            .collect();
+        Luts {
+            intensity: base.intensity,
+            classes: class_luts,
+        }
+    }
+}
+
+/// The default opacity of a class over its probability: nothing below an even chance, so a
+/// uniform 0.2 (or any undecided region) stays invisible, rising to 0.7 for a certain voxel.
+pub const DEFAULT_PROBABILITY_OPACITY: [(f64, f32); 4] =
+    [(0.0, 0.0), (0.5, 0.0), (0.75, 0.45), (1.0, 0.7)];
 
 /// A sampled transfer function: `LUT_SIZE` RGBA entries over `[lo, lo + (n-1)/scale]`, read with
 /// linear interpolation and clamped at the ends.
@@ -632,6 +690,51 @@ mod tests {
 
     fn parse(s: &str) -> Result<TfFile> {
         TfFile::parse(s, Path::new("t.json"))
+    }
+
+    #[test]
+    fn default_class_maps_hide_undecided_regions_and_show_confident_ones() {
+        let t = TfFile::preset("grey").unwrap();
+        let norm = Normaliser { lo: 0.0, hi: 1.0 };
+        let l = t.compile(&norm, &[(1, [1.0, 0.0, 0.0], false)]);
+        let c = l.classes[0].as_ref().unwrap();
+        // A uniform 0.2 (five classes, no opinion) and an even chance draw nothing ...
+        assert_eq!(c.probability.get(0.2)[3], 0.0);
+        assert!(
+            c.probability.get(0.5)[3] < 0.005,
+            "{:?}",
+            c.probability.get(0.5)
+        );
+        // ... a confident class draws in its colour.
+        let e = c.probability.get(1.0);
+        assert!(e[3] >= 0.6 && e[0] > 0.9 && e[1] < 0.1, "{e:?}");
+    }
+
+    #[test]
+    fn label_tables_draw_classes_solid_over_a_faint_context() {
+        let t = TfFile::preset("ct-bone").unwrap();
+        let norm = Normaliser {
+            lo: -1000.0,
+            hi: 2000.0,
+        };
+        let classes = [(1, [0.0, 1.0, 0.0], false), (255, [0.5; 3], true)];
+        let l = t.compile_labels(&norm, &classes, 0.6, 0.1);
+        let (class, context) = (
+            l.classes[0].as_ref().unwrap(),
+            l.classes[1].as_ref().unwrap(),
+        );
+        // A labelled voxel: its class colour at the solid opacity, whatever the intensity.
+        for x in [0.0, 0.3, 1.0] {
+            let e = class.intensity.get(x);
+            assert_eq!(e, [0.0, 1.0, 0.0, 0.6], "at {x}");
+        }
+        // The rest: the intensity map at a tenth of its opacity.
+        let full = t.compile(&norm, &[]).intensity;
+        for x in [0.2f32, 0.6, 0.9] {
+            let (a, b) = (context.intensity.get(x)[3], full.get(x)[3]);
+            assert!((a - 0.1 * b).abs() < 1e-6, "at {x}: {a} vs {b}");
+        }
+        assert!((class.tau, context.tau) == (0.5, 0.5));
     }
 
     #[test]

@@ -168,6 +168,9 @@ pub struct RenderJob {
     pub params: neuvolex_render::RenderParams,
     /// Transfer function.
     pub tf: neuvolex_render::TfFile,
+    /// Draw the current labels (class colours over a faint intensity context) rather than
+    /// what `params.mode` draws.
+    pub labels: bool,
     /// PNG bytes or an error.
     pub reply: oneshot::Sender<ApiResult<Vec<u8>>>,
     /// Set when the requester went away (its request timed out or its client left): the
@@ -381,6 +384,7 @@ impl Actors {
         session: Arc<Session>,
         params: neuvolex_render::RenderParams,
         tf: neuvolex_render::TfFile,
+        labels: bool,
     ) -> ApiResult<Vec<u8>> {
         let (reply, rx) = oneshot::channel();
         let cancel = Arc::new(AtomicBool::new(false));
@@ -391,6 +395,7 @@ impl Actors {
                 session,
                 params,
                 tf,
+                labels,
                 reply,
                 cancel,
                 ticket,
@@ -866,6 +871,7 @@ async fn renderer(
             session,
             params,
             tf,
+            labels,
             reply,
             cancel,
             ticket,
@@ -881,7 +887,7 @@ async fn renderer(
         let poll: neuvolex_render::CancelPoll =
             Arc::new(move || cancel.load(Ordering::SeqCst) || stop.load(Ordering::SeqCst));
         let r = tokio::task::spawn_blocking(move || {
-            p.install(|| render(&session, &params, &tf, gpu, poll))
+            p.install(|| render(&session, &params, &tf, labels, gpu, poll))
         })
         .await;
         drop(ticket);
@@ -903,15 +909,23 @@ async fn renderer(
 
 /// Renders a session: on the GPU when the service has one (whole frames), else on the CPU,
 /// incrementally (only the pixels the changed bricks affect) when the frame, transfer function
-/// and classes are those of the last frame, from scratch otherwise.
+/// and classes are those of the last frame, from scratch otherwise. `labels` draws the current
+/// labels ([`crate::session::SessionSource`]) in the probability-intensity mode with the
+/// transfer function's label tables ([`neuvolex_render::TfFile::compile_labels`]).
 fn render(
     s: &Arc<Session>,
     params: &neuvolex_render::RenderParams,
     tf: &neuvolex_render::TfFile,
+    labels: bool,
     gpu: bool,
     cancel: neuvolex_render::CancelPoll,
 ) -> ApiResult<Vec<u8>> {
     use neuvolex_render::BrickSource;
+    let mut params = *params;
+    if labels {
+        params.mode = neuvolex_render::Mode::ProbIntensity;
+    }
+    let params = &params;
     let mut guard = s.renderer.lock().unwrap_or_else(|p| p.into_inner());
     let st = guard.get_or_insert_with(|| crate::session::RenderState {
         // Its bricks in the server's one render cache, under one budget for all sessions.
@@ -921,9 +935,40 @@ fn render(
             s.render_owner,
         ),
         key: String::new(),
+        labels: String::new(),
         #[cfg(feature = "gpu")]
         gpu: None,
     });
+    // What the drawn channels depend on beyond the dirty bricks: the flavour, and for labels
+    // the prior's verdict (a new one, or the toggle, changes labels anywhere).
+    let flavour = if labels {
+        let probs = s.probs.read().unwrap_or_else(|p| p.into_inner());
+        let prior = crate::assist::active_prior(s, &probs).map(|p| p.generation);
+        format!("labels|{}|{prior:?}", probs.generation)
+    } else {
+        "probabilities".to_string()
+    };
+    let all = || -> Vec<[usize; 3]> {
+        let g = s.store.info().grid();
+        let mut v = Vec::with_capacity(g.iter().product());
+        for z in 0..g[2] {
+            for y in 0..g[1] {
+                for x in 0..g[0] {
+                    v.push([x, y, z]);
+                }
+            }
+        }
+        v
+    };
+    let switched = st.labels != flavour;
+    let luts_for = |src: &crate::session::SessionSource| {
+        let (norm, classes) = (src.normaliser(), src.classes());
+        if labels {
+            tf.compile_labels(&norm, &classes, LABEL_OPACITY, LABEL_CONTEXT)
+        } else {
+            tf.compile(&norm, &classes)
+        }
+    };
     #[cfg(feature = "gpu")]
     if gpu {
         if st.gpu.is_none() {
@@ -933,24 +978,34 @@ fn render(
             );
         }
         if let Some(g) = st.gpu.as_mut() {
-            let src = s.source();
-            let luts = tf.compile(&src.normaliser(), &src.classes());
+            g.source_mut().labels = labels;
+            let luts = luts_for(g.source());
             // Bricks stay resident on the GPU: the changed ones (and their neighbours) are
-            // uploaded again.
-            let dirty: Vec<[usize; 3]> =
+            // uploaded again; all of them when the drawn channels changed.
+            let mut dirty: Vec<[usize; 3]> =
                 std::mem::take(&mut *s.dirty.lock().unwrap_or_else(|p| p.into_inner()))
                     .into_iter()
                     .collect();
+            if switched {
+                dirty = all();
+                st.labels = flavour;
+            }
             g.invalidate(&dirty)?;
             let img = g.render(params, &luts)?;
             return crate::imaging::png(img.width, img.height, 3, &img.to_rgb8());
         }
     }
     #[cfg(not(feature = "gpu"))]
-    let _ = gpu;
+    let _ = (gpu, &all);
     st.renderer.set_cancel(Some(cancel));
+    if switched {
+        st.renderer.source_mut().labels = labels;
+        st.renderer.forget();
+        st.key.clear();
+        st.labels = flavour;
+    }
     let classes = st.renderer.source().classes();
-    let luts = tf.compile(&st.renderer.source().normaliser(), &classes);
+    let luts = luts_for(st.renderer.source());
     let dirty: Vec<[usize; 3]> =
         std::mem::take(&mut *s.dirty.lock().unwrap_or_else(|p| p.into_inner()))
             .into_iter()
@@ -969,6 +1024,11 @@ fn render(
     st.key = key;
     crate::imaging::png(img.width, img.height, 3, &img.to_rgb8())
 }
+
+/// Opacity of a labelled voxel in the 3-D label view.
+pub const LABEL_OPACITY: f32 = 0.6;
+/// The label view's intensity context: the intensity map's opacity times this.
+pub const LABEL_CONTEXT: f32 = 0.12;
 
 async fn recommender(rx: Inbox<ViewJob>, hub: Hub, cluster: Option<ClusterExecutor>) {
     let mut rx = rx.lock().await;

@@ -78,6 +78,54 @@ pub fn label_of(ids: &[u32], px: &[u8]) -> u32 {
     }
 }
 
+/// The label channels the 3-D label view draws: the classified classes, then the background
+/// (which also takes unlabelled voxels) as the last channel, the faint intensity context.
+pub fn label_channels(ids: &[u32]) -> Vec<u32> {
+    let mut out: Vec<u32> = ids.iter().copied().filter(|&i| i != BACKGROUND).collect();
+    out.push(BACKGROUND);
+    out
+}
+
+/// One brick's current labels as one-hot channels over `channels` ([`label_channels`]): 255 on
+/// the channel of each voxel's label ([`label_of`] of its probabilities `px`, `ids.len()` per
+/// voxel, then the prior's `changes` where it is on), 0 elsewhere; label 0 goes to the
+/// background channel.
+pub fn one_hot_labels(
+    ids: &[u32],
+    px: &[u8],
+    changes: Option<&[(u32, u16)]>,
+    channels: &[u32],
+) -> Vec<u8> {
+    let (c, ch) = (ids.len().max(1), channels.len());
+    let n = px.len() / c;
+    let bg = channels.iter().position(|&i| i == BACKGROUND).unwrap_or(0);
+    let slot = |l: u32| {
+        if l == 0 {
+            bg
+        } else {
+            channels.iter().position(|&i| i == l).unwrap_or(bg)
+        }
+    };
+    // Class id → channel, for the ids the probabilities carry.
+    let by_id: Vec<usize> = ids.iter().map(|&i| slot(i)).collect();
+    let mut out = vec![0u8; n * ch];
+    for (v, p) in px.chunks_exact(c).enumerate() {
+        let k = match best_of(ids, p) {
+            (id, m) if id != 0 && m >= 128 => by_id[ids.iter().position(|&i| i == id).unwrap_or(0)],
+            _ => bg,
+        };
+        out[v * ch + k] = 255;
+    }
+    for &(v, l) in changes.unwrap_or(&[]) {
+        let v = v as usize;
+        if v < n {
+            out[v * ch..(v + 1) * ch].fill(0);
+            out[v * ch + slot(l as u32)] = 255;
+        }
+    }
+    out
+}
+
 /// Computes the prior over every classified brick of `probs` with the session's scribbles:
 /// components per brick, merged, filtered; then growth (`PriorConfig::grow`) over the label
 /// volume assembled in memory (2 bytes a voxel, with as much again for the doubtful classes).
@@ -308,4 +356,31 @@ pub fn suggest(s: &Session) -> ApiResult<serde_json::Value> {
         "axial": mass.suggest(2, &visited[2]),
         "suggestions": per_axis,
     }))
+}
+
+#[cfg(test)]
+mod label_tests {
+    use super::*;
+
+    #[test]
+    fn one_hot_labels_follow_the_half_rule_and_the_prior() {
+        let ids = [1, 2, BACKGROUND];
+        let channels = label_channels(&ids);
+        assert_eq!(channels, vec![1, 2, BACKGROUND]);
+        // Voxels: class 1 sure; class 2 at 0.5; background best; nobody above 0.5 (unlabelled).
+        let px = [230, 20, 5, 30, 128, 97, 10, 40, 205, 100, 90, 65];
+        let h = one_hot_labels(&ids, &px, None, &channels);
+        assert_eq!(h, vec![255, 0, 0, 0, 255, 0, 0, 0, 255, 0, 0, 255]);
+        // The prior clears voxel 0 and grows class 1 into voxel 3.
+        let h = one_hot_labels(&ids, &px, Some(&[(0, 0), (3, 1)]), &channels);
+        assert_eq!(h, vec![0, 0, 255, 0, 255, 0, 0, 0, 255, 255, 0, 0]);
+        // Without a background class, the context channel is added last.
+        let ids = [1, 2];
+        let channels = label_channels(&ids);
+        assert_eq!(channels, vec![1, 2, BACKGROUND]);
+        assert_eq!(
+            one_hot_labels(&ids, &[200, 55, 60, 195, 100, 100], None, &channels),
+            vec![255, 0, 0, 0, 255, 0, 0, 0, 255]
+        );
+    }
 }

@@ -60,6 +60,9 @@ pub struct ServerConfig {
     pub max_trainings: usize,
     /// Longest a request may take before it is answered with 503 (event streams excepted).
     pub request_timeout: Duration,
+    /// A session no request has named for this long, and not training, is saved and closed,
+    /// giving its share of the caches back (`None`: never).
+    pub idle_close: Option<Duration>,
 }
 
 impl ServerConfig {
@@ -84,9 +87,13 @@ impl ServerConfig {
             max_sessions: MAX_SESSIONS,
             max_trainings: 1,
             request_timeout: Duration::from_secs(60),
+            idle_close: Some(DEFAULT_IDLE_CLOSE),
         }
     }
 }
+
+/// How long a session may sit unused before it is saved and closed.
+pub const DEFAULT_IDLE_CLOSE: Duration = Duration::from_secs(30 * 60);
 
 /// Shared state of the server.
 pub struct AppState {
@@ -140,7 +147,66 @@ impl AppState {
             .unwrap_or_else(|p| p.into_inner())
             .get(id)
             .cloned()
+            .inspect(|s| {
+                s.last_used
+                    .store(crate::session::now_ms(), Ordering::Relaxed)
+            })
             .ok_or_else(|| ApiError::NotFound(format!("no session '{}'", id.escape_debug())))
+    }
+
+    /// Saves and closes every session unused for `cfg.idle_close` that is not training, and
+    /// returns their ids (a session whose state cannot be saved stays open and is logged).
+    pub fn close_idle(&self) -> Vec<String> {
+        let Some(idle) = self.cfg.idle_close else {
+            return Vec::new();
+        };
+        let now = crate::session::now_ms();
+        let mut closed = Vec::new();
+        for s in self.all_sessions() {
+            let unused = now.saturating_sub(s.last_used.load(Ordering::Relaxed));
+            let training = s
+                .train_cancel
+                .lock()
+                .unwrap_or_else(|p| p.into_inner())
+                .is_some();
+            if unused < idle.as_millis() as u64 || training {
+                continue;
+            }
+            match self.close(&s) {
+                Ok(()) => {
+                    tracing::info!(
+                        "closed session {} ({}): idle for {} s",
+                        s.id,
+                        s.name,
+                        unused / 1000
+                    );
+                    closed.push(s.id.clone());
+                }
+                Err(e) => tracing::warn!("idle session {} stays open: {e}", s.id),
+            }
+        }
+        closed
+    }
+
+    /// Runs [`Self::close_idle`] every so often (a quarter of `cfg.idle_close`, at most a
+    /// minute) until shutdown; spawn it on the server's runtime.
+    pub async fn reap_idle(state: web::Data<AppState>) {
+        let Some(idle) = state.cfg.idle_close else {
+            return;
+        };
+        let every = (idle / 4).clamp(Duration::from_millis(100), Duration::from_secs(60));
+        let mut stop = state.shutdown.subscribe();
+        loop {
+            tokio::select! {
+                _ = tokio::time::sleep(every) => {}
+                _ = stop.changed() => return,
+            }
+            if state.shutting_down() {
+                return;
+            }
+            let st = state.clone();
+            let _ = web::block(move || st.close_idle()).await;
+        }
     }
 
     /// Every open session.
@@ -337,6 +403,10 @@ fn info(s: &Session) -> serde_json::Value {
     let model = s.current_model();
     serde_json::json!({
         "id": s.id, "volume": s.name, "dims": i.dims, "spacing": i.spacing,
+        // The anatomical direction of each voxel axis, from the source's affine (the slice
+        // views' orientation and edge letters).
+        "directions": neuvolex_formats::geometry::axis_directions(&s.store.meta().affine)
+            .map(String::from),
         "range": [i.stats.min, i.stats.max], "percentiles": [i.stats.p0_5, i.stats.p99_5],
         "histogram": i.stats.histogram,
         "classes": *s.classes.read().unwrap_or_else(|p| p.into_inner()),
@@ -361,6 +431,13 @@ async fn app_js() -> HttpResponse {
     HttpResponse::Ok()
         .content_type("text/javascript; charset=utf-8")
         .body(include_str!("../static/app.js"))
+}
+
+async fn favicon() -> HttpResponse {
+    HttpResponse::Ok()
+        .content_type("image/svg+xml")
+        .insert_header(("Cache-Control", "max-age=86400"))
+        .body(include_str!("../static/favicon.svg"))
 }
 
 async fn backend(st: web::Data<AppState>) -> HttpResponse {
@@ -583,12 +660,43 @@ async fn overlay(
     Ok(HttpResponse::Ok().content_type("image/png").body(bytes))
 }
 
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct StrokesQuery {
+    /// `x,y,z`: the voxel whose three slices are on screen, classified first after the
+    /// stroke's own slice.
+    focus: Option<String>,
+}
+
+/// Keeps the focus a stroke request names (a bad one is a 400 naming it).
+fn set_focus(s: &Session, q: &StrokesQuery) -> ApiResult<()> {
+    let Some(f) = &q.focus else { return Ok(()) };
+    let dims = s.store.info().dims;
+    let bad = || {
+        ApiError::BadRequest(format!(
+            "focus '{}' must be x,y,z voxel indices inside {dims:?}",
+            f.escape_debug()
+        ))
+    };
+    let v: Vec<usize> = f
+        .split(',')
+        .map(|t| t.trim().parse::<usize>().map_err(|_| bad()))
+        .collect::<ApiResult<_>>()?;
+    if v.len() != 3 || (0..3).any(|k| v[k] >= dims[k]) {
+        return Err(bad());
+    }
+    *s.focus.lock().unwrap_or_else(|p| p.into_inner()) = Some([v[0], v[1], v[2]]);
+    Ok(())
+}
+
 async fn put_strokes(
     st: web::Data<AppState>,
     id: web::Path<String>,
+    q: web::Query<StrokesQuery>,
     strokes: web::Json<Vec<Stroke>>,
 ) -> ApiResult<HttpResponse> {
     let s = st.session(&id)?;
+    set_focus(&s, &q)?;
     let strokes = strokes.into_inner();
     let permit = st.actors.reserve_classify()?;
     let s2 = s.clone();
@@ -602,9 +710,11 @@ async fn put_strokes(
 async fn post_strokes(
     st: web::Data<AppState>,
     id: web::Path<String>,
+    q: web::Query<StrokesQuery>,
     strokes: web::Json<Vec<Stroke>>,
 ) -> ApiResult<HttpResponse> {
     let s = st.session(&id)?;
+    set_focus(&s, &q)?;
     let strokes = strokes.into_inner();
     // Reserved first: a busy answer means the strokes were not added (a retry adds them once).
     let permit = st.actors.reserve_classify()?;
@@ -748,14 +858,19 @@ async fn render(
         .unwrap_or_else(|p| p.into_inner())
         .ids
         .is_empty();
-    let mode = match q.mode.as_deref() {
-        None if has_probs => neuvolex_render::Mode::Probabilistic,
-        None | Some("intensity") => neuvolex_render::Mode::Intensity,
-        Some("prob") => neuvolex_render::Mode::Probabilistic,
-        Some("prob-intensity") => neuvolex_render::Mode::ProbIntensity,
+    // Once classified, the default is the current labels over a faint intensity context.
+    let (mode, labels) = match q.mode.as_deref() {
+        None | Some("labels") if has_probs => (neuvolex_render::Mode::ProbIntensity, true),
+        // Nothing classified yet: every mode draws the intensity.
+        None | Some("labels" | "prob" | "prob-intensity") if !has_probs => {
+            (neuvolex_render::Mode::Intensity, false)
+        }
+        None | Some("labels") | Some("intensity") => (neuvolex_render::Mode::Intensity, false),
+        Some("prob") => (neuvolex_render::Mode::Probabilistic, false),
+        Some("prob-intensity") => (neuvolex_render::Mode::ProbIntensity, false),
         Some(o) => {
             return Err(ApiError::BadRequest(format!(
-                "mode '{}' must be intensity, prob or prob-intensity",
+                "mode '{}' must be labels, intensity, prob or prob-intensity",
                 o.escape_debug()
             )))
         }
@@ -776,7 +891,7 @@ async fn render(
         ..Default::default()
     };
     params.validate()?;
-    let bytes = st.actors.render(s, params, tf).await?;
+    let bytes = st.actors.render(s, params, tf, labels).await?;
     Ok(HttpResponse::Ok().content_type("image/png").body(bytes))
 }
 
@@ -1383,6 +1498,8 @@ pub fn configure(cfg: &mut web::ServiceConfig) {
             .wrap(actix_web::middleware::from_fn(crate::access::guard))
             .route("/", web::get().to(index))
             .route("/app.js", web::get().to(app_js))
+            .route("/favicon.svg", web::get().to(favicon))
+            .route("/favicon.ico", web::get().to(favicon))
             .service(
                 web::scope("/api")
                     .route("/server", web::get().to(server_status))

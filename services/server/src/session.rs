@@ -30,6 +30,13 @@ pub const DEFAULT_FEATURES: &str = "filters+xyz";
 /// A model and its version in a session (bumped by every snapshot).
 pub type VersionedModel = (u64, Arc<InrModel>);
 
+/// Milliseconds since the Unix epoch.
+pub fn now_ms() -> u64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_millis() as u64)
+}
+
 /// The label strokes use for background/other.
 pub const BACKGROUND: u32 = neuvolex_session::BACKGROUND;
 
@@ -99,6 +106,12 @@ pub struct Session {
     pub dirty: Mutex<BTreeSet<[usize; 3]>>,
     /// Stops the running training, if any.
     pub train_cancel: Mutex<Option<Arc<AtomicBool>>>,
+    /// The voxel whose three slices the user has on screen (sent with the strokes): their
+    /// bricks are classified right after those of the last stroke.
+    pub focus: Mutex<Option<[usize; 3]>>,
+    /// When a request last named this session (ms since the Unix epoch): idle sessions are
+    /// saved and closed ([`crate::http::AppState::close_idle`]).
+    pub last_used: AtomicU64,
     /// Render state (the renderer keeps the last frame for incremental updates).
     pub renderer: Mutex<Option<RenderState>>,
     /// The INR the features come from, with a version bumped by every snapshot the trainer
@@ -135,6 +148,9 @@ pub struct RenderState {
     pub renderer: neuvolex_render::Renderer<SessionSource>,
     /// Parameters, transfer function and classes of the last frame.
     pub key: String,
+    /// What the cached bricks' channels hold: probabilities, or labels of one classification
+    /// and prior verdict.
+    pub labels: String,
     /// The wgpu renderer, when the service renders on the GPU.
     #[cfg(feature = "gpu")]
     pub gpu: Option<neuvolex_render::gpu::GpuRenderer<SessionSource>>,
@@ -205,6 +221,8 @@ impl Session {
             }),
             dirty: Mutex::new(BTreeSet::new()),
             train_cancel: Mutex::new(None),
+            last_used: AtomicU64::new(now_ms()),
+            focus: Mutex::new(None),
             renderer: Mutex::new(None),
             model: RwLock::new(model),
             features,
@@ -478,7 +496,12 @@ impl Session {
                 ..Default::default()
             },
         )?);
-        let bricks: Vec<[usize; 3]> = self.store.bricks().map(|b| b.index).collect();
+        let bricks = {
+            let all: Vec<neuvolex_bricks::Brick> = self.store.bricks().collect();
+            let strokes = self.strokes.read().unwrap_or_else(|p| p.into_inner());
+            let focus = *self.focus.lock().unwrap_or_else(|p| p.into_inner());
+            brick_order(&all, strokes.last(), focus)
+        };
         let total = bricks.len();
         {
             let mut p = self.probs.write().unwrap_or_else(|p| p.into_inner());
@@ -554,11 +577,10 @@ impl Session {
             })),
         };
         let stage = ProbaStage::new(params, src, forest, hook)?;
-        let per = if cluster.is_some() {
-            4
-        } else {
-            total.div_ceil(shards.max(1)).max(1)
-        };
+        // One brick a task in process: each brick shows as soon as it is classified, in
+        // `brick_order` (the executor starts tasks in order); batches of four on a cluster.
+        let per = if cluster.is_some() { 4 } else { 1 };
+        let _ = shards;
         let tasks = neuvolex_tasks::plan(&bricks, per, 0);
         let me = self.clone();
         let poll: CancelPoll = Arc::new(move || !me.current(generation));
@@ -612,6 +634,8 @@ impl Session {
         SessionSource {
             inner: StoreSource::new(self.store.clone()),
             session: self.clone(),
+            labels: false,
+            one_hot: neuvolex_bricks::lru::Lru::new(ONE_HOT_CACHE_BYTES),
         }
     }
 }
@@ -628,10 +652,134 @@ impl Drop for Session {
     }
 }
 
-/// Intensity from the store, probabilities from the session's streamed bricks.
+/// The order bricks are classified in, so that what the user looks at arrives first: the
+/// bricks the last stroke's slice crosses, nearest the stroke first; then those under the
+/// slices on screen (the three planes through `focus`); then the rest, nearest the stroke (or
+/// the focus) first.
+pub fn brick_order(
+    bricks: &[neuvolex_bricks::Brick],
+    last: Option<&Stroke>,
+    focus: Option<[usize; 3]>,
+) -> Vec<[usize; 3]> {
+    let crosses = |b: &neuvolex_bricks::Brick, axis: usize, at: usize| {
+        b.origin[axis] <= at && at < b.origin[axis] + b.size[axis]
+    };
+    let stroke = last.map(|s| {
+        let (ua, va, wa) = s.axis.grid_axes();
+        let n = s.points.len().max(1) as f64;
+        let mut c = [0f64; 3];
+        c[ua] = s.points.iter().map(|p| p[0] as f64).sum::<f64>() / n;
+        c[va] = s.points.iter().map(|p| p[1] as f64).sum::<f64>() / n;
+        c[wa] = s.slice as f64;
+        (wa, s.slice, c)
+    });
+    let centre = stroke
+        .map(|s| s.2)
+        .or(focus.map(|f| f.map(|v| v as f64)))
+        .unwrap_or([0.0; 3]);
+    let mut keyed: Vec<(u8, f64, [usize; 3])> = bricks
+        .iter()
+        .map(|b| {
+            let tier = if stroke.is_some_and(|(wa, sl, _)| crosses(b, wa, sl)) {
+                0
+            } else if focus.is_some_and(|f| (0..3).any(|k| crosses(b, k, f[k]))) {
+                1
+            } else {
+                2
+            };
+            let d: f64 = (0..3)
+                .map(|k| (b.origin[k] as f64 + b.size[k] as f64 / 2.0 - centre[k]).powi(2))
+                .sum();
+            (tier, d, b.index)
+        })
+        .collect();
+    keyed.sort_by(|a, b| a.0.cmp(&b.0).then(a.1.total_cmp(&b.1)));
+    keyed.into_iter().map(|k| k.2).collect()
+}
+
+/// Intensity from the store, probabilities from the session's streamed bricks: the class
+/// probabilities themselves, or (`labels`) the current labels as one-hot channels
+/// ([`crate::assist::one_hot_labels`]: the 0.5 rule, the prior's changes when it is on), the
+/// same labels the overlays, fractions and exports show.
 pub struct SessionSource {
     inner: StoreSource,
     session: Arc<Session>,
+    /// Draw the current labels instead of the probabilities. Switching it, or a new verdict of
+    /// the prior, needs the renderer's cached bricks dropped.
+    pub labels: bool,
+    /// Recent one-hot bricks, each with the probabilities and prior changes it was made from
+    /// (a brick is read again as the apron of each of its neighbours).
+    one_hot: neuvolex_bricks::lru::Lru<[usize; 3], Arc<OneHot>>,
+}
+
+/// Bytes of one-hot bricks a session's label view keeps between neighbouring loads.
+const ONE_HOT_CACHE_BYTES: usize = 32 << 20;
+
+/// A brick's one-hot labels and what they were computed from.
+struct OneHot {
+    probs: Arc<Vec<u8>>,
+    changes: Option<Arc<Vec<(u32, u16)>>>,
+    channels: Vec<u32>,
+    data: Arc<Vec<u8>>,
+}
+
+impl SessionSource {
+    /// The channels drawn: the probabilities' classes, or the label channels.
+    fn channel_ids(&self) -> Vec<u32> {
+        let ids = self
+            .session
+            .probs
+            .read()
+            .unwrap_or_else(|p| p.into_inner())
+            .ids
+            .clone();
+        if self.labels && !ids.is_empty() {
+            crate::assist::label_channels(&ids)
+        } else {
+            ids
+        }
+    }
+
+    /// Brick `n`'s one-hot labels (None before it is classified), from the cache while its
+    /// probabilities and prior changes are the ones it was made from.
+    fn one_hot(
+        &self,
+        pr: &Probs,
+        prior: Option<&crate::assist::PriorState>,
+        channels: &[u32],
+        n: [usize; 3],
+    ) -> Option<Arc<Vec<u8>>> {
+        let probs = pr.bricks.get(&n)?;
+        let changes = prior.and_then(|p| p.changed.get(&n));
+        if let Some(h) = self.one_hot.get(&n) {
+            let same_changes = match (&h.changes, changes) {
+                (None, None) => true,
+                (Some(a), Some(b)) => Arc::ptr_eq(a, b),
+                _ => false,
+            };
+            if Arc::ptr_eq(&h.probs, probs) && same_changes && h.channels == channels {
+                return Some(h.data.clone());
+            }
+        }
+        let data = Arc::new(crate::assist::one_hot_labels(
+            &pr.ids,
+            probs,
+            changes.map(|c| c.as_slice()),
+            channels,
+        ));
+        let cost = data.len();
+        self.one_hot.insert(
+            n,
+            Arc::new(OneHot {
+                probs: probs.clone(),
+                changes: changes.cloned(),
+                channels: channels.to_vec(),
+                data: data.clone(),
+            }),
+            cost,
+        );
+        Some(data)
+    }
 }
 
 impl BrickSource for SessionSource {
@@ -644,13 +792,7 @@ impl BrickSource for SessionSource {
     }
 
     fn classes(&self) -> Vec<ChannelClass> {
-        let ids = self
-            .session
-            .probs
-            .read()
-            .unwrap_or_else(|p| p.into_inner())
-            .ids
-            .clone();
+        let ids = self.channel_ids();
         let classes = self
             .session
             .classes
@@ -682,7 +824,19 @@ impl BrickSource for SessionSource {
             return Ok(b);
         }
         let geom = self.geom();
-        let p = assemble(&geom, index, ch, |n| Ok(pr.bricks.get(&n).cloned()))?;
+        let (ch, p) = if self.labels {
+            let channels = crate::assist::label_channels(&pr.ids);
+            let prior = crate::assist::active_prior(&self.session, &pr);
+            let p = assemble(&geom, index, channels.len(), |n| {
+                Ok(self.one_hot(&pr, prior.as_ref(), &channels, n))
+            })?;
+            (channels.len(), p)
+        } else {
+            (
+                ch,
+                assemble(&geom, index, ch, |n| Ok(pr.bricks.get(&n).cloned()))?,
+            )
+        };
         Ok(RenderBrick::new(
             b.index,
             b.origin,
@@ -691,5 +845,59 @@ impl BrickSource for SessionSource {
             ch,
             p,
         ))
+    }
+}
+
+#[cfg(test)]
+mod order_tests {
+    use super::*;
+    use neuvolex_bricks::Brick;
+    use neuvolex_classify::scribble::Axis;
+
+    fn grid(n: usize, edge: usize) -> Vec<Brick> {
+        let mut v = Vec::new();
+        for z in 0..n {
+            for y in 0..n {
+                for x in 0..n {
+                    v.push(Brick {
+                        index: [x, y, z],
+                        origin: [x * edge, y * edge, z * edge],
+                        size: [edge; 3],
+                    });
+                }
+            }
+        }
+        v
+    }
+
+    #[test]
+    fn the_stroked_slice_comes_first_then_the_slices_on_screen() {
+        let b = grid(4, 16);
+        // A stroke on axial slice 40 (brick row z = 2) near x = 5, y = 60.
+        let s = Stroke {
+            class: 1,
+            axis: Axis::Z,
+            slice: 40,
+            points: vec![[4.0, 59.0], [6.0, 61.0]],
+            radius: 2.0,
+        };
+        let o = brick_order(&b, Some(&s), Some([20, 20, 40]));
+        assert_eq!(o.len(), 64);
+        // First the 16 bricks of z row 2, the one under the stroke first.
+        assert_eq!(o[0], [0, 3, 2]);
+        assert!(o[..16].iter().all(|i| i[2] == 2), "{o:?}");
+        // Then those under the coronal (y = 20) and sagittal (x = 20) slices on screen: 7 in
+        // each of the other 3 brick rows; then the rest.
+        let on_screen = |i: &[usize; 3]| i[0] == 1 || i[1] == 1;
+        assert!(o[16..37].iter().all(on_screen), "{o:?}");
+        assert!(!o[37..].iter().any(on_screen), "{o:?}");
+        // Every brick once.
+        let mut u = o.clone();
+        u.sort();
+        u.dedup();
+        assert_eq!(u.len(), 64);
+        // Nothing known: all bricks, nearest the origin first.
+        let o = brick_order(&b, None, None);
+        assert_eq!((o.len(), o[0]), (64, [0, 0, 0]));
     }
 }

@@ -36,7 +36,7 @@ async function open() {
   try {
     S.info = await api("POST", "/api/sessions", { volume: $("volume").value, restore: true });
   } catch (e) { status("error: " + e.message); return; }
-  S.id = S.info.id; S.strokes = []; S.redo = [];
+  S.id = S.info.id; S.strokes = []; S.redo = []; progress(0, 1);
   // A session restored from its last run brings its strokes back.
   if (S.info.strokes > 0) { try { S.strokes = await api("GET", `/api/sessions/${S.id}/strokes`); } catch (_) {} }
   const d = S.info.dims;
@@ -45,7 +45,7 @@ async function open() {
     $("i" + a).max = n - 1; $("i" + a).value = S.idx[a] = Math.floor(n / 2);
   }
   $("export").href = `/api/sessions/${S.id}/export/labels.nii.gz`;
-  renderClasses(); await loadTf(); refreshAll();
+  layoutViews(); renderClasses(); await loadTf(); refreshAll();
   $("trinfo").textContent = S.info.trained ? `model version ${S.info.model_version}` : "not trained"; $("preview").removeAttribute("src");
   $("prior").checked = !S.info.prior || S.info.prior.enabled; priorInfo(S.info.prior); $("suggestinfo").textContent = "";
   status(`${S.info.volume}: ${d.join(" x ")}`);
@@ -65,7 +65,7 @@ function renderClasses() {
   for (const el of [$("bgcls"), $("erase")]) el.classList.toggle("sel", +el.dataset.id === S.cls);
 }
 async function pushClasses() {
-  try { S.info = await api("PUT", `/api/sessions/${S.id}/classes`, S.info.classes); renderClasses(); drawTf(); refreshAll(); }
+  try { S.info = await api("PUT", `/api/sessions/${S.id}/classes`, S.info.classes); renderClasses(); fillTfTargets(); drawTf(); refreshAll(); }
   catch (e) { status("error: " + e.message); }
 }
 function pick(id) {
@@ -87,28 +87,79 @@ function wl() {
   const [lo, hi] = S.info.percentiles; const w = (hi - lo) * $("win").value / 100;
   const l = lo + (hi - lo) * $("lev").value / 100; return `window=${w}&level=${l}`;
 }
-const imgCache = {};
 function loadImg(url) { return new Promise((res) => { const i = new Image(); i.onload = () => res(i); i.onerror = () => res(null); i.src = url; }); }
+
+// Slice orientation. The server sends a slice with its first in-plane voxel axis across and
+// the second down (flipped for y and x); the page lays it out in the radiological convention
+// from the voxel axes' anatomical directions (`info.directions`, from the affine): axial with
+// anterior up and the patient's right on the screen's left, coronal and sagittal with superior
+// up (sagittal: anterior on the left). Neurological puts the patient's left on the left.
+// Pixels are scaled by voxel spacing.
+const OPP = { R: "L", L: "R", A: "P", P: "A", S: "I", I: "S" };
+const AXK = { x: 0, y: 1, z: 2 };
+function viewOf(a) {
+  const f = S.info.directions[AXK[a]];
+  return "SI".includes(f) ? "axial" : "AP".includes(f) ? "coronal" : "sagittal";
+}
+function frame(a) {
+  const d = S.info.dims, sp = S.info.spacing, dir = S.info.directions, ax = AX[a], view = viewOf(a);
+  const right = view === "sagittal" ? "P" : $("neuro").checked ? "R" : "L", up = view === "axial" ? "A" : "S";
+  const pairs = (k, c) => dir[k] === c || dir[k] === OPP[c];
+  const h = pairs(ax.u, right) ? ax.u : ax.v, w = h === ax.u ? ax.v : ax.u;
+  const min = Math.min(...sp), kh = sp[h] / min, kw = sp[w] / min;
+  const sx = dir[h] === right ? 1 : -1, sy = dir[w] === up ? -1 : 1;
+  // Continuous voxel coordinates (along u, along v) → canvas pixels, and back.
+  const toScreen = (U, V) => { const vh = h === ax.u ? U : V, vw = h === ax.u ? V : U;
+    return [sx > 0 ? vh * kh : (d[h] - vh) * kh, sy > 0 ? vw * kw : (d[w] - vw) * kw]; };
+  const toVoxel = (X, Y) => { const vh = sx > 0 ? X / kh : d[h] - X / kh, vw = sy > 0 ? Y / kw : d[w] - Y / kw;
+    return h === ax.u ? [vh, vw] : [vw, vh]; };
+  const affine = (f) => { const o = f(0, 0), x = f(1, 0), y = f(0, 1); return [x[0] - o[0], x[1] - o[1], y[0] - o[0], y[1] - o[1], o[0], o[1]]; };
+  return {
+    view, W: Math.max(1, Math.round(d[h] * kh)), H: Math.max(1, Math.round(d[w] * kw)),
+    letters: { left: OPP[right], right, top: up, bottom: OPP[up] },
+    voxel: affine(toScreen), // voxel (u, v) → canvas
+    image: affine((i, j) => toScreen(i, ax.flip ? d[ax.v] - j : j)), // server image → canvas
+    toVoxel,
+  };
+}
+// Names, order and edge letters of the three views.
+function layoutViews() {
+  const order = { axial: 0, coronal: 1, sagittal: 2 };
+  for (const a of ["x", "y", "z"]) {
+    const f = frame(a), v = $("c" + a).closest(".view");
+    v.style.order = order[f.view]; $("n" + a).textContent = `${f.view} (${a})`;
+    for (const [k, t] of Object.entries(f.letters)) v.querySelector(".m" + k[0]).textContent = t;
+  }
+}
+// One paint per update: both images are fetched, then base, overlay and strokes are drawn at
+// once, and only by the latest request for that view.
+const paintSeq = { x: 0, y: 0, z: 0 };
 async function drawSlice(a) {
   if (!S.id) return;
-  const c = $("c" + a), idx = S.idx[a];
-  const base = await loadImg(`/api/sessions/${S.id}/slice/${a}/${idx}?${wl()}`);
-  if (!base) return;
-  c.width = base.width; c.height = base.height;
-  const g = c.getContext("2d"); g.drawImage(base, 0, 0);
+  const seq = ++paintSeq[a], c = $("c" + a), idx = S.idx[a], id = S.id;
   let kind = $("ovl").value, cls = "";
   if (kind.startsWith("cls-")) { kind = kind.slice(4); cls = `&class=${S.cls || 255}`; }
-  if (kind) { const o = await loadImg(`/api/sessions/${S.id}/overlay/${a}/${idx}?kind=${kind}${cls}&t=${Date.now()}`); if (o) g.drawImage(o, 0, 0); }
+  const [base, o] = await Promise.all([
+    loadImg(`/api/sessions/${id}/slice/${a}/${idx}?${wl()}`),
+    kind ? loadImg(`/api/sessions/${id}/overlay/${a}/${idx}?kind=${kind}${cls}&t=${Date.now()}`) : null,
+  ]);
+  if (!base || seq !== paintSeq[a] || id !== S.id) return;
+  const f = frame(a);
+  if (c.width !== f.W || c.height !== f.H) { c.width = f.W; c.height = f.H; }
+  const g = c.getContext("2d"); g.imageSmoothingEnabled = false;
+  g.setTransform(1, 0, 0, 1, 0, 0); g.clearRect(0, 0, c.width, c.height);
+  g.setTransform(...f.image); g.drawImage(base, 0, 0);
+  if (o) g.drawImage(o, 0, 0);
   drawStrokes(a, g);
 }
-function drawStrokes(a, g) {
-  const d = S.info.dims, ax = AX[a];
-  for (const s of S.strokes) {
+function drawStrokes(a, g, extra) {
+  g.setTransform(...frame(a).voxel);
+  for (const s of extra ? [...S.strokes, extra] : S.strokes) {
     if (s.axis !== a || s.slice !== S.idx[a]) continue;
     const c = s.class === 255 ? [120, 120, 120] : s.class === 0 ? [0, 0, 0] : (S.info.classes.find((k) => k.id === s.class) || { color: [255, 255, 255] }).color;
     g.strokeStyle = s.class === 0 ? "#000" : hex(c); g.lineWidth = Math.max(1, s.radius * 2); g.lineCap = g.lineJoin = "round";
     g.beginPath();
-    s.points.forEach((p, i) => { const x = p[0] + 0.5, y = ax.flip ? d[ax.v] - 1 - p[1] + 0.5 : p[1] + 0.5; i ? g.lineTo(x, y) : g.moveTo(x, y); });
+    s.points.forEach((p, i) => { const x = p[0] + 0.5, y = p[1] + 0.5; i ? g.lineTo(x, y) : g.moveTo(x, y); });
     g.stroke();
   }
 }
@@ -220,23 +271,27 @@ let drawing = null;
 for (const a of ["x", "y", "z"]) {
   const c = $("c" + a), ax = AX[a];
   const pos = (e) => { const r = c.getBoundingClientRect(), d = S.info.dims;
-    const px = (e.clientX - r.left) * c.width / r.width, py = (e.clientY - r.top) * c.height / r.height;
-    const u = Math.max(0, Math.min(d[ax.u] - 1, Math.floor(px))), row = Math.max(0, Math.min(d[ax.v] - 1, Math.floor(py)));
-    return [u, ax.flip ? d[ax.v] - 1 - row : row]; };
+    const [U, V] = frame(a).toVoxel((e.clientX - r.left) * c.width / r.width, (e.clientY - r.top) * c.height / r.height);
+    return [Math.max(0, Math.min(d[ax.u] - 1, Math.floor(U))), Math.max(0, Math.min(d[ax.v] - 1, Math.floor(V)))]; };
   c.onmouseenter = () => { S.hover = a; };
   c.onmousedown = (e) => { if (!S.id || e.button !== 0) return; drawing = { class: S.cls, axis: a, slice: S.idx[a], points: [pos(e)], radius: S.radius }; };
-  c.onmousemove = (e) => { if (!drawing || drawing.axis !== a) return; drawing.points.push(pos(e)); const g = c.getContext("2d"); drawStrokes(a, g); S.strokes.push(drawing); drawStrokes(a, g); S.strokes.pop(); };
+  c.onmousemove = (e) => { if (!drawing || drawing.axis !== a) return; drawing.points.push(pos(e)); drawStrokes(a, c.getContext("2d"), drawing); };
   c.onmouseup = c.onmouseleave = () => { if (!drawing || drawing.axis !== a) return; S.strokes.push(drawing); S.redo = []; drawing = null; sendStrokes(); };
   $("i" + a).oninput = (e) => { S.idx[a] = +e.target.value; drawSlice(a); };
 }
 async function sendStrokes() {
-  try { const r = await api("PUT", `/api/sessions/${S.id}/strokes`, S.strokes); status(`classifying (generation ${r.generation}) ...`); }
+  try { const r = await api("PUT", `/api/sessions/${S.id}/strokes?focus=${S.idx.x},${S.idx.y},${S.idx.z}`, S.strokes); status("classifying the slices on screen first ..."); progress(0, 1); S.firstPaint = true; }
   catch (e) { status("error: " + e.message); }
   for (const a of ["x", "y", "z"]) drawSlice(a);
 }
 $("undo").onclick = () => { if (S.strokes.length) { S.redo.push(S.strokes.pop()); sendStrokes(); } };
 $("redo").onclick = () => { if (S.redo.length) { S.strokes.push(S.redo.pop()); sendStrokes(); } };
 for (const id of ["win", "lev", "ovl"]) $(id).oninput = () => { for (const a of ["x", "y", "z"]) drawSlice(a); };
+$("neuro").checked = localStorage.getItem("neuvolex.neurological") === "1";
+$("neuro").onchange = (e) => {
+  localStorage.setItem("neuvolex.neurological", e.target.checked ? "1" : "0");
+  if (S.info) { layoutViews(); for (const a of ["x", "y", "z"]) drawSlice(a); }
+};
 for (const id of ["az", "el", "mode"]) $(id).oninput = render;
 $("open").onclick = open;
 const train = async (action) => { try { await api("POST", `/api/sessions/${S.id}/train`, { action, epochs: +$("epochs").value || 1 }); status("training ..."); } catch (e) { status("error: " + e.message); } };
@@ -326,10 +381,16 @@ function subscribe() {
   const on = (kind, f) => ev.addEventListener(kind, (e) => { const m = JSON.parse(e.data); if (m.session && m.session !== S.id) return; f(m.data); });
   on("ingest", (d) => status(d.stage === "done" ? `ingested ${d.volume}` : `ingesting ${d.volume}: ${d.stage} ${d.done}/${d.total}`));
   on("classified", (d) => {
-    status(`classified ${d.done}/${d.total} bricks`);
+    status(`classifying: ${d.done} of ${d.total} bricks`); progress(d.done, d.total);
+    // The first brick of a new classification shows at once; later ones at most every 0.4 s.
+    if (S.firstPaint) { S.firstPaint = false; for (const a of ["x", "y", "z"]) drawSlice(a); return; }
     if (!tick) tick = setTimeout(() => { tick = null; refreshAll(); }, 400);
   });
-  on("classification", (d) => { status(d.error ? "error: " + d.error : `classification ${d.status.state}${d.status.message ? ": " + d.status.message : ""} (${d.status.features})`); refreshAll(); refreshPrior(); });
+  on("classification", (d) => {
+    status(d.error ? "classification failed: " + d.error : classificationWords(d.status));
+    if (d.status && d.status.state === "done") progress(1, 1);
+    refreshAll(); refreshPrior();
+  });
   on("training", (d) => {
     const t = d.error ? "training " + d.state + ": " + d.error : `training ${d.state}${d.epoch ? " epoch " + d.epoch.toFixed(2) : ""}${d.psnr ? " PSNR " + d.psnr.toFixed(1) + " dB" : ""}${d.model_version ? " (model " + d.model_version + ")" : ""}`;
     status(t); $("trinfo").textContent = t;
@@ -337,7 +398,22 @@ function subscribe() {
   on("preview", (d) => { $("preview").src = `/api/sessions/${S.id}/preview.png?t=${Date.now()}`; $("preview").title = `reconstruction (left) beside the input (right), PSNR ${d.psnr.toFixed(1)} dB`; });
   on("viewpoints_progress", (d) => { $("vpinfo").textContent = `aggregating ${d.bricks}/${d.total} bricks; best so far azimuth ${d.best.azimuth.toFixed(0)}, elevation ${d.best.elevation.toFixed(0)}`; });
   on("actor_failed", (d) => { status("a worker failed and was restarted: " + d.error); });
+  // A lost server shows at once; the stream reconnects by itself, and the session is checked
+  // again (a restarted server may have closed it).
+  ev.onerror = () => { document.querySelector("header").classList.add("offline"); };
+  ev.onopen = async () => {
+    const h = document.querySelector("header"), was = h.classList.contains("offline");
+    h.classList.remove("offline");
+    if (was && S.id) { try { await api("GET", `/api/sessions/${S.id}`); } catch (_) { status("the server restarted: reopening ..."); open(); } }
+  };
   S.events = ev;
+}
+function progress(done, total) { const p = $("progress"); p.max = Math.max(1, total); p.value = done; p.title = `${done} of ${total} bricks classified`; }
+const FEATURE_WORDS = { "filters+xyz": "intensity filters and position", inr: "INR features", "inr+filters": "INR features and intensity filters", paper: "the paper's features" };
+function classificationWords(st) {
+  const f = FEATURE_WORDS[st.features] || st.features || "";
+  const words = { idle: "waiting for scribbles of two classes", classifying: `classifying (${st.done} of ${st.total} bricks)`, done: `classified the whole volume`, cancelled: "superseded by a newer stroke", failed: "classification failed", training: "training the forest" };
+  return `${words[st.state] || st.state}${st.message ? ": " + st.message : ""}${f ? " — features: " + f : ""}`;
 }
 subscribe();
 

@@ -678,7 +678,7 @@ async fn full_mailboxes_push_back_instead_of_queueing_without_bound() {
     // MAILBOX of them, the rest are told to retry.
     use neuvolex_server::actors::MAILBOX;
     let n = 200;
-    let jobs = (0..n).map(|_| st.actors.render(s.clone(), params, tf.clone()));
+    let jobs = (0..n).map(|_| st.actors.render(s.clone(), params, tf.clone(), false));
     let results = futures_util::future::join_all(jobs).await;
     let busy = results
         .iter()
@@ -1033,4 +1033,43 @@ print("ok", len(files))
         String::from_utf8_lossy(&r.stdout),
         String::from_utf8_lossy(&r.stderr)
     );
+}
+
+#[actix_web::test]
+async fn idle_sessions_are_saved_and_closed_but_training_ones_stay() {
+    let (_d, mut cfg) = data();
+    cfg.idle_close = Some(std::time::Duration::from_millis(300));
+    let st = AppState::new(cfg.clone());
+    let a = st.open("ph.zarr").await.unwrap();
+    let b = st.open("ph.zarr").await.unwrap();
+    // a has strokes to save.
+    let strokes: Vec<neuvolex_classify::scribble::Stroke> =
+        serde_json::from_value(strokes(0)).unwrap();
+    a.set_strokes(strokes.clone()).unwrap();
+    // b is training: a training flag is installed as a running training installs it.
+    *b.train_cancel.lock().unwrap() = Some(std::sync::Arc::new(
+        std::sync::atomic::AtomicBool::new(false),
+    ));
+    // Freshly used: nothing closes.
+    assert!(st.close_idle().is_empty());
+    std::thread::sleep(std::time::Duration::from_millis(400));
+    assert_eq!(st.close_idle(), vec![a.id.clone()]);
+    let open: Vec<String> = st.all_sessions().iter().map(|s| s.id.clone()).collect();
+    assert_eq!(open, vec![b.id.clone()], "the training session stays open");
+    // Closing saved its state first, for the next open.
+    let saved = neuvolex_server::http::state_path(&cfg.work_dir, "ph.zarr");
+    let text = std::fs::read_to_string(&saved).unwrap();
+    let back: Value = serde_json::from_str(&text).unwrap();
+    assert_eq!(
+        back["strokes"].as_array().map(Vec::len),
+        Some(strokes.len()),
+        "{text}"
+    );
+    // Never, when switched off.
+    let mut never = cfg.clone();
+    never.idle_close = None;
+    let st = AppState::new(never);
+    let _c = st.open("ph.zarr").await.unwrap();
+    std::thread::sleep(std::time::Duration::from_millis(50));
+    assert!(st.close_idle().is_empty());
 }

@@ -269,15 +269,24 @@ impl Executor for LocalExecutor {
         let (tx, rx) = std::sync::mpsc::channel::<Msg<S::Output>>();
         std::thread::scope(|s| {
             s.spawn(move || {
-                tasks.par_iter().for_each_with(tx, |tx, t| {
-                    if self.cancelled() {
-                        return;
-                    }
-                    let ctx = TaskCtx::new(&self.cancel);
-                    let t1 = Instant::now();
-                    let r = stage.run(t, &ctx);
-                    let _ = tx.send((t.index, r, t1.elapsed().as_secs_f64(), ctx.skipped()));
-                });
+                // Tasks start in their order (each thread takes the next one), so a caller
+                // that lists the bricks it wants first gets them first; rayon's splitting
+                // would start the second half at once.
+                let next = std::sync::atomic::AtomicUsize::new(0);
+                let workers = rayon::current_num_threads().clamp(1, tasks.len().max(1));
+                (0..workers)
+                    .into_par_iter()
+                    .for_each_with(tx, |tx, _| loop {
+                        let i = next.fetch_add(1, Ordering::SeqCst);
+                        let Some(t) = tasks.get(i) else { break };
+                        if self.cancelled() {
+                            break;
+                        }
+                        let ctx = TaskCtx::new(&self.cancel);
+                        let t1 = Instant::now();
+                        let r = stage.run(t, &ctx);
+                        let _ = tx.send((t.index, r, t1.elapsed().as_secs_f64(), ctx.skipped()));
+                    });
             });
             for (index, r, secs, skipped) in rx {
                 match r {

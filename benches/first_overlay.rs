@@ -1,0 +1,219 @@
+//! Time to the first overlay, as a user of `neuvolex serve` meets it
+//! (`cargo bench -p neuvolex-benches --bench first_overlay`).
+//!
+//! The service in process (its actors, feature cache and event hub, no HTTP): a fresh server
+//! (new work folder, nothing cached) opens the volume, a user draws a class stroke and a
+//! background stroke on the middle axial slice (placed on the ground truth), and the bench
+//! times, from the strokes' arrival:
+//! - the first classified brick under the stroked slice (the overlay on the slice the user is
+//!   looking at can be drawn);
+//! - the whole volume.
+//!
+//! Then a second stroke on the same slice (features warm) the same way.
+//!
+//! Volumes: the abdomen CT (`../shared/data`, skipped where absent) and the 512x512x452
+//! CT-like phantom (generated; whole-volume times only with `--full`, it takes minutes).
+//! Repeats: `NEUVOLEX_BENCH_REPEATS` (default 3) fresh servers per volume.
+
+use neuvolex_benches::{machine, shared};
+use neuvolex_bricks::synth::PhantomParams;
+use neuvolex_bricks::BrickStore;
+use neuvolex_classify::scribble::{Axis, Stroke};
+use neuvolex_ingest::IngestOptions;
+use neuvolex_server::session::BACKGROUND;
+use neuvolex_server::{AppState, ServerConfig};
+use std::path::Path;
+use std::time::{Duration, Instant};
+
+/// Seconds to the first brick under `slice` and to the whole volume (`None`: not waited for).
+async fn classify_times(
+    st: &AppState,
+    s: &std::sync::Arc<neuvolex_server::session::Session>,
+    strokes: Vec<Stroke>,
+    slice: usize,
+    full: bool,
+) -> (f64, Option<f64>) {
+    let mut rx = st.actors.hub.subscribe();
+    let brick = s.store.info().brick;
+    let t0 = Instant::now();
+    let generation = s.set_strokes(strokes).expect("strokes");
+    st.actors.classify(s.clone(), generation).expect("classify");
+    let mut first = None;
+    let deadline = Instant::now() + Duration::from_secs(1800);
+    while Instant::now() < deadline {
+        let Ok(Ok(e)) = tokio::time::timeout(Duration::from_secs(60), rx.recv()).await else {
+            continue;
+        };
+        if e.session.as_deref() != Some(s.id.as_str()) {
+            continue;
+        }
+        match e.kind.as_str() {
+            "classified" if e.data["generation"] == generation => {
+                let z = e.data["brick"][2].as_u64().unwrap_or(u64::MAX) as usize;
+                if first.is_none() && z == slice / brick {
+                    first = Some(t0.elapsed().as_secs_f64());
+                    if !full {
+                        // Stop the rest: make this run stale.
+                        s.bump_generation();
+                        return (first.unwrap_or(f64::NAN), None);
+                    }
+                }
+            }
+            "classification" => {
+                let st = &e.data["status"];
+                if st["generation"] == generation && st["state"] != "training" {
+                    assert_eq!(st["state"], "done", "{e:?}");
+                    return (first.unwrap_or(f64::NAN), Some(t0.elapsed().as_secs_f64()));
+                }
+            }
+            _ => {}
+        }
+    }
+    panic!("classification did not finish in 30 minutes");
+}
+
+/// A class stroke and a background stroke on axial slice `z`, along the longest runs of each
+/// in the ground truth `labels` (x fastest).
+fn strokes_on(labels: &[u32], dims: [usize; 3], z: usize, class: u32, dx: usize) -> Vec<Stroke> {
+    let run = |want: &dyn Fn(u32) -> bool| {
+        let mut best = (0usize, 0usize, 0usize);
+        for y in 0..dims[1] {
+            let mut len = 0;
+            for x in 0..dims[0] {
+                if want(labels[(z * dims[1] + y) * dims[0] + x]) {
+                    len += 1;
+                    if len > best.2 {
+                        best = (x + 1 - len, y, len);
+                    }
+                } else {
+                    len = 0;
+                }
+            }
+        }
+        let (x0, y, len) = best;
+        assert!(len >= 3, "no run of the class on slice {z}");
+        let a = (x0 + len / 4 + dx.min(len / 4)) as f32;
+        let b = (x0 + 3 * len / 4) as f32;
+        vec![[a, y as f32], [b, y as f32]]
+    };
+    vec![
+        Stroke {
+            class: 1,
+            axis: Axis::Z,
+            slice: z,
+            points: run(&|l| l == class),
+            radius: 1.0,
+        },
+        Stroke {
+            class: BACKGROUND,
+            axis: Axis::Z,
+            slice: z,
+            points: run(&|l| l == 0),
+            radius: 1.0,
+        },
+    ]
+}
+
+/// The most frequent non-zero label on slice `z`.
+fn main_class(labels: &[u32], dims: [usize; 3], z: usize) -> u32 {
+    let mut counts = std::collections::HashMap::new();
+    let n = dims[0] * dims[1];
+    for &l in &labels[z * n..(z + 1) * n] {
+        if l != 0 {
+            *counts.entry(l).or_insert(0usize) += 1;
+        }
+    }
+    counts
+        .into_iter()
+        .max_by_key(|e| e.1)
+        .map(|e| e.0)
+        .expect("a labelled voxel")
+}
+
+fn run_volume(name: &str, data: &Path, rel: &str, labels: &[u32], full: bool, repeats: usize) {
+    let rt = tokio::runtime::Runtime::new().expect("runtime");
+    for rep in 0..repeats {
+        let work = tempfile::tempdir().expect("tmp");
+        let cfg = ServerConfig::new(data.to_path_buf(), work.path().to_path_buf());
+        rt.block_on(async {
+            let st = AppState::new(cfg);
+            let t = Instant::now();
+            let s = st.open(rel).await.expect("open");
+            let open_s = t.elapsed().as_secs_f64();
+            let dims = s.store.info().dims;
+            let z = dims[2] / 2;
+            let class = main_class(labels, dims, z);
+            let fresh = strokes_on(labels, dims, z, class, 0);
+            let (f1, a1) = classify_times(&st, &s, fresh.clone(), z, full).await;
+            // Warm: one more stroke on the same slice.
+            let mut more = fresh.clone();
+            more.extend(strokes_on(labels, dims, z, class, 2).into_iter().take(1));
+            let (f2, a2) = classify_times(&st, &s, more, z, full).await;
+            let fmt = |v: Option<f64>| v.map_or("—".to_string(), |v| format!("{v:.2}"));
+            println!(
+                "| {name} {dims:?} | {} | {open_s:.2} | {f1:.2} | {} | {f2:.2} | {} |",
+                rep + 1,
+                fmt(a1),
+                fmt(a2)
+            );
+        });
+    }
+}
+
+fn main() {
+    let full_phantom = std::env::args().any(|a| a == "--full");
+    let repeats: usize = std::env::var("NEUVOLEX_BENCH_REPEATS")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(3);
+    println!(
+        "machine: {}, {} threads",
+        machine(),
+        rayon::current_num_threads()
+    );
+    println!("| volume | run | open s | fresh: first overlay s | fresh: whole volume s | warm: first overlay s | warm: whole volume s |");
+    println!("|---|---|---|---|---|---|---|");
+    if let (Some(ct), Some(lab)) = (
+        shared("abdomen_ct/ct.nii.gz"),
+        shared("abdomen_ct/labels.nii.gz"),
+    ) {
+        let mut l = neuvolex_bricks::open_volume(&lab, None).expect("labels");
+        let d = l.meta().dims;
+        let labels: Vec<u32> = l
+            .read_slab(0, d[2])
+            .expect("read labels")
+            .to_f64()
+            .iter()
+            .map(|&v| v as u32)
+            .collect();
+        let data = ct.parent().expect("folder").to_path_buf();
+        run_volume("abdomen_ct", &data, "ct.nii.gz", &labels, true, repeats);
+    } else {
+        println!("SKIP: abdomen_ct is absent (../shared/data)");
+    }
+    let dir = tempfile::tempdir().expect("tmp");
+    let data = dir.path().join("data");
+    std::fs::create_dir_all(&data).expect("data");
+    let store = data.join("phantom.zarr");
+    let params = PhantomParams {
+        dims: [512, 512, 452],
+        seed: 0,
+        noise: 18.0,
+    };
+    let t = Instant::now();
+    neuvolex_ingest::phantom_store(&store, params, &IngestOptions::default(), &mut |_| {})
+        .expect("phantom");
+    eprintln!("phantom written in {:.0} s", t.elapsed().as_secs_f64());
+    let st = BrickStore::open(&store).expect("store");
+    let labels = st
+        .read_labels_box("ground_truth", [0; 3], st.info().dims)
+        .expect("truth");
+    run_volume(
+        "phantom",
+        &data,
+        "phantom.zarr",
+        &labels,
+        full_phantom,
+        repeats,
+    );
+}
