@@ -53,14 +53,16 @@ async fn classify_times(
                 if first.is_none() && z == slice / brick {
                     first = Some(t0.elapsed().as_secs_f64());
                     if !full {
-                        // Stop the rest: make this run stale.
+                        // Stop the rest (make this run stale), and wait for it to end.
                         s.bump_generation();
-                        return (first.unwrap_or(f64::NAN), None);
                     }
                 }
             }
             "classification" => {
                 let st = &e.data["status"];
+                if st["generation"] == generation && !full {
+                    return (first.unwrap_or(f64::NAN), None);
+                }
                 if st["generation"] == generation && st["state"] != "training" {
                     assert_eq!(st["state"], "done", "{e:?}");
                     return (first.unwrap_or(f64::NAN), Some(t0.elapsed().as_secs_f64()));
@@ -201,8 +203,12 @@ fn main() {
         noise: 18.0,
     };
     let t = Instant::now();
-    neuvolex_ingest::phantom_store(&store, params, &IngestOptions::default(), &mut |_| {})
-        .expect("phantom");
+    // As `neuvolex serve` writes its phantom: 32^3 bricks.
+    let opts = IngestOptions {
+        brick: 32,
+        ..Default::default()
+    };
+    neuvolex_ingest::phantom_store(&store, params, &opts, &mut |_| {}).expect("phantom");
     eprintln!("phantom written in {:.0} s", t.elapsed().as_secs_f64());
     let st = BrickStore::open(&store).expect("store");
     let labels = st

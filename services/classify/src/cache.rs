@@ -83,6 +83,29 @@ impl SessionFeatures {
         Ok(v.iter().map(|h| h.to_f32()).collect())
     }
 
+    /// The features of `part`, a box inside brick `whole`, rounded through f16 as [`Self::get`]
+    /// rounds them: the whole brick's when it is cached (with `whole` as the box they cover),
+    /// else just `part`'s, computed and not cached (a stroke's few slices of a brick cost a
+    /// fraction of the brick, and the values are the same as the brick's).
+    pub fn get_part(
+        &self,
+        set: &str,
+        version: u64,
+        fx: &BrickFeatures,
+        whole: &Brick,
+        part: &Brick,
+    ) -> Result<(Vec<f32>, Brick), ClassifyError> {
+        let key = (self.session.clone(), set.to_string(), version, whole.index);
+        if let Some(v) = self.cache.lru.get(&key) {
+            return Ok((v.iter().map(|h| h.to_f32()).collect(), *whole));
+        }
+        let f = fx.brick(part)?;
+        Ok((
+            f.iter().map(|&v| f16_saturating(v).to_f32()).collect(),
+            *part,
+        ))
+    }
+
     /// `(hits, misses)` so far, all sessions.
     pub fn stats(&self) -> (u64, u64) {
         self.cache.stats()

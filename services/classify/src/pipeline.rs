@@ -885,6 +885,8 @@ impl Stage for ProbaStage<'_> {
                         None => fx.brick(&b),
                     }
                     .map_err(|e| TaskError::Failed(format!("brick {bi:?}: {e}")))?;
+                    // A newer run may have begun while the features were computed.
+                    ctx.check()?;
                     let (p, _) = crate::shard::predict_brick(&self.forest, &f, &out_labels, 0.5)
                         .map_err(|e| TaskError::Failed(format!("brick {bi:?}: {e}")))?;
                     p.iter()

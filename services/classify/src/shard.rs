@@ -169,6 +169,22 @@ pub fn training_set_with(
     background: u32,
     fetch: &(dyn Fn(&Brick) -> Result<Vec<f32>, ClassifyError> + Sync),
 ) -> Result<TrainingSet, ClassifyError> {
+    training_set_boxed(fx, s, background, &|b, _| Ok((fetch(b)?, *b)))
+}
+
+/// A fetch of the features a brick's scribbles need: given the brick and the box around its
+/// scribbled voxels, the features of a box holding that one (voxel-major) and the box.
+pub type PartFetch<'a> =
+    dyn Fn(&Brick, &Brick) -> Result<(Vec<f32>, Brick), ClassifyError> + Sync + 'a;
+
+/// [`training_set`] with features from `fetch`, which may compute just the box around each
+/// brick's scribbled voxels (a stroke's slice of a brick) instead of the whole brick.
+pub fn training_set_boxed(
+    fx: &BrickFeatures<'_>,
+    s: &Scribbles,
+    background: u32,
+    fetch: &PartFetch<'_>,
+) -> Result<TrainingSet, ClassifyError> {
     let store = fx.store();
     let dims = store.info().dims;
     if s.dims != dims {
@@ -218,8 +234,26 @@ pub fn training_set_with(
     let parts: Vec<(Vec<f32>, Vec<u16>)> = per_brick
         .par_iter()
         .map(|(bi, vox)| {
-            let b = store.brick(*bi)?;
-            let f = fetch(&b)?;
+            let whole = store.brick(*bi)?;
+            // The box around this brick's scribbled voxels.
+            let (mut lo, mut hi) = ([usize::MAX; 3], [0usize; 3]);
+            for &(i, _) in vox {
+                let p = [
+                    (i % w) as usize,
+                    ((i / w) % h) as usize,
+                    (i / (w * h)) as usize,
+                ];
+                for a in 0..3 {
+                    lo[a] = lo[a].min(p[a]);
+                    hi[a] = hi[a].max(p[a]);
+                }
+            }
+            let part = Brick {
+                index: whole.index,
+                origin: lo,
+                size: [0, 1, 2].map(|a| hi[a] + 1 - lo[a]),
+            };
+            let (f, b) = fetch(&whole, &part)?;
             let mut x = Vec::with_capacity(vox.len() * d);
             let mut y = Vec::with_capacity(vox.len());
             for &(i, c) in vox {

@@ -9,7 +9,7 @@ use neuvolex_classify::pipeline::{
     store_path_string, FeatureHook, FeatureSpec, OpenedFeatures, ProbaParams, ProbaStage,
 };
 use neuvolex_classify::scribble::{rasterise, Scribbles, Stroke};
-use neuvolex_classify::shard::{fit, training_set_with};
+use neuvolex_classify::shard::{fit, training_set_boxed};
 use neuvolex_render::source::{assemble, ChannelClass, RenderBrick};
 use neuvolex_render::{BrickSource, StoreSource, VolumeGeom};
 use neuvolex_tasks::executor::CancelPoll;
@@ -470,13 +470,15 @@ impl Session {
         });
         let name = set.to_string();
         // Newer strokes make this run stale: stop fetching features for it at once.
-        let ts = match training_set_with(&fx, &scr, BACKGROUND, &|b| {
+        // A brick not cached yet gives just the slices its strokes cross (the prediction
+        // computes and caches the whole brick moments later).
+        let ts = match training_set_boxed(&fx, &scr, BACKGROUND, &|whole, part| {
             if !self.current(generation) {
                 return Err(neuvolex_classify::ClassifyError::Input(
                     "superseded by newer strokes".into(),
                 ));
             }
-            self.features.get(&name, version, &fx, b)
+            self.features.get_part(&name, version, &fx, whole, part)
         }) {
             Ok(ts) => ts,
             Err(_) if !self.current(generation) => {
