@@ -107,8 +107,7 @@ fn main() {
                     *f = Some(t.elapsed().as_secs_f64());
                 }
             };
-            let shards = rayon::current_num_threads() * 2;
-            s.classify(g, neuvolex_server::actors::TREES, shards, &on)
+            s.classify(g, neuvolex_server::actors::TREES, &on)
                 .expect("classify");
             let all = t.elapsed().as_secs_f64();
             let first = first.lock().unwrap().unwrap_or(all);

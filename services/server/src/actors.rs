@@ -595,7 +595,6 @@ fn spawn_classify(
 fn classify_job(job: ClassifyJob, hub: &Hub, cluster: Option<&ClusterExecutor>) {
     let s = job.session.clone();
     let id = s.id.clone();
-    let shards = rayon::current_num_threads() * 2;
     let on_brick = |b: [usize; 3], done: usize, total: usize| {
         hub.publish(
                 Some(&id),
@@ -604,7 +603,7 @@ fn classify_job(job: ClassifyJob, hub: &Hub, cluster: Option<&ClusterExecutor>) 
             );
     };
     let t = std::time::Instant::now();
-    let r = s.classify_with(job.generation, TREES, shards, &on_brick, cluster);
+    let r = s.classify_with(job.generation, TREES, &on_brick, cluster);
     let status = s.status.read().unwrap_or_else(|p| p.into_inner()).clone();
     tracing::info!(
         session = %id,
@@ -948,18 +947,7 @@ fn render(
     } else {
         "probabilities".to_string()
     };
-    let all = || -> Vec<[usize; 3]> {
-        let g = s.store.info().grid();
-        let mut v = Vec::with_capacity(g.iter().product());
-        for z in 0..g[2] {
-            for y in 0..g[1] {
-                for x in 0..g[0] {
-                    v.push([x, y, z]);
-                }
-            }
-        }
-        v
-    };
+    let all = || -> Vec<[usize; 3]> { s.store.bricks().map(|b| b.index).collect() };
     let switched = st.labels != flavour;
     let luts_for = |src: &crate::session::SessionSource| {
         let (norm, classes) = (src.normaliser(), src.classes());

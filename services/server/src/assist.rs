@@ -106,14 +106,17 @@ pub fn one_hot_labels(
             channels.iter().position(|&i| i == l).unwrap_or(bg)
         }
     };
-    // Class id → channel, for the ids the probabilities carry.
+    // Probability channel → label channel (the background's goes to the context channel).
     let by_id: Vec<usize> = ids.iter().map(|&i| slot(i)).collect();
     let mut out = vec![0u8; n * ch];
     for (v, p) in px.chunks_exact(c).enumerate() {
-        let k = match best_of(ids, p) {
-            (id, m) if id != 0 && m >= 128 => by_id[ids.iter().position(|&i| i == id).unwrap_or(0)],
-            _ => bg,
-        };
+        // The most probable channel, picked as `label_of` picks it (ties: the last).
+        let (best, &m) = p
+            .iter()
+            .enumerate()
+            .max_by_key(|(_, &q)| q)
+            .unwrap_or((0, &0));
+        let k = if m >= 128 { by_id[best] } else { bg };
         out[v * ch + k] = 255;
     }
     for &(v, l) in changes.unwrap_or(&[]) {

@@ -402,10 +402,9 @@ impl Session {
         self: &Arc<Self>,
         generation: u64,
         trees: usize,
-        shards: usize,
         on_brick: &(dyn Fn([usize; 3], usize, usize) + Sync),
     ) -> ApiResult<usize> {
-        self.classify_with(generation, trees, shards, on_brick, None)
+        self.classify_with(generation, trees, on_brick, None)
     }
 
     /// The current model as a blob for cluster workers: its identity and the model file's
@@ -427,8 +426,8 @@ impl Session {
     }
 
     /// Trains a forest on the current scribbles and classifies every brick as tasks of the
-    /// prediction stage: in this process (the classifier actor's shards, `shards` contiguous
-    /// runs of bricks, features through the session's cache), or on `cluster`'s workers (the
+    /// prediction stage: in this process (one brick a task in [`brick_order`], features
+    /// through the session's cache), or on `cluster`'s workers (the
     /// forest and the model snapshot published once as blobs). Probabilities are stored as
     /// bricks arrive and `on_brick` is called for each. Stops early, as `cancelled`, once a
     /// newer stroke generation exists. Returns the bricks classified.
@@ -436,7 +435,6 @@ impl Session {
         self: &Arc<Self>,
         generation: u64,
         trees: usize,
-        shards: usize,
         on_brick: &(dyn Fn([usize; 3], usize, usize) + Sync),
         cluster: Option<&neuvolex_cluster::ClusterExecutor>,
     ) -> ApiResult<usize> {
@@ -582,7 +580,6 @@ impl Session {
         // One brick a task in process: each brick shows as soon as it is classified, in
         // `brick_order` (the executor starts tasks in order); batches of four on a cluster.
         let per = if cluster.is_some() { 4 } else { 1 };
-        let _ = shards;
         let tasks = neuvolex_tasks::plan(&bricks, per, 0);
         let me = self.clone();
         let poll: CancelPoll = Arc::new(move || !me.current(generation));
