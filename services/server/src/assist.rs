@@ -14,6 +14,9 @@ use serde::Serialize;
 use std::collections::{BTreeMap, HashMap};
 use std::sync::Arc;
 
+/// Per brick, the sorted local voxel indices the prior relabels, with their new labels.
+pub type PriorChanges = HashMap<[usize; 3], Arc<Vec<(u32, u16)>>>;
+
 /// The prior's verdict on one classification.
 #[derive(Debug, Clone, Default)]
 pub struct PriorState {
@@ -21,7 +24,8 @@ pub struct PriorState {
     pub generation: u64,
     /// Per brick, the (sorted) local voxel indices whose label the prior changes, with the
     /// label it gives them: 0 where it clears a dropped part, the class where a kept part grew.
-    pub changed: HashMap<[usize; 3], Arc<Vec<(u32, u16)>>>,
+    /// Shared, so [`active_prior`]'s copy (taken per brick the label view loads) is cheap.
+    pub changed: Arc<PriorChanges>,
     /// What it did.
     pub summary: PriorSummary,
 }
@@ -220,7 +224,7 @@ pub fn compute_prior(s: &Session, probs: &Probs) -> ApiResult<PriorState> {
     }
     Ok(PriorState {
         generation: probs.generation,
-        changed,
+        changed: Arc::new(changed),
         summary: PriorSummary {
             enabled: true,
             generation: probs.generation,

@@ -1143,7 +1143,7 @@ fn label_voxels(s: &Session) -> ApiResult<Vec<u8>> {
     let probs = s.probs.read().unwrap_or_else(|p| p.into_inner());
     if let Some(pr) = crate::assist::active_prior(s, &probs) {
         let d = s.store.info().dims;
-        for (idx, changed) in &pr.changed {
+        for (idx, changed) in pr.changed.iter() {
             let b = s.store.brick(*idx)?;
             for &(i, l) in changed.iter() {
                 let i = i as usize;
