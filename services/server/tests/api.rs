@@ -234,6 +234,35 @@ async fn hostile_and_malformed_requests_get_clear_4xx() {
         let v: Value = test::read_body_json(r).await;
         assert!(v["error"].as_str().unwrap().contains(needle), "{body}: {v}");
     }
+    // A bad focus (the slices on screen) is refused by name, and the strokes stay as they were.
+    for focus in ["1,2", "a,b,c", "999,0,0", "1,2,3,4", "-1,0,0"] {
+        for put in [true, false] {
+            let uri = format!("/api/sessions/{id}/strokes?focus={focus}");
+            let req = if put {
+                test::TestRequest::put()
+            } else {
+                test::TestRequest::post()
+            };
+            let r = test::call_service(&app, req.uri(&uri).set_json(strokes(0)).to_request()).await;
+            assert_eq!(r.status(), 400, "{uri}");
+            let v: Value = test::read_body_json(r).await;
+            assert!(v["error"].as_str().unwrap().contains("focus"), "{uri}: {v}");
+        }
+    }
+    let req = test::TestRequest::get()
+        .uri(&format!("/api/sessions/{id}/strokes"))
+        .to_request();
+    let kept: Value = test::call_and_read_body_json(&app, req).await;
+    assert_eq!(kept, json!([]), "no stroke written by a refused request");
+    let r = test::call_service(
+        &app,
+        test::TestRequest::put()
+            .uri(&format!("/api/sessions/{id}/strokes?focus=3,4,5"))
+            .set_json(strokes(0))
+            .to_request(),
+    )
+    .await;
+    assert_eq!(r.status(), 202, "a good focus is taken");
     let r = test::call_service(
         &app,
         test::TestRequest::post()
