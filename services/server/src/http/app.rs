@@ -1,0 +1,389 @@
+//! The server's configuration and shared state: sessions opened, closed when idle, saved at
+//! shutdown.
+
+use super::blocking;
+use crate::actors::{Actors, Hub};
+use crate::cache::FeatureCache;
+use crate::error::{ApiError, ApiResult};
+use crate::session::Session;
+use actix_web::web;
+use neuvolex_bricks::BrickStore;
+use std::collections::HashMap;
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
+use std::sync::{Arc, RwLock};
+use std::time::{Duration, Instant};
+
+/// Default for [`ServerConfig::max_sessions`]: most sessions open at once (each holds its
+/// strokes, probabilities and render state; memory stays bounded).
+pub const MAX_SESSIONS: usize = 32;
+
+/// Largest JSON body accepted.
+pub const MAX_BODY: usize = 4 << 20;
+
+/// Where volumes come from and where derived stores go, who may connect, and the limits.
+#[derive(Debug, Clone)]
+pub struct ServerConfig {
+    /// Only volumes under this folder can be opened.
+    pub data_root: PathBuf,
+    /// Stores ingested from plain files are kept here.
+    pub work_dir: PathBuf,
+    /// The volume the UI opens first (relative to the data root).
+    pub default_volume: Option<String>,
+    /// A second folder of volumes the server made (the generated phantom), addressed as
+    /// `generated/NAME`.
+    pub generated_root: Option<PathBuf>,
+    /// Feature-cache budget, bytes, across all sessions together.
+    pub feature_cache_bytes: usize,
+    /// Render-cache budget, bytes, for every session's renderer together.
+    pub render_cache_bytes: usize,
+    /// Class-probability budget, bytes, for all sessions together (one byte per voxel and
+    /// class of each classified session).
+    pub probs_bytes: usize,
+    /// Exposes `POST /api/debug/crash/{actor}` (supervisor tests only).
+    pub fault_injection: bool,
+    /// Engines of the trainer and renderer: cpu, gpu (any adapter) or auto (a hardware GPU).
+    pub backend: neuvolex_features::Backend,
+    /// Runs classification and viewpoints on this cluster's workers (`serve --cluster`).
+    pub cluster: Option<neuvolex_cluster::ClusterExecutor>,
+    /// When set, every request must carry this token (`Authorization: Bearer`, the
+    /// `X-Neuvolex-Token` header, the cookie set by the first visit, or `?token=`); others get
+    /// 401. `neuvolex serve` sets one whenever it listens beyond loopback.
+    pub token: Option<String>,
+    /// Refuse requests whose `Host` is not a loopback name (a server on loopback without a
+    /// token; guards against DNS rebinding).
+    pub local_only: bool,
+    /// Most sessions open at once; one more gets 503.
+    pub max_sessions: usize,
+    /// Most trainings running at once; one more gets 503.
+    pub max_trainings: usize,
+    /// Longest a request may take before it is answered with 503 (event streams excepted).
+    pub request_timeout: Duration,
+    /// A session no request has named for this long, and not training, is saved and closed,
+    /// giving its share of the caches back (`None`: never).
+    pub idle_close: Option<Duration>,
+}
+
+impl ServerConfig {
+    /// A configuration with the default budgets for all sessions together (feature cache
+    /// 512 MiB, render cache 512 MiB, probabilities 2 GiB), no token,
+    /// [`MAX_SESSIONS`] sessions, one training at a time, a 60 s request timeout and no fault
+    /// injection.
+    pub fn new(data_root: PathBuf, work_dir: PathBuf) -> Self {
+        ServerConfig {
+            data_root,
+            work_dir,
+            default_volume: None,
+            generated_root: None,
+            feature_cache_bytes: 512 << 20,
+            render_cache_bytes: 512 << 20,
+            probs_bytes: 2 << 30,
+            fault_injection: false,
+            backend: neuvolex_features::Backend::Cpu,
+            cluster: None,
+            token: None,
+            local_only: false,
+            max_sessions: MAX_SESSIONS,
+            max_trainings: 1,
+            request_timeout: Duration::from_secs(60),
+            idle_close: Some(DEFAULT_IDLE_CLOSE),
+        }
+    }
+}
+
+/// How long a session may sit unused before it is saved and closed.
+pub const DEFAULT_IDLE_CLOSE: Duration = Duration::from_secs(30 * 60);
+
+/// Shared state of the server.
+pub struct AppState {
+    /// Configuration.
+    pub cfg: ServerConfig,
+    /// Open sessions by id.
+    pub sessions: RwLock<HashMap<String, Arc<Session>>>,
+    /// The actors.
+    pub actors: Actors,
+    /// Feature bricks of every session, under one budget (the same as `memory.features`).
+    pub features: Arc<FeatureCache>,
+    /// What sessions hold in memory, under the server's budgets.
+    pub memory: Arc<crate::memory::Memory>,
+    /// Trainings running now.
+    pub trainings: Arc<AtomicUsize>,
+    /// Sessions being opened (counted against the session limit while they ingest).
+    pub(crate) opening: AtomicUsize,
+    /// Set once shutdown began: new requests get 503 and event streams end.
+    pub(crate) shutdown: tokio::sync::watch::Sender<bool>,
+    pub(crate) started: Instant,
+    pub(crate) next: AtomicU64,
+}
+
+impl AppState {
+    /// State with the actors started (call inside a tokio runtime).
+    pub fn new(cfg: ServerConfig) -> web::Data<AppState> {
+        let compute = crate::compute::Compute::resolve(cfg.backend);
+        let actors = Actors::start_with(Hub::default(), compute, cfg.cluster.clone());
+        let memory = crate::memory::Memory::new(
+            cfg.feature_cache_bytes,
+            cfg.render_cache_bytes,
+            cfg.probs_bytes,
+        );
+        web::Data::new(AppState {
+            features: memory.features.clone(),
+            memory,
+            cfg,
+            sessions: RwLock::new(HashMap::new()),
+            actors,
+            trainings: Arc::new(AtomicUsize::new(0)),
+            opening: AtomicUsize::new(0),
+            shutdown: tokio::sync::watch::channel(false).0,
+            started: Instant::now(),
+            next: AtomicU64::new(1),
+        })
+    }
+
+    pub(crate) fn session(&self, id: &str) -> ApiResult<Arc<Session>> {
+        self.sessions
+            .read()
+            .unwrap_or_else(|p| p.into_inner())
+            .get(id)
+            .cloned()
+            .inspect(|s| {
+                s.last_used
+                    .store(crate::session::now_ms(), Ordering::Relaxed)
+            })
+            .ok_or_else(|| ApiError::NotFound(format!("no session '{}'", id.escape_debug())))
+    }
+
+    /// Saves and closes every session unused for `cfg.idle_close` that is not training, and
+    /// returns their ids (a session whose state cannot be saved stays open and is logged).
+    pub fn close_idle(&self) -> Vec<String> {
+        let Some(idle) = self.cfg.idle_close else {
+            return Vec::new();
+        };
+        let now = crate::session::now_ms();
+        let mut closed = Vec::new();
+        for s in self.all_sessions() {
+            let unused = now.saturating_sub(s.last_used.load(Ordering::Relaxed));
+            let training = s
+                .train_cancel
+                .lock()
+                .unwrap_or_else(|p| p.into_inner())
+                .is_some();
+            if unused < idle.as_millis() as u64 || training {
+                continue;
+            }
+            match self.close(&s) {
+                Ok(()) => {
+                    tracing::info!(
+                        "closed session {} ({}): idle for {} s",
+                        s.id,
+                        s.name,
+                        unused / 1000
+                    );
+                    closed.push(s.id.clone());
+                }
+                Err(e) => tracing::warn!("idle session {} stays open: {e}", s.id),
+            }
+        }
+        closed
+    }
+
+    /// Runs [`Self::close_idle`] every so often (a quarter of `cfg.idle_close`, at most a
+    /// minute) until shutdown; spawn it on the server's runtime.
+    pub async fn reap_idle(state: web::Data<AppState>) {
+        let Some(idle) = state.cfg.idle_close else {
+            return;
+        };
+        let every = (idle / 4).clamp(Duration::from_millis(100), Duration::from_secs(60));
+        let mut stop = state.shutdown.subscribe();
+        loop {
+            tokio::select! {
+                _ = tokio::time::sleep(every) => {}
+                _ = stop.changed() => return,
+            }
+            if state.shutting_down() {
+                return;
+            }
+            let st = state.clone();
+            let _ = web::block(move || st.close_idle()).await;
+        }
+    }
+
+    /// Every open session.
+    pub fn all_sessions(&self) -> Vec<Arc<Session>> {
+        self.sessions
+            .read()
+            .unwrap_or_else(|p| p.into_inner())
+            .values()
+            .cloned()
+            .collect()
+    }
+
+    /// True once shutdown began.
+    pub fn shutting_down(&self) -> bool {
+        *self.shutdown.borrow()
+    }
+
+    /// Opens `rel` (a store, or a file the ingest actor turns into a store in the work
+    /// folder) as a new session.
+    pub async fn open(&self, rel: &str) -> ApiResult<Arc<Session>> {
+        // Reserve a place first, so concurrent opens (each ingesting for a while) cannot
+        // exceed the limit together.
+        {
+            let sessions = self.sessions.read().unwrap_or_else(|p| p.into_inner());
+            let max = self.cfg.max_sessions;
+            let took = self
+                .opening
+                .fetch_update(Ordering::SeqCst, Ordering::SeqCst, |n| {
+                    (sessions.len() + n < max).then_some(n + 1)
+                })
+                .is_ok();
+            if !took {
+                return Err(ApiError::Busy(format!(
+                    "{max} sessions are open (the server's limit); close one first"
+                )));
+            }
+        }
+        struct Release<'a>(&'a AtomicUsize);
+        impl Drop for Release<'_> {
+            fn drop(&mut self) {
+                self.0.fetch_sub(1, Ordering::SeqCst);
+            }
+        }
+        let _release = Release(&self.opening);
+        let path = match (rel.strip_prefix("generated/"), &self.cfg.generated_root) {
+            (Some(r), Some(g)) => crate::paths::resolve(g, r)?,
+            _ => crate::paths::resolve(&self.cfg.data_root, rel)?,
+        };
+        let p2 = path.clone();
+        let opened = blocking(move || Ok(BrickStore::open(&p2).ok())).await?;
+        let store = match opened {
+            Some(s) => s,
+            None if path.is_dir() => {
+                return Err(ApiError::BadRequest(format!(
+                    "'{rel}' is a folder, not a volume or brick store"
+                )))
+            }
+            None => {
+                let name: String = rel
+                    .chars()
+                    .map(|c| if c.is_ascii_alphanumeric() { c } else { '_' })
+                    .collect();
+                let dest = self.cfg.work_dir.join(format!("{name}.zarr"));
+                let root = match (rel.strip_prefix("generated/"), &self.cfg.generated_root) {
+                    (Some(_), Some(g)) => g.clone(),
+                    _ => self.cfg.data_root.clone(),
+                };
+                self.actors
+                    .ingest(path, dest, rel.to_string(), root)
+                    .await?
+            }
+        };
+        let n = self.next.fetch_add(1, Ordering::SeqCst);
+        let id = format!("s{n}");
+        let s = Session::with_memory(
+            id.clone(),
+            rel.to_string(),
+            Arc::new(store),
+            &self.memory,
+            n,
+        );
+        self.sessions
+            .write()
+            .unwrap_or_else(|p| p.into_inner())
+            .insert(id, s.clone());
+        Ok(s)
+    }
+
+    /// Closes a session: its work is cancelled (training stopped, classification made
+    /// stale), its state saved for the next open, and what it held in memory given back. When
+    /// the state cannot be saved (a full disk), the session stays open and the error names the
+    /// file: nothing is lost, and closing again once there is space saves it.
+    pub fn close(&self, s: &Session) -> ApiResult<()> {
+        stop_work(s);
+        save_state(&self.cfg.work_dir, s).map_err(|e| {
+            ApiError::write_failed(format!(
+                "session {} was not closed: saving its state failed: {e}",
+                s.id
+            ))
+        })?;
+        self.sessions
+            .write()
+            .unwrap_or_else(|p| p.into_inner())
+            .remove(&s.id);
+        s.release_memory();
+        Ok(())
+    }
+
+    /// Begins shutdown and returns once in-flight work has stopped, or after `grace`: new
+    /// requests get 503 and event streams end; every training is stopped (it saves its
+    /// checkpoint) and every classification made stale; each session's state is saved to
+    /// `WORK/sessions/` (atomically). Returns the session files written.
+    pub async fn shutdown(&self, grace: Duration) -> Vec<PathBuf> {
+        let deadline = Instant::now() + grace;
+        self.shutdown.send_replace(true);
+        self.actors.stop();
+        let sessions = self.all_sessions();
+        for s in &sessions {
+            stop_work(s);
+        }
+        let work = self.cfg.work_dir.clone();
+        let saved = web::block(move || {
+            sessions
+                .iter()
+                .filter_map(|s| {
+                    save_state(&work, s)
+                        .map_err(|e| tracing::error!("session {} not saved: {e}", s.id))
+                        .ok()
+                })
+                .collect::<Vec<_>>()
+        })
+        .await
+        .unwrap_or_default();
+        while self.trainings.load(Ordering::SeqCst) > 0 && Instant::now() < deadline {
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+        saved
+    }
+}
+
+/// Stops a session's training and makes its classification stale.
+pub(crate) fn stop_work(s: &Session) {
+    if let Some(c) = s
+        .train_cancel
+        .lock()
+        .unwrap_or_else(|p| p.into_inner())
+        .as_ref()
+    {
+        c.store(true, Ordering::SeqCst);
+    }
+    s.bump_generation();
+}
+
+/// Where a volume's session is saved between runs: `WORK/sessions/NAME.json`.
+pub fn state_path(work: &std::path::Path, volume: &str) -> PathBuf {
+    let name: String = volume
+        .chars()
+        .map(|c| {
+            if c.is_ascii_alphanumeric() || c == '.' || c == '-' {
+                c
+            } else {
+                '_'
+            }
+        })
+        .collect();
+    work.join("sessions").join(format!("{name}.json"))
+}
+
+/// Writes a session's state atomically (temporary file, fsync, rename): a crash leaves the
+/// previous file or the new one, never a part, and the temporaries a killed server left are
+/// removed by the next save. Sessions without strokes are not saved.
+pub(crate) fn save_state(work: &std::path::Path, s: &Session) -> std::io::Result<PathBuf> {
+    let state = s.state();
+    let p = state_path(work, &s.name);
+    if state.strokes.is_empty() && state.tf.is_none() {
+        return Ok(p);
+    }
+    neuvolex_bricks::atomic::replace_file(&p, state.to_json().as_bytes())
+        .map_err(std::io::Error::other)?;
+    Ok(p)
+}
