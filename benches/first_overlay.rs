@@ -9,7 +9,11 @@
 //!   looking at can be drawn);
 //! - the whole volume.
 //!
-//! Then a second stroke on the same slice (features warm) the same way.
+//! Then a second stroke on the same slice (features warm) the same way. Then the bench waits
+//! for the session's background feature pass to have kept every brick's features in the store
+//! (timed from the open), closes the session, starts a new server on the same work folder
+//! ("reopened": nothing in memory, the features in the store) and times the first strokes
+//! again. Volumes whose features pass `--feature-store-gib` (4 GiB) are not kept: `—`.
 //!
 //! Volumes: the abdomen CT (`../shared/data`, skipped where absent) and the 512x512x452
 //! CT-like phantom (generated; whole-volume times only with `--full`, it takes minutes).
@@ -132,13 +136,39 @@ fn main_class(labels: &[u32], dims: [usize; 3], z: usize) -> u32 {
         .expect("a labelled voxel")
 }
 
+/// Waits for the background feature pass of `s` to announce every brick stored; seconds
+/// since `t0`, or `None` when nothing is kept (over the limit) within `patience`.
+async fn features_kept(
+    rx: &mut tokio::sync::broadcast::Receiver<neuvolex_server::actors::Event>,
+    s: &neuvolex_server::session::Session,
+    t0: Instant,
+    patience: Duration,
+) -> Option<f64> {
+    let deadline = Instant::now() + patience;
+    while Instant::now() < deadline {
+        let left = deadline.saturating_duration_since(Instant::now());
+        let Ok(Ok(e)) = tokio::time::timeout(left, rx.recv()).await else {
+            continue;
+        };
+        if e.kind == "features"
+            && e.session.as_deref() == Some(s.id.as_str())
+            && e.data["done"] == e.data["total"]
+        {
+            return Some(t0.elapsed().as_secs_f64());
+        }
+    }
+    None
+}
+
 fn run_volume(name: &str, data: &Path, rel: &str, labels: &[u32], full: bool, repeats: usize) {
     let rt = tokio::runtime::Runtime::new().expect("runtime");
     for rep in 0..repeats {
         let work = tempfile::tempdir().expect("tmp");
         let cfg = ServerConfig::new(data.to_path_buf(), work.path().to_path_buf());
+        let limit = cfg.feature_store_bytes;
         rt.block_on(async {
-            let st = AppState::new(cfg);
+            let st = AppState::new(cfg.clone());
+            let mut events = st.actors.hub.subscribe();
             let t = Instant::now();
             let s = st.open(rel).await.expect("open");
             let open_s = t.elapsed().as_secs_f64();
@@ -152,11 +182,29 @@ fn run_volume(name: &str, data: &Path, rel: &str, labels: &[u32], full: bool, re
             more.extend(strokes_on(labels, dims, z, class, 2).into_iter().take(1));
             let (f2, a2) = classify_times(&st, &s, more, z, full).await;
             let fmt = |v: Option<f64>| v.map_or("—".to_string(), |v| format!("{v:.2}"));
+            let bytes: u64 = dims.iter().map(|&d| d as u64).product::<u64>() * 53 * 2;
+            let kept = if bytes <= limit {
+                features_kept(&mut events, &s, t, Duration::from_secs(1800)).await
+            } else {
+                None
+            };
+            st.close(&s).expect("close");
+            drop(st);
+            // A new server on the same work folder: the features come from the store.
+            let (f3, a3) = if kept.is_some() {
+                let st = AppState::new(cfg.clone());
+                let s = st.open(rel).await.expect("reopen");
+                let (f, a) = classify_times(&st, &s, fresh.clone(), z, full).await;
+                (format!("{f:.2}"), fmt(a))
+            } else {
+                ("—".into(), "—".into())
+            };
             println!(
-                "| {name} {dims:?} | {} | {open_s:.2} | {f1:.2} | {} | {f2:.2} | {} |",
+                "| {name} {dims:?} | {} | {open_s:.2} | {f1:.2} | {} | {f2:.2} | {} | {} | {f3} | {a3} |",
                 rep + 1,
                 fmt(a1),
-                fmt(a2)
+                fmt(a2),
+                fmt(kept),
             );
         });
     }
@@ -173,8 +221,8 @@ fn main() {
         machine(),
         rayon::current_num_threads()
     );
-    println!("| volume | run | open s | fresh: first overlay s | fresh: whole volume s | warm: first overlay s | warm: whole volume s |");
-    println!("|---|---|---|---|---|---|---|");
+    println!("| volume | run | open s | fresh: first overlay s | fresh: whole volume s | warm: first overlay s | warm: whole volume s | features kept s after open | reopened: first overlay s | reopened: whole volume s |");
+    println!("|---|---|---|---|---|---|---|---|---|---|");
     if let (Some(ct), Some(lab)) = (
         shared("abdomen_ct/ct.nii.gz"),
         shared("abdomen_ct/labels.nii.gz"),

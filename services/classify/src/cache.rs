@@ -7,6 +7,7 @@
 //! closed session's entries are dropped.
 
 use crate::features::{f16_saturating, BrickFeatures};
+use crate::persist::PersistedFeatures;
 use crate::ClassifyError;
 use neuvolex_bricks::lru::Lru;
 use neuvolex_bricks::Brick;
@@ -73,20 +74,44 @@ impl SessionFeatures {
         fx: &BrickFeatures,
         b: &Brick,
     ) -> Result<Vec<f32>, ClassifyError> {
+        self.get_with(set, version, fx, b, None)
+    }
+
+    /// [`Self::get`], reading a brick missing from the cache from `stored` when it holds it
+    /// (the same f16 values) before computing it.
+    pub fn get_with(
+        &self,
+        set: &str,
+        version: u64,
+        fx: &BrickFeatures,
+        b: &Brick,
+        stored: Option<&PersistedFeatures>,
+    ) -> Result<Vec<f32>, ClassifyError> {
         let key = (self.session.clone(), set.to_string(), version, b.index);
         let v = self.cache.lru.get_or_try_insert(&key, || {
-            let f = fx.brick(b)?;
-            let h: Vec<half::f16> = f.iter().map(|&v| f16_saturating(v)).collect();
+            let h: Vec<half::f16> = match stored.and_then(|p| p.read(b)) {
+                Some(f) => f.iter().map(|&v| half::f16::from_f32(v)).collect(),
+                None => fx.brick(b)?.iter().map(|&v| f16_saturating(v)).collect(),
+            };
             let cost = h.len() * 2;
             Ok::<_, ClassifyError>((Arc::new(h), cost))
         })?;
         Ok(v.iter().map(|h| h.to_f32()).collect())
     }
 
+    /// The cached features of `b`, if any (f32 of the f16 values).
+    pub fn cached(&self, set: &str, version: u64, b: &Brick) -> Option<Vec<f32>> {
+        let key = (self.session.clone(), set.to_string(), version, b.index);
+        self.cache
+            .lru
+            .get(&key)
+            .map(|v| v.iter().map(|h| h.to_f32()).collect())
+    }
+
     /// The features of `part`, a box inside brick `whole`, rounded through f16 as [`Self::get`]
-    /// rounds them: the whole brick's when it is cached (with `whole` as the box they cover),
-    /// else just `part`'s, computed and not cached (a stroke's few slices of a brick cost a
-    /// fraction of the brick, and the values are the same as the brick's).
+    /// rounds them: the whole brick's when it is cached or in `stored` (with `whole` as the
+    /// box they cover), else just `part`'s, computed and not cached (a stroke's few slices of
+    /// a brick cost a fraction of the brick, and the values are the same as the brick's).
     pub fn get_part(
         &self,
         set: &str,
@@ -94,10 +119,13 @@ impl SessionFeatures {
         fx: &BrickFeatures,
         whole: &Brick,
         part: &Brick,
+        stored: Option<&PersistedFeatures>,
     ) -> Result<(Vec<f32>, Brick), ClassifyError> {
-        let key = (self.session.clone(), set.to_string(), version, whole.index);
-        if let Some(v) = self.cache.lru.get(&key) {
-            return Ok((v.iter().map(|h| h.to_f32()).collect(), *whole));
+        if let Some(v) = self.cached(set, version, whole) {
+            return Ok((v, *whole));
+        }
+        if stored.is_some_and(|p| p.has(whole)) {
+            return Ok((self.get_with(set, version, fx, whole, stored)?, *whole));
         }
         let f = fx.brick(part)?;
         Ok((

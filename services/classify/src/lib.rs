@@ -13,6 +13,7 @@ pub mod components;
 pub mod features;
 pub mod forest;
 mod packed;
+pub mod persist;
 pub mod pipeline;
 pub mod scribble;
 pub mod shard;

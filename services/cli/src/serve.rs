@@ -65,6 +65,11 @@ pub struct ServeArgs {
     /// class of each classified session; a classification past it gets 503).
     #[arg(long, default_value_t = 2048)]
     probs_mib: usize,
+    /// Largest feature array, GiB (f16, before compression), a session computes in the
+    /// background when its volume opens and keeps in the store, so the first stroke and later
+    /// opens find the features ready; 0 turns it off.
+    #[arg(long, default_value_t = 4.0)]
+    feature_store_gib: f64,
     /// Engines of the INR trainer and the renderer: cpu, gpu (any adapter, software ones
     /// included) or auto (a hardware GPU where one exists). GPU needs `--features gpu`.
     #[arg(long, default_value = "auto")]
@@ -160,6 +165,12 @@ pub fn run_serve(a: &ServeArgs) -> Result<()> {
         a.idle_minutes
     );
     cfg.idle_close = (a.idle_minutes > 0.0).then(|| Duration::from_secs_f64(a.idle_minutes * 60.0));
+    anyhow::ensure!(
+        a.feature_store_gib.is_finite() && (0.0..=65_536.0).contains(&a.feature_store_gib),
+        "--feature-store-gib {} must be in [0, 65536]",
+        a.feature_store_gib
+    );
+    cfg.feature_store_bytes = (a.feature_store_gib * (1u64 << 30) as f64) as u64;
     let addrs: Vec<std::net::SocketAddr> =
         std::net::ToSocketAddrs::to_socket_addrs(&(a.host.as_str(), a.port))
             .with_context(|| format!("cannot resolve --host {}", a.host))?

@@ -6,7 +6,8 @@
 //   1. the page opens the phantom, its header fits 1280 px on one line, the favicon loads;
 //   2. scribbles for two classes classify; the slice overlay and the 3-D view change, and the
 //      3-D default draws the labels: class colour where the labels are, not a box-filling fog;
-//   3. a class rename reaches the transfer-function editor and the fractions;
+//   3. a class rename reaches the transfer-function editor and the fractions; the exported
+//      labels, the fractions (API and table) and the axial overlay agree, prior on and off;
 //   4. a burst of updates paints a view once;
 //   5. an edit of class 1's transfer function changes the 3-D view (probability mode);
 //   6. the marker volume: each view's bright corner and edge letters where the radiological
@@ -51,7 +52,8 @@ const check = (ok, what) => { if (!ok) failures.push(what); };
   await shot("01-opened");
   const sliceBefore = await pixels(page, "#cz");
   const renderBefore = await pixels(page, "#render");
-  // 2. Scribbles for two classes in the axial view: class 1 in the middle, background at the border.
+  // 2. Scribbles for two classes in the axial view: class 1 on the bright column in the middle,
+  // background on the air at the border and on the soft tissue.
   const box = await page.locator("#cz").boundingBox();
   const draw = async (x0, y0, x1, y1) => {
     await page.mouse.move(box.x + box.width * x0, box.y + box.height * y0);
@@ -63,6 +65,8 @@ const check = (ok, what) => { if (!ok) failures.push(what); };
   await draw(0.45, 0.55, 0.55, 0.55);
   await page.keyboard.press("b");
   await draw(0.03, 0.03, 0.3, 0.03);
+  // Background on the soft tissue too, so class 1 is the bright column, not the whole body.
+  await draw(0.2, 0.4, 0.35, 0.4);
   await page.waitForFunction(() => /classified the whole volume/.test(document.getElementById("status").textContent), null, { timeout: 120000 });
   await page.waitForTimeout(2500);
   const sliceAfter = await pixels(page, "#cz");
@@ -84,6 +88,44 @@ const check = (ok, what) => { if (!ok) failures.push(what); };
   await page.locator("#classes input[type=text]").first().dispatchEvent("change");
   await page.waitForFunction(() => [...document.querySelectorAll("#tftarget option")].some((o) => o.textContent.startsWith("spine:")), null, { timeout: 10000 }).catch(() => check(false, "rename reached the TF editor"));
   await page.waitForFunction(() => /spine/.test(document.getElementById("fractions").textContent), null, { timeout: 10000 }).catch(() => check(false, "rename reached the fractions"));
+  // 3b. One label truth, with the spatial prior on and off: the exported labels, the class
+  // fractions (API and table) and the axial overlay count the same class-1 voxels.
+  const truth = () => page.evaluate(async () => {
+    const id = S.id, d = S.info.dims, z = S.idx.z, n = d[0] * d[1];
+    const fr = await (await fetch(`/api/sessions/${id}/fractions`)).json();
+    const gz = await fetch(`/api/sessions/${id}/export/labels.nii.gz`);
+    const buf = await new Response(gz.body.pipeThrough(new DecompressionStream("gzip"))).arrayBuffer();
+    const dv = new DataView(buf);
+    const off = dv.getInt32(0, true) === 540 ? Number(dv.getBigInt64(168, true)) : dv.getFloat32(108, true);
+    const vox = new Uint8Array(buf, off, n * d[2]);
+    let all = 0, slice = 0;
+    for (let i = 0; i < vox.length; i++) if (vox[i] === 1) { all++; if (i >= z * n && i < (z + 1) * n) slice++; }
+    const img = new Image(); img.src = `/api/sessions/${id}/overlay/z/${z}?kind=labels&t=${Date.now()}`; await img.decode();
+    const c = document.createElement("canvas"); c.width = img.width; c.height = img.height;
+    const g = c.getContext("2d"); g.drawImage(img, 0, 0);
+    const px = g.getImageData(0, 0, c.width, c.height).data; let overlay = 0;
+    for (let i = 3; i < px.length; i += 4) if (px[i] > 0) overlay++;
+    const f = (fr.classes.find((k) => k.id === 1) || { fraction: 0 }).fraction;
+    return { prior: fr.prior, all, slice, overlay, fromFractions: Math.round(f * fr.classified_voxels), percent: (100 * f).toFixed(2), table: document.getElementById("fractions").textContent };
+  });
+  const agree = (t, what) => {
+    check(t.all > 0 && t.all === t.fromFractions, `${what}: exported class-1 voxels ${t.all} = fractions ${t.fromFractions}`);
+    check(t.slice === t.overlay, `${what}: axial overlay pixels ${t.overlay} = exported class-1 voxels on the slice ${t.slice}`);
+    check(t.table.includes(t.percent + "%"), `${what}: the table shows ${t.percent} %: ${t.table}`);
+  };
+  const on = await truth();
+  check(on.prior === true, "the prior is on by default");
+  agree(on, "prior on");
+  await page.locator("#prior").uncheck();
+  await page.waitForFunction((p) => document.getElementById("fractions").textContent !== p, on.table, { timeout: 10000 }).catch(() => {});
+  await page.waitForTimeout(1500);
+  const off = await truth();
+  check(off.prior === false, "the prior is off after the toggle");
+  agree(off, "prior off");
+  console.log(`class 1 voxels: prior on ${on.all}, off ${off.all}`);
+  await shot("02b-prior-off");
+  await page.locator("#prior").check();
+  await page.waitForTimeout(1500);
   // 4. A burst of three updates of the axial view paints it once.
   const paints = await page.evaluate(async () => {
     const c = document.getElementById("cz"), g = c.getContext("2d"); let n = 0;

@@ -213,6 +213,8 @@ pub struct ViewJob {
     pub k: usize,
     /// Candidate views.
     pub views: usize,
+    /// How many distinct views to pick, and how far apart.
+    pub pick: neuvolex_viewpoints::PickConfig,
     /// The result as JSON, or an error.
     pub reply: oneshot::Sender<ApiResult<serde_json::Value>>,
 }
@@ -405,12 +407,15 @@ impl Actors {
             .map_err(|_| ApiError::Internal("the renderer failed (restarted)".into()))?
     }
 
-    /// Recommends viewpoints, publishing progressive snapshots while bricks aggregate.
+    /// Recommends `pick.count` distinct viewpoints (each with its reason) from `views`
+    /// candidates scored over `k` feature clusters, publishing progressive snapshots while
+    /// bricks aggregate.
     pub async fn viewpoints(
         &self,
         session: Arc<Session>,
         k: usize,
         views: usize,
+        pick: neuvolex_viewpoints::PickConfig,
     ) -> ApiResult<serde_json::Value> {
         let (reply, rx) = oneshot::channel();
         self.views
@@ -418,6 +423,7 @@ impl Actors {
                 session,
                 k,
                 views,
+                pick,
                 reply,
             }))
             .map_err(busy("viewpoint recommender"))?;
@@ -685,14 +691,17 @@ async fn trainer(
     }
 }
 
-/// Re-classifies `s` with its newest model when it has strokes and the classifier is not
-/// busy with it (a snapshot arriving mid-run waits for the next one, so a run always ends).
-/// Returns the generation queued, if any.
+/// Re-classifies `s` with its newest model when its feature set reads the INR, it has
+/// strokes and the classifier is not busy with it (a snapshot arriving mid-run waits for the
+/// next one, so a run always ends). Returns the generation queued, if any.
 fn reclassify(
     s: &Arc<Session>,
     classify: &mpsc::Sender<Mail<ClassifyJob>>,
     force: bool,
 ) -> Option<u64> {
+    if !s.uses_model() {
+        return None;
+    }
     let has_strokes = !s
         .strokes
         .read()
@@ -718,7 +727,7 @@ fn reclassify(
 }
 
 /// Steps between model snapshots while training in the service (each one refreshes the
-/// classification and the 3-D view).
+/// recommended views' features, and the classification when its feature set reads the INR).
 pub const SNAPSHOT_EVERY: u64 = 40;
 
 fn train(
@@ -790,7 +799,7 @@ fn train(
                 hub.publish(
                     Some(&id),
                     "training",
-                    serde_json::json!({"state": "snapshot", "step": step, "model_version": version, "generation": generation}),
+                    serde_json::json!({"state": "snapshot", "step": step, "model_version": version, "generation": generation, "classifies": s.uses_model()}),
                 );
             }
             Err(e) => tracing::warn!("snapshot {}: {e}", path.display()),
@@ -848,7 +857,7 @@ fn train(
         hub.publish(
             Some(&id),
             "training",
-            serde_json::json!({"state": "model_saved", "psnr": t.psnr, "model_version": version, "generation": generation}),
+            serde_json::json!({"state": "model_saved", "psnr": t.psnr, "model_version": version, "generation": generation, "classifies": s.uses_model()}),
         );
     }
     Ok(())
@@ -1029,11 +1038,14 @@ async fn recommender(rx: Inbox<ViewJob>, hub: Hub, cluster: Option<ClusterExecut
             session,
             k,
             views,
+            pick,
             reply,
         } = job;
         let (h, c) = (hub.clone(), cluster.clone());
-        let r = tokio::task::spawn_blocking(move || recommend(&session, k, views, &h, c.as_ref()))
-            .await;
+        let r = tokio::task::spawn_blocking(move || {
+            recommend(&session, k, views, &pick, &h, c.as_ref())
+        })
+        .await;
         let _ = reply.send(r.unwrap_or_else(|_| {
             Err(ApiError::Internal(
                 "viewpoint recommendation panicked".into(),
@@ -1046,11 +1058,14 @@ async fn recommender(rx: Inbox<ViewJob>, hub: Hub, cluster: Option<ClusterExecut
 /// `neuvolex_viewpoints::recommend`): mini-batch k-means, then per-brick cluster partials
 /// merged progressively, with a snapshot of the best view published as bricks arrive. With a
 /// cluster, every per-brick step runs as tasks on its workers (Lloyd k-means, whose passes
-/// distribute; mini-batch updates are sequential).
+/// distribute; mini-batch updates are sequential). The views returned are
+/// `neuvolex_viewpoints::pick_distinct`'s: `pick.count` of them, `pick.min_angle` apart, each
+/// with the reason it was picked.
 fn recommend(
     s: &Arc<Session>,
     k: usize,
     views: usize,
+    pick: &neuvolex_viewpoints::PickConfig,
     hub: &Hub,
     cluster: Option<&ClusterExecutor>,
 ) -> ApiResult<serde_json::Value> {
@@ -1161,19 +1176,23 @@ fn recommend(
         )
     }
     .map_err(|e| ApiError::BadRequest(e.to_string()))?;
-    let picked: Vec<serde_json::Value> = rec
-        .selection
-        .views
+    let picks = neuvolex_viewpoints::pick_distinct(&rec.summary, &rec.scores, pick)
+        .map_err(|e| ApiError::BadRequest(e.to_string()))?;
+    let picked: Vec<serde_json::Value> = picks
+        .picks
         .iter()
-        .map(|&i| {
-            let (az, el) = direction_to_view(rec.scores.views[i]);
-            serde_json::json!({"azimuth": az, "elevation": el, "entropy": rec.scores.entropy[i]})
+        .map(|p| {
+            let (az, el) = direction_to_view(rec.scores.views[p.view]);
+            serde_json::json!({"azimuth": az, "elevation": el, "entropy": p.entropy,
+                "mass": p.mass, "gain": p.gain, "in_view": p.in_view, "new": p.new,
+                "nearest": p.nearest, "why": p.why, "reason": p.reason})
         })
         .collect();
     let out = serde_json::json!({
         "features": name, "views": picked,
+        "count": pick.count, "min_angle": pick.min_angle, "clusters": picks.clusters,
         "clusters_used": rec.kmeans.counts.iter().filter(|&&c| c > 0).count(),
-        "uncovered": rec.selection.uncovered.len(),
+        "uncovered": picks.uncovered.len(),
         "seconds": rec.kmeans_seconds + rec.scoring_seconds,
     });
     hub.publish(Some(&s.id), "viewpoints", out.clone());

@@ -15,12 +15,18 @@
 //! session on that store ([`Memory::store_model`]) instead of once per session; a training's
 //! snapshots are its session's own (one training at a time by default, `--max-trainings`).
 //!
+//! A store's persisted feature bricks ([`neuvolex_classify::persist`]) are opened once and
+//! shared by every session on that store too ([`Memory::stored_features`]), so two sessions
+//! on one volume never write the same array twice.
+//!
 //! It also counts the renders in flight: classification yields to them between bricks
 //! ([`Memory::yield_to_renders`]), so a user waiting on the 3-D view is served first.
 
 use crate::cache::FeatureCache;
 use crate::error::{ApiError, ApiResult};
 use neuvolex_bricks::BrickStore;
+use neuvolex_classify::features::FeatureSet;
+use neuvolex_classify::persist::PersistedFeatures;
 use neuvolex_features::InrModel;
 use neuvolex_render::BrickCache;
 use std::collections::HashMap;
@@ -43,6 +49,7 @@ pub struct Memory {
     renders: AtomicUsize,
     cancelled: AtomicU64,
     models: Mutex<HashMap<String, (Stamp, Weak<InrModel>)>>,
+    stored: Mutex<HashMap<String, Weak<PersistedFeatures>>>,
 }
 
 /// Marks a render in flight until dropped ([`Memory::render_started`]).
@@ -69,6 +76,7 @@ impl Memory {
             renders: AtomicUsize::new(0),
             cancelled: AtomicU64::new(0),
             models: Mutex::new(HashMap::new()),
+            stored: Mutex::new(HashMap::new()),
         })
     }
 
@@ -99,6 +107,28 @@ impl Memory {
             models.insert(key, (s, Arc::downgrade(&model)));
         }
         Some(model)
+    }
+
+    /// The persisted features of `set` in `store` (`channels` per voxel), opened once and
+    /// shared while any session holds them; `Ok(None)` for sets with INR parts.
+    pub fn stored_features(
+        &self,
+        store: &BrickStore,
+        set: &FeatureSet,
+        channels: usize,
+    ) -> ApiResult<Option<Arc<PersistedFeatures>>> {
+        let key = format!("{}\n{set}", store.root().display());
+        let mut open = self.stored.lock().unwrap_or_else(|p| p.into_inner());
+        open.retain(|_, w| w.strong_count() > 0);
+        if let Some(p) = open.get(&key).and_then(Weak::upgrade) {
+            return Ok(Some(p));
+        }
+        let Some(p) = PersistedFeatures::open(store, set, channels)? else {
+            return Ok(None);
+        };
+        let p = Arc::new(p);
+        open.insert(key, Arc::downgrade(&p));
+        Ok(Some(p))
     }
 
     /// Store models held by sessions now: how many, and their parameters' bytes.

@@ -5,6 +5,7 @@ use crate::error::{ApiError, ApiResult};
 use neuvolex_bricks::synth::{palette, ClassInfo};
 use neuvolex_bricks::{BrickStore, Normaliser};
 use neuvolex_classify::features::{BrickFeatures, FeatureSet};
+use neuvolex_classify::persist::PersistedFeatures;
 use neuvolex_classify::pipeline::{
     store_path_string, FeatureHook, FeatureSpec, OpenedFeatures, ProbaParams, ProbaStage,
 };
@@ -27,8 +28,59 @@ use neuvolex_session::SessionFile;
 /// the same).
 pub const DEFAULT_FEATURES: &str = "filters+xyz";
 
+/// A feature set the page offers, with the trade measured in BENCHMARKS.md (mean F1 over the
+/// ROI classes of a one-shot classification, seeds 0-2, 100 trees, the spatial prior on).
+#[derive(Debug, Clone, Serialize)]
+pub struct FeatureChoice {
+    /// The set, as `neuvolex classify --features` writes it.
+    pub set: &'static str,
+    /// A short name.
+    pub label: &'static str,
+    /// Whether it needs a trained INR (then every model snapshot re-classifies).
+    pub uses_inr: bool,
+    /// What it costs and gains.
+    pub help: &'static str,
+}
+
+/// The feature sets the page offers: the default, the default with the INR's features, and
+/// the paper's feature.
+pub const FEATURE_CHOICES: [FeatureChoice; 3] = [
+    FeatureChoice {
+        set: DEFAULT_FEATURES,
+        label: "filters + position (default)",
+        uses_inr: false,
+        help: "Intensity filter bank (50 channels) and position. No training needed. Abdomen CT \
+               F1 0.33 with scribbles on 0.03 % of the voxels, 0.50 on 0.07 %; brain MRI 0.27 / \
+               0.38 (BENCHMARKS.md, one-shot tables).",
+    },
+    FeatureChoice {
+        set: "hidden+filters+xyz",
+        label: "filters + position + INR",
+        uses_inr: true,
+        help: "The default plus the INR's last hidden layer (64 channels). Needs a trained INR \
+               (3 epochs: about 20 s on the abdomen CT); every model snapshot re-classifies. \
+               Abdomen CT F1 0.34 / 0.47-0.49: the same as the default within the seed spread, \
+               at 2.2x the features per voxel.",
+    },
+    FeatureChoice {
+        set: "paper",
+        label: "INR hidden layer (paper)",
+        uses_inr: true,
+        help: "The INR's last hidden layer alone, as in the paper. Needs a trained INR. Abdomen \
+               CT F1 0.21-0.25 / 0.23-0.29: well below the default (it keeps little besides \
+               intensity); for comparison with the paper.",
+    },
+];
+
 /// A model and its version in a session (bumped by every snapshot).
 pub type VersionedModel = (u64, Arc<InrModel>);
+
+/// [`DEFAULT_FEATURES`], parsed.
+pub fn default_features() -> FeatureSet {
+    DEFAULT_FEATURES
+        .parse()
+        .expect("the default feature set parses")
+}
 
 /// Milliseconds since the Unix epoch.
 pub fn now_ms() -> u64 {
@@ -117,6 +169,14 @@ pub struct Session {
     /// The INR the features come from, with a version bumped by every snapshot the trainer
     /// publishes (`None` until one is trained).
     pub model: RwLock<Option<VersionedModel>>,
+    /// The feature set the classification uses ([`DEFAULT_FEATURES`] until the user picks
+    /// another, [`Self::set_feature_set`]).
+    pub feature_set: RwLock<FeatureSet>,
+    /// The feature bricks kept in the store for the set the session opened with (shared
+    /// with the other sessions on this store), once [`Self::prepare_features`] opened them.
+    stored: Mutex<Option<Arc<PersistedFeatures>>>,
+    /// Set when the session closes or the server stops: background work ends.
+    pub closing: AtomicBool,
     /// Feature bricks shared by every classification and recommendation of this session (in
     /// the server's one cache, under one budget for all sessions).
     pub features: SessionFeatures,
@@ -225,6 +285,9 @@ impl Session {
             focus: Mutex::new(None),
             renderer: Mutex::new(None),
             model: RwLock::new(model),
+            feature_set: RwLock::new(default_features()),
+            stored: Mutex::new(None),
+            closing: AtomicBool::new(false),
             features,
             tf: RwLock::new(None),
             preview: RwLock::new(None),
@@ -250,6 +313,9 @@ impl Session {
             self.memory.release_probs(&mut held);
         }
         *self.renderer.lock().unwrap_or_else(|p| p.into_inner()) = None;
+        // The stored features' writer (and the store's lock, while they are pending) goes
+        // with the last session holding them.
+        *self.stored.lock().unwrap_or_else(|p| p.into_inner()) = None;
         let owner = self.render_owner;
         self.memory.render.retain(|k| k.0 != owner);
         self.memory.features.drop_session(&self.id);
@@ -320,6 +386,7 @@ impl Session {
                 .as_ref()
                 .map(|t| t.0.clone()),
             view: None,
+            features: Some(self.feature_set().to_string()),
         }
     }
 
@@ -339,6 +406,15 @@ impl Session {
         *self.tf.write().unwrap_or_else(|p| p.into_inner()) =
             tf.map(|t| (f.tf.clone().unwrap_or_default(), t));
         *self.strokes.write().unwrap_or_else(|p| p.into_inner()) = f.strokes.clone();
+        if let Some(name) = &f.features {
+            // A set that needs an INR this volume does not have yet keeps the current one:
+            // the strokes still apply.
+            if let Err(e) = self.check_feature_set(name) {
+                tracing::warn!("{source}: features '{name}' not restored: {e}");
+            } else if let Ok(set) = name.parse() {
+                *self.feature_set.write().unwrap_or_else(|p| p.into_inner()) = set;
+            }
+        }
         Ok(self.generation.fetch_add(1, Ordering::SeqCst) + 1)
     }
 
@@ -361,17 +437,167 @@ impl Session {
         self.model.read().unwrap_or_else(|p| p.into_inner()).clone()
     }
 
-    /// The feature set interactive work uses, [`DEFAULT_FEATURES`] (the filter bank and
-    /// position, which beat the learned features under sparse scribbles on both dev volumes),
-    /// with the model it needs (none for the default).
+    /// The feature set the classification uses.
+    pub fn feature_set(&self) -> FeatureSet {
+        self.feature_set
+            .read()
+            .unwrap_or_else(|p| p.into_inner())
+            .clone()
+    }
+
+    /// Whether the classification reads the INR (then each model snapshot re-classifies).
+    pub fn uses_model(&self) -> bool {
+        self.feature_set().needs_model()
+    }
+
+    /// Parses `name` as a feature set this session can use now: one that needs the INR is a
+    /// conflict until a model is trained on this volume.
+    pub fn check_feature_set(&self, name: &str) -> ApiResult<FeatureSet> {
+        let set: FeatureSet = name.parse().map_err(|e: String| {
+            ApiError::BadRequest(format!("features '{}': {e}", name.escape_debug()))
+        })?;
+        if set.needs_model() && self.current_model().is_none() {
+            return Err(ApiError::Conflict(format!(
+                "features '{set}' need the INR, and none is trained on this volume yet: train \
+                 it first (INR training, or `neuvolex train`)"
+            )));
+        }
+        Ok(set)
+    }
+
+    /// Switches the classification to feature set `name` ([`Self::check_feature_set`]) and
+    /// starts a new generation (the caller re-classifies). Returns it.
+    pub fn set_feature_set(&self, name: &str) -> ApiResult<u64> {
+        let set = self.check_feature_set(name)?;
+        *self.feature_set.write().unwrap_or_else(|p| p.into_inner()) = set;
+        Ok(self.bump_generation())
+    }
+
+    /// The feature set the classification uses, with the model it needs (none for sets
+    /// without INR parts).
     pub fn feature_source(&self) -> ApiResult<(FeatureSet, Option<VersionedModel>)> {
-        let set: FeatureSet = DEFAULT_FEATURES.parse().map_err(ApiError::Internal)?;
+        let set = self.feature_set();
         let model = if set.needs_model() {
             self.current_model()
         } else {
             None
         };
+        if set.needs_model() && model.is_none() {
+            return Err(ApiError::Conflict(format!(
+                "features '{set}' need the INR, and none is trained on this volume"
+            )));
+        }
         Ok((set, model))
+    }
+
+    /// The feature bricks kept in the store for `set`, when the background pass opened them.
+    pub fn stored_for(&self, set: &FeatureSet) -> Option<Arc<PersistedFeatures>> {
+        let name = neuvolex_classify::persist::array_name(set)?;
+        self.stored
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .clone()
+            .filter(|p| p.name() == name)
+    }
+
+    /// True while the session's own work runs (forest training, classification, INR training)
+    /// or a render is in flight: background work waits.
+    fn busy(&self) -> bool {
+        let state = self
+            .status
+            .read()
+            .unwrap_or_else(|p| p.into_inner())
+            .state
+            .clone();
+        state == "training"
+            || state == "classifying"
+            || self.memory.renders_in_flight() > 0
+            || self
+                .train_cancel
+                .lock()
+                .unwrap_or_else(|p| p.into_inner())
+                .is_some()
+    }
+
+    /// Opens the feature bricks kept in the store for the session's feature set (shared with
+    /// the other sessions on this store), so classifications read them from now on: the
+    /// published array, or the pending one with the bricks done so far. Sets with INR parts,
+    /// and arrays over `limit` bytes, are not kept: `Ok(None)`.
+    pub fn open_stored_features(&self, limit: u64) -> ApiResult<Option<Arc<PersistedFeatures>>> {
+        let set = self.feature_set();
+        if set.needs_model() {
+            return Ok(None);
+        }
+        let fx = BrickFeatures::new(&self.store, set.clone(), None, false)?;
+        let bytes = neuvolex_classify::persist::stored_bytes(&self.store, fx.channels());
+        if bytes > limit {
+            tracing::info!(
+                "{}: features {set} not kept in the store ({} MiB, over the {} MiB limit)",
+                self.name,
+                bytes >> 20,
+                limit >> 20
+            );
+            return Ok(None);
+        }
+        let p = self
+            .memory
+            .stored_features(&self.store, &set, fx.channels())?;
+        *self.stored.lock().unwrap_or_else(|p| p.into_inner()) = p.clone();
+        Ok(p)
+    }
+
+    /// The background feature pass over the array [`Self::open_stored_features`] opened:
+    /// computes the features of every brick not stored yet (nearest the middle of the volume
+    /// first) and keeps them, so the first stroke finds them ready and a reopened volume is
+    /// warm. Waits whenever [`Self::busy`], ends when the session closes (or only the pass
+    /// still holds it), and publishes the array once complete. `progress(done, total)` follows
+    /// the bricks stored (`done == total` once published). Returns the bricks now stored, or
+    /// `None` when nothing is kept.
+    pub fn prepare_features(
+        self: &Arc<Self>,
+        progress: &dyn Fn(usize, usize),
+    ) -> ApiResult<Option<usize>> {
+        let set = self.feature_set();
+        let Some(p) = self.stored_for(&set) else {
+            return Ok(None);
+        };
+        let fx = BrickFeatures::new(&self.store, set.clone(), None, false)?;
+        let all: Vec<neuvolex_bricks::Brick> = self.store.bricks().collect();
+        let middle = self.store.info().dims.map(|d| d / 2);
+        let by_index: HashMap<[usize; 3], neuvolex_bricks::Brick> =
+            all.iter().map(|b| (b.index, *b)).collect();
+        let order: Vec<neuvolex_bricks::Brick> = brick_order(&all, None, Some(middle))
+            .iter()
+            .filter_map(|i| by_index.get(i).copied())
+            .collect();
+        let missing = p.missing(&order);
+        let total = all.len();
+        let mut done = total - missing.len();
+        let name = set.to_string();
+        for b in missing {
+            loop {
+                // Closed, or dropped by everyone else (a server gone without closing it).
+                if self.closing.load(Ordering::SeqCst) || Arc::strong_count(self) == 1 {
+                    return Ok(Some(done));
+                }
+                if !self.busy() {
+                    break;
+                }
+                std::thread::sleep(std::time::Duration::from_millis(50));
+            }
+            // Through the session's cache: a brick a classification computed is not computed
+            // again, and the first stroke finds the rest there while the cache has room.
+            let v = self.features.get_with(&name, 0, &fx, &b, Some(&p))?;
+            p.write(&b, &v)?;
+            done += 1;
+            if done < total {
+                progress(done, total);
+            }
+        }
+        // The last announcement follows the publication.
+        p.finish_if_complete(&self.store)?;
+        progress(done, total);
+        Ok(Some(done))
     }
 
     /// The scribbled voxels of the current strokes (class 0 strokes erase).
@@ -467,6 +693,7 @@ impl Session {
             s.message.clear();
         });
         let name = set.to_string();
+        let stored = self.stored_for(&set);
         // Newer strokes make this run stale: stop fetching features for it at once.
         // A brick not cached yet gives just the slices its strokes cross (the prediction
         // computes and caches the whole brick moments later).
@@ -476,7 +703,8 @@ impl Session {
                     "superseded by newer strokes".into(),
                 ));
             }
-            self.features.get_part(&name, version, &fx, whole, part)
+            self.features
+                .get_part(&name, version, &fx, whole, part, stored.as_deref())
         }) {
             Ok(ts) => ts,
             Err(_) if !self.current(generation) => {
@@ -573,7 +801,8 @@ impl Session {
             None => Some(Box::new(|b: &neuvolex_bricks::Brick| {
                 // A render in flight goes first (it runs on its own threads meanwhile).
                 self.memory.yield_to_renders();
-                self.features.get(&name, version, &fx, b)
+                self.features
+                    .get_with(&name, version, &fx, b, stored.as_deref())
             })),
         };
         let stage = ProbaStage::new(params, src, forest, hook)?;

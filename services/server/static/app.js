@@ -46,7 +46,8 @@ async function open() {
   }
   $("export").href = `/api/sessions/${S.id}/export/labels.nii.gz`;
   layoutViews(); renderClasses(); await loadTf(); refreshAll();
-  $("trinfo").textContent = S.info.trained ? `model version ${S.info.model_version}` : "not trained"; $("preview").removeAttribute("src");
+  $("trinfo").textContent = S.info.trained ? `INR trained (model ${S.info.model_version})` : "not trained"; $("preview").removeAttribute("src");
+  await loadFeatures();
   $("prior").checked = !S.info.prior || S.info.prior.enabled; priorInfo(S.info.prior); $("suggestinfo").textContent = "";
   status(`${S.info.volume}: ${d.join(" x ")}`);
 }
@@ -166,7 +167,7 @@ function drawStrokes(a, g, extra) {
 function refreshAll() { for (const a of ["x", "y", "z"]) drawSlice(a); render(); fractions(); }
 async function render() {
   if (!S.id || S.renderPending) return; S.renderPending = true;
-  const q = new URLSearchParams({ az: $("az").value, el: $("el").value, size: 400 });
+  const q = new URLSearchParams({ az: $("az").value, el: $("el").value, size: 400, zoom: $("zoom").value });
   if ($("mode").value) q.set("mode", $("mode").value);
   const i = await loadImg(`/api/sessions/${S.id}/render?${q}&t=${Date.now()}`);
   if (i) $("render").src = i.src;
@@ -292,9 +293,9 @@ $("neuro").onchange = (e) => {
   localStorage.setItem("neuvolex.neurological", e.target.checked ? "1" : "0");
   if (S.info) { layoutViews(); for (const a of ["x", "y", "z"]) drawSlice(a); }
 };
-for (const id of ["az", "el", "mode"]) $(id).oninput = render;
+for (const id of ["az", "el", "mode", "zoom"]) $(id).oninput = render;
 $("open").onclick = open;
-const train = async (action) => { try { await api("POST", `/api/sessions/${S.id}/train`, { action, epochs: +$("epochs").value || 1 }); status("training ..."); } catch (e) { status("error: " + e.message); } };
+const train = async (action) => { try { await api("POST", `/api/sessions/${S.id}/train`, { action, epochs: +$("epochs").value || 1 }); status("starting INR training ..."); } catch (e) { status("error: " + e.message); } };
 $("train").onclick = () => train("start");
 $("resume").onclick = () => train("resume");
 $("exportz").onclick = async () => {
@@ -326,10 +327,50 @@ $("load").onchange = async (e) => {
   } catch (err) { status(`error: ${f.name}: ${err.message}`); return; }
   S.strokes = j.strokes || []; S.redo = [];
   renderClasses(); await loadTf();
-  if (j.view) { $("az").value = j.view.az; $("el").value = j.view.el; $("mode").value = j.view.mode || ""; }
+  if (j.view) { $("az").value = j.view.az; $("el").value = j.view.el; $("mode").value = j.view.mode || "labels"; }
+  await loadFeatures();
   refreshAll();
   status(`loaded ${f.name}: ${S.strokes.length} strokes`);
 };
+
+// Features: the choices with their measured trade; what training feeds follows from the choice.
+async function loadFeatures() {
+  if (!S.id) return;
+  let r; try { r = await api("GET", `/api/sessions/${S.id}/features`); } catch (_) { return; }
+  const sel = $("features"); sel.innerHTML = "";
+  const choices = r.choices.some((c) => c.set === r.set) ? r.choices : [...r.choices, { set: r.set, label: r.set, help: "", available: true }];
+  for (const c of choices) {
+    const o = document.createElement("option");
+    o.value = c.set; o.textContent = c.label + (c.available ? "" : " (train the INR first)"); o.disabled = !c.available; o.title = c.help;
+    sel.appendChild(o);
+  }
+  sel.value = r.set;
+  $("featinfo").textContent = (choices.find((c) => c.set === r.set) || {}).help || "";
+  $("featprep").textContent = r.stored === "complete" ? "features ready (kept in the store)" : r.stored === "pending" ? "preparing features ..." : "";
+  $("trfeeds").textContent = r.uses_inr
+    ? "The classification reads the INR: every model snapshot re-classifies. Training also feeds the recommended views."
+    : "The classification does not read the INR: training feeds the recommended views and the preview (choose features with the INR to classify with it).";
+}
+$("features").onchange = async (e) => {
+  if (!S.id) return;
+  try {
+    await api("PUT", `/api/sessions/${S.id}/features`, { set: e.target.value });
+    if (S.strokes.length) { status("re-classifying with the new features ..."); progress(0, 1); S.firstPaint = true; }
+  } catch (err) { status("error: " + err.message); }
+  loadFeatures();
+};
+function trainingWords(d) {
+  const m = d.model_version ? ` (model ${d.model_version})` : "";
+  switch (d.state) {
+    case "running": return `training the INR: epoch ${(d.epoch || 0).toFixed(2)}, PSNR ${(d.psnr || 0).toFixed(1)} dB`;
+    case "snapshot": return `INR snapshot at step ${d.step}${m}${d.classifies ? ": re-classifying" : ""}`;
+    case "finished": return `INR training finished (${d.stopped_by || "budget"}), PSNR ${(d.psnr || 0).toFixed(1)} dB`;
+    case "model_saved": return `INR trained and saved, PSNR ${(d.psnr || 0).toFixed(1)} dB${m}${d.classifies ? ": re-classifying" : ""}`;
+    case "stopped": return `INR training stopped${d.checkpoint ? "; Resume continues from the checkpoint" : ""}`;
+    case "failed": return `INR training failed: ${d.error}`;
+    default: return `INR training: ${d.state}${d.error ? ": " + d.error : ""}`;
+  }
+}
 
 // Assistance: the spatial prior (a toggle) and the next-slice suggestion.
 function priorInfo(r) {
@@ -340,7 +381,8 @@ $("prior").onchange = async (e) => {
   if (!S.id) return;
   try { priorInfo(await api("PUT", `/api/sessions/${S.id}/prior`, { enabled: e.target.checked })); }
   catch (err) { status("error: " + err.message); }
-  for (const a of ["x", "y", "z"]) drawSlice(a);
+  // The overlays, the 3-D labels and the fractions all follow the prior.
+  refreshAll();
 };
 async function suggestSlice(axis) {
   if (!S.id) return;
@@ -355,21 +397,31 @@ async function suggestSlice(axis) {
 }
 $("suggest").onclick = () => suggestSlice("z");
 
-// Viewpoint recommendation: thumbnails that move the 3-D view.
+// Viewpoint recommendation: distinct views, each captioned with the reason it was picked; a
+// click moves the 3-D view there. The thumbnails draw what the 3-D view draws (its mode, the
+// current transfer function and labels).
 $("recommend").onclick = async () => {
   if (!S.id) return;
+  const count = Math.round(+$("vpcount").value) || 4, minAngle = +$("vpangle").value;
   $("vpinfo").textContent = "computing ...";
   try {
-    const r = await api("POST", `/api/sessions/${S.id}/viewpoints`, { k: 50, views: 1800 });
-    $("vpinfo").textContent = `${r.views.length} views (${r.features}, ${r.seconds.toFixed(1)} s)`;
+    const r = await api("POST", `/api/sessions/${S.id}/viewpoints`, { k: 50, views: 1800, count, min_angle: minAngle });
+    const n = r.views.length, few = n < r.count ? ` (no more lie ${r.min_angle}\u00b0 apart)` : "";
+    $("vpinfo").textContent = `${n} view${n === 1 ? "" : "s"}${few}, \u2265 ${r.min_angle}\u00b0 apart (${r.features} features, ${r.seconds.toFixed(1)} s)`;
     $("thumbs").innerHTML = "";
-    for (const v of r.views) {
-      const img = document.createElement("img");
-      img.src = `/api/sessions/${S.id}/render?az=${v.azimuth.toFixed(1)}&el=${v.elevation.toFixed(1)}&size=96`;
-      img.title = `azimuth ${v.azimuth.toFixed(0)}, elevation ${v.elevation.toFixed(0)}, entropy ${v.entropy.toFixed(2)}`;
-      img.onclick = () => { $("az").value = Math.round(v.azimuth); $("el").value = Math.round(v.elevation); render(); };
-      $("thumbs").appendChild(img);
-    }
+    const mode = $("mode").value;
+    r.views.forEach((v, i) => {
+      const q = new URLSearchParams({ az: v.azimuth.toFixed(1), el: v.elevation.toFixed(1), size: 128, zoom: $("zoom").value });
+      if (mode) q.set("mode", mode);
+      const fig = document.createElement("figure"), img = document.createElement("img"), cap = document.createElement("figcaption");
+      img.src = `/api/sessions/${S.id}/render?${q}`;
+      img.alt = `view ${i + 1}`;
+      cap.textContent = `${i + 1}. ${v.reason}`;
+      fig.title = `${v.reason}\nazimuth ${v.azimuth.toFixed(0)}\u00b0, elevation ${v.elevation.toFixed(0)}\u00b0; ${v.in_view} of ${r.clusters} feature clusters in view, entropy ${v.entropy.toFixed(2)}`;
+      fig.onclick = () => { $("az").value = Math.round(v.azimuth); $("el").value = Math.round(v.elevation); render(); };
+      fig.append(img, cap);
+      $("thumbs").appendChild(fig);
+    });
   } catch (e) { $("vpinfo").textContent = "error: " + e.message; }
 };
 
@@ -392,9 +444,14 @@ function subscribe() {
     refreshAll(); refreshPrior();
   });
   on("training", (d) => {
-    const t = d.error ? "training " + d.state + ": " + d.error : `training ${d.state}${d.epoch ? " epoch " + d.epoch.toFixed(2) : ""}${d.psnr ? " PSNR " + d.psnr.toFixed(1) + " dB" : ""}${d.model_version ? " (model " + d.model_version + ")" : ""}`;
+    const t = trainingWords(d);
     status(t); $("trinfo").textContent = t;
+    // A first model makes the sets with the INR available.
+    if (d.state === "snapshot" || d.state === "model_saved") { loadFeatures(); if (d.classifies) { progress(0, 1); S.firstPaint = true; } }
   });
+  // The background feature pass after an open: bricks whose features are ready (kept in the
+  // volume's store, so the next open starts warm).
+  on("features", (d) => { $("featprep").textContent = d.done === d.total ? "features ready (kept in the store)" : `preparing features: ${d.done} of ${d.total} bricks`; });
   on("preview", (d) => { $("preview").src = `/api/sessions/${S.id}/preview.png?t=${Date.now()}`; $("preview").title = `reconstruction (left) beside the input (right), PSNR ${d.psnr.toFixed(1)} dB`; });
   on("viewpoints_progress", (d) => { $("vpinfo").textContent = `aggregating ${d.bricks}/${d.total} bricks; best so far azimuth ${d.best.azimuth.toFixed(0)}, elevation ${d.best.elevation.toFixed(0)}`; });
   on("actor_failed", (d) => { status("a worker failed and was restarted: " + d.error); });
@@ -409,7 +466,7 @@ function subscribe() {
   S.events = ev;
 }
 function progress(done, total) { const p = $("progress"); p.max = Math.max(1, total); p.value = done; p.title = `${done} of ${total} bricks classified`; }
-const FEATURE_WORDS = { "filters+xyz": "intensity filters and position", inr: "INR features", "inr+filters": "INR features and intensity filters", paper: "the paper's features" };
+const FEATURE_WORDS = { "filters+xyz": "filter bank and position", "hidden+filters+xyz": "filter bank, position and the INR", inr: "INR features", paper: "the paper's feature" };
 function classificationWords(st) {
   const f = FEATURE_WORDS[st.features] || st.features || "";
   const words = { idle: "waiting for scribbles of two classes", classifying: `classifying (${st.done} of ${st.total} bricks)`, done: `classified the whole volume`, cancelled: "superseded by a newer stroke", failed: "classification failed", training: "training the forest" };

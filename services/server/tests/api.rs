@@ -97,6 +97,38 @@ async fn scribble_classify_render_export() {
     )
     .await;
     assert_eq!(r.status(), 200);
+    // Zoom magnifies the same view: the volume covers more of the frame.
+    let mut lit = Vec::new();
+    for zoom in ["1", "2"] {
+        let r = test::call_service(
+            &app,
+            test::TestRequest::get()
+                .uri(&format!(
+                    "/api/sessions/{id}/render?size=64&az=10&el=5&mode=intensity&zoom={zoom}"
+                ))
+                .to_request(),
+        )
+        .await;
+        assert_eq!(r.status(), 200);
+        let png = test::read_body(r).await;
+        let mut r = png::Decoder::new(std::io::Cursor::new(png.to_vec()))
+            .read_info()
+            .unwrap();
+        let mut buf = vec![0u8; r.output_buffer_size().unwrap()];
+        let info = r.next_frame(&mut buf).unwrap();
+        let px = info.color_type.samples();
+        let frame = &buf[..info.buffer_size()];
+        lit.push(
+            frame
+                .chunks_exact(px)
+                .filter(|p| p[..3].iter().any(|&c| c > 8))
+                .count(),
+        );
+    }
+    assert!(
+        lit[1] > lit[0] * 2,
+        "zoom 2 covers more of the frame: {lit:?}"
+    );
     // Viewpoints of the session's volume.
     let req = test::TestRequest::post()
         .uri(&format!("/api/sessions/{id}/viewpoints"))
@@ -199,6 +231,8 @@ async fn hostile_and_malformed_requests_get_clear_4xx() {
         (format!("/api/sessions/{id}/render?size=100000"), "size"),
         (format!("/api/sessions/{id}/render?el=200"), "elevation"),
         (format!("/api/sessions/{id}/render?mode=x"), "mode"),
+        (format!("/api/sessions/{id}/render?zoom=9"), "zoom"),
+        (format!("/api/sessions/{id}/render?zoom=0"), "zoom"),
         (format!("/api/sessions/{id}/render?tf=nope"), "preset"),
         (format!("/api/sessions/{id}/render?bogus=1"), "malformed"),
     ] {
@@ -636,20 +670,66 @@ async fn labels_and_probabilities_export_as_nifti_and_ome_zarr() {
     }
 }
 
+/// PUT /features with `set`; answers the status and body.
+async fn put_features<S>(app: &S, id: &str, set: &str) -> (u16, Value)
+where
+    S: actix_web::dev::Service<
+        actix_http::Request,
+        Response = actix_web::dev::ServiceResponse,
+        Error = actix_web::Error,
+    >,
+{
+    let req = test::TestRequest::put()
+        .uri(&format!("/api/sessions/{id}/features"))
+        .set_json(json!({ "set": set }))
+        .to_request();
+    let r = test::call_service(app, req).await;
+    let code = r.status().as_u16();
+    let body: Value = serde_json::from_slice(&test::read_body(r).await).unwrap_or(Value::Null);
+    (code, body)
+}
+
 #[actix_web::test]
-async fn training_streams_previews_and_refreshes_the_classification() {
+async fn training_refreshes_the_classification_only_when_the_features_read_the_inr() {
     let (_d, cfg) = data();
     let app = app!(cfg);
     let id = open_session(&app).await;
     let g = put_strokes(&app, &id, 0).await;
     let v = wait_done(&app, &id, g).await;
     assert_eq!(v["status"]["features"], "filters+xyz", "the default: {v}");
-    let mut sse = Sse::open(&app, &format!("?session={id}")).await;
-    let req = test::TestRequest::post()
-        .uri(&format!("/api/sessions/{id}/train"))
-        .set_json(json!({"action": "start", "epochs": 10}))
+    // The choices, with the INR ones unavailable before a model exists.
+    let req = test::TestRequest::get()
+        .uri(&format!("/api/sessions/{id}/features"))
         .to_request();
-    assert_eq!(test::call_service(&app, req).await.status(), 202);
+    let f: Value = test::call_and_read_body_json(&app, req).await;
+    assert_eq!(f["set"], "filters+xyz", "{f}");
+    assert_eq!(f["uses_inr"], false, "{f}");
+    let choices = f["choices"].as_array().unwrap();
+    assert_eq!(choices.len(), 3, "{f}");
+    for c in choices {
+        assert!(
+            c["help"].as_str().unwrap().contains("F1"),
+            "the measured trade: {c}"
+        );
+        assert_eq!(c["available"], c["uses_inr"] == false, "{c}");
+    }
+    let (code, body) = put_features(&app, &id, "paper").await;
+    assert_eq!(code, 409, "needs the INR first: {body}");
+    assert!(body["error"].as_str().unwrap().contains("INR"), "{body}");
+    let (code, body) = put_features(&app, &id, "filters+bogus").await;
+    assert_eq!(code, 400, "{body}");
+    assert!(body["error"].as_str().unwrap().contains("bogus"), "{body}");
+
+    // Training with the default features feeds the views and the preview, not the
+    // classification: no snapshot re-classifies.
+    let mut sse = Sse::open(&app, &format!("?session={id}")).await;
+    let train = |action: &str| {
+        test::TestRequest::post()
+            .uri(&format!("/api/sessions/{id}/train"))
+            .set_json(json!({"action": action, "epochs": 10}))
+            .to_request()
+    };
+    assert_eq!(test::call_service(&app, train("start")).await.status(), 202);
     let p = sse.next("preview", |_| true).await;
     assert!(p["data"]["psnr"].as_f64().unwrap().is_finite(), "{p}");
     let r = test::call_service(
@@ -661,29 +741,58 @@ async fn training_streams_previews_and_refreshes_the_classification() {
     .await;
     assert_eq!(r.status(), 200);
     assert_eq!(&test::read_body(r).await[1..4], b"PNG");
-    // A snapshot mid-training refreshes the classification.
-    sse.next("training", |v| v["data"]["state"] == "snapshot")
+    let snap = sse
+        .next("training", |v| v["data"]["state"] == "snapshot")
         .await;
+    assert_eq!(snap["data"]["classifies"], false, "{snap}");
+    assert!(snap["data"]["generation"].is_null(), "{snap}");
     let saved = sse
         .next("training", |v| v["data"]["state"] == "model_saved")
         .await;
+    assert!(saved["data"]["generation"].is_null(), "{saved}");
     let req = test::TestRequest::get()
         .uri(&format!("/api/sessions/{id}"))
         .to_request();
     let s: Value = test::call_and_read_body_json(&app, req).await;
     assert_eq!(s["trained"], true);
     assert!(s["model_version"].as_u64().unwrap() >= 2, "{s}");
-    // The final model re-classifies under a new generation, announced with the event.
-    let g = saved["data"]["generation"]
+    assert_eq!(
+        s["generation"].as_u64(),
+        Some(g),
+        "nothing re-classified: {s}"
+    );
+
+    // With a model, the set with the INR is available and re-classifies at once.
+    let (code, body) = put_features(&app, &id, "hidden+filters+xyz").await;
+    assert_eq!(code, 200, "{body}");
+    assert_eq!(body["uses_inr"], true, "{body}");
+    let v = wait_done(&app, &id, body["generation"].as_u64().unwrap()).await;
+    assert_eq!(v["status"]["features"], "hidden+filters+xyz", "{v}");
+    assert_eq!(v["status"]["state"], "done", "{v}");
+    // Now every snapshot and the final model re-classify, announced with the event.
+    assert_eq!(
+        test::call_service(&app, train("resume")).await.status(),
+        202
+    );
+    let snap = sse
+        .next("training", |v| v["data"]["state"] == "snapshot")
+        .await;
+    assert_eq!(snap["data"]["classifies"], true, "{snap}");
+    let saved = sse
+        .next("training", |v| v["data"]["state"] == "model_saved")
+        .await;
+    let g2 = saved["data"]["generation"]
         .as_u64()
         .unwrap_or_else(|| panic!("no re-classification queued: {saved}"));
-    assert!(g > 1, "{saved}");
-    let v = wait_done(&app, &id, g).await;
-    assert_eq!(
-        v["status"]["features"], "filters+xyz",
-        "the default stays the filter bank with a model: {v}"
-    );
+    let v = wait_done(&app, &id, g2).await;
+    assert_eq!(v["status"]["features"], "hidden+filters+xyz", "{v}");
     assert_eq!(v["status"]["state"], "done", "{v}");
+    // The session file keeps the choice.
+    let req = test::TestRequest::get()
+        .uri(&format!("/api/sessions/{id}/state"))
+        .to_request();
+    let st: Value = test::call_and_read_body_json(&app, req).await;
+    assert_eq!(st["features"], "hidden+filters+xyz", "{st}");
     // Stopping when nothing runs is a conflict.
     let req = test::TestRequest::post()
         .uri(&format!("/api/sessions/{id}/train"))
@@ -1101,4 +1210,184 @@ async fn idle_sessions_are_saved_and_closed_but_training_ones_stay() {
     let _c = st.open("ph.zarr").await.unwrap();
     std::thread::sleep(std::time::Duration::from_millis(50));
     assert!(st.close_idle().is_empty());
+}
+
+/// The angle in degrees between two recommended views (`azimuth`/`elevation` in degrees).
+fn view_angle(a: &Value, b: &Value) -> f64 {
+    let dir = |v: &Value| {
+        let az = v["azimuth"].as_f64().unwrap().to_radians();
+        let el = v["elevation"].as_f64().unwrap().to_radians();
+        [az.sin() * el.cos(), -az.cos() * el.cos(), el.sin()]
+    };
+    let (p, q) = (dir(a), dir(b));
+    (p[0] * q[0] + p[1] * q[1] + p[2] * q[2])
+        .clamp(-1.0, 1.0)
+        .acos()
+        .to_degrees()
+}
+
+/// Issue 34: the recommended views are `count` many (4 by default), no two nearer than
+/// `min_angle` degrees (30 by default), each with the reason it was picked; out-of-range
+/// fields get a 400 naming them, and the older fields (`k`, `views`) still work.
+#[actix_web::test]
+async fn viewpoints_are_distinct_counted_and_explained() {
+    let (_d, cfg) = data();
+    let app = app!(cfg);
+    let id = open_session(&app).await;
+    let post = |body: Value| {
+        test::TestRequest::post()
+            .uri(&format!("/api/sessions/{id}/viewpoints"))
+            .set_json(body)
+            .to_request()
+    };
+    for (body, count, min_angle) in [
+        (json!({"k": 12, "views": 400}), 4, 30.0),
+        (
+            json!({"k": 12, "views": 400, "count": 7, "min_angle": 40}),
+            7,
+            40.0,
+        ),
+        (json!({"k": 8, "views": 300, "count": 1}), 1, 30.0),
+    ] {
+        let v: Value = test::call_and_read_body_json(&app, post(body.clone())).await;
+        let views = v["views"].as_array().unwrap();
+        assert_eq!(views.len(), count, "{body}: {v}");
+        assert_eq!(v["count"], count, "{v}");
+        assert_eq!(v["min_angle"].as_f64(), Some(min_angle), "{v}");
+        for (i, a) in views.iter().enumerate() {
+            let reason = a["reason"].as_str().unwrap_or_default();
+            assert!(reason.len() > 10, "view {i} has no reason: {v}");
+            assert!(a["why"].is_string(), "{v}");
+            for b in &views[i + 1..] {
+                let angle = view_angle(a, b);
+                assert!(
+                    angle >= min_angle - 0.01,
+                    "{body}: two views {angle:.1} degrees apart: {v}"
+                );
+            }
+        }
+        assert_eq!(views[0]["why"], "best_single", "{v}");
+        assert!(
+            views[0]["reason"]
+                .as_str()
+                .unwrap()
+                .starts_with("best single view"),
+            "{v}"
+        );
+    }
+    for (body, field) in [
+        (json!({"count": 0}), "count"),
+        (json!({"count": 13}), "count"),
+        (json!({"min_angle": 91}), "min_angle"),
+        (json!({"min_angle": -1}), "min_angle"),
+        (json!({"k": 0}), "k"),
+    ] {
+        let r = test::call_service(&app, post(body.clone())).await;
+        assert_eq!(r.status(), 400, "{body}");
+        let e: Value = serde_json::from_slice(&test::read_body(r).await).unwrap();
+        let msg = e["error"].as_str().unwrap_or_default();
+        assert!(msg.starts_with(field), "{body}: {e}");
+    }
+}
+
+/// Waits for the `features` event saying every brick of `id` is stored.
+async fn features_stored(
+    rx: &mut tokio::sync::broadcast::Receiver<neuvolex_server::actors::Event>,
+    id: &str,
+) -> Value {
+    let deadline = std::time::Instant::now() + Duration::from_secs(120);
+    loop {
+        let left = deadline.saturating_duration_since(std::time::Instant::now());
+        let e = tokio::time::timeout(left, rx.recv())
+            .await
+            .expect("the background feature pass finishes within 120 s")
+            .unwrap();
+        if e.kind == "features"
+            && e.session.as_deref() == Some(id)
+            && e.data["done"] == e.data["total"]
+        {
+            return e.data;
+        }
+    }
+}
+
+/// Classifies the phantom's strokes in process and returns every brick's probabilities.
+fn classify_now(
+    s: &std::sync::Arc<neuvolex_server::session::Session>,
+) -> Vec<([usize; 3], Vec<u8>)> {
+    let strokes: Vec<neuvolex_classify::scribble::Stroke> =
+        serde_json::from_value(strokes(0)).unwrap();
+    let g = s.set_strokes(strokes).unwrap();
+    let n = s.classify(g, 30, &|_, _, _| {}).unwrap();
+    assert!(n > 0);
+    let p = s.probs.read().unwrap();
+    let mut v: Vec<_> = p.bricks.iter().map(|(k, b)| (*k, b.to_vec())).collect();
+    v.sort();
+    v
+}
+
+#[actix_web::test]
+async fn features_are_prepared_in_the_background_and_kept_in_the_store() {
+    let (d, cfg) = data();
+    let st = AppState::new(cfg.clone());
+    let mut rx = st.actors.hub.subscribe();
+    let s = st.open("ph.zarr").await.unwrap();
+    let done = features_stored(&mut rx, &s.id).await;
+    assert_eq!(done["total"], 27, "48^3 in 16^3 bricks: {done}");
+    let store = BrickStore::open(d.path().join("data/ph.zarr")).unwrap();
+    let a = store.open_vectors("features_filters-xyz").unwrap();
+    assert!(a.info().complete, "published once every brick is in");
+    assert_eq!(a.info().channels, 53);
+    // The pass released the store's writer lock with the publication.
+    drop(store.writer_lock("test").unwrap());
+    let fresh = {
+        let s = s.clone();
+        tokio::task::spawn_blocking(move || classify_now(&s))
+            .await
+            .unwrap()
+    };
+    st.close(&s).unwrap();
+    // Reopened: the stored features are read whole, and classify to the same probabilities.
+    let s = st.open("ph.zarr").await.unwrap();
+    let set = neuvolex_server::session::default_features();
+    let deadline = std::time::Instant::now() + Duration::from_secs(60);
+    while s.stored_for(&set).is_none() {
+        assert!(
+            std::time::Instant::now() < deadline,
+            "the stored features open"
+        );
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    assert!(s.stored_for(&set).unwrap().complete());
+    let again = {
+        let s = s.clone();
+        tokio::task::spawn_blocking(move || classify_now(&s))
+            .await
+            .unwrap()
+    };
+    assert_eq!(fresh.len(), 27);
+    assert!(
+        fresh == again,
+        "the stored features are the computed ones, bit for bit"
+    );
+}
+
+#[actix_web::test]
+async fn no_features_are_kept_past_the_limit() {
+    let (d, mut cfg) = data();
+    cfg.feature_store_bytes = 1 << 20; // 48^3 x 53 x 2 bytes is 11 MiB
+    let st = AppState::new(cfg);
+    let s = st.open("ph.zarr").await.unwrap();
+    let strokes: Vec<neuvolex_classify::scribble::Stroke> =
+        serde_json::from_value(strokes(0)).unwrap();
+    let g = s.set_strokes(strokes).unwrap();
+    let s2 = s.clone();
+    tokio::task::spawn_blocking(move || s2.classify(g, 30, &|_, _, _| {}).unwrap())
+        .await
+        .unwrap();
+    let store = BrickStore::open(d.path().join("data/ph.zarr")).unwrap();
+    assert!(!store.has_vectors("features_filters-xyz").unwrap());
+    assert!(s
+        .stored_for(&neuvolex_server::session::default_features())
+        .is_none());
 }

@@ -87,6 +87,10 @@ pub struct SessionFile {
     /// The 3-D view.
     #[serde(default)]
     pub view: Option<View>,
+    /// The feature set the classification uses (`filters+xyz`, `hidden+filters+xyz`, `paper`,
+    /// or any `neuvolex classify --features` set); absent: the default.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub features: Option<String>,
 }
 
 fn format_tag() -> String {
@@ -212,15 +216,19 @@ impl SessionFile {
         validate_classes(&self.classes).map_err(|d| err(source, d))?;
         validate_strokes(&self.strokes, &self.classes).map_err(|d| err(source, d))?;
         self.tf_file(source)?;
+        if let Some(f) = &self.features {
+            f.parse::<neuvolex_classify::features::FeatureSet>()
+                .map_err(|e| err(source, format!("features: {e}")))?;
+        }
         if let Some(v) = &self.view {
             if !v.az.is_finite() || !v.el.is_finite() {
                 return Err(err(source, "view: az and el must be finite numbers"));
             }
-            if !["", "intensity", "prob", "prob-intensity"].contains(&v.mode.as_str()) {
+            if !["", "labels", "intensity", "prob", "prob-intensity"].contains(&v.mode.as_str()) {
                 return Err(err(
                     source,
                     format!(
-                        "view: mode '{}' must be intensity, prob or prob-intensity",
+                        "view: mode '{}' must be labels, intensity, prob or prob-intensity",
                         v.mode.escape_debug()
                     ),
                 ));
@@ -264,7 +272,8 @@ mod tests {
             "strokes": [{"class": 1, "axis": "z", "slice": 3, "points": [[4, 4], [9, 5]], "radius": 2},
                         {"class": 255, "axis": "x", "slice": 0, "points": [[1, 1]], "radius": 0}],
             "tf": {"intensity": {"opacity": [[0, 0], [1, 1]]}},
-            "view": {"az": "30", "el": 20, "mode": "prob"}
+            "view": {"az": "30", "el": 20, "mode": "labels"},
+            "features": "hidden+filters+xyz"
         })
     }
 
@@ -272,6 +281,8 @@ mod tests {
     fn round_trip_and_legacy_view() {
         let s = SessionFile::parse(&good().to_string(), "a.json").unwrap();
         assert_eq!(s.view.as_ref().unwrap().az, 30.0);
+        assert_eq!(s.view.as_ref().unwrap().mode, "labels");
+        assert_eq!(s.features.as_deref(), Some("hidden+filters+xyz"));
         assert_eq!(s.format, FORMAT);
         let again = SessionFile::parse(&s.to_json(), "b.json").unwrap();
         assert_eq!(again, s);
@@ -287,6 +298,11 @@ mod tests {
             ("/strokes/0/class", 7.into(), "strokes[0]: class 7"),
             ("/tf/intensity/opacity/0/1", 2.into(), "tf:"),
             ("/view/mode", "x-ray".into(), "view: mode"),
+            (
+                "/features",
+                "filters+nope".into(),
+                "features: unknown feature 'nope'",
+            ),
             ("/view/az", "north".into(), "not a number"),
             ("/volume", "".into(), "volume"),
         ];

@@ -3,7 +3,8 @@
 //! The paper's adaptation of iView: cluster the per-voxel features with k-means (k = 50), give
 //! each cluster a representative normal from its gradients, score 1800 candidate views on a
 //! Fibonacci sphere by the entropy of the clusters they show, and greedily pick a compact set of
-//! complementary views.
+//! complementary views; [`pick::pick_distinct`] picks a few distinct ones for a user, each
+//! with its reason.
 //!
 //! Everything per brick is a pure function returning a mergeable partial
 //! ([`kmeans::Partial`], [`scores::ClusterPartial`]); schedulers merge partials as bricks finish,
@@ -13,11 +14,13 @@
 
 pub mod distributed;
 pub mod kmeans;
+pub mod pick;
 pub mod pipeline;
 pub mod scores;
 pub mod sphere;
 
 pub use kmeans::{KMeans, KMeansConfig};
+pub use pick::{pick_distinct, Pick, PickConfig, Picks, Why};
 pub use pipeline::{recommend, RecommendConfig, Recommendation};
 pub use scores::{ClusterPartial, ClusterSummary, Selection, ViewScores};
 pub use sphere::{direction_to_view, fibonacci_sphere, view_to_direction};

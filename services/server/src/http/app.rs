@@ -62,11 +62,16 @@ pub struct ServerConfig {
     /// A session no request has named for this long, and not training, is saved and closed,
     /// giving its share of the caches back (`None`: never).
     pub idle_close: Option<Duration>,
+    /// Largest feature array (bytes, f16 before compression) a session computes in the
+    /// background when its volume opens and keeps in the store, so the first stroke and
+    /// every later open find the features ready; 0 turns the background pass off.
+    pub feature_store_bytes: u64,
 }
 
 impl ServerConfig {
     /// A configuration with the default budgets for all sessions together (feature cache
-    /// 512 MiB, render cache 512 MiB, probabilities 2 GiB), no token,
+    /// 512 MiB, render cache 512 MiB, probabilities 2 GiB), features kept in stores up to
+    /// [`DEFAULT_FEATURE_STORE_BYTES`], no token,
     /// [`MAX_SESSIONS`] sessions, one training at a time, a 60 s request timeout and no fault
     /// injection.
     pub fn new(data_root: PathBuf, work_dir: PathBuf) -> Self {
@@ -87,9 +92,14 @@ impl ServerConfig {
             max_trainings: 1,
             request_timeout: Duration::from_secs(60),
             idle_close: Some(DEFAULT_IDLE_CLOSE),
+            feature_store_bytes: DEFAULT_FEATURE_STORE_BYTES,
         }
     }
 }
+
+/// Default for [`ServerConfig::feature_store_bytes`]: 4 GiB (the filter bank and position
+/// take 106 bytes a voxel, so volumes up to about 40 M voxels, a 512 x 512 x 150 CT).
+pub const DEFAULT_FEATURE_STORE_BYTES: u64 = 4 << 30;
 
 /// How long a session may sit unused before it is saved and closed.
 pub const DEFAULT_IDLE_CLOSE: Duration = Duration::from_secs(30 * 60);
@@ -291,7 +301,52 @@ impl AppState {
             .write()
             .unwrap_or_else(|p| p.into_inner())
             .insert(id, s.clone());
+        self.prepare_features(&s).await;
         Ok(s)
+    }
+
+    /// Opens the features kept in the session's store (before the first stroke can arrive, so
+    /// it reads them), then starts the background feature pass
+    /// ([`Session::prepare_features`]) on a thread of its own (not the runtime's blocking pool,
+    /// whose shutdown would wait for it), announcing progress as `features` events.
+    async fn prepare_features(&self, s: &Arc<Session>) {
+        let limit = self.cfg.feature_store_bytes;
+        if limit == 0 {
+            return;
+        }
+        let s2 = s.clone();
+        match blocking(move || s2.open_stored_features(limit)).await {
+            Ok(Some(_)) => {}
+            Ok(None) => return,
+            Err(e) => {
+                tracing::warn!("{}: features not kept in the store: {e}", s.name);
+                return;
+            }
+        }
+        let (s, hub) = (s.clone(), self.actors.hub.clone());
+        let name = format!("features-{}", s.id);
+        let started = std::thread::Builder::new().name(name).spawn(move || {
+            let last = std::sync::Mutex::new(Instant::now());
+            let progress = |done: usize, total: usize| {
+                let mut l = last.lock().unwrap_or_else(|p| p.into_inner());
+                if done == total || l.elapsed() > Duration::from_millis(500) {
+                    *l = Instant::now();
+                    hub.publish(
+                        Some(&s.id),
+                        "features",
+                        serde_json::json!({"done": done, "total": total}),
+                    );
+                }
+            };
+            match s.prepare_features(&progress) {
+                Ok(Some(n)) => tracing::info!("{}: {n} feature bricks kept in the store", s.name),
+                Ok(None) => {}
+                Err(e) => tracing::warn!("{}: features not kept in the store: {e}", s.name),
+            }
+        });
+        if let Err(e) = started {
+            tracing::warn!("no background feature pass: {e}");
+        }
     }
 
     /// Closes a session: its work is cancelled (training stopped, classification made
@@ -310,6 +365,7 @@ impl AppState {
             .write()
             .unwrap_or_else(|p| p.into_inner())
             .remove(&s.id);
+        s.closing.store(true, Ordering::SeqCst);
         s.release_memory();
         Ok(())
     }
@@ -325,6 +381,7 @@ impl AppState {
         let sessions = self.all_sessions();
         for s in &sessions {
             stop_work(s);
+            s.closing.store(true, Ordering::SeqCst);
         }
         let work = self.cfg.work_dir.clone();
         let saved = web::block(move || {

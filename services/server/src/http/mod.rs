@@ -2,6 +2,7 @@
 
 mod app;
 mod assist;
+mod features;
 mod results;
 mod server;
 mod sessions;
@@ -43,6 +44,7 @@ fn info(s: &Session) -> serde_json::Value {
         "generation": s.generation.load(Ordering::SeqCst),
         "status": *s.status.read().unwrap_or_else(|p| p.into_inner()),
         "trained": model.is_some(),
+        "features": s.feature_set().to_string(),
         "model_version": model.map_or(0, |m| m.0),
         "tf": s.tf.read().unwrap_or_else(|p| p.into_inner()).as_ref().map(|t| t.0.clone()),
         "prior": crate::assist::prior_summary(s),
@@ -121,6 +123,14 @@ pub fn configure(cfg: &mut web::ServiceConfig) {
                     )
                     .route("/sessions/{id}/render", web::get().to(views::render))
                     .route("/sessions/{id}/train", web::post().to(training::train))
+                    .route(
+                        "/sessions/{id}/features",
+                        web::get().to(features::get_features),
+                    )
+                    .route(
+                        "/sessions/{id}/features",
+                        web::put().to(features::put_features),
+                    )
                     .route(
                         "/sessions/{id}/fractions",
                         web::get().to(results::fractions),

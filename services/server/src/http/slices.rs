@@ -3,7 +3,7 @@
 use super::{blocking, AppState};
 use crate::error::{ApiError, ApiResult};
 use crate::imaging::{png, window, SliceAxes};
-use crate::session::{Session, BACKGROUND};
+use crate::session::Session;
 use actix_web::{web, HttpResponse};
 use serde::Deserialize;
 
@@ -132,19 +132,25 @@ pub(super) async fn overlay(
                     o.copy_from_slice(&[c[0], c[1], c[2], (alpha * 200 / 255) as u8]);
                     continue;
                 }
-                let mut order: Vec<usize> = (0..p.len()).collect();
-                order.sort_by(|&x, &y| p[y].cmp(&p[x]));
                 if kind == "uncertainty" {
                     // 1 - (p1 - p2): bright where the two best classes are close.
-                    let m = p[order[0]] as i32 - order.get(1).map_or(0, |&k| p[k] as i32);
+                    let (mut p1, mut p2) = (0i32, 0i32);
+                    for &v in p {
+                        let v = v as i32;
+                        if v > p1 {
+                            p2 = p1;
+                            p1 = v;
+                        } else if v > p2 {
+                            p2 = v;
+                        }
+                    }
+                    let m = p1 - p2;
                     let u = (255 - m).clamp(0, 255) as u8;
                     o.copy_from_slice(&[255, 200, 0, u]);
                 } else {
-                    let best = order[0];
-                    let mut id = ids[best];
-                    if id == BACKGROUND || p[best] < 128 {
-                        id = 0;
-                    }
+                    // The one label rule the fractions, the 3-D labels and the exports use
+                    // (ties included).
+                    let mut id = crate::assist::label_of(ids, p);
                     if let Some(l) = prior.as_ref().and_then(|pr| pr.label(&s.store, vox)) {
                         id = l as u32;
                     }

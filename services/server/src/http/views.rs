@@ -14,6 +14,9 @@ pub(super) struct RenderQuery {
     size: Option<usize>,
     mode: Option<String>,
     tf: Option<String>,
+    /// Magnification over the default framing (the volume's bounding sphere fills the
+    /// frame), in [0.25, 8].
+    zoom: Option<f32>,
     /// A client's cache-buster, ignored.
     #[serde(rename = "t")]
     _t: Option<String>,
@@ -27,6 +30,12 @@ pub(super) async fn render(
     let s = st.session(&id)?;
     let q = q.into_inner();
     let size = q.size.unwrap_or(256);
+    let zoom = q.zoom.unwrap_or(1.0);
+    if !(0.25..=8.0).contains(&zoom) {
+        return Err(ApiError::BadRequest(format!(
+            "zoom {zoom} must be in [0.25, 8]"
+        )));
+    }
     if size == 0 || size > 2048 {
         return Err(ApiError::BadRequest(format!(
             "size {size} must be 1..=2048"
@@ -66,6 +75,7 @@ pub(super) async fn render(
         camera: neuvolex_render::Camera {
             azimuth: q.az.unwrap_or(30.0),
             elevation: q.el.unwrap_or(20.0),
+            fov: neuvolex_render::Camera::default().fov / zoom,
             ..Default::default()
         },
         ..Default::default()
@@ -75,12 +85,24 @@ pub(super) async fn render(
     Ok(HttpResponse::Ok().content_type("image/png").body(bytes))
 }
 
+/// `POST /sessions/{id}/viewpoints`: all fields optional.
 #[derive(Deserialize)]
 #[serde(deny_unknown_fields)]
 pub(super) struct ViewReq {
+    /// Feature clusters (50).
     k: Option<usize>,
+    /// Candidate views on the sphere (1800).
     views: Option<usize>,
+    /// Views to recommend (4).
+    count: Option<usize>,
+    /// Least angle between two recommended views, degrees (30).
+    min_angle: Option<f32>,
 }
+
+/// Most views one recommendation returns.
+const MAX_COUNT: usize = 12;
+/// Largest `min_angle`, degrees: past it even a few views rarely fit on the sphere.
+const MAX_MIN_ANGLE: f32 = 90.0;
 
 pub(super) async fn viewpoints(
     st: web::Data<AppState>,
@@ -95,7 +117,24 @@ pub(super) async fn viewpoints(
             "k {k} must be 1..=256 and views {views} 1..=20000"
         )));
     }
-    let out = st.actors.viewpoints(s, k, views).await?;
+    let pick = neuvolex_viewpoints::PickConfig {
+        count: req.count.unwrap_or(4),
+        min_angle: req.min_angle.unwrap_or(30.0),
+        ..Default::default()
+    };
+    if !(1..=MAX_COUNT).contains(&pick.count) {
+        return Err(ApiError::BadRequest(format!(
+            "count {} must be 1..={MAX_COUNT}",
+            pick.count
+        )));
+    }
+    if !(0.0..=MAX_MIN_ANGLE).contains(&pick.min_angle) {
+        return Err(ApiError::BadRequest(format!(
+            "min_angle {} must be 0..={MAX_MIN_ANGLE} degrees",
+            pick.min_angle
+        )));
+    }
+    let out = st.actors.viewpoints(s, k, views, pick).await?;
     Ok(HttpResponse::Ok().json(out))
 }
 
