@@ -8,6 +8,7 @@
 //      3-D default draws the labels: class colour where the labels are, not a box-filling fog;
 //   3. a class rename reaches the transfer-function editor and the fractions; the exported
 //      labels, the fractions (API and table) and the axial overlay agree, prior on and off;
+//      four recommended views arrive, each captioned with the reason it was picked;
 //   4. a burst of updates paints a view once;
 //   5. an edit of class 1's transfer function changes the 3-D view (probability mode);
 //   6. the marker volume: each view's bright corner and edge letters where the radiological
@@ -126,6 +127,24 @@ const check = (ok, what) => { if (!ok) failures.push(what); };
   await shot("02b-prior-off");
   await page.locator("#prior").check();
   await page.waitForTimeout(1500);
+  // 3c. Recommended views: the number asked for, each captioned with why it was picked, and
+  // thumbnails that are not blank.
+  await page.locator("#recommend").click();
+  await page.waitForFunction(() => document.querySelectorAll("#thumbs figure").length > 0, null, { timeout: 120000 }).catch(() => check(false, "recommended views arrived"));
+  await page.waitForFunction(() => [...document.querySelectorAll("#thumbs img")].every((i) => i.complete && i.naturalWidth > 0), null, { timeout: 60000 }).catch(() => check(false, "thumbnails loaded"));
+  const recs = await page.evaluate(() => [...document.querySelectorAll("#thumbs figure")].map((f) => f.querySelector("figcaption").textContent));
+  check(recs.length === 4, `4 recommended views (got ${recs.length})`);
+  check(recs.every((c) => c.length > 10), `each view says why it was picked: ${JSON.stringify(recs)}`);
+  const thumbLit = await page.evaluate(() => {
+    const i = document.querySelector("#thumbs img"), c = document.createElement("canvas");
+    c.width = i.naturalWidth; c.height = i.naturalHeight; const g = c.getContext("2d"); g.drawImage(i, 0, 0);
+    const d = g.getImageData(0, 0, c.width, c.height).data; let n = 0;
+    for (let k = 0; k < d.length; k += 4) if (d[k] + d[k + 1] + d[k + 2] > 60) n++;
+    return n / (d.length / 4);
+  });
+  check(thumbLit > 0.02, `the first thumbnail shows something (${(100 * thumbLit).toFixed(1)} % lit)`);
+  console.log(`recommended views: ${JSON.stringify(recs)}`);
+  await shot("02c-views");
   // 4. A burst of three updates of the axial view paints it once.
   const paints = await page.evaluate(async () => {
     const c = document.getElementById("cz"), g = c.getContext("2d"); let n = 0;
