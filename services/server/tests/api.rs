@@ -1173,6 +1173,89 @@ print("ok", len(files))
     );
 }
 
+/// The real abdomen CT (3 mm voxels, origin (-178, 11.3, 94.3)): a session's exported labels
+/// and probabilities have its grid, and its sform and qform (codes and matrices), as nibabel
+/// reads them. Skips visibly without `../shared/data`, fails under CI=true.
+#[actix_web::test]
+async fn the_abdomen_ct_labels_lie_on_the_ct() {
+    let ct = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../../../shared/data/abdomen_ct/ct.nii.gz");
+    if !ct.exists() {
+        let why = format!("{} is absent", ct.display());
+        assert!(std::env::var("CI").as_deref() != Ok("true"), "{why}");
+        eprintln!("SKIP: {why} (real-data test skipped on this machine)");
+        return;
+    }
+    let Some(py) = nibabel_python() else {
+        return;
+    };
+    let (_d, cfg) = data();
+    // A copy inside the data root (links out of it are refused).
+    std::fs::copy(&ct, cfg.data_root.join("ct.nii.gz")).unwrap();
+    let app = app!(cfg);
+    let req = test::TestRequest::post()
+        .uri("/api/sessions")
+        .set_json(json!({ "volume": "ct.nii.gz" }))
+        .to_request();
+    let s: Value = test::call_and_read_body_json(&app, req).await;
+    let id = s["id"]
+        .as_str()
+        .unwrap_or_else(|| panic!("{s}"))
+        .to_string();
+    let g = put_strokes(&app, &id, 0).await;
+    wait_done(&app, &id, g).await;
+    let out = tempfile::tempdir().unwrap();
+    for (uri, file) in [
+        ("export/labels.nii.gz", "labels"),
+        ("export/probability/1.nii.gz", "p1"),
+    ] {
+        let r = test::call_service(
+            &app,
+            test::TestRequest::get()
+                .uri(&format!("/api/sessions/{id}/{uri}"))
+                .to_request(),
+        )
+        .await;
+        assert_eq!(r.status(), 200, "{uri}");
+        std::fs::write(
+            out.path().join(format!("{file}.nii.gz")),
+            test::read_body(r).await,
+        )
+        .unwrap();
+    }
+    let check = format!(
+        r#"
+import nibabel as nib, numpy as np, glob, os
+src = nib.load({ct:?})
+files = sorted(glob.glob(os.path.join({out:?}, "*.nii.gz")))
+assert len(files) == 2, files
+for f in files:
+    img = nib.load(f)
+    assert img.shape == src.shape, (f, img.shape, src.shape)
+    for mine, theirs in ((img.get_sform(coded=True), src.get_sform(coded=True)), (img.get_qform(coded=True), src.get_qform(coded=True))):
+        assert int(mine[1]) == int(theirs[1]), (f, mine[1], theirs[1])
+        # A frame with code 0 has no matrix (nibabel gives None for both).
+        if int(theirs[1]) != 0:
+            assert np.allclose(mine[0], theirs[0], atol=1e-4), (f, mine[0], theirs[0])
+    # What a viewer places the voxels by.
+    assert np.allclose(img.affine, src.affine, atol=1e-4), (f, img.affine, src.affine)
+print("ok", src.affine[:3, 3])
+"#,
+        ct = ct.to_str().unwrap(),
+        out = out.path().to_str().unwrap()
+    );
+    let r = std::process::Command::new(&py)
+        .args(["-c", &check])
+        .output()
+        .unwrap();
+    assert!(
+        r.status.success(),
+        "nibabel: {}{}",
+        String::from_utf8_lossy(&r.stdout),
+        String::from_utf8_lossy(&r.stderr)
+    );
+}
+
 #[actix_web::test]
 async fn idle_sessions_are_saved_and_closed_but_training_ones_stay() {
     let (_d, mut cfg) = data();
