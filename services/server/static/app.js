@@ -158,10 +158,13 @@ function drawStrokes(a, g, extra) {
   for (const s of extra ? [...S.strokes, extra] : S.strokes) {
     if (s.axis !== a || s.slice !== S.idx[a]) continue;
     const c = s.class === 255 ? [120, 120, 120] : s.class === 0 ? [0, 0, 0] : (S.info.classes.find((k) => k.id === s.class) || { color: [255, 255, 255] }).color;
-    g.strokeStyle = s.class === 0 ? "#000" : hex(c); g.lineWidth = Math.max(1, s.radius * 2); g.lineCap = g.lineJoin = "round";
+    g.lineCap = g.lineJoin = "round";
     g.beginPath();
     s.points.forEach((p, i) => { const x = p[0] + 0.5, y = p[1] + 0.5; i ? g.lineTo(x, y) : g.moveTo(x, y); });
-    g.stroke();
+    // A light rim first, so a stroke stays visible over an overlay of its own class's colour.
+    const w = Math.max(1, s.radius * 2);
+    g.strokeStyle = "rgba(255,255,255,0.85)"; g.lineWidth = w + 1.2; g.stroke();
+    g.strokeStyle = s.class === 0 ? "#000" : hex(c); g.lineWidth = w; g.stroke();
   }
 }
 function refreshAll() { for (const a of ["x", "y", "z"]) drawSlice(a); render(); fractions(); }
