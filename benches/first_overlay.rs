@@ -165,7 +165,6 @@ fn run_volume(name: &str, data: &Path, rel: &str, labels: &[u32], full: bool, re
     for rep in 0..repeats {
         let work = tempfile::tempdir().expect("tmp");
         let cfg = ServerConfig::new(data.to_path_buf(), work.path().to_path_buf());
-        let limit = cfg.feature_store_bytes;
         rt.block_on(async {
             let st = AppState::new(cfg.clone());
             let mut events = st.actors.hub.subscribe();
@@ -182,8 +181,11 @@ fn run_volume(name: &str, data: &Path, rel: &str, labels: &[u32], full: bool, re
             more.extend(strokes_on(labels, dims, z, class, 2).into_iter().take(1));
             let (f2, a2) = classify_times(&st, &s, more, z, full).await;
             let fmt = |v: Option<f64>| v.map_or("—".to_string(), |v| format!("{v:.2}"));
-            let bytes: u64 = dims.iter().map(|&d| d as u64).product::<u64>() * 53 * 2;
-            let kept = if bytes <= limit {
+            // Opened on open when the volume's features fit the limit.
+            let stored = s
+                .stored_for(&neuvolex_server::session::default_features())
+                .is_some();
+            let kept = if stored {
                 features_kept(&mut events, &s, t, Duration::from_secs(1800)).await
             } else {
                 None

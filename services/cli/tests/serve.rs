@@ -218,6 +218,35 @@ fn beyond_loopback_a_token_is_required() {
 }
 
 #[test]
+fn bad_serve_limits_are_refused_naming_the_flag() {
+    let d = tempfile::tempdir().unwrap();
+    let data = data_root(d.path());
+    for (flag, value) in [
+        ("--feature-store-gib", "-1"),
+        ("--feature-store-gib", "NaN"),
+        ("--idle-minutes", "-5"),
+        ("--request-timeout", "0"),
+    ] {
+        let out = Command::new(env!("CARGO_BIN_EXE_neuvolex"))
+            .args([
+                "serve",
+                "--port",
+                "0",
+                &format!("{flag}={value}"),
+                "--data-root",
+            ])
+            .arg(&data)
+            .arg("--work")
+            .arg(d.path().join("work"))
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success(), "{flag} {value} was accepted");
+        assert!(err.contains(flag), "{flag} {value}: {err}");
+    }
+}
+
+#[test]
 fn serve_with_cluster_classifies_on_the_workers() {
     let d = tempfile::tempdir().unwrap();
     let Some(nats) = neuvolex_tests::NatsServer::start(d.path(), "127.0.0.1", &[]) else {

@@ -456,13 +456,22 @@ impl Session {
         let set: FeatureSet = name.parse().map_err(|e: String| {
             ApiError::BadRequest(format!("features '{}': {e}", name.escape_debug()))
         })?;
-        if set.needs_model() && self.current_model().is_none() {
-            return Err(ApiError::Conflict(format!(
+        self.model_for(&set)?;
+        Ok(set)
+    }
+
+    /// The model `set` needs: none for sets without INR parts, the current one otherwise
+    /// (a conflict while none is trained on this volume).
+    fn model_for(&self, set: &FeatureSet) -> ApiResult<Option<VersionedModel>> {
+        if !set.needs_model() {
+            return Ok(None);
+        }
+        self.current_model().map(Some).ok_or_else(|| {
+            ApiError::Conflict(format!(
                 "features '{set}' need the INR, and none is trained on this volume yet: train \
                  it first (INR training, or `neuvolex train`)"
-            )));
-        }
-        Ok(set)
+            ))
+        })
     }
 
     /// Switches the classification to feature set `name` ([`Self::check_feature_set`]) and
@@ -477,16 +486,7 @@ impl Session {
     /// without INR parts).
     pub fn feature_source(&self) -> ApiResult<(FeatureSet, Option<VersionedModel>)> {
         let set = self.feature_set();
-        let model = if set.needs_model() {
-            self.current_model()
-        } else {
-            None
-        };
-        if set.needs_model() && model.is_none() {
-            return Err(ApiError::Conflict(format!(
-                "features '{set}' need the INR, and none is trained on this volume"
-            )));
-        }
+        let model = self.model_for(&set)?;
         Ok((set, model))
     }
 
@@ -503,14 +503,15 @@ impl Session {
     /// True while the session's own work runs (forest training, classification, INR training)
     /// or a render is in flight: background work waits.
     fn busy(&self) -> bool {
-        let state = self
-            .status
-            .read()
-            .unwrap_or_else(|p| p.into_inner())
-            .state
-            .clone();
-        state == "training"
-            || state == "classifying"
+        let working = matches!(
+            self.status
+                .read()
+                .unwrap_or_else(|p| p.into_inner())
+                .state
+                .as_str(),
+            "training" | "classifying"
+        );
+        working
             || self.memory.renders_in_flight() > 0
             || self
                 .train_cancel
@@ -564,11 +565,9 @@ impl Session {
         let fx = BrickFeatures::new(&self.store, set.clone(), None, false)?;
         let all: Vec<neuvolex_bricks::Brick> = self.store.bricks().collect();
         let middle = self.store.info().dims.map(|d| d / 2);
-        let by_index: HashMap<[usize; 3], neuvolex_bricks::Brick> =
-            all.iter().map(|b| (b.index, *b)).collect();
         let order: Vec<neuvolex_bricks::Brick> = brick_order(&all, None, Some(middle))
-            .iter()
-            .filter_map(|i| by_index.get(i).copied())
+            .into_iter()
+            .filter_map(|i| self.store.brick(i).ok())
             .collect();
         let missing = p.missing(&order);
         let total = all.len();

@@ -1036,6 +1036,55 @@ fn nibabel_python() -> Option<std::path::PathBuf> {
     None
 }
 
+/// Runs `script` with the venv's Python; fails with its output unless it succeeds.
+fn python(py: &std::path::Path, script: &str) {
+    let r = std::process::Command::new(py)
+        .args(["-c", script])
+        .output()
+        .unwrap();
+    assert!(
+        r.status.success(),
+        "nibabel: {}{}",
+        String::from_utf8_lossy(&r.stdout),
+        String::from_utf8_lossy(&r.stderr)
+    );
+}
+
+/// The NIfTI exports: route under the session, and the file name they are saved as.
+const EXPORTS: [(&str, &str); 3] = [
+    ("export/labels.nii.gz", "labels"),
+    ("export/probability/1.nii.gz", "p1"),
+    ("export/scribbles.nii.gz", "scribbles"),
+];
+
+/// Saves each of `exports` of session `id` as `dir/PREFIXFILE.nii.gz` (each must answer 200).
+async fn save_exports<S>(
+    app: &S,
+    id: &str,
+    exports: &[(&str, &str)],
+    dir: &std::path::Path,
+    prefix: &str,
+) where
+    S: actix_web::dev::Service<
+        actix_http::Request,
+        Response = actix_web::dev::ServiceResponse,
+        Error = actix_web::Error,
+    >,
+{
+    for (uri, file) in exports {
+        let r = test::call_service(
+            app,
+            test::TestRequest::get()
+                .uri(&format!("/api/sessions/{id}/{uri}"))
+                .to_request(),
+        )
+        .await;
+        assert_eq!(r.status(), 200, "{prefix}{uri}");
+        let bytes = test::read_body(r).await;
+        std::fs::write(dir.join(format!("{prefix}{file}.nii.gz")), bytes).unwrap();
+    }
+}
+
 /// The session's exports lie on their source in world space, as an independent reader
 /// (nibabel) sees them: a NIfTI source written by nibabel with an oblique, reflected affine,
 /// anisotropic spacing, a non-zero origin and different sform and qform codes, and an NRRD
@@ -1082,11 +1131,7 @@ nib.save(out, {nii:?})
         plain = plain.to_str().unwrap(),
         nii = nii.to_str().unwrap()
     );
-    let r = std::process::Command::new(&py)
-        .args(["-c", &make])
-        .output()
-        .unwrap();
-    assert!(r.status.success(), "{}", String::from_utf8_lossy(&r.stderr));
+    python(&py, &make);
     // The same voxels as an LPS NRRD with its own directions and origin.
     let raw = std::fs::read(&plain).unwrap()[352..].to_vec();
     std::fs::write(root.join("lps.raw"), &raw).unwrap();
@@ -1116,22 +1161,8 @@ nib.save(out, {nii:?})
         assert_eq!(s["dims"], json!(dims), "{s}");
         let g = put_strokes(&app, &id, 0).await;
         wait_done(&app, &id, g).await;
-        for (uri, file) in [
-            ("export/labels.nii.gz", "labels"),
-            ("export/probability/1.nii.gz", "p1"),
-            ("export/scribbles.nii.gz", "scribbles"),
-        ] {
-            let r = test::call_service(
-                &app,
-                test::TestRequest::get()
-                    .uri(&format!("/api/sessions/{id}/{uri}"))
-                    .to_request(),
-            )
-            .await;
-            assert_eq!(r.status(), 200, "{volume} {uri}");
-            let name = format!("{}_{file}.nii.gz", volume.split('.').next().unwrap());
-            std::fs::write(out.path().join(name), test::read_body(r).await).unwrap();
-        }
+        let prefix = format!("{}_", volume.split('.').next().unwrap());
+        save_exports(&app, &id, &EXPORTS, out.path(), &prefix).await;
     }
     // nibabel compares: the NIfTI exports' frames with the source's; the NRRD exports' with
     // the RAS+ affine computed here from the NRRD header (x and y of LPS flipped).
@@ -1161,16 +1192,7 @@ print("ok", len(files))
         nii = nii.to_str().unwrap(),
         out = out.path().to_str().unwrap()
     );
-    let r = std::process::Command::new(&py)
-        .args(["-c", &check])
-        .output()
-        .unwrap();
-    assert!(
-        r.status.success(),
-        "nibabel: {}{}",
-        String::from_utf8_lossy(&r.stdout),
-        String::from_utf8_lossy(&r.stderr)
-    );
+    python(&py, &check);
 }
 
 /// The real abdomen CT (3 mm voxels, origin (-178, 11.3, 94.3)): a session's exported labels
@@ -1205,24 +1227,7 @@ async fn the_abdomen_ct_labels_lie_on_the_ct() {
     let g = put_strokes(&app, &id, 0).await;
     wait_done(&app, &id, g).await;
     let out = tempfile::tempdir().unwrap();
-    for (uri, file) in [
-        ("export/labels.nii.gz", "labels"),
-        ("export/probability/1.nii.gz", "p1"),
-    ] {
-        let r = test::call_service(
-            &app,
-            test::TestRequest::get()
-                .uri(&format!("/api/sessions/{id}/{uri}"))
-                .to_request(),
-        )
-        .await;
-        assert_eq!(r.status(), 200, "{uri}");
-        std::fs::write(
-            out.path().join(format!("{file}.nii.gz")),
-            test::read_body(r).await,
-        )
-        .unwrap();
-    }
+    save_exports(&app, &id, &EXPORTS[..2], out.path(), "").await;
     let check = format!(
         r#"
 import nibabel as nib, numpy as np, glob, os
@@ -1244,16 +1249,7 @@ print("ok", src.affine[:3, 3])
         ct = ct.to_str().unwrap(),
         out = out.path().to_str().unwrap()
     );
-    let r = std::process::Command::new(&py)
-        .args(["-c", &check])
-        .output()
-        .unwrap();
-    assert!(
-        r.status.success(),
-        "nibabel: {}{}",
-        String::from_utf8_lossy(&r.stdout),
-        String::from_utf8_lossy(&r.stderr)
-    );
+    python(&py, &check);
 }
 
 #[actix_web::test]
