@@ -1,15 +1,21 @@
 //! Random-forest benchmark against scikit-learn on identical inputs
-//! (`cargo bench -p neuvolex-benches --bench forest -- [--trees 1000] [--repeat 3]`).
+//! (`cargo bench -p neuvolex-benches --bench forest -- [--trees 1000] [--rounds 3]`).
 //!
 //! Inputs are real: the 64-D INR features of the abdomen CT (trained 1 epoch) with its
 //! ground-truth labels. 20 000 voxels drawn at random (seeded) train both forests; 1 000 000
-//! other voxels are predicted. Fit time, predict time and the mean F1 over the four foreground
-//! classes are reported for both, from one run; prediction runs `--repeat` times for both
-//! (alternating is not possible across processes, so each side repeats back to back) and is
-//! reported as the range and the ratio of the medians. scikit-learn runs where `NEUVOLEX_SKLEARN_PYTHON`
-//! (or `python3`) imports it.
+//! other voxels are predicted. Same settings on both sides (trees, min_samples_split 8,
+//! max_features sqrt, no bootstrap, Gini) and the same threads (rayon's pool; `n_jobs`).
+//!
+//! Rounds interleave: each round fits a new forest on each side (seed / random_state = the
+//! round) and then predicts with it on each side, scikit-learn in a persistent Python process
+//! (`forest_sklearn.py`, where `NEUVOLEX_SKLEARN_PYTHON` or `python3` imports it) that loaded
+//! the arrays once. Timed regions: the *fit* is `Forest::fit` plus the coding of the forest
+//! for prediction (`Forest::prepare`, shown apart) against scikit-learn's `fit` (which builds
+//! its tree arrays inside); the *predict* is `Forest::predict` (probabilities and argmax)
+//! against `predict_proba` plus the argmax. Reported: median [min-max] of each and the
+//! per-round ratio, and the mean F1 over the four foreground classes on both sides.
 
-use neuvolex_benches::{machine, shared};
+use neuvolex_benches::{arg, load_average, machine, ratio_spread, shared, spread, JsonChild};
 use neuvolex_bricks::{open_volume, BrickStore};
 use neuvolex_classify::{Dataset, Forest, ForestConfig};
 use neuvolex_features::extract::extract_brick;
@@ -41,18 +47,6 @@ fn f1_mean(pred: &[u16], truth: &[u16], classes: usize) -> (f64, Vec<f64>) {
         }
     }
     (f1s.iter().sum::<f64>() / f1s.len().max(1) as f64, f1s)
-}
-
-/// Median and `min–max` of timings.
-fn median_range(t: &mut [f64]) -> (f64, String) {
-    if t.is_empty() {
-        return (f64::NAN, String::new());
-    }
-    t.sort_by(f64::total_cmp);
-    (
-        t[t.len() / 2],
-        format!("{:.2}–{:.2} s", t[0], t[t.len() - 1]),
-    )
 }
 
 /// Training and test rows: `(d, classes, x_train, y_train, x_test, y_test)`.
@@ -166,20 +160,14 @@ fn load_inputs(dir: &std::path::Path) -> Option<Inputs> {
 
 fn main() {
     let args: Vec<String> = std::env::args().collect();
-    let trees: usize = args
-        .iter()
-        .position(|a| a == "--trees")
-        .and_then(|i| args.get(i + 1))
-        .and_then(|s| s.parse().ok())
-        .unwrap_or(1000);
-    let repeat: usize = args
-        .iter()
-        .position(|a| a == "--repeat")
-        .and_then(|i| args.get(i + 1))
-        .and_then(|s| s.parse().ok())
-        .unwrap_or(1)
-        .max(1);
-    println!("machine: {}, {trees} trees", machine());
+    let trees: usize = arg(&args, "--trees", 1000);
+    let rounds = arg(&args, "--rounds", 3usize).max(1);
+    let threads = rayon::current_num_threads();
+    println!(
+        "machine: {}, {trees} trees, {rounds} interleaved rounds, {threads} threads on both sides, {}",
+        machine(),
+        load_average()
+    );
     let (Some(ct), Some(lab)) = (
         shared("abdomen_ct/ct.nii.gz"),
         shared("abdomen_ct/labels.nii.gz"),
@@ -190,7 +178,7 @@ fn main() {
     // `NEUVOLEX_FOREST_INPUTS=DIR`: reuse the inputs saved there by an earlier run (so walks
     // built from different commits are compared on identical rows), or save them there.
     let saved = std::env::var_os("NEUVOLEX_FOREST_INPUTS").map(std::path::PathBuf::from);
-    let (d, classes, xtr, ytr, xte, yte) = match saved.as_deref().and_then(load_inputs) {
+    let inputs = match saved.as_deref().and_then(load_inputs) {
         Some(inputs) => inputs,
         None => {
             let inputs = make_inputs(&ct, &lab, dir.path());
@@ -200,27 +188,71 @@ fn main() {
             inputs
         }
     };
+    save_inputs(dir.path(), &inputs);
+    let (d, classes, xtr, ytr, xte, yte) = inputs;
     let nte = yte.len();
-    let cfg = ForestConfig {
-        trees,
-        ..ForestConfig::default()
-    };
-    let t = Instant::now();
-    let f = Forest::fit(
-        Dataset {
-            x: &xtr,
-            y: &ytr,
-            d,
-            classes,
-        },
-        &cfg,
-    )
-    .expect("fit");
-    let fit = t.elapsed().as_secs_f64();
+    let py = std::env::var("NEUVOLEX_SKLEARN_PYTHON").unwrap_or_else(|_| "python3".into());
+    let script = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("forest_sklearn.py");
+    let mut sk = JsonChild::start(
+        "scikit-learn",
+        &py,
+        &script,
+        &[
+            dir.path().display().to_string(),
+            trees.to_string(),
+            threads.to_string(),
+        ],
+        &[],
+    );
+    let (mut fit, mut pack, mut predict) = (Vec::new(), Vec::new(), Vec::new());
+    let (mut sk_fit, mut sk_predict) = (Vec::new(), Vec::new());
+    let (mut f1, mut sk_f1) = (Vec::new(), Vec::new());
+    let mut last = None;
+    for round in 0..rounds {
+        let cfg = ForestConfig {
+            trees,
+            seed: round as u64,
+            ..ForestConfig::default()
+        };
+        let t = Instant::now();
+        let f = Forest::fit(
+            Dataset {
+                x: &xtr,
+                y: &ytr,
+                d,
+                classes,
+            },
+            &cfg,
+        )
+        .expect("fit");
+        let t_fit = t.elapsed().as_secs_f64();
+        let coded = f.prepare();
+        let total = t.elapsed().as_secs_f64();
+        fit.push(total);
+        pack.push(total - t_fit);
+        if let Some(r) = sk.as_mut().and_then(|s| s.send("fit")) {
+            sk_fit.push(r["fit_s"].as_f64().unwrap_or(f64::NAN));
+        }
+        let t = Instant::now();
+        let pred = f.predict(&xte).expect("predict");
+        predict.push(t.elapsed().as_secs_f64());
+        f1.push(f1_mean(&pred, &yte, classes).0);
+        if let Some(r) = sk.as_mut().and_then(|s| s.send("predict")) {
+            sk_predict.push(r["predict_s"].as_f64().unwrap_or(f64::NAN));
+            sk_f1.push(r["f1_mean"].as_f64().unwrap_or(f64::NAN));
+        }
+        if !coded {
+            eprintln!(
+                "note: round {round}'s forest could not be coded; it predicts with the f32 walk"
+            );
+        }
+        last = Some(f);
+    }
+    let f = last.expect("one round");
     let mut depths = f.depths();
     depths.sort_unstable();
     println!(
-        "forest shape: {} nodes ({:.0} per tree, {:.1} MB as 8-byte nodes), deepest leaf per tree: median {}, range {}–{}",
+        "forest shape (last round): {} nodes ({:.0} per tree, {:.1} MB as 8-byte nodes), deepest leaf per tree: median {}, range {}–{}",
         f.nodes(),
         f.nodes() as f64 / trees as f64,
         f.nodes() as f64 * 8.0 / 1e6,
@@ -234,59 +266,58 @@ fn main() {
     let digest = json.iter().fold(0xcbf2_9ce4_8422_2325u64, |h, &b| {
         (h ^ b as u64).wrapping_mul(0x100_0000_01b3)
     });
-    println!("forest digest: {digest:016x}");
-    let mut times = Vec::new();
-    let mut pred = Vec::new();
-    for _ in 0..repeat {
-        let t = Instant::now();
-        pred = f.predict(&xte).expect("predict");
-        times.push(t.elapsed().as_secs_f64());
-    }
-    let (predict, range) = median_range(&mut times);
-    // The uncoded f32 walk (the previous prediction), once, for the step's gain.
-    let t = Instant::now();
-    let p32 = f.predict_proba_f32(&xte).expect("predict");
-    let walk = t.elapsed().as_secs_f64();
-    let coded = f.predict_proba(&xte).expect("predict");
-    let same = p32 == coded;
-    println!("| neuvolex f32 walk (before coding) | predict {walk:.2} s | coded / f32 walk {:.2}x | identical probabilities: {same} |", walk / predict);
-    let (f1, per) = f1_mean(&pred, &yte, classes);
-    println!("| neuvolex forest | fit {fit:.1} s | predict {nte} rows {predict:.2} s [{range}] ({:.0} k rows/s) | mean F1 {f1:.3} {per:.3?} | {} nodes |", nte as f64 / predict / 1e3, f.nodes());
-    // scikit-learn on the same arrays.
-    save_inputs(dir.path(), &(d, classes, xtr, ytr, xte, yte));
-    let py = std::env::var("NEUVOLEX_SKLEARN_PYTHON").unwrap_or_else(|_| "python3".into());
-    let script = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("forest_sklearn.py");
-    let threads = std::thread::available_parallelism()
-        .map(|n| n.get())
-        .unwrap_or(2);
-    match std::process::Command::new(py)
-        .arg(script)
-        .arg(dir.path())
-        .arg(trees.to_string())
-        .arg(threads.to_string())
-        .arg(repeat.to_string())
-        .output()
-    {
-        Ok(o) if o.status.success() => {
-            let text = String::from_utf8_lossy(&o.stdout);
-            let v: serde_json::Value =
-                serde_json::from_str(text.lines().last().unwrap_or("{}")).unwrap_or_default();
-            let sf = v["fit_s"].as_f64().unwrap_or(f64::NAN);
-            let mut st: Vec<f64> = v["predict_s"]
-                .as_array()
-                .map(|a| a.iter().filter_map(|t| t.as_f64()).collect())
-                .unwrap_or_default();
-            let (sp, srange) = median_range(&mut st);
-            println!("| scikit-learn {} | fit {sf:.1} s | predict {predict_rows} rows {sp:.2} s [{srange}] ({:.0} k rows/s) | mean F1 {:.3} {:?} |", v["sklearn"], nte as f64 / sp / 1e3, v["f1_mean"].as_f64().unwrap_or(f64::NAN), v["f1"], predict_rows = nte);
-            println!("| ratio scikit-learn / neuvolex | fit {:.2}x | predict {:.2}x | F1 difference {:+.3} |", sf / fit, sp / predict, f1 - v["f1_mean"].as_f64().unwrap_or(f64::NAN));
-        }
-        Ok(o) => eprintln!(
-            "SKIP scikit-learn: {}",
-            String::from_utf8_lossy(&o.stderr)
-                .lines()
-                .last()
-                .unwrap_or("")
-        ),
-        Err(e) => eprintln!("SKIP scikit-learn: {e}"),
-    }
+    println!("forest digest (last round): {digest:016x}");
+    let rate = |t: &[f64]| {
+        let mut s: Vec<f64> = t.iter().copied().filter(|x| x.is_finite()).collect();
+        s.sort_by(f64::total_cmp);
+        s.get(s.len() / 2).map_or("-".into(), |m| {
+            format!("{:.0} k rows/s", nte as f64 / m / 1e3)
+        })
+    };
+    let version = sk.as_ref().map_or("-".to_string(), |s| {
+        s.ready["ready"].as_str().unwrap_or("?").to_string()
+    });
+    println!("| side | fit s (coding included) | of which coding s | predict {nte} rows s | rate | mean F1 per round |");
+    println!("|---|---|---|---|---|---|");
+    println!(
+        "| neuvolex | {} | {} | {} | {} | {} |",
+        spread(&fit, 2),
+        spread(&pack, 2),
+        spread(&predict, 2),
+        rate(&predict),
+        spread(&f1, 3)
+    );
+    println!(
+        "| scikit-learn {version} | {} | - | {} | {} | {} |",
+        spread(&sk_fit, 2),
+        spread(&sk_predict, 2),
+        rate(&sk_predict),
+        spread(&sk_f1, 3)
+    );
+    let cond = format!("the same 20 000 training and {nte} test rows of the abdomen CT's 64-D INR features, same settings; {threads} threads each; {rounds} rounds");
+    let f1s = format!("mean F1 {} against {}", spread(&f1, 3), spread(&sk_f1, 3));
+    println!(
+        "summary: | random forest fit, {trees} trees, against scikit-learn {version} | {cond}; timed: Forest::fit + coding against fit | {} s | {} s | {} | {f1s} |",
+        spread(&fit, 2),
+        spread(&sk_fit, 2),
+        ratio_spread(&sk_fit, &fit)
+    );
+    println!(
+        "summary: | random forest predict, {trees} trees, against scikit-learn {version} | {cond}; timed: predict (probabilities + argmax) on both | {} s | {} s | {} | {f1s} |",
+        spread(&predict, 2),
+        spread(&sk_predict, 2),
+        ratio_spread(&sk_predict, &predict)
+    );
+    println!(
+        "| ratio scikit-learn / neuvolex, per round | {} | | {} | | F1 difference {} |",
+        ratio_spread(&sk_fit, &fit),
+        ratio_spread(&sk_predict, &predict),
+        spread(
+            &f1.iter()
+                .zip(&sk_f1)
+                .map(|(a, b)| a - b)
+                .collect::<Vec<_>>(),
+            3
+        )
+    );
 }

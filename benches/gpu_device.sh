@@ -10,7 +10,11 @@
 #
 # On the device machine (carry [".gpubench", ".gl"]), the printed command unpacks the loader,
 # points Vulkan at NVIDIA's ICD and runs the bench with PyTorch on CUDA in the same run,
-# writing the JSON report and the log under $OUT.
+# writing the JSON report and the log under $OUT. The comparison with PyTorch (inr_gpu.rs's
+# `vs_torch_gpu`) uses the device's python3 (which holds torch), .gpubench/inr_torch.py, and
+# one persistent PyTorch process: compile and CUDA-graph capture of every variant, a screening
+# round, then 3 interleaved rounds of 400 steps x 16384 samples each side (about 3 minutes).
+# `--only torch` runs that comparison alone (a shorter device call).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 root=$(pwd)
@@ -19,7 +23,7 @@ device_command() {
   # nvidia-smi samples utilisation and memory every second beside the bench (smi.csv); the
   # bench is capped so the whole command ends inside one 10-minute device call.
   cat <<'EOF'
-for f in .gl/*.deb; do dpkg -x $f /; done; ldconfig; export VK_DRIVER_FILES=/usr/local/nvidia/share/vulkan/icd.d/nvidia_icd.json; export NEUVOLEX_DATA=$PWD/.gpubench/data NEUVOLEX_TORCH_SCRIPT=$PWD/.gpubench/inr_torch.py NEUVOLEX_TORCH_PYTHON=python3 BENCH_DATE=$(date -u +%F); nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv | tee $OUT/gpu.txt; nvidia-smi --query-gpu=timestamp,utilization.gpu,memory.used --format=csv,noheader -l 1 >$OUT/smi.csv 2>&1 & set -o pipefail; timeout 540 .gpubench/inr_gpu --cap-s 60 --sweep-s 8 --torch-s 8 --cpu-s 5 --out $OUT/inr_gpu.json 2>&1 | tee $OUT/inr_gpu.log; kill %1 2>/dev/null; awk -F', ' '{u=$2+0; s+=u; n++; if(u>0){b++}} END {if(n) printf "nvidia-smi: %d samples, mean utilisation %.0f %%, busy in %d\n", n, s/n, b}' $OUT/smi.csv
+for f in .gl/*.deb; do dpkg -x $f /; done; ldconfig; export VK_DRIVER_FILES=/usr/local/nvidia/share/vulkan/icd.d/nvidia_icd.json; export NEUVOLEX_DATA=$PWD/.gpubench/data NEUVOLEX_TORCH_SCRIPT=$PWD/.gpubench/inr_torch.py NEUVOLEX_TORCH_PYTHON=python3 BENCH_DATE=$(date -u +%F); nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv | tee $OUT/gpu.txt; nvidia-smi --query-gpu=timestamp,utilization.gpu,memory.used --format=csv,noheader -l 1 >$OUT/smi.csv 2>&1 & set -o pipefail; timeout 540 .gpubench/inr_gpu --cap-s 60 --sweep-s 8 --torch-steps 400 --rounds 3 --cpu-s 5 --out $OUT/inr_gpu.json 2>&1 | tee $OUT/inr_gpu.log; kill %1 2>/dev/null; awk -F', ' '{u=$2+0; s+=u; n++; if(u>0){b++}} END {if(n) printf "nvidia-smi: %d samples, mean utilisation %.0f %%, busy in %d\n", n, s/n, b}' $OUT/smi.csv
 EOF
 }
 

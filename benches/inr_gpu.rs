@@ -3,8 +3,8 @@
 //!    trained by the GPU engine: steady samples/s, PSNR against time, peak GPU memory, and
 //!    feature extraction voxels/s (compute only, and into the store as f16); the CPU engine on
 //!    the same volume in the same run for the ratio;
-//! 2. the same model in PyTorch on the same device (`benches/inr_torch.py --device cuda`,
-//!    dense Adam, sparse Adam and torch.compile; the fastest is the reference);
+//! 2. on CT-Tooth, neuvolex's GPU engine against the same model in PyTorch on the same device
+//!    (`benches/inr_torch.py --device cuda`), like for like (below);
 //! 3. per-kernel times of one step on both launch paths (each dispatch waited for: where the
 //!    time goes, not speed), and a sweep of launch path x batch size on CT-Tooth (samples/s
 //!    and PSNR after the same seconds of training);
@@ -14,21 +14,48 @@
 //! The phantom runs last (its extraction into the store is the longest part), so a run cut
 //! short by the device's time limit still reports the rest.
 //!
-//! Options: `--quick` (1 epoch on the large volume, short PyTorch runs), `--large-epochs N`
-//! (default 100, the paper's), `--cap-s S` (wall-clock cap of the large run, default 480; the
+//! Options: `--quick` (1 epoch on the large volume, 100-step PyTorch rounds), `--large-epochs
+//! N` (default 100, the paper's), `--cap-s S` (wall-clock cap of the large run, default 480; the
 //! 100-epoch time is then extrapolated and marked so), `--sweep-s S` and `--sweep-batches
-//! B,B,..` (the launch-path x batch sweep), `--torch-s S` (each PyTorch variant), `--cpu-s S`
-//! (the CPU engine per volume), `--only agree` (only the fused-against-layered check), `--out
-//! FILE` (JSON of everything).
+//! B,B,..` (the launch-path x batch sweep), `--torch-steps S` (default 400: steps per round and
+//! side of the comparison with PyTorch), `--rounds R` (default 3), `--torch-variants a,b,..`
+//! (default on CUDA fused,sparse,compile+fused,ro+fused,ro+cstep; ma+cstep (max-autotune) and
+//! eager exist too), `--screen 0` (every variant in every round), `--cpu-s S` (the CPU engine
+//! per volume), `--only agree` (only the fused-against-layered check), `--only torch` (only the
+//! comparison with PyTorch), `--out FILE` (JSON of everything; also written after CT-Tooth).
 //! `NEUVOLEX_DATA` names the data folder (default ../shared/data), `NEUVOLEX_TORCH_PYTHON` the
-//! Python with torch. On a software adapter (lavapipe) every figure is correctness evidence,
-//! not speed, and the bench says so.
+//! Python with torch, `NEUVOLEX_TORCH_SCRIPT` the script. On a software adapter (lavapipe)
+//! every figure is correctness evidence, not speed, and the bench says so; there PyTorch runs
+//! on the CPU (a dry run of the code path).
+//!
+//! The comparison with PyTorch (inr.rs's module `vs_torch`, included here; the CPU bench's
+//! documentation lists every condition) on the GPU:
+//! - Inputs: CT-Tooth's tiles (every brick) and the same `steps x 16384` samples in the same
+//!   order on both sides; neuvolex holds every tile in its engine's ring and the whole sample
+//!   order on the device, PyTorch the padded volume, the targets and the order on the device.
+//! - Timed training, between device synchronisations: neuvolex `GpuInr::step` x steps from the
+//!   uploaded initial model and a zero Adam state (lazy table Adam, neuvolex's default);
+//!   PyTorch's steps (gather, forward, loss, backward, Adam).
+//! - Timed extraction: the 64-D hidden feature of every voxel: neuvolex `record_tile` per
+//!   resident tile, which also copies the features into a host-mappable buffer; PyTorch
+//!   no_grad forward in chunks of 65536 into a device tensor.
+//! - Not timed: uploads, the engines' creation, PyTorch's compilation, autotuning and CUDA-graph
+//!   capture (3 steps, 5 with CUDA graphs, and 2/3 extraction chunks per variant, then reset),
+//!   a 2-step warm-up round of neuvolex, and the loss/PSNR over every voxel (neuvolex's on the
+//!   CPU from the downloaded model, PyTorch's from its extraction pass).
+//! - PyTorch variants: fused (eager, Adam(fused=True)), sparse (SparseAdam on the table),
+//!   compile+fused (torch.compile default mode), ro+fused (mode="reduce-overhead": CUDA graphs,
+//!   fused Adam), ro+cstep (reduce-overhead and opt.step compiled with reduce-overhead); TF32
+//!   off, f32 on both sides. A screening round runs every variant once; the 3 rounds then
+//!   alternate neuvolex with the fastest in training and the fastest in extraction. Printed:
+//!   each round, median [min-max] per side, the per-round ratios both ways (training and
+//!   extraction, saying plainly which side is slower) and the PSNRs side by side.
 
-use neuvolex_benches::{machine, shared};
+use neuvolex_benches::{arg, machine, shared, vs_torch};
 use neuvolex_bricks::{open_volume, BrickStore};
 use neuvolex_features::tile::Tile;
 use neuvolex_features::train::training_bricks;
-use neuvolex_features::{train, Budget, FeatureKind, InrConfig, TrainConfig, TrainEvent};
+use neuvolex_features::{train, Budget, FeatureKind, InrConfig, InrModel, TrainConfig, TrainEvent};
 use neuvolex_features_gpu::{
     train_gpu, train_gpu_tuned, write_features_gpu, AdapterKind, EngineOptions, GpuContext, GpuInr,
     GpuTune, MlpPath,
@@ -39,14 +66,6 @@ use std::path::{Path, PathBuf};
 use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
 use std::time::Instant;
-
-fn arg<T: std::str::FromStr>(args: &[String], name: &str, default: T) -> T {
-    args.iter()
-        .position(|a| a == name)
-        .and_then(|i| args.get(i + 1))
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(default)
-}
 
 fn store_for(src: &Path, dir: &Path) -> BrickStore {
     let out = dir.join("s.zarr");
@@ -217,63 +236,162 @@ fn gpu_volume(
     })
 }
 
-/// The same model in PyTorch on `device` (each variant; the fastest is the reference).
-fn torch(device: &str, finest: usize, seconds: f64) -> Vec<Value> {
-    let py = std::env::var("NEUVOLEX_TORCH_PYTHON").unwrap_or_else(|_| "python3".into());
-    let script = std::env::var_os("NEUVOLEX_TORCH_SCRIPT")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| Path::new(env!("CARGO_MANIFEST_DIR")).join("inr_torch.py"));
-    let mut out = Vec::new();
-    // On CUDA the strongest settings: fused Adam and CUDA graphs (`reduce-overhead`) beside the
-    // default compile; on the CPU the plain, sparse and compiled variants.
-    let variants: Vec<&[&str]> = if device == "cuda" {
-        vec![
-            &["--compile"],
-            &["--compile", "--fused-adam"],
-            &[
-                "--compile",
-                "--fused-adam",
-                "--compile-mode",
-                "reduce-overhead",
-            ],
-        ]
+/// The PyTorch variants timed by default on CUDA (see inr_torch.py), and on the CPU when the
+/// adapter is no NVIDIA GPU (a dry run of the code path, not a speed comparison).
+const CUDA_VARIANTS: &str = "fused,sparse,compile+fused,ro+fused,ro+cstep";
+const CPU_VARIANTS: &str = "fused,compile+fused";
+
+/// neuvolex's GPU engine against PyTorch on `device`, like for like on CT-Tooth (the module
+/// `vs_torch` of inr.rs: the same resident volume, samples, order, budget, timed regions and
+/// rounds as the CPU comparison; see this file's documentation).
+#[allow(clippy::too_many_arguments)]
+fn vs_torch_gpu(
+    ctx: &Arc<GpuContext>,
+    store: &BrickStore,
+    device: &str,
+    steps: usize,
+    rounds: usize,
+    variants: &str,
+    screen: bool,
+) -> Value {
+    use vs_torch::{compare, evaluate, Bank, Round, Side, Torch};
+    let inr = InrConfig::default();
+    let tc = TrainConfig::default();
+    let b = tc.batch;
+    let bank = Bank::load(store, &inr);
+    let order = bank.order(steps, b, tc.seed);
+    let init = InrModel::new(&inr, bank.dims, tc.seed);
+    let data = tempfile::tempdir().expect("tmp");
+    let eb = if device == "cuda" {
+        vs_torch::EXTRACT_BATCH_CUDA
     } else {
-        vec![&[], &["--sparse"], &["--compile"]]
+        vs_torch::EXTRACT_BATCH_CPU
     };
-    for extra in variants {
-        let o = std::process::Command::new(&py)
-            .arg(&script)
-            .args([
-                "--device",
-                device,
-                "--finest",
-                &finest.to_string(),
-                "--seconds",
-                &seconds.to_string(),
-            ])
-            .args(extra)
-            .output();
-        match o {
-            Ok(o) if o.status.success() => {
-                if let Some(v) = String::from_utf8_lossy(&o.stdout)
-                    .lines()
-                    .last()
-                    .and_then(|l| serde_json::from_str::<Value>(l).ok())
-                {
-                    out.push(v);
-                }
-            }
-            Ok(o) => eprintln!(
-                "torch {extra:?}: {}",
-                String::from_utf8_lossy(&o.stderr)
-                    .lines()
-                    .last()
-                    .unwrap_or("failed")
-            ),
-            Err(e) => eprintln!("SKIP torch: {e}"),
+    bank.export(data.path(), &order, steps, &tc, &init, eb)
+        .expect("export for PyTorch");
+    println!(
+        "\nINR on the GPU against PyTorch on {device}, like for like: CT-Tooth {:?} ({} voxels, {} in training bricks); per round and side {steps} steps x {b} = {} samples ({:.2} epochs), the same samples in the same order; {rounds} rounds alternating after a screening round of every PyTorch variant.",
+        bank.dims,
+        bank.voxels(),
+        bank.train_voxels(),
+        steps * b,
+        (steps * b) as f64 / bank.train_voxels().max(1) as f64
+    );
+    println!("timed, between device synchronisations: training = the {steps} steps on the resident volume (neuvolex: GpuInr::step over every brick's tile resident in the ring and the whole sample order uploaded; PyTorch: gathers on the resident volume; both forward, loss, backward, Adam); extraction = the 64-D hidden feature of all {} voxels (neuvolex: record_tile per resident tile, which copies the features into a host-mappable buffer; PyTorch: no_grad forward in chunks of {eb} into a device tensor). Not timed: uploads, PyTorch's compilation, CUDA-graph capture and warm-up, a 2-step warm-up round of neuvolex, the loss/PSNR evaluation (neuvolex's on the CPU from the downloaded model).", bank.voxels());
+    let brick = store.info().brick;
+    let slots = bank.tiles.len();
+    let setup = || -> neuvolex_features_gpu::Result<(GpuInr, GpuInr, neuvolex_features_gpu::context::Tracked)> {
+        let eng = GpuInr::new(
+            ctx,
+            &init,
+            None,
+            EngineOptions {
+                batch: b,
+                micro_batch: None,
+                train: true,
+                slots,
+                brick,
+                order_pairs: (steps * b).div_ceil(2),
+                mlp: MlpPath::default(),
+            },
+        )?;
+        let inf = GpuInr::new(
+            ctx,
+            &init,
+            None,
+            EngineOptions {
+                slots,
+                ..EngineOptions::inference(brick)
+            },
+        )?;
+        for (i, t) in bank.tiles.iter().enumerate() {
+            eng.upload_tile(i, t)?;
+            inf.upload_tile(i, t)?;
         }
+        let pairs: Vec<u32> = order.iter().flat_map(|&(t, v)| [t, v]).collect();
+        eng.upload_order(0, &pairs)?;
+        let most = bank.tiles.iter().map(|t| t.voxels()).max().unwrap_or(1);
+        let staging = inf.staging_for(most, FeatureKind::Hidden)?;
+        ctx.wait()?;
+        Ok((eng, inf, staging))
+    };
+    let (mut eng, mut inf, staging) = match setup() {
+        Ok(x) => x,
+        Err(e) => {
+            println!("SKIP the comparison with PyTorch: the resident-volume GPU engine could not be set up ({e})");
+            return json!({"error": e.to_string()});
+        }
+    };
+    let rates = neuvolex_features_gpu::StepRates {
+        lr: tc.lr,
+        lr_table: tc.lr_table,
+        mode: tc.table_adam,
+    };
+    let mut gpu_round = |n: usize| -> neuvolex_features_gpu::Result<Round> {
+        eng.upload_model(&init);
+        eng.upload_adam(&neuvolex_features::adam::Adam::new(
+            init.dense.len(),
+            init.table.len(),
+        ))?;
+        ctx.wait()?;
+        let t = Instant::now();
+        for s in 0..n {
+            eng.step(s * b, b, rates, s + 1)?;
+        }
+        ctx.wait()?;
+        let train_s = t.elapsed().as_secs_f64();
+        let model = eng.download_model()?;
+        inf.upload_model(&model);
+        ctx.wait()?;
+        let t = Instant::now();
+        for (i, tile) in bank.tiles.iter().enumerate() {
+            inf.record_tile(i, tile.voxels(), FeatureKind::Hidden, &staging)?;
+        }
+        ctx.wait()?;
+        let extract_s = t.elapsed().as_secs_f64();
+        let (volume_loss, psnr) = evaluate(&model, &bank);
+        Ok(Round {
+            train_s,
+            samples: n * b,
+            last_loss: None,
+            extract_s,
+            extract_voxels: bank.voxels(),
+            volume_loss,
+            psnr,
+        })
+    };
+    if let Err(e) = gpu_round(2) {
+        println!("SKIP the comparison with PyTorch: the GPU engine's warm-up round failed ({e})");
+        return json!({"error": e.to_string()});
     }
-    out
+    let threads = std::thread::available_parallelism().map_or(2, |n| n.get());
+    let mut torch = match Torch::start(data.path(), device, threads, variants) {
+        Ok(t) => {
+            println!("{}", t.describe(device));
+            Some(t)
+        }
+        Err(e) => {
+            println!("PyTorch unavailable ({e}): neuvolex alone");
+            None
+        }
+    };
+    let mut sides: Vec<Side<'_>> = vec![(
+        format!("neuvolex GPU ({})", ctx.info().name),
+        Box::new(move || {
+            gpu_round(steps).unwrap_or_else(|e| {
+                eprintln!("neuvolex GPU round failed: {e}");
+                Round {
+                    train_s: f64::NAN,
+                    extract_s: f64::NAN,
+                    volume_loss: f64::NAN,
+                    psnr: f64::NAN,
+                    ..Round::default()
+                }
+            })
+        }),
+    )];
+    let context = format!("GPU ({device}), CT-Tooth, {steps} x {b} samples");
+    compare(rounds, &mut sides, torch.as_mut(), screen, &context)
 }
 
 /// Launch path x batch size on `store`: each trains the paper's model for `seconds` from the
@@ -541,7 +659,10 @@ fn main() {
         .split(',')
         .filter_map(|v| v.trim().parse().ok())
         .collect();
-    let torch_s: f64 = arg(&args, "--torch-s", if quick { 8.0 } else { 20.0 });
+    // The comparison with PyTorch: steps per round and side, rounds, variants, screening.
+    let torch_steps: usize = arg(&args, "--torch-steps", if quick { 100 } else { 400 });
+    let rounds: usize = arg(&args, "--rounds", 3);
+    let screen = arg(&args, "--screen", 1u32) != 0;
     let cpu_s: f64 = arg(&args, "--cpu-s", if quick { 5.0 } else { 15.0 });
     let out: Option<PathBuf> = arg(&args, "--out", String::new())
         .parse()
@@ -559,18 +680,49 @@ fn main() {
     }
     let mut report =
         json!({"machine": machine(), "adapter": ctx.describe(), "software": ctx.is_software()});
+    // PyTorch on CUDA beside an NVIDIA adapter, else on the CPU (a dry run of the code path).
+    let device = if ctx.info().vendor == 0x10de {
+        "cuda"
+    } else {
+        "cpu"
+    };
+    let variants: String = arg(
+        &args,
+        "--torch-variants",
+        if device == "cuda" {
+            CUDA_VARIANTS
+        } else {
+            CPU_VARIANTS
+        }
+        .to_string(),
+    );
+    let vs = |store: &BrickStore| {
+        vs_torch_gpu(&ctx, store, device, torch_steps, rounds, &variants, screen)
+    };
+    let write = |report: &Value| {
+        if let Some(o) = &out {
+            std::fs::write(o, serde_json::to_vec_pretty(report).expect("json"))
+                .expect("write report");
+            println!("\nreport: {}", o.display());
+        }
+    };
+    // `--only torch`: just the comparison with PyTorch on CT-Tooth.
+    if arg(&args, "--only", String::new()) == "torch" {
+        if let Some(p) = shared("tooth/tooth.nhdr") {
+            let dir = tempfile::tempdir().expect("tmp");
+            report["torch"] = vs(&store_for(&p, dir.path()));
+        }
+        write(&report);
+        return;
+    }
     // `--only agree`: just the fused-against-layered check (a quick smoke test of a build).
     if arg(&args, "--only", String::new()) == "agree" {
         report["paths_agree"] = paths_agree(&ctx, [103, 94, 161]);
-        if let Some(o) = out {
-            std::fs::write(&o, serde_json::to_vec_pretty(&report).expect("json"))
-                .expect("write report");
-        }
+        write(&report);
         return;
     }
     volume_table_header();
     let mut vols = Vec::new();
-    let mut tooth_sps = f64::NAN;
     let work = tempfile::tempdir().expect("tmp");
     let mut cases: Vec<(String, PathBuf, f64, Option<f64>)> = Vec::new();
     if let Some(p) = shared("tooth/tooth.nhdr") {
@@ -594,57 +746,15 @@ fn main() {
         let store = store_for(src, dir.path());
         let v = gpu_volume(&ctx, name, &store, *epochs, *cap, cpu_s);
         if name == "CT-Tooth" {
-            tooth_sps = v["train_samples_per_s"].as_f64().unwrap_or(f64::NAN);
             report["paths_agree"] = paths_agree(&ctx, store.info().dims);
             report["profile"] = profile(&ctx, &store);
             report["sweep"] = sweep(&ctx, &store, sweep_s, &sweep_batches);
+            report["torch"] = vs(&store);
+            // A partial report now, in case the device's time limit cuts the run short.
+            write(&report);
             volume_table_header();
         }
         vols.push(v);
-    }
-    let device = if ctx.info().vendor == 0x10de {
-        "cuda"
-    } else {
-        "cpu"
-    };
-    let t = torch(device, 161, torch_s);
-    if let Some(best) = t.iter().max_by(|a, b| {
-        a["train_samples_per_s"]
-            .as_f64()
-            .partial_cmp(&b["train_samples_per_s"].as_f64())
-            .unwrap_or(std::cmp::Ordering::Equal)
-    }) {
-        let ts = best["train_samples_per_s"].as_f64().unwrap_or(f64::NAN);
-        println!(
-            "\nPyTorch on {device} (CT-Tooth model sizes): {}",
-            t.iter()
-                .map(|v| format!(
-                    "{}{}{}{}: {:.2} M samples/s",
-                    if v["sparse"] == true {
-                        "sparse"
-                    } else {
-                        "dense"
-                    },
-                    if v["fused_adam"] == true {
-                        " fused Adam"
-                    } else {
-                        ""
-                    },
-                    if v["compile"] == true { "+compile" } else { "" },
-                    match v["compile_mode"].as_str() {
-                        Some(m) if m != "default" => format!(" ({m})"),
-                        _ => String::new(),
-                    },
-                    v["train_samples_per_s"].as_f64().unwrap_or(0.0) / 1e6
-                ))
-                .collect::<Vec<_>>()
-                .join(", ")
-        );
-        println!(
-            "neuvolex GPU / best PyTorch: {:.2}x (training)",
-            tooth_sps / ts
-        );
-        report["torch"] = json!({"device": device, "runs": t, "ratio": tooth_sps / ts});
     }
     report["renderer"] = json!(renderer());
     // The large phantom last: its extraction into the store is the longest part of the run,
@@ -663,9 +773,5 @@ fn main() {
         cpu_s,
     ));
     report["volumes"] = json!(vols);
-    if let Some(o) = out {
-        std::fs::write(&o, serde_json::to_vec_pretty(&report).expect("json"))
-            .expect("write report");
-        println!("\nreport: {}", o.display());
-    }
+    write(&report);
 }

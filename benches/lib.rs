@@ -1,6 +1,8 @@
 //! Shared helpers for the benchmark binaries.
 
 use std::path::PathBuf;
+
+pub mod vs_torch;
 use std::time::{Duration, Instant};
 
 /// `../shared/data/<rel>` if present (benchmarks that need it say so and skip otherwise).
@@ -103,4 +105,144 @@ pub fn write_cta(path: &std::path::Path) {
         f.write_all(&s.bytes).expect("write");
     }
     f.flush().expect("flush");
+}
+
+/// A reference implementation in a child process that answers one JSON line per command line
+/// (`render_vtk.py`, `forest_sklearn.py`, `kmeans_sklearn.py`): it loads its inputs once, then
+/// the bench interleaves its rounds with our own, so a load change on a shared machine hits
+/// both sides alike. Sends `quit` and waits for the child when dropped.
+pub struct JsonChild {
+    child: std::process::Child,
+    stdin: std::process::ChildStdin,
+    out: std::io::BufReader<std::process::ChildStdout>,
+    /// The first line the child printed (its `ready` message).
+    pub ready: serde_json::Value,
+}
+
+impl JsonChild {
+    /// Starts `python script args` with `envs` and waits for its first JSON line; `None`, with
+    /// the reason on stderr (`what` names the reference), where the interpreter or a module
+    /// is missing or the script fails before it is ready.
+    pub fn start(
+        what: &str,
+        python: &str,
+        script: &std::path::Path,
+        args: &[String],
+        envs: &[(&str, &str)],
+    ) -> Option<JsonChild> {
+        use std::process::{Command, Stdio};
+        let spawned = Command::new(python)
+            .arg(script)
+            .args(args)
+            .envs(envs.iter().copied())
+            .stdin(Stdio::piped())
+            .stdout(Stdio::piped())
+            .spawn();
+        let mut child = match spawned {
+            Ok(c) => c,
+            Err(e) => {
+                eprintln!("SKIP {what} ({python}): {e}");
+                return None;
+            }
+        };
+        let stdin = child.stdin.take().expect("piped stdin");
+        let out = std::io::BufReader::new(child.stdout.take().expect("piped stdout"));
+        let mut c = JsonChild {
+            child,
+            stdin,
+            out,
+            ready: serde_json::Value::Null,
+        };
+        match c.reply() {
+            Some(r) => {
+                c.ready = r;
+                Some(c)
+            }
+            None => {
+                eprintln!("SKIP {what} ({python}): the script did not start (its error is above)");
+                let _ = c.child.wait();
+                None
+            }
+        }
+    }
+
+    /// The next JSON line the child prints (other lines are skipped); `None` once it exits.
+    pub fn reply(&mut self) -> Option<serde_json::Value> {
+        use std::io::BufRead;
+        let mut line = String::new();
+        loop {
+            line.clear();
+            if self.out.read_line(&mut line).ok()? == 0 {
+                return None;
+            }
+            if let Ok(v) = serde_json::from_str::<serde_json::Value>(&line) {
+                return Some(v);
+            }
+        }
+    }
+
+    /// Sends one command line and returns the reply.
+    pub fn send(&mut self, cmd: &str) -> Option<serde_json::Value> {
+        use std::io::Write;
+        writeln!(self.stdin, "{cmd}").ok()?;
+        self.stdin.flush().ok()?;
+        self.reply()
+    }
+}
+
+impl Drop for JsonChild {
+    fn drop(&mut self) {
+        use std::io::Write;
+        let _ = writeln!(self.stdin, "quit");
+        let _ = self.stdin.flush();
+        let _ = self.child.wait();
+    }
+}
+
+/// `median [min-max]` of `v` (non-finite values left out) with `digits` decimals, or `-`.
+pub fn spread(v: &[f64], digits: usize) -> String {
+    let mut s: Vec<f64> = v.iter().copied().filter(|x| x.is_finite()).collect();
+    if s.is_empty() {
+        return "-".into();
+    }
+    s.sort_by(f64::total_cmp);
+    format!(
+        "{:.digits$} [{:.digits$}-{:.digits$}]",
+        s[s.len() / 2],
+        s[0],
+        s[s.len() - 1]
+    )
+}
+
+/// The per-round ratios `a[i] / b[i]` as `median x [min-max]`, or `-`.
+pub fn ratio_spread(a: &[f64], b: &[f64]) -> String {
+    let mut r: Vec<f64> = a
+        .iter()
+        .zip(b)
+        .map(|(x, y)| x / y)
+        .filter(|x| x.is_finite())
+        .collect();
+    if r.is_empty() {
+        return "-".into();
+    }
+    r.sort_by(f64::total_cmp);
+    format!("{:.2}x [{:.2}-{:.2}]", r[r.len() / 2], r[0], r[r.len() - 1])
+}
+
+/// The machine's load average as `load average A B C` (the one, five and fifteen minutes).
+pub fn load_average() -> String {
+    let l = std::fs::read_to_string("/proc/loadavg").unwrap_or_default();
+    format!(
+        "load average {}",
+        l.split_whitespace().take(3).collect::<Vec<_>>().join(" ")
+    )
+}
+
+/// The value after `--name` in `args`, parsed, or `default` where it is absent or does not parse.
+pub fn arg<T: std::str::FromStr>(args: &[String], name: &str, default: T) -> T {
+    args.iter()
+        .position(|a| a == name)
+        .and_then(|i| args.get(i + 1))
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(default)
 }

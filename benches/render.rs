@@ -1,37 +1,49 @@
 //! Milliseconds per frame of the renderer on real volumes, against VTK's ray casters on the same
-//! volume, view and transfer function (`cargo bench -p neuvolex-benches --bench render
-//! [--features gpu] -- [--size 512] [--frames 5] [--only bonsai|abdomen_ct] [--no-vtk-gpu]`).
+//! volume, views and transfer function (`cargo bench -p neuvolex-benches --bench render
+//! [--features gpu] -- [--size 512] [--frames 7] [--only bonsai|abdomen_ct] [--no-vtk-gpu]`).
 //!
-//! Volumes: CT-Bonsai (256^3) and the abdomen CT (122x101x112, 3 mm), from ../shared/data.
-//! Reported per volume: the first frame (bricks read and decompressed from the store), then the
-//! warm frames (bricks cached), for the intensity mode with shading and, on the abdomen, the
-//! probabilistic mode over its ground-truth labels; the wgpu renderer where built with
-//! `--features gpu`; and VTK's vtkFixedPointVolumeRayCastMapper and vtkGPUVolumeRayCastMapper
-//! where `NEUVOLEX_VTK_PYTHON` (or `python3`) imports vtk and nibabel. VTK runs in a Python
-//! process that renders a frame per request: the warm frames interleave (one of each renderer per
-//! round), each timed in wall and process CPU time (getrusage here, `time.process_time` there),
-//! and the ratio is taken per round, so a load change on a shared machine hits both sides alike.
+//! Volumes: CT-Bonsai (256^3, uint8) and the abdomen CT (122x101x112, 3 mm, int32 in the file),
+//! from ../shared/data. Two camera series, each `--frames` rounds: a *still* camera (the bench
+//! view every frame: a renderer may reuse its rays, as when a TF or the probabilities change)
+//! and an *orbit* (every frame a new view, 360/frames degrees further in azimuth: nothing
+//! view-dependent can be reused, as when a user turns the volume). Per volume: the first frame
+//! (bricks read and decompressed from the store), then the frames of both series, for the
+//! intensity mode with shading and, on the abdomen, the probabilistic mode over its
+//! ground-truth labels; the wgpu renderer where built with `--features gpu`; and VTK's
+//! vtkFixedPointVolumeRayCastMapper and vtkGPUVolumeRayCastMapper where `NEUVOLEX_VTK_PYTHON`
+//! (or `python3`) imports vtk and nibabel.
+//!
+//! Like for like, by construction:
+//! - VTK gets each volume in the file's integer type, narrowed without loss to 8 or 16 bits
+//!   (the fixed-point caster's fast path; bonsai uint8, the abdomen int16), the same camera,
+//!   TF control points (in data units), opacity unit distance, sample distance (automatic
+//!   adjustment off, full image resolution) and thread count (`render_vtk.py`);
+//! - timed regions: ours is the whole `Renderer::render` call (per-frame ray set-up, the march,
+//!   compositing into an RGB image in memory); VTK's is its ray cast alone, between the mapper's
+//!   render start and end events (without its per-frame set-up and the OpenGL blit), so the
+//!   ratio leans, if at all, towards VTK. VTK's whole `Render()` (with the blit through
+//!   OpenGL) is reported beside it as what a VTK user waits for;
+//! - rounds interleave: one frame of each renderer of ours, then one of each VTK mapper, each
+//!   timed in wall and process CPU time (getrusage here, `time.process_time` there), and the
+//!   ratio is taken per round, so a load change on a shared machine hits both sides alike;
+//! - images: ours against VTK's for the same view, as the mean and largest absolute channel
+//!   difference and SSIM of the luma (7x7 windows), with the still view's and the last orbit
+//!   view's images.
+//!
 //! Images go to `target/bench-render/`, with a side-by-side PNG per volume.
 
-use neuvolex_benches::{machine, shared};
+use neuvolex_benches::{arg, load_average, machine, ratio_spread, shared, spread, JsonChild};
 use neuvolex_bricks::synth::ClassInfo;
 use neuvolex_bricks::{open_volume, BrickStore};
 use neuvolex_ingest::{ingest, IngestOptions};
+use neuvolex_render::camera::View;
 use neuvolex_render::tf::Space;
-use neuvolex_render::{BrickSource, Image, Mode, RenderParams, Renderer, StoreSource, TfFile};
-use std::io::{BufRead, BufReader, Write};
+use neuvolex_render::{
+    BrickSource, Camera, Image, Mode, RenderParams, Renderer, StoreSource, TfFile,
+};
 use std::path::{Path, PathBuf};
-use std::process::{Child, ChildStdin, ChildStdout, Command, Stdio};
 use std::sync::Arc;
 use std::time::Instant;
-
-fn arg(args: &[String], name: &str, default: usize) -> usize {
-    args.iter()
-        .position(|a| a == name)
-        .and_then(|i| args.get(i + 1))
-        .and_then(|s| s.parse().ok())
-        .unwrap_or(default)
-}
 
 fn store(src: &Path, labels: Option<&Path>, dir: &Path) -> Arc<BrickStore> {
     let p = dir.join("s.zarr");
@@ -65,11 +77,11 @@ fn store(src: &Path, labels: Option<&Path>, dir: &Path) -> Arc<BrickStore> {
 /// VTK's mappers in a Python process (`render_vtk.py`) that renders one frame per request, so
 /// that its frames interleave with ours and a load change on the machine hits both sides alike.
 struct Vtk {
-    child: Child,
-    stdin: ChildStdin,
-    out: BufReader<ChildStdout>,
+    child: JsonChild,
     /// The mappers set up, by name.
     mappers: Vec<String>,
+    /// The type the volume went to VTK in.
+    dtype: String,
 }
 
 impl Vtk {
@@ -80,88 +92,62 @@ impl Vtk {
         let jp = out.with_extension("job.json");
         std::fs::write(&jp, job.to_string()).expect("job");
         let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("render_vtk.py");
-        let spawned = Command::new(&py)
-            .arg(&script)
-            .arg(&jp)
-            .env("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
-            .stdin(Stdio::piped())
-            .stdout(Stdio::piped())
-            .spawn();
-        let mut child = match spawned {
-            Ok(c) => c,
-            Err(e) => {
-                eprintln!("SKIP vtk ({py}): {e}");
-                return None;
-            }
-        };
-        let stdin = child.stdin.take().expect("piped stdin");
-        let out = BufReader::new(child.stdout.take().expect("piped stdout"));
-        let mut v = Vtk {
+        let child = JsonChild::start(
+            "vtk",
+            &py,
+            &script,
+            &[jp.display().to_string()],
+            &[("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")],
+        )?;
+        let r = &child.ready;
+        let mappers = r["ready"]
+            .as_array()
+            .map(|a| {
+                a.iter()
+                    .filter_map(|m| m.as_str().map(String::from))
+                    .collect()
+            })
+            .unwrap_or_default();
+        let dtype = format!(
+            "{} (VTK {})",
+            r["dtype"].as_str().unwrap_or("?"),
+            r["vtk"].as_str().unwrap_or("?")
+        );
+        Some(Vtk {
             child,
-            stdin,
-            out,
-            mappers: Vec::new(),
-        };
-        match v.reply() {
-            Some(r) => {
-                v.mappers = r["ready"]
-                    .as_array()
-                    .map(|a| {
-                        a.iter()
-                            .filter_map(|m| m.as_str().map(String::from))
-                            .collect()
-                    })
-                    .unwrap_or_default();
-                Some(v)
-            }
-            None => {
-                eprintln!("SKIP vtk ({py}): the script did not start (its error is above)");
-                let _ = v.child.wait();
-                None
-            }
-        }
+            mappers,
+            dtype,
+        })
     }
 
-    /// The next JSON line the script prints.
-    fn reply(&mut self) -> Option<serde_json::Value> {
-        let mut line = String::new();
-        loop {
-            line.clear();
-            if self.out.read_line(&mut line).ok()? == 0 {
-                return None;
-            }
-            if let Ok(v) = serde_json::from_str::<serde_json::Value>(&line) {
-                return Some(v);
-            }
-        }
-    }
-
-    fn send(&mut self, cmd: &str) -> Option<serde_json::Value> {
-        writeln!(self.stdin, "{cmd}").ok()?;
-        self.stdin.flush().ok()?;
-        self.reply()
-    }
-
-    /// One frame of `mapper`: wall and process CPU milliseconds.
-    fn frame(&mut self, mapper: &str) -> Timing {
-        let r = self.send(&format!("frame {mapper}")).expect("vtk frame");
-        Timing {
-            ms: r["ms"].as_f64().unwrap_or(f64::NAN),
-            cpu_ms: r["cpu_ms"].as_f64().unwrap_or(f64::NAN),
+    /// One frame of `mapper` from `view`'s eye and up: the whole `Render()` and, for the
+    /// fixed-point caster, its ray cast alone, in wall and process CPU milliseconds.
+    fn frame(&mut self, mapper: &str, view: &View) -> VtkTiming {
+        let (e, u) = (view.eye, view.up);
+        let r = self
+            .child
+            .send(&format!(
+                "frame {mapper} {} {} {} {} {} {}",
+                e[0], e[1], e[2], u[0], u[1], u[2]
+            ))
+            .expect("vtk frame");
+        let f = |k: &str| r[k].as_f64().unwrap_or(f64::NAN);
+        VtkTiming {
+            render: Timing {
+                ms: f("ms"),
+                cpu_ms: f("cpu_ms"),
+            },
+            cast: Timing {
+                ms: f("cast_ms"),
+                cpu_ms: f("cast_cpu_ms"),
+            },
         }
     }
 
     /// Writes `mapper`'s last image to `path`.
     fn save(&mut self, mapper: &str, path: &Path) {
-        self.send(&format!("save {mapper} {}", path.display()));
-    }
-}
-
-impl Drop for Vtk {
-    fn drop(&mut self) {
-        let _ = writeln!(self.stdin, "quit");
-        let _ = self.stdin.flush();
-        let _ = self.child.wait();
+        self.child
+            .send(&format!("save {mapper} {}", path.display()));
     }
 }
 
@@ -170,6 +156,14 @@ impl Drop for Vtk {
 struct Timing {
     ms: f64,
     cpu_ms: f64,
+}
+
+/// One VTK frame: the whole `Render()` and the ray cast alone (NaN where the mapper has no
+/// cast events).
+#[derive(Clone, Copy)]
+struct VtkTiming {
+    render: Timing,
+    cast: Timing,
 }
 
 /// This process's CPU time (user + system, all threads), in milliseconds.
@@ -191,55 +185,75 @@ fn timed(f: impl FnOnce()) -> Timing {
     }
 }
 
-/// `median [min-max]` of some values.
-fn spread(v: &[f64]) -> String {
-    let mut s: Vec<f64> = v.iter().copied().filter(|x| x.is_finite()).collect();
-    if s.is_empty() {
-        return "-".into();
-    }
-    s.sort_by(f64::total_cmp);
-    format!("{:.0} [{:.0}-{:.0}]", s[s.len() / 2], s[0], s[s.len() - 1])
-}
-
-/// Median and range of per-round ratios `a[i] / b[i]`.
-fn ratio_spread(a: &[f64], b: &[f64]) -> String {
-    let mut r: Vec<f64> = a
-        .iter()
-        .zip(b)
-        .map(|(x, y)| x / y)
-        .filter(|x| x.is_finite())
-        .collect();
-    if r.is_empty() {
-        return "-".into();
-    }
-    r.sort_by(f64::total_cmp);
-    format!("{:.2}x [{:.2}-{:.2}]", r[r.len() / 2], r[0], r[r.len() - 1])
+/// `median [min-max]` in whole milliseconds.
+fn spread0(v: &[f64]) -> String {
+    spread(v, 0)
 }
 
 /// One renderer of ours in the interleaved run.
 struct Entry<'a> {
     mode: Mode,
     label: String,
-    render: Box<dyn FnMut() -> Image + 'a>,
+    gpu: bool,
+    render: Box<dyn FnMut(&Camera) -> Image + 'a>,
     first: f64,
-    times: Vec<Timing>,
     image: Image,
+}
+
+/// The camera series a run times: the bench view every frame, or an orbit.
+#[derive(Clone, Copy, PartialEq)]
+enum Series {
+    Still,
+    Orbit,
+}
+
+impl Series {
+    fn name(self) -> &'static str {
+        match self {
+            Series::Still => "still",
+            Series::Orbit => "orbit",
+        }
+    }
+
+    /// The camera of frame `i` of `frames` (the orbit's views lie half a step off the still
+    /// one, so none repeats it).
+    fn camera(self, base: Camera, i: usize, frames: usize) -> Camera {
+        match self {
+            Series::Still => base,
+            Series::Orbit => Camera {
+                azimuth: base.azimuth + 360.0 * (i as f32 + 0.5) / frames.max(1) as f32,
+                ..base
+            },
+        }
+    }
+}
+
+/// The largest mean absolute channel difference from VTK fixed-point's image that counts as the
+/// same picture: its 15-bit compositing and encoded-normal shading tables make it darker than
+/// a float renderer's, by about 0.01–0.02 on these views.
+const MAX_MEAN_DIFF: f32 = 0.03;
+/// The smallest SSIM against VTK fixed-point's image that counts as the same picture.
+const MIN_SSIM: f32 = 0.85;
+
+/// The mean and largest absolute channel difference and the SSIM of `a` against `b`.
+fn compare(a: &Image, b: &Image) -> String {
+    match (a.diff(b), a.ssim(b)) {
+        (Ok((max, mean)), Ok(ssim)) => format!("{mean:.4} | {max:.3} | {ssim:.3}"),
+        (Err(e), _) | (_, Err(e)) => format!("{e} | - | -"),
+    }
 }
 
 fn main() {
     let args: Vec<String> = std::env::args().collect();
     let size = arg(&args, "--size", 512);
-    let frames = arg(&args, "--frames", 5);
+    let frames = arg(&args, "--frames", 7);
     // `--no-vtk-gpu` leaves out VTK's OpenGL mapper (on llvmpipe it takes seconds a frame).
     let vtk_gpu = !args.iter().any(|a| a == "--no-vtk-gpu");
-    let load = std::fs::read_to_string("/proc/loadavg").unwrap_or_default();
     println!(
-        "machine: {}, {size}x{size}, {frames} warm frames interleaved with VTK's, load average {}",
+        "machine: {}, {size}x{size}, {frames} rounds per camera series interleaved with VTK's, rayon threads {}, {}",
         machine(),
-        load.split_whitespace()
-            .take(3)
-            .collect::<Vec<_>>()
-            .join(" ")
+        rayon::current_num_threads(),
+        load_average()
     );
     let out = Path::new(env!("CARGO_MANIFEST_DIR")).join("../target/bench-render");
     std::fs::create_dir_all(&out).expect("out dir");
@@ -252,11 +266,13 @@ fn main() {
             "ct-bone",
         ),
     ];
-    println!("Per renderer: median [min-max] over the warm frames; VTK / this: the per-round ratio of VTK fixed-point's frame to this renderer's, median [min-max], in wall and in process CPU time.");
+    println!("Per renderer: median [min-max] over the rounds. Ratios are per round, median [min-max]: VTK fixed-point's ray cast alone / this renderer's whole frame (the like-for-like ratio), and VTK's whole Render() with its OpenGL blit / this (what a VTK user waits for). Above 1: this renderer is faster.");
     println!(
-        "| volume | mode | renderer | first frame ms | warm ms/frame | CPU ms/frame | VTK fixed-point / this (wall) | (CPU time) |"
+        "| volume | camera | mode | renderer | first frame ms | ms/frame | CPU ms/frame | VTK cast / this (wall) | (CPU time) | VTK Render() / this (wall) |"
     );
-    println!("|---|---|---|---|---|---|---|---|");
+    println!("|---|---|---|---|---|---|---|---|---|---|");
+    let mut equivalence: Vec<String> = Vec::new();
+    let mut summaries: Vec<String> = Vec::new();
     // `--only NAME` runs one volume (for profiling).
     let only = args
         .iter()
@@ -280,7 +296,9 @@ fn main() {
             Space::Normalised => norm.lo + x * (norm.hi - norm.lo),
         };
         let geom = source.geom();
-        let view = params.camera.view(geom.extent(), size, size);
+        let extent = geom.extent();
+        let view_of = |c: &Camera| c.view(extent, size, size);
+        let view = view_of(&params.camera);
         let prefix = out.join(format!("{name}-"));
         let job = serde_json::json!({
             "volume": src,
@@ -294,6 +312,12 @@ fn main() {
             "gpu": vtk_gpu,
         });
         let mut vtk = Vtk::start(&job, &out.join(name));
+        if let Some(v) = &vtk {
+            println!(
+                "| {name} | | | VTK gets the volume as {} | | | | | | |",
+                v.dtype
+            );
+        }
         let mut entries: Vec<Entry> = Vec::new();
         for mode in [Mode::Intensity, Mode::Probabilistic] {
             let source = StoreSource::new(st.clone());
@@ -314,9 +338,12 @@ fn main() {
                     "neuvolex CPU ({} of {} bricks marched)",
                     s.marched, s.bricks
                 ),
-                render: Box::new(move || r.render(&p, &luts).expect("render")),
+                gpu: false,
+                render: Box::new(move |c| {
+                    r.render(&RenderParams { camera: *c, ..p }, &luts)
+                        .expect("render")
+                }),
                 first,
-                times: Vec::new(),
                 image: image.expect("image"),
             });
             #[cfg(feature = "gpu")]
@@ -336,9 +363,12 @@ fn main() {
                         entries.push(Entry {
                             mode,
                             label: format!("wgpu on {}", g.adapter()),
-                            render: Box::new(move || g.render(&p, &luts).expect("gpu render")),
+                            gpu: true,
+                            render: Box::new(move |c| {
+                                g.render(&RenderParams { camera: *c, ..p }, &luts)
+                                    .expect("gpu render")
+                            }),
                             first,
-                            times: Vec::new(),
                             image: image.expect("image"),
                         });
                     }
@@ -346,89 +376,166 @@ fn main() {
                 }
             }
         }
-        // Interleaved rounds: one frame of each renderer of ours, then one of each VTK mapper.
         let mappers = vtk.as_ref().map_or(Vec::new(), |v| v.mappers.clone());
-        let mut vtk_times: Vec<Vec<Timing>> = vec![Vec::new(); mappers.len()];
-        for _ in 0..frames {
-            for e in &mut entries {
-                let mut img = None;
-                e.times.push(timed(|| img = Some((e.render)())));
-                e.image = img.expect("image");
-            }
-            if let Some(v) = vtk.as_mut() {
-                for (m, t) in mappers.iter().zip(&mut vtk_times) {
-                    t.push(v.frame(m));
+        let mut side_by_side: Vec<Image> = Vec::new();
+        for series in [Series::Still, Series::Orbit] {
+            // Interleaved rounds: one frame of each renderer of ours, then one of each VTK
+            // mapper, all from the round's camera.
+            let mut ours: Vec<Vec<Timing>> = vec![Vec::new(); entries.len()];
+            let mut theirs: Vec<Vec<VtkTiming>> = vec![Vec::new(); mappers.len()];
+            for i in 0..frames {
+                let cam = series.camera(params.camera, i, frames);
+                let v_cam = view_of(&cam);
+                for (e, t) in entries.iter_mut().zip(&mut ours) {
+                    let mut img = None;
+                    t.push(timed(|| img = Some((e.render)(&cam))));
+                    e.image = img.expect("image");
+                }
+                if let Some(v) = vtk.as_mut() {
+                    for (m, t) in mappers.iter().zip(&mut theirs) {
+                        t.push(v.frame(m, &v_cam));
+                    }
                 }
             }
-        }
-        let fixed = mappers
-            .iter()
-            .position(|m| m == "vtk-fixedpoint-cpu")
-            .map(|i| &vtk_times[i]);
-        let ratios = |t: &[Timing]| match fixed {
-            Some(f) => (
-                ratio_spread(
-                    &f.iter().map(|x| x.ms).collect::<Vec<_>>(),
-                    &t.iter().map(|x| x.ms).collect::<Vec<_>>(),
-                ),
-                ratio_spread(
-                    &f.iter().map(|x| x.cpu_ms).collect::<Vec<_>>(),
-                    &t.iter().map(|x| x.cpu_ms).collect::<Vec<_>>(),
-                ),
-            ),
-            None => ("-".into(), "-".into()),
-        };
-        let cpu_image = entries.first().map(|e| e.image.clone());
-        let mut images: Vec<Image> = Vec::new();
-        for e in &entries {
-            let (rw, rc) = if e.mode == Mode::Intensity {
-                ratios(&e.times)
-            } else {
-                ("-".into(), "-".into())
+            let fixed = mappers
+                .iter()
+                .position(|m| m == "vtk-fixedpoint-cpu")
+                .map(|i| &theirs[i]);
+            let col = |t: &[Timing], f: fn(&Timing) -> f64| t.iter().map(f).collect::<Vec<_>>();
+            let ratios = |t: &[Timing]| match fixed {
+                Some(f) => {
+                    let cast: Vec<Timing> = f.iter().map(|x| x.cast).collect();
+                    let whole: Vec<Timing> = f.iter().map(|x| x.render).collect();
+                    (
+                        ratio_spread(&col(&cast, |x| x.ms), &col(t, |x| x.ms)),
+                        ratio_spread(&col(&cast, |x| x.cpu_ms), &col(t, |x| x.cpu_ms)),
+                        ratio_spread(&col(&whole, |x| x.ms), &col(t, |x| x.ms)),
+                    )
+                }
+                None => ("-".into(), "-".into(), "-".into()),
             };
-            let diff = match (&cpu_image, e.label.starts_with("wgpu")) {
-                (Some(c), true) if e.mode == Mode::Intensity => {
-                    e.image.diff(c).map_or(String::new(), |(max, mean)| {
-                        format!("; vs CPU image max {max:.4} mean {mean:.5}")
-                    })
+            let s = series.name();
+            // The summary row for `benches/compare.sh`: our CPU intensity frame against VTK
+            // fixed-point's ray cast, with the image check added below.
+            let mut summary = None;
+            if let (Some(f), Some((_, t))) = (
+                fixed,
+                entries
+                    .iter()
+                    .zip(&ours)
+                    .find(|(e, _)| !e.gpu && e.mode == Mode::Intensity),
+            ) {
+                let cast: Vec<Timing> = f.iter().map(|x| x.cast).collect();
+                summary = Some(format!(
+                    "| renderer: {name} {size}^2, {} camera | VTK fixed-point CPU caster, volume as {}; ours: whole render() into memory, VTK: ray cast alone; {} threads each; {frames} rounds | {} ms | {} ms | {} |",
+                    if series == Series::Still { "still (our rays reused)" } else { "orbiting (every frame a new view)" },
+                    vtk.as_ref().map_or("?", |v| v.dtype.as_str()),
+                    rayon::current_num_threads(),
+                    spread0(&col(t, |t| t.ms)),
+                    spread0(&col(&cast, |t| t.ms)),
+                    ratio_spread(&col(&cast, |x| x.ms), &col(t, |x| x.ms)),
+                ));
+            }
+            for (e, t) in entries.iter().zip(&ours) {
+                let (rw, rc, rr) = if e.mode == Mode::Intensity {
+                    ratios(t)
+                } else {
+                    ("-".into(), "-".into(), "-".into())
+                };
+                let first = if series == Series::Still {
+                    format!("{:.0}", e.first)
+                } else {
+                    "-".into()
+                };
+                println!(
+                    "| {name} | {s} | {:?} | {} | {first} | {} | {} | {rw} | {rc} | {rr} |",
+                    e.mode,
+                    e.label,
+                    spread0(&col(t, |t| t.ms)),
+                    spread0(&col(t, |t| t.cpu_ms)),
+                );
+            }
+            for (m, t) in mappers.iter().zip(&theirs) {
+                let cast: Vec<Timing> = t.iter().map(|x| x.cast).collect();
+                let whole: Vec<Timing> = t.iter().map(|x| x.render).collect();
+                if cast.iter().any(|x| x.ms.is_finite()) {
+                    println!(
+                        "| {name} | {s} | Intensity | {m}, ray cast alone | - | {} | {} | 1 | 1 | - |",
+                        spread0(&col(&cast, |t| t.ms)),
+                        spread0(&col(&cast, |t| t.cpu_ms)),
+                    );
                 }
-                _ => String::new(),
+                println!(
+                    "| {name} | {s} | Intensity | {m}, whole Render() | - | {} | {} | - | - | 1 |",
+                    spread0(&col(&whole, |t| t.ms)),
+                    spread0(&col(&whole, |t| t.cpu_ms)),
+                );
+            }
+            // Images of the series' last view, ours against VTK's.
+            let Some(cpu) = entries
+                .iter()
+                .find(|e| !e.gpu && e.mode == Mode::Intensity)
+                .map(|e| e.image.clone())
+            else {
+                continue;
             };
-            println!(
-                "| {name} | {:?} | {}{diff} | {:.0} | {} | {} | {rw} | {rc} |",
-                e.mode,
-                e.label,
-                e.first,
-                spread(&e.times.iter().map(|t| t.ms).collect::<Vec<_>>()),
-                spread(&e.times.iter().map(|t| t.cpu_ms).collect::<Vec<_>>()),
-            );
-            if !e.label.starts_with("wgpu") {
-                e.image
-                    .save_png(&out.join(format!("{name}-neuvolex-{:?}.png", e.mode)))
-                    .expect("png");
-                if e.mode == Mode::Intensity {
-                    images.push(e.image.clone());
+            cpu.save_png(&out.join(format!("{name}-{s}-neuvolex-Intensity.png")))
+                .expect("png");
+            for e in entries
+                .iter()
+                .filter(|e| e.gpu && e.mode == Mode::Intensity)
+            {
+                equivalence.push(format!(
+                    "| {name} | {s} | {} against neuvolex CPU | {} |",
+                    e.label,
+                    compare(&e.image, &cpu)
+                ));
+            }
+            if series == Series::Still {
+                side_by_side.push(cpu.clone());
+            }
+            for m in &mappers {
+                let png = PathBuf::from(format!("{}{s}-{m}.png", prefix.display()));
+                if let Some(v) = vtk.as_mut() {
+                    v.save(m, &png);
+                }
+                match Image::load_png(&png) {
+                    Ok(i) => {
+                        equivalence.push(format!(
+                            "| {name} | {s} | neuvolex CPU against {m} | {} |",
+                            compare(&cpu, &i)
+                        ));
+                        if m == "vtk-fixedpoint-cpu" {
+                            if let (Some(row), Ok((_, mean)), Ok(ssim)) =
+                                (summary.take(), cpu.diff(&i), cpu.ssim(&i))
+                            {
+                                summaries.push(format!(
+                                    "{row} image mean abs diff {mean:.4}, SSIM {ssim:.3} (bound: mean abs diff <= {MAX_MEAN_DIFF}, SSIM >= {MIN_SSIM}: {}) |",
+                                    if mean <= MAX_MEAN_DIFF && ssim >= MIN_SSIM { "within" } else { "EXCEEDED" }
+                                ));
+                            }
+                        }
+                        if series == Series::Still {
+                            side_by_side.push(i);
+                        }
+                    }
+                    Err(e) => eprintln!("no VTK image {}: {e}", png.display()),
                 }
             }
-        }
-        for (m, t) in mappers.iter().zip(&vtk_times) {
-            let (rw, rc) = ratios(t);
-            println!(
-                "| {name} | Intensity | {m} | - | {} | {} | {rw} | {rc} |",
-                spread(&t.iter().map(|t| t.ms).collect::<Vec<_>>()),
-                spread(&t.iter().map(|t| t.cpu_ms).collect::<Vec<_>>()),
-            );
-            let png = PathBuf::from(format!("{}{m}.png", prefix.display()));
-            if let Some(v) = vtk.as_mut() {
-                v.save(m, &png);
-            }
-            if let Ok(i) = Image::load_png(&png) {
-                images.push(i);
+            if series == Series::Still {
+                for e in entries
+                    .iter()
+                    .filter(|e| !e.gpu && e.mode != Mode::Intensity)
+                {
+                    e.image
+                        .save_png(&out.join(format!("{name}-neuvolex-{:?}.png", e.mode)))
+                        .expect("png");
+                }
             }
         }
         drop(vtk);
-        if images.len() > 1 {
-            let refs: Vec<&Image> = images.iter().collect();
+        if side_by_side.len() > 1 {
+            let refs: Vec<&Image> = side_by_side.iter().collect();
             if let Ok(s) = Image::side_by_side(&refs) {
                 let p = out.join(format!("{name}-side-by-side.png"));
                 s.save_png(&p).expect("png");
@@ -438,5 +545,17 @@ fn main() {
                 );
             }
         }
+    }
+    if !equivalence.is_empty() {
+        println!();
+        println!("Images of the same view (the still view, and the orbit's last): mean and largest absolute difference of the RGB channels in [0, 1], and SSIM of the luma (7x7 windows, as scikit-image).");
+        println!("| volume | camera | images | mean abs diff | max abs diff | SSIM |");
+        println!("|---|---|---|---|---|---|");
+        for l in equivalence {
+            println!("{l}");
+        }
+    }
+    for l in summaries {
+        println!("summary: {l}");
     }
 }

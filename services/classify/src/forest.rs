@@ -604,6 +604,13 @@ impl Forest {
             .as_ref()
     }
 
+    /// Codes the forest for prediction now ([`crate::packed`]) instead of on the first
+    /// prediction; a no-op once done. Returns whether the coded form exists (a forest that
+    /// cannot be coded predicts with the plain f32 walk).
+    pub fn prepare(&self) -> bool {
+        self.packed().is_some()
+    }
+
     /// Depth of each tree's deepest leaf, in tree order.
     pub fn depths(&self) -> Vec<u32> {
         self.trees.iter().map(|t| t.depth).collect()
@@ -1061,7 +1068,7 @@ mod tests {
             &cfg(25),
         )
         .unwrap();
-        assert!(f.packed().is_some(), "small forests are coded");
+        assert!(f.prepare(), "small forests are coded");
         // Inputs exactly on thresholds, next to them, outside the range, infinite and NaN.
         let mut probe = x[..200 * d].to_vec();
         for t in &f.trees {

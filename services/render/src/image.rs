@@ -123,6 +123,67 @@ impl Image {
         Ok((max, (sum / (3 * self.rgb.len().max(1)) as f64) as f32))
     }
 
+    /// Structural similarity of the two images' luma (Rec. 601 weights, RGB in [0, 1]), as
+    /// Wang et al. (2004) define it and scikit-image computes it by default: 7x7 uniform
+    /// windows, sample covariances, K1 = 0.01, K2 = 0.03, data range 1, the mean over the
+    /// windows that lie inside the image. 1 for equal images; images smaller than a window
+    /// compare as one window.
+    pub fn ssim(&self, other: &Image) -> Result<f32> {
+        if (self.width, self.height) != (other.width, other.height) {
+            return Err(RenderError::Input(format!(
+                "image sizes differ: {}x{} vs {}x{}",
+                self.width, self.height, other.width, other.height
+            )));
+        }
+        let (w, h) = (self.width, self.height);
+        if w == 0 || h == 0 {
+            return Err(RenderError::Input("empty images".into()));
+        }
+        let luma = |p: &[f32; 3]| (0.299 * p[0] + 0.587 * p[1] + 0.114 * p[2]) as f64;
+        // Summed-area tables of x, y, x^2, y^2 and xy, one row and column of zeros in front.
+        let (sw, sh) = (w + 1, h + 1);
+        let mut t = vec![[0.0f64; 5]; sw * sh];
+        for j in 0..h {
+            let mut row = [0.0f64; 5];
+            for i in 0..w {
+                let (x, y) = (luma(&self.rgb[j * w + i]), luma(&other.rgb[j * w + i]));
+                for (r, v) in row.iter_mut().zip([x, y, x * x, y * y, x * y]) {
+                    *r += v;
+                }
+                let above = t[j * sw + i + 1];
+                let cell = &mut t[(j + 1) * sw + i + 1];
+                for k in 0..5 {
+                    cell[k] = above[k] + row[k];
+                }
+            }
+        }
+        let win = 7.min(w).min(h);
+        let n = (win * win) as f64;
+        let cov_norm = if n > 1.0 { n / (n - 1.0) } else { 1.0 };
+        let (c1, c2) = (0.01f64.powi(2), 0.03f64.powi(2));
+        let mut sum = 0.0;
+        let mut count = 0usize;
+        for j in 0..=h - win {
+            for i in 0..=w - win {
+                let (a, b, c, d) = (
+                    t[j * sw + i],
+                    t[j * sw + i + win],
+                    t[(j + win) * sw + i],
+                    t[(j + win) * sw + i + win],
+                );
+                let s: [f64; 5] = std::array::from_fn(|k| (d[k] - b[k] - c[k] + a[k]) / n);
+                let (mx, my) = (s[0], s[1]);
+                let vx = cov_norm * (s[2] - mx * mx);
+                let vy = cov_norm * (s[3] - my * my);
+                let vxy = cov_norm * (s[4] - mx * my);
+                sum += ((2.0 * mx * my + c1) * (2.0 * vxy + c2))
+                    / ((mx * mx + my * my + c1) * (vx + vy + c2));
+                count += 1;
+            }
+        }
+        Ok((sum / count as f64) as f32)
+    }
+
     /// Nearest-neighbour resize (to show a coarse progressive pass at full size).
     pub fn resized(&self, width: usize, height: usize) -> Image {
         let mut rgb = Vec::with_capacity(width * height);
@@ -165,5 +226,47 @@ impl Image {
             }
         }
         Ok(out)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn flat(w: usize, h: usize, f: impl Fn(usize, usize) -> f32) -> Image {
+        Image {
+            width: w,
+            height: h,
+            rgb: (0..w * h).map(|p| [f(p % w, p / w); 3]).collect(),
+            alpha: vec![1.0; w * h],
+        }
+    }
+
+    #[test]
+    fn ssim_is_one_for_equal_images_and_follows_the_formula_on_flat_ones() {
+        let a = flat(20, 16, |i, j| ((i * 7 + j * 3) % 11) as f32 / 10.0);
+        assert!((a.ssim(&a).unwrap() - 1.0).abs() < 1e-6);
+        // Flat images: no variance, so SSIM is the luminance term alone.
+        let (x, y) = (0.6f64, 0.3f64);
+        let c1 = 0.01f64.powi(2);
+        let want = (2.0 * x * y + c1) / (x * x + y * y + c1);
+        let got = flat(9, 9, |_, _| x as f32)
+            .ssim(&flat(9, 9, |_, _| y as f32))
+            .unwrap();
+        assert!((got as f64 - want).abs() < 1e-5, "{got} vs {want}");
+        // Structure lost (the pattern against its mean) scores far below 1.
+        let mean = flat(20, 16, |_, _| 0.5);
+        assert!(a.ssim(&mean).unwrap() < 0.2);
+        // Inverted structure is negatively correlated.
+        let inv = flat(20, 16, |i, j| 1.0 - ((i * 7 + j * 3) % 11) as f32 / 10.0);
+        assert!(a.ssim(&inv).unwrap() < 0.0);
+    }
+
+    #[test]
+    fn ssim_refuses_images_of_other_sizes() {
+        let e = flat(8, 8, |_, _| 0.0)
+            .ssim(&flat(8, 9, |_, _| 0.0))
+            .unwrap_err();
+        assert!(e.to_string().contains("8x8 vs 8x9"), "{e}");
     }
 }

@@ -9,7 +9,12 @@
 //! distance product once the centroids settle. The bounds carry margins for the rounding of the
 //! distance product, so a row is only skipped when the product would assign it to the same
 //! cluster: every pass's statistics equal the sum of [`KMeans::partial`] over the bricks (the
-//! step a distributed run merges) bit for bit.
+//! step a distributed run merges) bit for bit. `bounds_mib: 0` turns the bounds off: plain
+//! Lloyd, every distance every pass, the same result.
+//!
+//! [`KMeans::fit_from`] starts from given centroids instead of k-means++ (for comparisons
+//! against another implementation from the same start); [`KMeans::init_centroids`] gives the
+//! centroids [`KMeans::fit`] would start from.
 
 use crate::{Result, ViewpointError};
 use neuvolex_bricks::rng::Rng;
@@ -53,7 +58,8 @@ pub struct KMeansConfig {
     /// Update rule.
     pub algorithm: Algorithm,
     /// Memory for Lloyd's per-row bounds, in MiB (10 bytes a row). Bricks past the budget
-    /// run without bounds: the same result, each pass computing every distance.
+    /// run without bounds: the same result, each pass computing every distance. `0` turns
+    /// the bounds off (plain Lloyd).
     #[serde(default = "default_bounds_mib")]
     pub bounds_mib: usize,
 }
@@ -487,46 +493,77 @@ impl KMeans {
         F: Fn(usize) -> Result<R> + Sync,
         R: AsRef<[f32]>,
     {
-        Ok(Self::fit_counting(chunks, dim, load, cfg)?.0)
+        Ok(Self::fit_counting(chunks, dim, load, cfg, None)?.0)
     }
 
-    /// [`Self::fit`], also returning how many rows had their distances to every centroid
-    /// computed, over all passes.
+    /// [`Self::fit`] from the given `k x dim` centroids `init` (row-major, `k = cfg.k`)
+    /// instead of k-means++. The seeded sample is still drawn: it gives the tolerance's mean
+    /// feature variance and the rows that re-seed empty clusters. `init` of another length
+    /// than `cfg.k * dim`, or with a value that is not finite, is an error.
+    pub fn fit_from<F, R>(
+        chunks: usize,
+        dim: usize,
+        load: F,
+        cfg: &KMeansConfig,
+        init: &[f32],
+    ) -> Result<KMeans>
+    where
+        F: Fn(usize) -> Result<R> + Sync,
+        R: AsRef<[f32]>,
+    {
+        Ok(Self::fit_counting(chunks, dim, load, cfg, Some(init))?.0)
+    }
+
+    /// The `k x dim` centroids [`Self::fit`] starts from with `cfg`: k-means++ on the seeded
+    /// sample. `fit_from` from them gives `fit`'s result (Lloyd: bit for bit).
+    pub fn init_centroids<F, R>(
+        chunks: usize,
+        dim: usize,
+        load: F,
+        cfg: &KMeansConfig,
+    ) -> Result<Vec<f32>>
+    where
+        F: Fn(usize) -> Result<R> + Sync,
+        R: AsRef<[f32]>,
+    {
+        check_k(cfg)?;
+        let mut rng = Rng::new(cfg.seed);
+        let (_, sample) = draw_sample(chunks, dim, &load, cfg, &mut rng)?;
+        Ok(KMeans::seed(&sample, dim, cfg, &mut rng).0.centroids)
+    }
+
+    /// [`Self::fit`] or [`Self::fit_from`], also returning how many rows had their distances
+    /// to every centroid computed, over all passes.
     fn fit_counting<F, R>(
         chunks: usize,
         dim: usize,
         load: F,
         cfg: &KMeansConfig,
+        init: Option<&[f32]>,
     ) -> Result<(KMeans, u64)>
     where
         F: Fn(usize) -> Result<R> + Sync,
         R: AsRef<[f32]>,
     {
-        if cfg.k == 0 || cfg.k > u16::MAX as usize {
-            return Err(ViewpointError::Param(format!(
-                "k = {} must be 1..=65535",
-                cfg.k
-            )));
-        }
-        if chunks == 0 {
-            return Err(ViewpointError::Input(
-                "no feature rows to cluster (every brick is empty)".into(),
-            ));
+        check_k(cfg)?;
+        if let Some(init) = init {
+            check_init(init, cfg.k, dim)?;
         }
         let mut rng = Rng::new(cfg.seed);
-        // The initialisation sample: rows of a seeded subset of chunks.
-        let mut order = sample_order(chunks, &mut rng);
-        let want = sample_want(chunks, cfg);
-        let mut sample = Vec::new();
-        for &c in order.iter().take(SAMPLE_CHUNKS) {
-            let rows = load(c)?;
-            let rows = rows.as_ref();
-            check_rows(rows, dim)?;
-            for r in draw_rows(&mut rng, want, rows.len() / dim) {
-                sample.extend_from_slice(&rows[r * dim..(r + 1) * dim]);
-            }
-        }
-        let (mut km, tol) = KMeans::seed(&sample, dim, cfg, &mut rng);
+        let (mut order, sample) = draw_sample(chunks, dim, &load, cfg, &mut rng)?;
+        let (mut km, tol) = match init {
+            Some(init) => (
+                KMeans {
+                    dim,
+                    centroids: init.to_vec(),
+                    inertia: 0.0,
+                    iterations: 0,
+                    counts: Vec::new(),
+                },
+                tolerance(&sample, dim, cfg.tol),
+            ),
+            None => KMeans::seed(&sample, dim, cfg, &mut rng),
+        };
         let full = AtomicU64::new(0);
         let pass = |km: &KMeans| -> Result<Partial> {
             let parts: Vec<Result<Partial>> = (0..chunks)
@@ -634,18 +671,6 @@ impl KMeans {
     /// sampling.
     pub fn seed(sample: &[f32], dim: usize, cfg: &KMeansConfig, rng: &mut Rng) -> (KMeans, f64) {
         let centroids = kmeanspp(sample, dim, cfg.k, rng);
-        let ns = sample.len() / dim;
-        let mut var = 0.0f64;
-        for j in 0..dim {
-            let (mut s, mut s2) = (0.0f64, 0.0f64);
-            for r in 0..ns {
-                let v = sample[r * dim + j] as f64;
-                s += v;
-                s2 += v * v;
-            }
-            let m = s / ns.max(1) as f64;
-            var += (s2 / ns.max(1) as f64 - m * m).max(0.0);
-        }
         let km = KMeans {
             dim,
             centroids,
@@ -653,7 +678,7 @@ impl KMeans {
             iterations: 0,
             counts: Vec::new(),
         };
-        (km, cfg.tol * var / dim as f64)
+        (km, tolerance(sample, dim, cfg.tol))
     }
 
     /// Lloyd iterations from the current centroids: `pass` returns the merged partial of every
@@ -728,6 +753,85 @@ impl KMeans {
         }
         shift
     }
+}
+
+/// The convergence tolerance on the summed squared centroid shift: `tol` times the mean
+/// per-feature variance of `sample` (scikit-learn's rule, which takes the variance of all rows).
+fn tolerance(sample: &[f32], dim: usize, tol: f64) -> f64 {
+    let ns = sample.len() / dim;
+    let mut var = 0.0f64;
+    for j in 0..dim {
+        let (mut s, mut s2) = (0.0f64, 0.0f64);
+        for r in 0..ns {
+            let v = sample[r * dim + j] as f64;
+            s += v;
+            s2 += v * v;
+        }
+        let m = s / ns.max(1) as f64;
+        var += (s2 / ns.max(1) as f64 - m * m).max(0.0);
+    }
+    tol * var / dim as f64
+}
+
+fn check_k(cfg: &KMeansConfig) -> Result<()> {
+    if cfg.k == 0 || cfg.k > u16::MAX as usize {
+        return Err(ViewpointError::Param(format!(
+            "k = {} must be 1..=65535",
+            cfg.k
+        )));
+    }
+    Ok(())
+}
+
+/// Whether `init` holds `k x dim` finite centroid values.
+fn check_init(init: &[f32], k: usize, dim: usize) -> Result<()> {
+    if dim == 0 || init.len() != k * dim {
+        return Err(ViewpointError::Param(format!(
+            "initial centroids: {} values, expected k x dim = {k} x {dim} = {}",
+            init.len(),
+            k * dim
+        )));
+    }
+    if let Some(i) = init.iter().position(|v| !v.is_finite()) {
+        return Err(ViewpointError::Param(format!(
+            "initial centroid {} has a value that is not finite ({})",
+            i / dim,
+            init[i]
+        )));
+    }
+    Ok(())
+}
+
+/// The seeded order of the chunks and the initialisation sample: rows drawn from the first
+/// [`SAMPLE_CHUNKS`] chunks of that order (checked for shape and finiteness).
+fn draw_sample<F, R>(
+    chunks: usize,
+    dim: usize,
+    load: &F,
+    cfg: &KMeansConfig,
+    rng: &mut Rng,
+) -> Result<(Vec<usize>, Vec<f32>)>
+where
+    F: Fn(usize) -> Result<R> + Sync,
+    R: AsRef<[f32]>,
+{
+    if chunks == 0 {
+        return Err(ViewpointError::Input(
+            "no feature rows to cluster (every brick is empty)".into(),
+        ));
+    }
+    let order = sample_order(chunks, rng);
+    let want = sample_want(chunks, cfg);
+    let mut sample = Vec::new();
+    for &c in order.iter().take(SAMPLE_CHUNKS) {
+        let rows = load(c)?;
+        let rows = rows.as_ref();
+        check_rows(rows, dim)?;
+        for r in draw_rows(rng, want, rows.len() / dim) {
+            sample.extend_from_slice(&rows[r * dim..(r + 1) * dim]);
+        }
+    }
+    Ok((order, sample))
 }
 
 /// Chunks the initialisation sample is drawn from.
@@ -909,6 +1013,7 @@ mod tests {
                         d,
                         |i| Ok(&chunks[i][..]),
                         &KMeansConfig { bounds_mib, ..cfg },
+                        None,
                     )
                     .unwrap()
                 })
@@ -928,6 +1033,93 @@ mod tests {
         }
         assert_eq!(sum.counts, plain.counts);
         assert_eq!(sum.inertia, plain.inertia);
+    }
+
+    #[test]
+    fn fit_from_starts_at_the_given_centroids() {
+        let rows = blobs(3000, 2);
+        let chunks: Vec<Vec<f32>> = rows.chunks(2 * 300).map(|c| c.to_vec()).collect();
+        let load = |i: usize| Ok(chunks[i].as_slice());
+        let cfg = KMeansConfig {
+            k: 3,
+            max_iter: 30,
+            tol: 0.0,
+            ..Default::default()
+        };
+        // Two orders of the blob centres: each fitted centroid stays at its own start's blob,
+        // so the two fits list the same centroids in different orders (k-means++, which
+        // ignoring `init` would use, can match at most one of them).
+        let centres = [[0.0f32, 0.0], [10.0, 0.0], [0.0, 10.0]];
+        for perm in [[0, 1, 2], [2, 0, 1]] {
+            let init: Vec<f32> = perm.iter().flat_map(|&j| centres[j]).collect();
+            for bounds_mib in [0, 1024] {
+                let km = KMeans::fit_from(
+                    chunks.len(),
+                    2,
+                    load,
+                    &KMeansConfig { bounds_mib, ..cfg },
+                    &init,
+                )
+                .unwrap();
+                for (j, c) in km.centroids.chunks_exact(2).enumerate() {
+                    let s = &init[j * 2..j * 2 + 2];
+                    let d = (c[0] - s[0]).hypot(c[1] - s[1]);
+                    assert!(d < 0.2, "centroid {j} {c:?} left its start {s:?}");
+                }
+                assert_eq!(km.counts, vec![1000, 1000, 1000]);
+            }
+        }
+        // One iteration from a start that is not a fixed point moves every centroid to the
+        // mean of the rows nearest to it: all rows go to the first of two far-apart starts.
+        let km = KMeans::fit_from(
+            chunks.len(),
+            2,
+            load,
+            &KMeansConfig {
+                k: 2,
+                max_iter: 1,
+                ..cfg
+            },
+            &[3.0, 3.0, 1000.0, 1000.0],
+        )
+        .unwrap();
+        let mean: Vec<f64> = (0..2)
+            .map(|t| {
+                rows.iter()
+                    .skip(t)
+                    .step_by(2)
+                    .map(|&v| v as f64)
+                    .sum::<f64>()
+                    / 3000.0
+            })
+            .collect();
+        assert_eq!(km.iterations, 1);
+        assert!((km.centroids[0] as f64 - mean[0]).abs() < 1e-3, "{km:?}");
+        assert!((km.centroids[1] as f64 - mean[1]).abs() < 1e-3, "{km:?}");
+        // The empty second cluster was re-seeded at a sample row.
+        assert!(km.centroids[2] < 20.0, "{km:?}");
+        // From k-means++'s own start, `fit_from` is `fit` bit for bit, bounds or not.
+        for bounds_mib in [0, 1024] {
+            let c = KMeansConfig { bounds_mib, ..cfg };
+            let init = KMeans::init_centroids(chunks.len(), 2, load, &c).unwrap();
+            assert_eq!(
+                KMeans::fit_from(chunks.len(), 2, load, &c, &init).unwrap(),
+                KMeans::fit(chunks.len(), 2, load, &c).unwrap()
+            );
+        }
+        // A start of the wrong shape or with a value that is not finite is refused.
+        for (bad, want) in [
+            (vec![0.0f32; 5], "expected k x dim = 3 x 2 = 6"),
+            (vec![0.0f32; 8], "expected k x dim = 3 x 2 = 6"),
+            (vec![], "0 values"),
+            (vec![0.0, 0.0, f32::NAN, 1.0, 2.0, 2.0], "centroid 1"),
+            (vec![0.0, 0.0, 1.0, 1.0, 2.0, f32::INFINITY], "not finite"),
+        ] {
+            let e = KMeans::fit_from(chunks.len(), 2, load, &cfg, &bad)
+                .unwrap_err()
+                .to_string();
+            assert!(e.contains(want), "{e}");
+        }
     }
 
     #[test]
