@@ -182,13 +182,12 @@ fn main() {
         Some(inputs) => inputs,
         None => {
             let inputs = make_inputs(&ct, &lab, dir.path());
-            if let Some(s) = &saved {
-                save_inputs(s, &inputs);
-            }
+            save_inputs(saved.as_deref().unwrap_or(dir.path()), &inputs);
             inputs
         }
     };
-    save_inputs(dir.path(), &inputs);
+    // scikit-learn reads the saved inputs where they are.
+    let inputs_dir = saved.as_deref().unwrap_or(dir.path());
     let (d, classes, xtr, ytr, xte, yte) = inputs;
     let nte = yte.len();
     let py = std::env::var("NEUVOLEX_SKLEARN_PYTHON").unwrap_or_else(|_| "python3".into());
@@ -198,7 +197,7 @@ fn main() {
         &py,
         &script,
         &[
-            dir.path().display().to_string(),
+            inputs_dir.display().to_string(),
             trees.to_string(),
             threads.to_string(),
         ],

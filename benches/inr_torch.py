@@ -59,7 +59,7 @@ Compiled variants compile their extraction function with the same mode.
 
 Modes:
   --serve  reads JSON lines on stdin, {"variant": NAME} runs one round of that variant and
-           prints one JSON line; {"cmd": "quit"} ends. The first stdout line is the "ready"
+           prints one JSON line; {"cmd": "quit"} or a bare `quit` line ends. The first stdout line is the "ready"
            line. Only JSON goes to stdout; notes go to stderr.
   default  runs --rounds rounds, the variants alternating, and prints one JSON line per round.
 Usage: python3 inr_torch.py --data DIR [--device cpu|cuda] [--threads 2]
@@ -443,6 +443,8 @@ def main():
         for line in sys.stdin:
             if not line.strip():
                 continue
+            if line.strip() == "quit":
+                break
             cmd = json.loads(line)
             if cmd.get("cmd") == "quit":
                 break

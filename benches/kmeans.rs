@@ -47,7 +47,9 @@
 //! normals over every occupied brick, score 1800 views and select, from the Hamerly fit.
 //! Without Python or scikit-learn a SKIP line says so and neuvolex's side still runs.
 
-use neuvolex_benches::{arg, load_average, machine, ratio_spread, shared, spread, JsonChild};
+use neuvolex_benches::{
+    arg, load_average, machine, median_min_max, ratio_spread, shared, spread, JsonChild,
+};
 use neuvolex_bricks::{open_volume, BrickStore};
 use neuvolex_classify::features::BrickFeatures;
 use neuvolex_features::extract::extract_brick;
@@ -109,9 +111,7 @@ struct Runs {
 
 /// The median of the finite values, or NaN.
 fn median(v: &[f64]) -> f64 {
-    let mut s: Vec<f64> = v.iter().copied().filter(|x| x.is_finite()).collect();
-    s.sort_by(f64::total_cmp);
-    s.get(s.len() / 2).copied().unwrap_or(f64::NAN)
+    median_min_max(v).map_or(f64::NAN, |s| s.0)
 }
 
 /// Per-round `a[i] / b[i]`.

@@ -130,21 +130,30 @@ impl JsonChild {
         args: &[String],
         envs: &[(&str, &str)],
     ) -> Option<JsonChild> {
+        JsonChild::spawn(python, script, args, envs, std::process::Stdio::inherit())
+            .map_err(|e| eprintln!("SKIP {what} ({python}): {e}"))
+            .ok()
+    }
+
+    /// [`JsonChild::start`] with the child's stderr going to `stderr`; `Err` says why it did
+    /// not become ready.
+    pub fn spawn(
+        python: &str,
+        script: &std::path::Path,
+        args: &[String],
+        envs: &[(&str, &str)],
+        stderr: std::process::Stdio,
+    ) -> Result<JsonChild, String> {
         use std::process::{Command, Stdio};
-        let spawned = Command::new(python)
+        let mut child = Command::new(python)
             .arg(script)
             .args(args)
             .envs(envs.iter().copied())
             .stdin(Stdio::piped())
             .stdout(Stdio::piped())
-            .spawn();
-        let mut child = match spawned {
-            Ok(c) => c,
-            Err(e) => {
-                eprintln!("SKIP {what} ({python}): {e}");
-                return None;
-            }
-        };
+            .stderr(stderr)
+            .spawn()
+            .map_err(|e| e.to_string())?;
         let stdin = child.stdin.take().expect("piped stdin");
         let out = std::io::BufReader::new(child.stdout.take().expect("piped stdout"));
         let mut c = JsonChild {
@@ -156,13 +165,9 @@ impl JsonChild {
         match c.reply() {
             Some(r) => {
                 c.ready = r;
-                Some(c)
+                Ok(c)
             }
-            None => {
-                eprintln!("SKIP {what} ({python}): the script did not start (its error is above)");
-                let _ = c.child.wait();
-                None
-            }
+            None => Err("the script did not start (its error is on its stderr)".into()),
         }
     }
 
@@ -199,34 +204,27 @@ impl Drop for JsonChild {
     }
 }
 
+/// The median (the upper one of an even count), smallest and largest of the finite values of
+/// `v`, or `None` where there are none.
+pub fn median_min_max(v: &[f64]) -> Option<(f64, f64, f64)> {
+    let mut s: Vec<f64> = v.iter().copied().filter(|x| x.is_finite()).collect();
+    s.sort_by(f64::total_cmp);
+    Some((*s.get(s.len() / 2)?, s[0], s[s.len() - 1]))
+}
+
 /// `median [min-max]` of `v` (non-finite values left out) with `digits` decimals, or `-`.
 pub fn spread(v: &[f64], digits: usize) -> String {
-    let mut s: Vec<f64> = v.iter().copied().filter(|x| x.is_finite()).collect();
-    if s.is_empty() {
-        return "-".into();
-    }
-    s.sort_by(f64::total_cmp);
-    format!(
-        "{:.digits$} [{:.digits$}-{:.digits$}]",
-        s[s.len() / 2],
-        s[0],
-        s[s.len() - 1]
-    )
+    median_min_max(v).map_or("-".into(), |(m, lo, hi)| {
+        format!("{m:.digits$} [{lo:.digits$}-{hi:.digits$}]")
+    })
 }
 
 /// The per-round ratios `a[i] / b[i]` as `median x [min-max]`, or `-`.
 pub fn ratio_spread(a: &[f64], b: &[f64]) -> String {
-    let mut r: Vec<f64> = a
-        .iter()
-        .zip(b)
-        .map(|(x, y)| x / y)
-        .filter(|x| x.is_finite())
-        .collect();
-    if r.is_empty() {
-        return "-".into();
-    }
-    r.sort_by(f64::total_cmp);
-    format!("{:.2}x [{:.2}-{:.2}]", r[r.len() / 2], r[0], r[r.len() - 1])
+    let r: Vec<f64> = a.iter().zip(b).map(|(x, y)| x / y).collect();
+    median_min_max(&r).map_or("-".into(), |(m, lo, hi)| {
+        format!("{m:.2}x [{lo:.2}-{hi:.2}]")
+    })
 }
 
 /// The machine's load average as `load average A B C` (the one, five and fifteen minutes).

@@ -236,10 +236,16 @@ const MAX_MEAN_DIFF: f32 = 0.03;
 const MIN_SSIM: f32 = 0.85;
 
 /// The mean and largest absolute channel difference and the SSIM of `a` against `b`.
-fn compare(a: &Image, b: &Image) -> String {
-    match (a.diff(b), a.ssim(b)) {
-        (Ok((max, mean)), Ok(ssim)) => format!("{mean:.4} | {max:.3} | {ssim:.3}"),
-        (Err(e), _) | (_, Err(e)) => format!("{e} | - | -"),
+fn compare(a: &Image, b: &Image) -> Result<(f32, f32, f32), neuvolex_render::RenderError> {
+    let (max, mean) = a.diff(b)?;
+    Ok((mean, max, a.ssim(b)?))
+}
+
+/// [`compare`]'s figures as the three cells of the equivalence table.
+fn cells(c: &Result<(f32, f32, f32), neuvolex_render::RenderError>) -> String {
+    match c {
+        Ok((mean, max, ssim)) => format!("{mean:.4} | {max:.3} | {ssim:.3}"),
+        Err(e) => format!("{e} | - | -"),
     }
 }
 
@@ -488,7 +494,7 @@ fn main() {
                 equivalence.push(format!(
                     "| {name} | {s} | {} against neuvolex CPU | {} |",
                     e.label,
-                    compare(&e.image, &cpu)
+                    cells(&compare(&e.image, &cpu))
                 ));
             }
             if series == Series::Still {
@@ -501,14 +507,13 @@ fn main() {
                 }
                 match Image::load_png(&png) {
                     Ok(i) => {
+                        let c = compare(&cpu, &i);
                         equivalence.push(format!(
                             "| {name} | {s} | neuvolex CPU against {m} | {} |",
-                            compare(&cpu, &i)
+                            cells(&c)
                         ));
                         if m == "vtk-fixedpoint-cpu" {
-                            if let (Some(row), Ok((_, mean)), Ok(ssim)) =
-                                (summary.take(), cpu.diff(&i), cpu.ssim(&i))
-                            {
+                            if let (Some(row), Ok((mean, _, ssim))) = (summary.take(), c) {
                                 summaries.push(format!(
                                     "{row} image mean abs diff {mean:.4}, SSIM {ssim:.3} (bound: mean abs diff <= {MAX_MEAN_DIFF}, SSIM >= {MIN_SSIM}: {}) |",
                                     if mean <= MAX_MEAN_DIFF && ssim >= MIN_SSIM { "within" } else { "EXCEEDED" }

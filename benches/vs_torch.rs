@@ -1,6 +1,7 @@
 //! The INR against the same model in PyTorch, like for like: shared by the `inr` (CPU) and
 //! `inr_gpu` (CUDA) benches.
 
+use crate::JsonChild;
 use neuvolex_bricks::BrickStore;
 use neuvolex_features::adam::{Adam, Rates};
 use neuvolex_features::extract::extract_tile;
@@ -11,9 +12,7 @@ use neuvolex_features::train::{psnr, step, training_bricks, StepBuffers};
 use neuvolex_features::{FeatureKind, InrConfig, InrModel, TableAdam, TrainConfig};
 use rayon::prelude::*;
 use serde_json::{json, Value};
-use std::io::{BufRead, BufReader, Write};
 use std::path::{Path, PathBuf};
-use std::process::{Child, ChildStdin, ChildStdout, Command, Stdio};
 use std::time::Instant;
 
 /// Voxels per PyTorch extraction chunk on the CPU (a fixed shape, so nothing recompiles;
@@ -307,12 +306,8 @@ pub fn cpu_round(
 
 /// The persistent `inr_torch.py --serve` process.
 pub struct Torch {
-    child: Child,
-    stdin: ChildStdin,
-    out: BufReader<ChildStdout>,
+    child: JsonChild,
     log: PathBuf,
-    /// Its "ready" line: torch version, each variant's setup seconds, failed variants.
-    pub ready: Value,
 }
 
 impl Torch {
@@ -332,52 +327,53 @@ impl Torch {
             .unwrap_or_else(|| Path::new(env!("CARGO_MANIFEST_DIR")).join("inr_torch.py"));
         let log = data.join("torch.log");
         let err = std::fs::File::create(&log).map_err(|e| e.to_string())?;
-        let mut child = Command::new(&py)
-            .arg(&script)
-            .arg("--data")
-            .arg(data)
-            .args(["--device", device, "--threads", &threads.to_string()])
-            .args(["--variants", variants, "--serve"])
-            .env("PYTHONUNBUFFERED", "1")
-            .stdin(Stdio::piped())
-            .stdout(Stdio::piped())
-            .stderr(err)
-            .spawn()
-            .map_err(|e| format!("{py}: {e}"))?;
-        let stdin = child.stdin.take().ok_or("no stdin")?;
-        let out = BufReader::new(child.stdout.take().ok_or("no stdout")?);
-        let mut t = Torch {
+        let args: Vec<String> = [
+            "--data",
+            &data.display().to_string(),
+            "--device",
+            device,
+            "--threads",
+            &threads.to_string(),
+            "--variants",
+            variants,
+            "--serve",
+        ]
+        .iter()
+        .map(|a| a.to_string())
+        .collect();
+        let child = JsonChild::spawn(
+            &py,
+            &script,
+            &args,
+            &[("PYTHONUNBUFFERED", "1")],
+            err.into(),
+        )
+        .map_err(|e| format!("{py}: {e}"));
+        let t = child.map(|child| Torch {
             child,
-            stdin,
-            out,
-            log,
-            ready: Value::Null,
-        };
-        match t.line() {
-            Some(v) if v["ready"] == true => {
-                t.ready = v;
-                Ok(t)
-            }
-            _ => Err(t.log_tail()),
+            log: log.clone(),
+        });
+        match t {
+            Ok(t) if t.child.ready["ready"] == true => Ok(t),
+            Ok(t) => Err(t.log_tail()),
+            Err(e) => Err(format!("{e}: {}", Torch::tail(&log))),
         }
     }
 
-    fn line(&mut self) -> Option<Value> {
-        let mut s = String::new();
-        loop {
-            s.clear();
-            if self.out.read_line(&mut s).ok()? == 0 {
-                return None;
-            }
-            if let Ok(v) = serde_json::from_str::<Value>(s.trim()) {
-                return Some(v);
-            }
-        }
+    /// The process's "ready" line: torch version, each variant's setup seconds, failed
+    /// variants.
+    pub fn ready(&self) -> &Value {
+        &self.child.ready
     }
 
     /// The last lines of the process's stderr.
     pub fn log_tail(&self) -> String {
-        let s = std::fs::read_to_string(&self.log).unwrap_or_default();
+        Torch::tail(&self.log)
+    }
+
+    /// The last three non-empty lines of the file at `log`.
+    fn tail(log: &Path) -> String {
+        let s = std::fs::read_to_string(log).unwrap_or_default();
         let lines: Vec<&str> = s.lines().filter(|l| !l.trim().is_empty()).collect();
         lines[lines.len().saturating_sub(3)..].join(" / ")
     }
@@ -385,7 +381,7 @@ impl Torch {
     /// The version, device, thread count, each variant's set-up time (compile, CUDA-graph
     /// capture, warm-up) with its notes, and the variants that failed to build.
     pub fn describe(&self, device: &str) -> String {
-        let r = &self.ready;
+        let r = self.ready();
         let mut s = format!(
             "PyTorch {} on {device}, {} threads; setup (compile, CUDA-graph capture, warm-up) per variant: {}",
             r["torch"].as_str().unwrap_or("?"),
@@ -418,7 +414,7 @@ impl Torch {
 
     /// The variants that compiled and warmed up.
     pub fn variants(&self) -> Vec<String> {
-        self.ready["variants"]
+        self.ready()["variants"]
             .as_object()
             .map(|m| m.keys().cloned().collect())
             .unwrap_or_default()
@@ -426,22 +422,11 @@ impl Torch {
 
     /// One timed round of `variant` (its JSON line).
     pub fn round(&mut self, variant: &str) -> Result<Value, String> {
-        writeln!(self.stdin, "{}", json!({ "variant": variant }))
-            .and_then(|_| self.stdin.flush())
-            .map_err(|e| format!("{e}: {}", self.log_tail()))?;
-        match self.line() {
+        match self.child.send(&json!({ "variant": variant }).to_string()) {
             Some(v) if v.get("error").is_none() => Ok(v),
             Some(v) => Err(v["error"].to_string()),
             None => Err(self.log_tail()),
         }
-    }
-}
-
-impl Drop for Torch {
-    fn drop(&mut self) {
-        let _ = writeln!(self.stdin, "{}", json!({"cmd": "quit"}));
-        let _ = self.stdin.flush();
-        let _ = self.child.wait();
     }
 }
 
@@ -590,7 +575,7 @@ pub fn compare(
         summary.push(json!({"side": name, "train_samples_per_s": spread(&ts), "extract_voxels_per_s": spread(&es),
             "volume_psnr": spread(&ps), "volume_loss": spread(&ls)}));
     }
-    let mut out = json!({"screen": screened, "rounds": rows, "summary": summary, "torch_ready": torch.as_ref().map(|t| t.ready.clone())});
+    let mut out = json!({"screen": screened, "rounds": rows, "summary": summary, "torch_ready": torch.as_ref().map(|t| t.ready().clone())});
     let first_torch = ours.len();
     if tv.is_empty() || ours.is_empty() {
         return out;

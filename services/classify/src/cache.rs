@@ -11,6 +11,7 @@ use crate::persist::PersistedFeatures;
 use crate::ClassifyError;
 use neuvolex_bricks::lru::Lru;
 use neuvolex_bricks::Brick;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 
 type Key = (String, String, u64, [usize; 3]);
@@ -35,6 +36,7 @@ impl FeatureCache {
         SessionFeatures {
             cache: self.clone(),
             session: session.to_string(),
+            closed: AtomicBool::new(false),
         }
     }
 
@@ -63,9 +65,21 @@ impl FeatureCache {
 pub struct SessionFeatures {
     cache: Arc<FeatureCache>,
     session: String,
+    /// Set by [`SessionFeatures::close`]: nothing computed after it stays in the cache.
+    closed: AtomicBool,
 }
 
 impl SessionFeatures {
+    /// Drops the session's entries and keeps none computed later: work still running when
+    /// the session closes (a classification, the background feature pass) gets its features
+    /// but leaves nothing behind in the shared budget.
+    pub fn close(&self) {
+        // Marked before the entries go: an insert racing with the close is either removed
+        // here or sees the mark and removes itself.
+        self.closed.store(true, Ordering::SeqCst);
+        self.cache.drop_session(&self.session);
+    }
+
     /// The features of `b` from `fx` (named `set`, computed with model `version`), as f32.
     pub fn get(
         &self,
@@ -96,6 +110,9 @@ impl SessionFeatures {
             let cost = h.len() * 2;
             Ok::<_, ClassifyError>((Arc::new(h), cost))
         })?;
+        if self.closed.load(Ordering::SeqCst) {
+            self.cache.lru.remove(&key);
+        }
         Ok(v.iter().map(|h| h.to_f32()).collect())
     }
 
@@ -142,5 +159,41 @@ impl SessionFeatures {
     /// Bytes held, all sessions.
     pub fn used(&self) -> usize {
         self.cache.used()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::features::FeatureSet;
+    use neuvolex_bricks::synth::PhantomParams;
+
+    #[test]
+    fn a_closed_session_keeps_nothing_in_the_cache() {
+        let d = tempfile::tempdir().unwrap();
+        let store = neuvolex_ingest::phantom_store(
+            &d.path().join("ph.zarr"),
+            PhantomParams::with_size(16, 0),
+            &neuvolex_ingest::IngestOptions {
+                brick: 8,
+                ..Default::default()
+            },
+            &mut |_| {},
+        )
+        .unwrap();
+        let set: FeatureSet = "local".parse().unwrap();
+        let fx = BrickFeatures::new(&store, set.clone(), None, false).unwrap();
+        let b = store.bricks().next().unwrap();
+        let cache = Arc::new(FeatureCache::new(1 << 24));
+        let (a, other) = (cache.for_session("a"), cache.for_session("b"));
+        let want = a.get("local", 0, &fx, &b).unwrap();
+        other.get("local", 0, &fx, &b).unwrap();
+        let one = cache.used() / 2;
+        a.close();
+        assert_eq!(cache.used(), one, "the other session's entry stays");
+        // Work that outlives the close still gets its features, and leaves none behind.
+        assert_eq!(a.get("local", 0, &fx, &b).unwrap(), want);
+        assert_eq!(cache.used(), one);
+        assert!(a.cached("local", 0, &b).is_none());
     }
 }

@@ -318,7 +318,7 @@ impl Session {
         *self.stored.lock().unwrap_or_else(|p| p.into_inner()) = None;
         let owner = self.render_owner;
         self.memory.render.retain(|k| k.0 != owner);
-        self.memory.features.drop_session(&self.id);
+        self.features.close();
     }
 
     /// Whether the spatial prior is on.

@@ -1149,15 +1149,8 @@ nib.save(out, {nii:?})
     let app = app!(cfg);
     let out = tempfile::tempdir().unwrap();
     for volume in ["oblique.nii.gz", "lps.nhdr"] {
-        let req = test::TestRequest::post()
-            .uri("/api/sessions")
-            .set_json(json!({ "volume": volume }))
-            .to_request();
-        let s: Value = test::call_and_read_body_json(&app, req).await;
-        let id = s["id"]
-            .as_str()
-            .unwrap_or_else(|| panic!("{s}"))
-            .to_string();
+        let s = open_session_on(&app, volume).await;
+        let id = s["id"].as_str().unwrap().to_string();
         assert_eq!(s["dims"], json!(dims), "{s}");
         let g = put_strokes(&app, &id, 0).await;
         wait_done(&app, &id, g).await;
@@ -1215,15 +1208,8 @@ async fn the_abdomen_ct_labels_lie_on_the_ct() {
     // A copy inside the data root (links out of it are refused).
     std::fs::copy(&ct, cfg.data_root.join("ct.nii.gz")).unwrap();
     let app = app!(cfg);
-    let req = test::TestRequest::post()
-        .uri("/api/sessions")
-        .set_json(json!({ "volume": "ct.nii.gz" }))
-        .to_request();
-    let s: Value = test::call_and_read_body_json(&app, req).await;
-    let id = s["id"]
-        .as_str()
-        .unwrap_or_else(|| panic!("{s}"))
-        .to_string();
+    let s = open_session_on(&app, "ct.nii.gz").await;
+    let id = s["id"].as_str().unwrap().to_string();
     let g = put_strokes(&app, &id, 0).await;
     wait_done(&app, &id, g).await;
     let out = tempfile::tempdir().unwrap();

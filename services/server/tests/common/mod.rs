@@ -149,7 +149,22 @@ impl Sse {
     }
 }
 
+/// Opens a session on the phantom store `ph.zarr`; its id.
 pub async fn open_session<S>(app: &S) -> String
+where
+    S: actix_web::dev::Service<
+        actix_http::Request,
+        Response = actix_web::dev::ServiceResponse,
+        Error = actix_web::Error,
+    >,
+{
+    let s = open_session_on(app, "ph.zarr").await;
+    s["id"].as_str().unwrap().to_string()
+}
+
+/// Opens a session on `volume` (relative to the data root); the whole reply, which must carry
+/// an id (the panic shows the reply otherwise).
+pub async fn open_session_on<S>(app: &S, volume: &str) -> Value
 where
     S: actix_web::dev::Service<
         actix_http::Request,
@@ -159,10 +174,11 @@ where
 {
     let req = test::TestRequest::post()
         .uri("/api/sessions")
-        .set_json(json!({"volume": "ph.zarr"}))
+        .set_json(json!({ "volume": volume }))
         .to_request();
     let s: Value = test::call_and_read_body_json(app, req).await;
-    s["id"].as_str().unwrap().to_string()
+    assert!(s["id"].is_string(), "opening {volume}: {s}");
+    s
 }
 
 pub async fn put_strokes<S>(app: &S, id: &str, n: usize) -> u64
