@@ -2,7 +2,7 @@
 # The tests: every crate, release mode, with the wgpu renderer compared against the CPU one and
 # the browser UI driven in headless Chromium, the store on a real S3-protocol server, and every
 # fuzz target over its seeds and saved findings (fuzz/tests/replay.rs; the fuzz crate is a
-# workspace member).
+# workspace member); then the Python package's tests (pytest, and napari under pytest-qt).
 # The GPU test needs a Vulkan driver; on a machine without a GPU, Mesa's lavapipe (a software
 # Vulkan) serves, so this installs it where it is missing and apt is usable. Without any adapter
 # the GPU test skips (and fails under CI=true).
@@ -65,4 +65,15 @@ fi
 if ! command -v nats-server >/dev/null 2>&1 && ! [ -x /usr/sbin/nats-server ]; then
   missing "nats-server is not installed" "the cluster tests"
 fi
-exec cargo test --workspace --release --features neuvolex-tests/gpu,neuvolex/gpu "$@"
+rc=0
+cargo test --workspace --release --features neuvolex-tests/gpu,neuvolex/gpu "$@" || rc=$?
+# The Python package (python/): its wheel built with maturin into target/pyenv, with pytest,
+# pytest-qt and napari (deploy/python.sh), then its tests: the API against the CLI built
+# above, and the napari widget headless (Qt's offscreen platform).
+if ./deploy/python.sh; then
+  QT_QPA_PLATFORM=offscreen target/pyenv/bin/python -m pytest -q -p no:cacheprovider python/tests || rc=$?
+else
+  missing "could not build the Python wheel (deploy/python.sh)" "the Python tests"
+  [ "${CI:-}" = "true" ] && rc=1
+fi
+exit $rc

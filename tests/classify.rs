@@ -393,3 +393,50 @@ fn extreme_volumes_classify_without_nan() {
         }
     }
 }
+
+/// The slice preview is the full classification's slice (before the prior), on every axis and
+/// at brick borders, and reads only the bricks crossing it.
+#[test]
+fn the_slice_preview_equals_the_full_classification_on_that_slice() {
+    use neuvolex_classify::preview::preview_plane;
+    let p = PhantomParams::with_size(40, 2);
+    let (_d, store) = store_of(&mut Phantom::new(p, PhantomChannel::Image), 16);
+    let (_, scr) = simulate(
+        &mut Phantom::new(p, PhantomChannel::Labels),
+        &SimConfig {
+            level: Level::S2,
+            ..Default::default()
+        },
+    )
+    .unwrap();
+    let c = cfg(20);
+    let full = run(&store, "filters+xyz", &scr, &c).unwrap();
+    let fx = BrickFeatures::new(&store, "filters+xyz".parse().unwrap(), None, false).unwrap();
+    let dims = store.info().dims;
+    for (axis, index) in [(2, 0), (2, 17), (1, 15), (1, 16), (0, dims[0] - 1)] {
+        let pl = preview_plane(&fx, &scr, &c, axis, index, &|| false).unwrap();
+        let [u, v] = match axis {
+            0 => [1, 2],
+            1 => [0, 2],
+            _ => [0, 1],
+        };
+        assert_eq!(pl.size, [dims[u], dims[v]]);
+        for j in 0..dims[v] {
+            for i in 0..dims[u] {
+                let mut q = [0; 3];
+                q[axis] = index;
+                q[u] = i;
+                q[v] = j;
+                let at = (q[2] * dims[1] + q[1]) * dims[0] + q[0];
+                assert_eq!(
+                    pl.labels[j * dims[u] + i],
+                    full.labels[at],
+                    "axis {axis} plane {index} voxel {q:?}"
+                );
+            }
+        }
+    }
+    let e = preview_plane(&fx, &scr, &c, 2, dims[2], &|| false).unwrap_err();
+    assert!(e.to_string().contains("outside the grid"), "{e}");
+    assert!(preview_plane(&fx, &scr, &c, 2, 3, &|| true).is_err());
+}

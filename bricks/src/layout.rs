@@ -108,6 +108,16 @@ impl Brick {
     pub fn voxels(&self) -> usize {
         self.size.iter().product()
     }
+
+    /// Where each x-row of the brick starts in a volume of `dims` (x fastest), in the brick's
+    /// own voxel order (z, then y); each row is `size[0]` voxels long.
+    pub fn rows(&self, dims: [usize; 3]) -> impl Iterator<Item = usize> + '_ {
+        (0..self.size[2]).flat_map(move |z| {
+            (0..self.size[1]).map(move |y| {
+                ((self.origin[2] + z) * dims[1] + self.origin[1] + y) * dims[0] + self.origin[0]
+            })
+        })
+    }
 }
 
 /// The (z, y, x) ranges of the box at `origin` (x, y, z) of `size`.

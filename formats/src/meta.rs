@@ -283,15 +283,27 @@ impl VolumeSource for MemVolume {
         &self.name
     }
     fn read_slab(&mut self, z0: usize, depth: usize) -> Result<Slab> {
-        check_slab_range(&self.meta, &self.name, z0, depth)?;
-        let sl = self.meta.slice_len() * self.meta.dtype.size();
-        Ok(Slab {
-            z0,
-            depth,
-            dtype: self.meta.dtype,
-            bytes: self.bytes[z0 * sl..(z0 + depth) * sl].to_vec(),
-        })
+        slab_of(&self.meta, &self.name, &self.bytes, z0, depth)
     }
+}
+
+/// Z-slices `z0..z0+depth` of a whole volume held as bytes (`meta.dtype`, x fastest), copied:
+/// the `read_slab` of in-memory sources.
+pub fn slab_of(
+    meta: &VolumeMeta,
+    name: &Path,
+    bytes: &[u8],
+    z0: usize,
+    depth: usize,
+) -> Result<Slab> {
+    check_slab_range(meta, name, z0, depth)?;
+    let sl = meta.slice_len() * meta.dtype.size();
+    Ok(Slab {
+        z0,
+        depth,
+        dtype: meta.dtype,
+        bytes: bytes[z0 * sl..(z0 + depth) * sl].to_vec(),
+    })
 }
 
 /// Errors unless `z0..z0+depth` lies inside the volume.

@@ -15,6 +15,7 @@ pub mod forest;
 mod packed;
 pub mod persist;
 pub mod pipeline;
+pub mod preview;
 pub mod scribble;
 pub mod shard;
 pub mod suggest;

@@ -8,7 +8,7 @@
 use crate::components::{apply_in_memory, PriorConfig};
 use crate::features::{BrickFeatures, FeatureSet};
 use crate::forest::Forest;
-use crate::scribble::load_scribbles;
+use crate::scribble::{load_scribbles, Scribbles};
 use crate::shard::{classify_brick, fit, output_labels, training_set, ClassTable, ClassifyConfig};
 use crate::ClassifyError;
 use neuvolex_bricks::synth::ClassInfo;
@@ -412,6 +412,9 @@ pub struct ClassifyOutcome {
     pub scribbled_voxels: usize,
     /// Tasks given up (their bricks have no output; the label image was not written).
     pub dead: Vec<DeadTask>,
+    /// The label image as written (after the prior; x fastest), empty when tasks died or
+    /// the run was cancelled.
+    pub labels: Vec<u16>,
 }
 
 /// Loads the store's trained model (`None` when untrained).
@@ -441,26 +444,55 @@ fn label_volume(store: &BrickStore, labels: &[u16]) -> MemVolume {
     m
 }
 
-/// Runs `neuvolex classify` on `exec`.
+/// Runs `neuvolex classify` on `exec`: reads the scribbles from `req.scribbles`, then
+/// [`classify_scribbles`].
 pub fn classify<E: Executor + ?Sized>(
     req: &ClassifyRequest,
     exec: &E,
     progress: &mut dyn FnMut(RunEvent),
 ) -> Result<ClassifyOutcome, ClassifyError> {
-    let cfg = &req.config;
-    if let Some(o) = &req.out {
-        if o.exists() && !req.force {
-            return Err(ClassifyError::File {
-                path: o.clone(),
-                detail: "exists (use --force to replace it)".into(),
-            });
-        }
-    }
-    let mut store = BrickStore::open(&req.store)?;
-    let scr = load_scribbles(&req.scribbles, &store.meta()).map_err(|e| ClassifyError::File {
+    check_out(req)?;
+    let meta = BrickStore::open(&req.store)?.meta();
+    let scr = load_scribbles(&req.scribbles, &meta).map_err(|e| ClassifyError::File {
         path: req.scribbles.clone(),
         detail: format!("cannot use these scribbles: {e}"),
     })?;
+    classify_scribbles(req, scr, exec, progress)
+}
+
+/// Refuses an existing `--out` unless `--force`.
+fn check_out(req: &ClassifyRequest) -> Result<(), ClassifyError> {
+    match &req.out {
+        Some(o) if o.exists() && !req.force => Err(ClassifyError::File {
+            path: o.clone(),
+            detail: "exists (use --force to replace it)".into(),
+        }),
+        _ => Ok(()),
+    }
+}
+
+/// Runs `neuvolex classify` on `exec` with scribbles already in memory (the Python API):
+/// the same forest, stage, prior and outputs as [`classify`], which reads them from a file.
+/// `req.scribbles` only names them in errors.
+pub fn classify_scribbles<E: Executor + ?Sized>(
+    req: &ClassifyRequest,
+    scr: Scribbles,
+    exec: &E,
+    progress: &mut dyn FnMut(RunEvent),
+) -> Result<ClassifyOutcome, ClassifyError> {
+    let cfg = &req.config;
+    check_out(req)?;
+    let mut store = BrickStore::open(&req.store)?;
+    if scr.dims != store.info().dims {
+        return Err(ClassifyError::File {
+            path: req.scribbles.clone(),
+            detail: format!(
+                "grid {:?} differs from the store's {:?} (x, y, z)",
+                scr.dims,
+                store.info().dims
+            ),
+        });
+    }
     let table = match &req.classes {
         Some(p) => {
             let t = ClassTable::load(p)?;
@@ -624,6 +656,7 @@ pub fn classify<E: Executor + ?Sized>(
     let mut counts = BTreeMap::<u16, u64>::new();
     let dead = run.dead.clone();
     let mut prior_report = None;
+    let mut out_labels = Vec::new();
     if dead.is_empty() && !run.cancelled {
         let mut labels = assemble_labels(&store_arc, &stage.labels)?;
         if let Some(pc) = &req.prior {
@@ -684,6 +717,7 @@ pub fn classify<E: Executor + ?Sized>(
         if let Some(o) = &req.out {
             neuvolex_formats::nifti::write_nifti(o, &mut lv, 64)?;
         }
+        out_labels = labels;
     }
     Ok(ClassifyOutcome {
         report: ClassifyReport {
@@ -709,6 +743,7 @@ pub fn classify<E: Executor + ?Sized>(
         classes,
         scribbled_voxels: scr.voxels.len(),
         dead,
+        labels: out_labels,
     })
 }
 
@@ -722,17 +757,9 @@ fn assemble_labels(store: &BrickStore, va: &VectorArray) -> Result<Vec<u16>, Cla
     let bricks: Vec<Brick> = store.bricks().collect();
     for b in &bricks {
         let lab = va.read_brick(b)?;
-        let mut k = 0;
-        for z in 0..b.size[2] {
-            for y in 0..b.size[1] {
-                let row = ((b.origin[2] + z) * dims[1] + b.origin[1] + y) * dims[0] + b.origin[0];
-                for (o, &v) in out[row..row + b.size[0]]
-                    .iter_mut()
-                    .zip(&lab[k..k + b.size[0]])
-                {
-                    *o = v.round() as u16;
-                }
-                k += b.size[0];
+        for (row, l) in b.rows(dims).zip(lab.chunks_exact(b.size[0])) {
+            for (o, &v) in out[row..row + b.size[0]].iter_mut().zip(l) {
+                *o = v.round() as u16;
             }
         }
     }
@@ -753,19 +780,40 @@ fn assemble_confidence(
     for b in store.bricks() {
         let p = va.read_brick(&b)?;
         let mut k = 0;
-        for z in 0..b.size[2] {
-            for y in 0..b.size[1] {
-                let row = ((b.origin[2] + z) * dims[1] + b.origin[1] + y) * dims[0] + b.origin[0];
-                for i in row..row + b.size[0] {
-                    let (j, m) = crate::shard::argmax(&p[k * c..(k + 1) * c]);
-                    conf[i] = m.max(0.0);
-                    best[i] = out_labels.get(j).copied().unwrap_or(0);
-                    k += 1;
-                }
+        for row in b.rows(dims) {
+            for i in row..row + b.size[0] {
+                let (j, m) = crate::shard::argmax(&p[k * c..(k + 1) * c]);
+                conf[i] = m.max(0.0);
+                best[i] = out_labels.get(j).copied().unwrap_or(0);
+                k += 1;
             }
         }
     }
     Ok((conf, best))
+}
+
+/// The class probabilities the last run wrote ([`PROBA`]), class-major: channel `k` holds
+/// every voxel (x fastest) at `k * voxels`. The channels are the run's scribble labels in
+/// order.
+pub fn assemble_probabilities(store: &BrickStore) -> Result<Vec<f32>, ClassifyError> {
+    let va = store.open_vectors(PROBA)?;
+    let c = va.info().channels;
+    let dims = store.info().dims;
+    let n: usize = dims.iter().product();
+    let mut out = vec![0f32; n * c];
+    for b in store.bricks() {
+        let p = va.read_brick(&b)?;
+        let mut k = 0;
+        for row in b.rows(dims) {
+            for i in row..row + b.size[0] {
+                for (ch, v) in p[k * c..(k + 1) * c].iter().enumerate() {
+                    out[ch * n + i] = *v;
+                }
+                k += 1;
+            }
+        }
+    }
+    Ok(out)
 }
 
 /// The name of the stage that returns probabilities instead of writing them (the service).

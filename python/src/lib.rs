@@ -1,0 +1,860 @@
+//! `neuvolex._native`: the native half of the `neuvolex` Python package. It wraps the library
+//! crates (not the CLI): ingest from a file or a numpy array, INR training, per-brick
+//! features, scribble classification with the spatial prior (the `neuvolex classify`
+//! pipeline itself), slice suggestion, viewpoints, rendering and NIfTI export. Arrays cross
+//! in the store's order, x fastest: a C-ordered numpy array indexed `[z, y, x]`.
+//!
+//! Long calls run on a worker thread without the GIL ([`run::detached`]); Ctrl-C cancels them
+//! at the next brick. The pure-Python layer (`python/neuvolex/__init__.py`) gives the public
+//! API its numpy conventions.
+
+mod arrays;
+mod run;
+
+use arrays::{ScribbleArray, VolumeArray};
+use neuvolex_bricks::{BrickStore, Progress};
+use neuvolex_classify::features::{BrickFeatures, FeatureSet};
+use neuvolex_classify::pipeline::{self, ClassifyRequest, FeatureSpec, OpenedFeatures};
+use neuvolex_classify::{ClassWeight, ClassifyConfig, PriorConfig, SliceMass};
+use neuvolex_formats::VolumeMeta;
+use neuvolex_render::{BrickSource, Camera, Mode, RenderParams, Renderer, StoreSource, TfFile};
+use neuvolex_tasks::{LocalExecutor, RunEvent};
+use numpy::IntoPyArray;
+use pyo3::exceptions::PyValueError;
+use pyo3::prelude::*;
+use pyo3::types::PyAny;
+use run::{detached, Ctl, WorkError};
+use std::path::PathBuf;
+use std::sync::Arc;
+
+/// A progress sink for the library's brick progress, relayed to the caller.
+fn brick_progress<'a>(ctl: &'a Ctl, what: &'a str) -> impl FnMut(Progress) + 'a {
+    let mut total = 0;
+    move |p| match p {
+        Progress::Stage { total: t, .. } => {
+            total = t;
+            ctl.progress(0, t, what);
+        }
+        Progress::Advance { done } => ctl.progress(done, total, what),
+    }
+}
+
+/// A task executor in this process that stops when the caller cancels.
+fn executor(ctl: &Ctl) -> LocalExecutor {
+    let c = ctl.cancel.clone();
+    LocalExecutor::new().with_cancel(Arc::new(move || {
+        c.load(std::sync::atomic::Ordering::SeqCst)
+    }))
+}
+
+/// Relays a stage's task events as progress.
+fn task_progress<'a>(ctl: &'a Ctl) -> impl FnMut(RunEvent) + 'a {
+    let mut stage = String::new();
+    move |e| match e {
+        RunEvent::Stage { name, total } => {
+            ctl.progress(0, total, name.clone());
+            stage = name;
+        }
+        RunEvent::Task { done, total, .. } => ctl.progress(done, total, stage.clone()),
+        _ => {}
+    }
+}
+
+/// The forest and labelling settings of `classify`, checked.
+fn classify_config(
+    trees: usize,
+    min_split: usize,
+    seed: u64,
+    class_weight: &str,
+    tau: f32,
+    background: u32,
+) -> PyResult<ClassifyConfig> {
+    let bad = |m: String| Err(PyValueError::new_err(m));
+    if trees == 0 || trees > 100_000 {
+        return bad(format!("trees {trees}: must be 1..=100000"));
+    }
+    if min_split < 2 {
+        return bad(format!("min_split {min_split}: must be at least 2"));
+    }
+    if !(0.0..=1.0).contains(&tau) {
+        return bad(format!("tau {tau}: must be in [0, 1]"));
+    }
+    if background == 0 {
+        return bad("background 0: label 0 means unlabelled".into());
+    }
+    let mut config = ClassifyConfig::default();
+    config.forest.trees = trees;
+    config.forest.min_samples_split = min_split;
+    config.forest.seed = seed;
+    config.forest.class_weight = match class_weight {
+        "balanced" => ClassWeight::Balanced,
+        "none" => ClassWeight::None,
+        o => return bad(format!("class_weight '{o}': must be 'balanced' or 'none'")),
+    };
+    config.tau = tau;
+    config.background = background;
+    Ok(config)
+}
+
+/// A store of bricks: opened once, shared by every call.
+#[pyclass(module = "neuvolex._native")]
+struct Store {
+    location: PathBuf,
+    store: Arc<BrickStore>,
+}
+
+/// The axis index of `x`, `y` or `z`.
+fn axis_index(axis: &str) -> PyResult<usize> {
+    match axis {
+        "x" => Ok(0),
+        "y" => Ok(1),
+        "z" => Ok(2),
+        o => Err(PyValueError::new_err(format!(
+            "axis '{o}': expected 'x', 'y' or 'z'"
+        ))),
+    }
+}
+
+fn feature_set(features: &str) -> PyResult<FeatureSet> {
+    features
+        .parse()
+        .map_err(|e: String| PyValueError::new_err(format!("features '{features}': {e}")))
+}
+
+impl Store {
+    fn opened(location: PathBuf) -> Result<Store, WorkError> {
+        let store = BrickStore::open(&location).map_err(WorkError::other)?;
+        Ok(Store {
+            location,
+            store: Arc::new(store),
+        })
+    }
+
+    /// The feature source of `set`: the store's model when the set needs one.
+    fn features_of(&self, set: &FeatureSet) -> Result<OpenedFeatures, WorkError> {
+        let model = if set.needs_model() {
+            pipeline::load_model(&self.store).map_err(WorkError::other)?
+        } else {
+            None
+        };
+        let spec = FeatureSpec::new(&self.location, set, false, model.as_deref());
+        Ok(OpenedFeatures {
+            store: self.store.clone(),
+            model,
+            set: set.clone(),
+            spec,
+            model_bytes: None,
+        })
+    }
+
+    /// The store reopened (after a step that published new arrays or labels).
+    fn refresh(&mut self) -> Result<(), WorkError> {
+        self.store = Arc::new(BrickStore::open(&self.location).map_err(WorkError::other)?);
+        Ok(())
+    }
+}
+
+#[pymethods]
+impl Store {
+    /// Opens an existing brick store (a folder, `.zarr`, or `s3://bucket/prefix.zarr`).
+    #[staticmethod]
+    fn open(py: Python<'_>, path: PathBuf) -> PyResult<Store> {
+        detached(py, None, move |_| Store::opened(path))
+    }
+
+    /// Ingests a volume file (NIfTI, NRRD, OME-Zarr) into a new store at `store` and opens it.
+    #[staticmethod]
+    #[pyo3(signature = (source, store, brick=64, force=false, progress=None))]
+    fn ingest(
+        py: Python<'_>,
+        source: PathBuf,
+        store: PathBuf,
+        brick: usize,
+        force: bool,
+        progress: Option<&Bound<'_, PyAny>>,
+    ) -> PyResult<Store> {
+        detached(py, progress, move |ctl| {
+            let mut src = neuvolex_bricks::open_volume(&source, None).map_err(WorkError::value)?;
+            let opts = neuvolex_ingest::IngestOptions {
+                brick,
+                overwrite: force,
+                ..Default::default()
+            };
+            neuvolex_ingest::ingest(
+                src.as_mut(),
+                &store,
+                &opts,
+                &mut brick_progress(ctl, "ingest"),
+            )
+            .map_err(WorkError::value)?;
+            Store::opened(store)
+        })
+    }
+
+    /// Ingests a C-ordered 3-D numpy array (`[z, y, x]`, read in place) with the given
+    /// spacing and voxel-to-world affine (both in x, y, z order) into a new store.
+    #[staticmethod]
+    #[pyo3(signature = (array, spacing, affine, store, brick=64, force=false, progress=None))]
+    #[allow(clippy::too_many_arguments)]
+    fn from_array(
+        py: Python<'_>,
+        array: &Bound<'_, PyAny>,
+        spacing: [f64; 3],
+        affine: [[f64; 4]; 4],
+        store: PathBuf,
+        brick: usize,
+        force: bool,
+        progress: Option<&Bound<'_, PyAny>>,
+    ) -> PyResult<Store> {
+        let vol = VolumeArray::extract(array, "array")?;
+        let mut meta = VolumeMeta::new(vol.dims, vol.dtype);
+        meta.spacing = spacing;
+        meta.affine = affine;
+        meta.validate(std::path::Path::new("array"))
+            .map_err(|e| PyValueError::new_err(e.to_string()))?;
+        let bytes = vol.bytes();
+        detached(py, progress, move |ctl| {
+            let mut src = arrays::BorrowedVolume::new(meta, bytes);
+            let opts = neuvolex_ingest::IngestOptions {
+                brick,
+                overwrite: force,
+                ..Default::default()
+            };
+            neuvolex_ingest::ingest(&mut src, &store, &opts, &mut brick_progress(ctl, "ingest"))
+                .map_err(WorkError::value)?;
+            Store::opened(store)
+        })
+    }
+
+    /// Where the store is.
+    #[getter]
+    fn path(&self) -> String {
+        self.location.display().to_string()
+    }
+
+    /// Voxels along x, y, z.
+    #[getter]
+    fn dims(&self) -> [usize; 3] {
+        self.store.info().dims
+    }
+
+    /// Voxel size along x, y, z.
+    #[getter]
+    fn spacing(&self) -> [f64; 3] {
+        self.store.meta().spacing
+    }
+
+    /// The voxel (x, y, z) to world affine, row-major 4x4.
+    #[getter]
+    fn affine(&self) -> [[f64; 4]; 4] {
+        self.store.meta().affine
+    }
+
+    /// The source's voxel type (`u8`, `i16`, `f32`, ...).
+    #[getter]
+    fn dtype(&self) -> String {
+        format!("{:?}", self.store.info().source_dtype).to_lowercase()
+    }
+
+    /// The brick edge in voxels.
+    #[getter]
+    fn brick(&self) -> usize {
+        self.store.info().brick
+    }
+
+    /// Bricks along x, y, z.
+    #[getter]
+    fn grid(&self) -> [usize; 3] {
+        self.store.info().grid()
+    }
+
+    /// The value range `(min, max)` of the volume.
+    #[getter]
+    fn range(&self) -> (f64, f64) {
+        let s = &self.store.info().stats;
+        (s.min, s.max)
+    }
+
+    /// Whether the store has a trained INR.
+    #[getter]
+    fn trained(&self) -> bool {
+        neuvolex_features::train::model_path(&self.store).exists()
+    }
+
+    /// The volume's values (scaled), flat, x fastest.
+    #[pyo3(signature = (progress=None))]
+    fn read<'py>(
+        &self,
+        py: Python<'py>,
+        progress: Option<&Bound<'py, PyAny>>,
+    ) -> PyResult<Bound<'py, numpy::PyArray1<f32>>> {
+        let loc = self.location.clone();
+        let v = detached(py, progress, move |ctl| {
+            let mut src = neuvolex_bricks::open_volume(&loc, None).map_err(WorkError::other)?;
+            let meta = src.meta().clone();
+            let slice = meta.slice_len();
+            let mut out = vec![0f32; meta.voxels() as usize];
+            let depth = ((8 << 20) / slice.max(1)).max(1);
+            let mut z = 0;
+            while z < meta.dims[2] {
+                if ctl.cancelled() {
+                    return Err(WorkError::Other("cancelled".into()));
+                }
+                let d = depth.min(meta.dims[2] - z);
+                let slab = src.read_slab(z, d).map_err(WorkError::other)?;
+                out[z * slice..(z + d) * slice].copy_from_slice(&slab.to_f32_scaled(&meta));
+                src.release(z, d);
+                z += d;
+                ctl.progress(z as u64, meta.dims[2] as u64, "read");
+            }
+            Ok(out)
+        })?;
+        Ok(v.into_pyarray(py))
+    }
+
+    /// Trains the INR (CPU engine): a preset (`fast`, `balanced`, `paper`), optionally a
+    /// budget in epochs or seconds. Returns a JSON report.
+    #[pyo3(signature = (preset="fast", epochs=None, seconds=None, seed=0, progress=None))]
+    fn train(
+        &self,
+        py: Python<'_>,
+        preset: &str,
+        epochs: Option<f64>,
+        seconds: Option<f64>,
+        seed: u64,
+        progress: Option<&Bound<'_, PyAny>>,
+    ) -> PyResult<String> {
+        use neuvolex_features::{Budget, InrConfig, Preset, TrainConfig, TrainEvent};
+        let p: Preset = preset
+            .parse()
+            .map_err(|e: String| PyValueError::new_err(format!("preset '{preset}': {e}")))?;
+        for (name, v) in [("epochs", epochs), ("seconds", seconds)] {
+            if let Some(v) = v {
+                if !(v > 0.0 && v.is_finite()) {
+                    return Err(PyValueError::new_err(format!(
+                        "{name} {v}: must be a positive number"
+                    )));
+                }
+            }
+        }
+        let mut cfg = TrainConfig::preset(p);
+        if epochs.is_some() || seconds.is_some() {
+            cfg.budget = Budget {
+                epochs,
+                samples: None,
+                seconds,
+            };
+        }
+        cfg.seed = seed;
+        let ms_budget = seconds.map_or(0, |s| (s * 1e3) as u64);
+        let store = self.store.clone();
+        detached(py, progress, move |ctl| {
+            let _lock = store.writer_lock("train").map_err(WorkError::other)?;
+            let ckpt = neuvolex_features::train::checkpoint_path(&store);
+            // Progress in samples against the budget; a budget in seconds only counts
+            // milliseconds instead.
+            let mut budget = 0;
+            let mut events = |e: TrainEvent| match e {
+                TrainEvent::Started { budget_samples, .. } => {
+                    budget = budget_samples.unwrap_or(0);
+                    let of = if budget > 0 { budget } else { ms_budget };
+                    ctl.progress(0, of, "train");
+                }
+                TrainEvent::Step {
+                    samples,
+                    psnr,
+                    seconds,
+                    ..
+                } => {
+                    let msg = format!("train: PSNR {psnr:.2} dB, {samples} samples");
+                    if budget == 0 && ms_budget > 0 {
+                        ctl.progress(((seconds * 1e3) as u64).min(ms_budget), ms_budget, msg)
+                    } else {
+                        ctl.progress(samples, budget, msg)
+                    }
+                }
+                _ => {}
+            };
+            let t = neuvolex_features::train(
+                &store,
+                &InrConfig::default(),
+                &cfg,
+                None,
+                Some(&ckpt),
+                &ctl.cancel,
+                &mut events,
+            )
+            .map_err(WorkError::other)?;
+            if ctl.cancelled() {
+                return Err(WorkError::Other("training cancelled".into()));
+            }
+            let path = neuvolex_features::train::model_path(&store);
+            neuvolex_features::checkpoint::save(&path, &t.model, None).map_err(WorkError::other)?;
+            Ok(serde_json::json!({
+                "model": path.to_string(),
+                "psnr": t.psnr,
+                "samples": t.state.samples,
+                "steps": t.state.step,
+                "seconds": t.state.seconds,
+            })
+            .to_string())
+        })
+    }
+
+    /// Channels per voxel of a feature set.
+    fn feature_channels(&self, py: Python<'_>, features: &str) -> PyResult<usize> {
+        let set = feature_set(features)?;
+        let src = detached(py, None, |_| self.features_of(&set))?;
+        let fx = src
+            .features()
+            .map_err(|e| PyValueError::new_err(e.to_string()))?;
+        Ok(fx.channels())
+    }
+
+    /// The features of brick `(bx, by, bz)`: flat, voxel-major (x fastest), channels
+    /// innermost; and the brick's size (x, y, z).
+    fn feature_brick<'py>(
+        &self,
+        py: Python<'py>,
+        features: &str,
+        index: [usize; 3],
+    ) -> PyResult<(Bound<'py, numpy::PyArray1<f32>>, [usize; 3])> {
+        let set = feature_set(features)?;
+        let b = self
+            .store
+            .brick(index)
+            .map_err(|e| PyValueError::new_err(format!("brick {index:?}: {e}")))?;
+        let size = b.size;
+        let v = detached(py, None, |_| {
+            let src = self.features_of(&set)?;
+            let fx = BrickFeatures::new(&src.store, set.clone(), src.model.clone(), false)
+                .map_err(WorkError::value)?;
+            fx.brick(&b).map_err(WorkError::other)
+        })?;
+        Ok((v.into_pyarray(py), size))
+    }
+
+    /// Classifies every voxel from scribbles (the `neuvolex classify` pipeline): returns the
+    /// label image (flat, x fastest, after the prior), the class probabilities (flat,
+    /// class-major), the label of each probability channel and the JSON report.
+    #[pyo3(signature = (scribbles, features="filters+xyz", prior=true, trees=100, seed=0,
+        tau=0.5, min_split=8, class_weight="balanced", background=255,
+        prior_mass=None, prior_grow=None, probabilities=true, progress=None))]
+    #[allow(clippy::too_many_arguments, clippy::type_complexity)]
+    fn classify<'py>(
+        &mut self,
+        py: Python<'py>,
+        scribbles: &Bound<'py, PyAny>,
+        features: &str,
+        prior: bool,
+        trees: usize,
+        seed: u64,
+        tau: f32,
+        min_split: usize,
+        class_weight: &str,
+        background: u32,
+        prior_mass: Option<f64>,
+        prior_grow: Option<u32>,
+        probabilities: bool,
+        progress: Option<&Bound<'py, PyAny>>,
+    ) -> PyResult<(
+        Bound<'py, PyAny>,
+        Option<Bound<'py, numpy::PyArray1<f32>>>,
+        Vec<u32>,
+        String,
+    )> {
+        let set = feature_set(features)?;
+        let config = classify_config(trees, min_split, seed, class_weight, tau, background)?;
+        let defaults = PriorConfig::default();
+        let prior = if prior {
+            let mass = prior_mass.unwrap_or(defaults.relative_mass);
+            let grow = prior_grow.unwrap_or(defaults.grow);
+            Some(
+                PriorConfig::new(mass)
+                    .map_err(|e| PyValueError::new_err(format!("prior_mass {mass}: {e}")))?
+                    .with_grow(grow)
+                    .map_err(|e| PyValueError::new_err(format!("prior_grow {grow}: {e}")))?,
+            )
+        } else {
+            None
+        };
+        let scr = ScribbleArray::extract(scribbles, "scribbles", self.store.info().dims)?;
+        let req = ClassifyRequest {
+            store: self.location.clone(),
+            scribbles: PathBuf::from("scribbles"),
+            features: set,
+            classes: None,
+            out: None,
+            force: false,
+            stored_features: false,
+            config,
+            bricks_per_task: 1,
+            prior,
+        };
+        let (labels, proba, classes, report) = detached(py, progress, |ctl| {
+            let scr = scr.scribbles();
+            // An earlier call stopped half way (Ctrl-C) left pending outputs of its own
+            // scribbles: a new call starts over instead of being refused.
+            for name in [pipeline::PROBA, pipeline::LABELS] {
+                self.store
+                    .discard_pending_vectors(name)
+                    .map_err(WorkError::other)?;
+            }
+            let o =
+                pipeline::classify_scribbles(&req, scr, &executor(ctl), &mut task_progress(ctl))
+                    .map_err(|e| match e {
+                        neuvolex_classify::ClassifyError::File { .. }
+                        | neuvolex_classify::ClassifyError::Input(_)
+                        | neuvolex_classify::ClassifyError::Scribble(_) => WorkError::value(e),
+                        e => WorkError::other(e),
+                    })?;
+            if !o.dead.is_empty() || o.labels.is_empty() {
+                return Err(WorkError::Other(if ctl.cancelled() {
+                    "classification cancelled".into()
+                } else {
+                    format!("classification failed: {:?}", o.dead)
+                }));
+            }
+            let store = BrickStore::open(&req.store).map_err(WorkError::other)?;
+            let proba = if probabilities {
+                Some(pipeline::assemble_probabilities(&store).map_err(WorkError::other)?)
+            } else {
+                None
+            };
+            let report = serde_json::to_string(&o.report).map_err(WorkError::other)?;
+            Ok((o.labels, proba, o.report.labels.clone(), report))
+        })?;
+        self.refresh()
+            .map_err(|e| PyValueError::new_err(format!("{e:?}")))?;
+        let max = labels.iter().copied().max().unwrap_or(0);
+        let labels: Bound<'py, PyAny> = if max <= 255 {
+            let v: Vec<u8> = labels.iter().map(|&l| l as u8).collect();
+            v.into_pyarray(py).into_any()
+        } else {
+            labels.into_pyarray(py).into_any()
+        };
+        Ok((labels, proba.map(|p| p.into_pyarray(py)), classes, report))
+    }
+
+    /// The forest's labels on one slice before the rest of the volume (and before the
+    /// spatial prior): the same forest as `classify` with these settings, only the bricks
+    /// crossing the slice read. Returns the plane (flat, the lower remaining axis fastest)
+    /// and its size.
+    #[pyo3(signature = (scribbles, axis, index, features="filters+xyz", trees=100, seed=0,
+        tau=0.5, min_split=8, class_weight="balanced", background=255))]
+    #[allow(clippy::too_many_arguments)]
+    fn preview_slice<'py>(
+        &self,
+        py: Python<'py>,
+        scribbles: &Bound<'py, PyAny>,
+        axis: &str,
+        index: usize,
+        features: &str,
+        trees: usize,
+        seed: u64,
+        tau: f32,
+        min_split: usize,
+        class_weight: &str,
+        background: u32,
+    ) -> PyResult<(Bound<'py, numpy::PyArray1<u16>>, [usize; 2])> {
+        let a = axis_index(axis)?;
+        let dims = self.store.info().dims;
+        if index >= dims[a] {
+            return Err(PyValueError::new_err(format!(
+                "index {index}: the volume has {} slices along {axis}",
+                dims[a]
+            )));
+        }
+        let set = feature_set(features)?;
+        let config = classify_config(trees, min_split, seed, class_weight, tau, background)?;
+        let scr = ScribbleArray::extract(scribbles, "scribbles", dims)?;
+        let plane = detached(py, None, |ctl| {
+            let src = self.features_of(&set)?;
+            let fx = src.features().map_err(WorkError::value)?;
+            let scr = scr.scribbles();
+            let cancel = ctl.cancel.clone();
+            neuvolex_classify::preview::preview_plane(&fx, &scr, &config, a, index, &move || {
+                cancel.load(std::sync::atomic::Ordering::SeqCst)
+            })
+            .map_err(|e| match e {
+                neuvolex_classify::ClassifyError::Volume(e) => WorkError::other(e),
+                e => WorkError::value(format!("scribbles: {e}")),
+            })
+        })?;
+        Ok((plane.labels.into_pyarray(py), plane.size))
+    }
+
+    /// The most doubtful slice along `axis` (`x`, `y` or `z`) under the last classification's
+    /// probabilities, skipping near `visited`: `(index, score)`, or `None` before any.
+    #[pyo3(signature = (axis="z", visited=Vec::new()))]
+    fn suggest_slice(
+        &self,
+        py: Python<'_>,
+        axis: &str,
+        visited: Vec<usize>,
+    ) -> PyResult<Option<(usize, f64)>> {
+        let a = axis_index(axis)?;
+        let store = self.store.clone();
+        detached(py, None, move |_| {
+            let Ok(va) = store.open_vectors(pipeline::PROBA) else {
+                return Ok(None);
+            };
+            let dims = store.info().dims;
+            let c = va.info().channels;
+            let mut mass = SliceMass::zeros(dims, c);
+            for b in store.bricks() {
+                let p = va.read_brick(&b).map_err(WorkError::other)?;
+                mass.merge(&SliceMass::of_brick(dims, b.origin, b.size, &p, c));
+            }
+            Ok(mass.suggest(a, &visited).map(|s| (s.slice, s.share)))
+        })
+    }
+
+    /// Recommended viewpoints: k-means on the features, view entropy over `views` directions,
+    /// greedy complementary selection. Returns the JSON list of selected views.
+    #[pyo3(signature = (k=8, features="filters+xyz", views=1800, max_views=6, seed=0, progress=None))]
+    #[allow(clippy::too_many_arguments)]
+    fn viewpoints(
+        &self,
+        py: Python<'_>,
+        k: usize,
+        features: &str,
+        views: usize,
+        max_views: usize,
+        seed: u64,
+        progress: Option<&Bound<'_, PyAny>>,
+    ) -> PyResult<String> {
+        use neuvolex_viewpoints::scores::SelectConfig;
+        use neuvolex_viewpoints::{direction_to_view, KMeansConfig, RecommendConfig};
+        if k == 0 || k > u16::MAX as usize {
+            return Err(PyValueError::new_err(format!("k {k}: must be 1..=65535")));
+        }
+        if views == 0 || views > 1_000_000 {
+            return Err(PyValueError::new_err(format!(
+                "views {views}: must be 1..=1000000"
+            )));
+        }
+        if max_views == 0 {
+            return Err(PyValueError::new_err("max_views 0: must be at least 1"));
+        }
+        let set = feature_set(features)?;
+        let cfg = RecommendConfig {
+            kmeans: KMeansConfig {
+                k,
+                seed,
+                ..Default::default()
+            },
+            views,
+            select: SelectConfig {
+                max_views,
+                ..Default::default()
+            },
+        };
+        detached(py, progress, |ctl| {
+            let src = self.features_of(&set)?;
+            let (rec, _) = neuvolex_viewpoints::distributed::recommend_on(
+                &executor(ctl),
+                src,
+                &cfg,
+                1,
+                &mut task_progress(ctl),
+                &mut |_, _| {},
+            )
+            .map_err(WorkError::value)?;
+            if ctl.cancelled() {
+                return Err(WorkError::Other("viewpoints cancelled".into()));
+            }
+            let (scores, sel) = (&rec.scores, &rec.selection);
+            let out: Vec<serde_json::Value> = sel
+                .views
+                .iter()
+                .zip(&sel.gains)
+                .map(|(&i, &g)| {
+                    let (az, el) = direction_to_view(scores.views[i]);
+                    serde_json::json!({"azimuth": az, "elevation": el,
+                        "direction": scores.views[i], "entropy": scores.entropy[i], "gain": g})
+                })
+                .collect();
+            Ok(serde_json::Value::from(out).to_string())
+        })
+    }
+
+    /// Writes `labels` (flat, x fastest; default: the last classification) as a NIfTI label
+    /// volume with the store's geometry (affine, spacing, NIfTI frames).
+    #[pyo3(signature = (path, labels=None, force=false))]
+    fn export(
+        &self,
+        py: Python<'_>,
+        path: PathBuf,
+        labels: Option<&Bound<'_, PyAny>>,
+        force: bool,
+    ) -> PyResult<()> {
+        if path.exists() && !force {
+            return Err(PyValueError::new_err(format!(
+                "{}: exists (pass force=True to replace it)",
+                path.display()
+            )));
+        }
+        let lab = labels
+            .map(|l| ScribbleArray::extract(l, "labels", self.store.info().dims))
+            .transpose()?;
+        let store = self.store.clone();
+        detached(py, None, move |_| {
+            let meta = store.meta();
+            match lab {
+                Some(l) => {
+                    let mut v = l.label_volume(&meta);
+                    neuvolex_formats::nifti::write_nifti(&path, &mut v, 64)
+                        .map_err(WorkError::other)
+                }
+                None => {
+                    let img = store.root().join("labels").join("classified");
+                    let mut src = neuvolex_bricks::open_volume(&img, None).map_err(|_| {
+                        WorkError::Value(format!(
+                            "{}: no classification to export yet (classify first, or pass labels)",
+                            store.root().display()
+                        ))
+                    })?;
+                    neuvolex_formats::nifti::write_nifti(&path, src.as_mut(), 64)
+                        .map_err(WorkError::other)
+                }
+            }
+        })
+    }
+
+    /// Writes a label array (flat, x fastest) into the store as label image `name`.
+    fn write_labels(
+        &mut self,
+        py: Python<'_>,
+        name: &str,
+        labels: &Bound<'_, PyAny>,
+    ) -> PyResult<()> {
+        let lab = ScribbleArray::extract(labels, "labels", self.store.info().dims)?;
+        let loc = self.location.clone();
+        let name = name.to_string();
+        detached(py, None, move |_| {
+            let mut store = BrickStore::open(&loc).map_err(WorkError::other)?;
+            let mut v = lab.label_volume(&store.meta());
+            let classes: Vec<neuvolex_bricks::synth::ClassInfo> = lab
+                .classes()
+                .into_iter()
+                .map(|id| neuvolex_bricks::synth::ClassInfo {
+                    id,
+                    name: format!("class_{id}"),
+                    color: neuvolex_bricks::synth::palette(id),
+                })
+                .collect();
+            store
+                .add_labels(&name, &mut v, &classes, &mut |_| {})
+                .map_err(WorkError::value)
+        })?;
+        self.refresh()
+            .map_err(|e| PyValueError::new_err(format!("{e:?}")))
+    }
+
+    /// Renders the volume: intensity with a transfer function, or a label image of the
+    /// store (`labels`) or the last classification's probabilities (`probabilities`) as
+    /// colours. Returns RGBA bytes (rows top first) and the size.
+    #[pyo3(signature = (labels=None, probabilities=false, azimuth=30.0, elevation=20.0,
+        width=512, height=512, tf=None, mode=None))]
+    #[allow(clippy::too_many_arguments)]
+    fn render<'py>(
+        &self,
+        py: Python<'py>,
+        labels: Option<&str>,
+        probabilities: bool,
+        azimuth: f32,
+        elevation: f32,
+        width: usize,
+        height: usize,
+        tf: Option<&str>,
+        mode: Option<&str>,
+    ) -> PyResult<Bound<'py, numpy::PyArray1<u8>>> {
+        let mode = match mode {
+            None if probabilities || labels.is_some() => Mode::Probabilistic,
+            None | Some("intensity") => Mode::Intensity,
+            Some("prob") | Some("probabilistic") => Mode::Probabilistic,
+            Some("prob-intensity") => Mode::ProbIntensity,
+            Some(o) => {
+                return Err(PyValueError::new_err(format!(
+                    "mode '{o}': expected 'intensity', 'prob' or 'prob-intensity'"
+                )))
+            }
+        };
+        if mode.needs_probs() && !probabilities && labels.is_none() {
+            return Err(PyValueError::new_err(format!(
+                "mode {mode:?} needs labels or probabilities"
+            )));
+        }
+        let p = RenderParams {
+            width,
+            height,
+            camera: Camera {
+                azimuth,
+                elevation,
+                ..Camera::default()
+            },
+            mode,
+            ..RenderParams::default()
+        };
+        p.validate()
+            .map_err(|e| PyValueError::new_err(format!("render: {e}")))?;
+        let tf = match tf {
+            Some(t) => {
+                TfFile::from_arg(t).map_err(|e| PyValueError::new_err(format!("tf: {e}")))?
+            }
+            None => TfFile::preset(if self.store.info().stats.min < -500.0 {
+                "ct-bone"
+            } else {
+                "grey"
+            })
+            .map_err(|e| PyValueError::new_err(e.to_string()))?,
+        };
+        let store = self.store.clone();
+        let labels = labels.map(str::to_string);
+        let rgba = detached(py, None, move |_| {
+            let mut src = StoreSource::new(store);
+            if probabilities {
+                src = src.with_vectors(pipeline::PROBA).map_err(|_| {
+                    WorkError::Value("probabilities: no classification yet (classify first)".into())
+                })?;
+            }
+            if let Some(l) = &labels {
+                src = src
+                    .with_labels(l)
+                    .map_err(|e| WorkError::Value(format!("labels '{l}': {e}")))?;
+            }
+            let luts = tf.compile(&src.normaliser(), &src.classes());
+            let img = Renderer::new(src, 1 << 30)
+                .render(&p, &luts)
+                .map_err(WorkError::other)?;
+            let rgb = img.to_rgb8();
+            let mut out = Vec::with_capacity(img.width * img.height * 4);
+            for (px, a) in rgb.chunks(3).zip(&img.alpha) {
+                out.extend_from_slice(px);
+                out.push((a.clamp(0.0, 1.0) * 255.0).round() as u8);
+            }
+            Ok(out)
+        })?;
+        Ok(rgba.into_pyarray(py))
+    }
+
+    fn __repr__(&self) -> String {
+        let i = self.store.info();
+        format!(
+            "Store('{}', dims (x, y, z) {:?}, {:?}, brick {})",
+            self.location.display(),
+            i.dims,
+            i.source_dtype,
+            i.brick
+        )
+    }
+}
+
+/// The native module.
+#[pymodule]
+fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    m.add_class::<Store>()?;
+    m.add("__version__", env!("CARGO_PKG_VERSION"))?;
+    Ok(())
+}

@@ -1,0 +1,533 @@
+"""The napari plugin: the "neuvolex: scribble classifier" dock widget, headless.
+
+Run with  QT_QPA_PLATFORM=offscreen target/pyenv/bin/python -m pytest -q python/tests/test_napari.py
+Qt's offscreen platform gets the OpenGL context napari's canvas needs through GLX, so an X
+server must be there: without DISPLAY this module starts its own Xvfb (apt-get install xvfb)
+and is skipped when there is none.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import threading
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
+
+
+def _die_with_parent() -> None:
+    try:
+        import ctypes
+        import signal
+
+        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+    except Exception:  # noqa: BLE001  (not Linux: it outlives the tests)
+        pass
+
+
+def _start_xvfb() -> str | None:
+    """Start an Xvfb on a free display; returns the display, or None without Xvfb."""
+    xvfb = shutil.which("Xvfb")
+    if xvfb is None:
+        return None
+    read_end, write_end = os.pipe()
+    # It goes when this process does (the parent-death signal), after Qt's last X call.
+    proc = subprocess.Popen(
+        [xvfb, "-displayfd", str(write_end), "-screen", "0", "1600x1000x24", "-nolisten", "tcp"],
+        pass_fds=(write_end,),
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        preexec_fn=_die_with_parent,
+    )
+    os.close(write_end)
+    number = b""
+    with os.fdopen(read_end, "rb") as pipe:
+        while not number.endswith(b"\n"):
+            chunk = pipe.read(1)
+            if not chunk:
+                break
+            number += chunk
+    if not number.strip():
+        proc.kill()
+        return None
+    return f":{number.strip().decode()}"
+
+
+def _need(what: str, ok: bool) -> None:
+    """Skips the module (fails it under CI=true, as conftest's `need` does) when not `ok`."""
+    if not ok:
+        if os.environ.get("CI") == "true":
+            pytest.fail(f"{what} is required under CI=true", pytrace=False)
+        pytest.skip(f"SKIP: {what} is absent", allow_module_level=True)
+
+
+def _importable(name: str) -> bool:
+    import importlib.util
+
+    return importlib.util.find_spec(name) is not None
+
+
+if not os.environ.get("DISPLAY"):
+    _display = _start_xvfb()
+    _need("an X server for napari's OpenGL canvas (DISPLAY, or Xvfb: apt-get install xvfb)",
+          _display is not None)
+    os.environ["DISPLAY"] = _display
+_need("napari with a Qt binding (pip install 'napari[pyqt5]')", _importable("napari"))
+_need("pytest-qt", _importable("pytestqt"))
+
+import neuvolex  # noqa: E402
+from neuvolex.napari import BACKGROUND, CLASSES, SCRIBBLES, NeuvolexWidget  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[2]
+SCREENSHOT = ROOT / "target" / "python" / "napari-widget.png"
+TIMEOUT_MS = 60_000
+N = 48
+CENTRES = {1: (16, 16, 16), 2: (32, 32, 30)}  # label -> sphere centre (z, y, x)
+BRIGHTNESS = {1: 0.9, 2: 0.5}  # added to the dark background inside each sphere
+RADIUS = 8
+
+
+def _ball(centre, radius, shape=(N, N, N)) -> np.ndarray:
+    z, y, x = np.ogrid[: shape[0], : shape[1], : shape[2]]
+    cz, cy, cx = centre
+    return (z - cz) ** 2 + (y - cy) ** 2 + (x - cx) ** 2 <= radius**2
+
+
+@pytest.fixture
+def volume() -> np.ndarray:
+    """Two bright spheres (one brighter) on a dark background, with seeded noise (z, y, x) float32."""
+    rng = np.random.default_rng(7)
+    vol = rng.normal(0.1, 0.05, (N, N, N)).astype(np.float32)
+    for value, centre in CENTRES.items():
+        vol[_ball(centre, RADIUS)] += BRIGHTNESS[value]
+    return vol
+
+
+@pytest.fixture
+def setup(make_napari_viewer, volume, qtbot):
+    """A shown viewer with the volume, the widget docked; yields (viewer, image, widget)."""
+    viewer = make_napari_viewer(show=True)
+    viewer.window._qt_window.resize(1500, 950)
+    image = viewer.add_image(volume, name="spheres", scale=(2.0, 1.0, 1.0), translate=(5.0, 0, 0))
+    widget = NeuvolexWidget(viewer)
+    viewer.window.add_dock_widget(widget, name="neuvolex: scribble classifier", area="right")
+    yield viewer, image, widget
+    widget.wait(TIMEOUT_MS)
+
+
+def _stroke(centre, r0: int, r1: int) -> np.ndarray:
+    """A 3-voxel-wide brush stroke in the centre's z slice, along +y and -x, r0..r1 from it."""
+    mask = np.zeros((N, N, N), bool)
+    cz, cy, cx = centre
+    lo, hi = max(cy + r0, 0), min(cy + r1 + 1, N)
+    mask[cz, lo:hi, max(cx - 1, 0) : cx + 2] = True
+    lo, hi = max(cx - r1, 0), min(cx - r0 + 1, N)
+    mask[cz, max(cy - 1, 0) : cy + 2, lo:hi] = True
+    return mask
+
+
+def _paint(layer, mask: np.ndarray, value: int) -> None:
+    """Paint like napari's brush does: through the undo history, which emits `paint`."""
+    layer.data_setitem(np.nonzero(mask), value)
+
+
+def _paint_spheres(layer) -> None:
+    """Strokes as a user would paint them: across each sphere, and around it for background."""
+    for value, centre in CENTRES.items():
+        _paint(layer, _stroke(centre, 0, RADIUS - 1), value)
+        _paint(layer, _stroke(centre, RADIUS + 2, RADIUS + 6), BACKGROUND)
+    corner = np.zeros((N, N, N), bool)
+    corner[:4, :4, :] = True
+    corner[-4:, -4:, :] = True
+    _paint(layer, corner, BACKGROUND)
+
+
+def _save_screenshot(viewer, path: Path) -> None:
+    """The window with the canvas pasted in (a plain grab leaves the GL canvas black)."""
+    from qtpy.QtCore import QPoint, QRect
+    from qtpy.QtGui import QImage, QPainter
+
+    window = viewer.window._qt_window
+    shot = window.grab()
+    native = viewer.window._qt_viewer.canvas.native
+    try:  # on Qt's offscreen platform viewer.screenshot() reads back black; vispy's render works
+        canvas = viewer.window._qt_viewer.canvas._scene_canvas.render()
+    except AttributeError:
+        canvas = viewer.screenshot(canvas_only=True, flash=False)
+    canvas = np.ascontiguousarray(canvas[..., :4])
+    height, width = canvas.shape[:2]
+    image = QImage(canvas.data, width, height, 4 * width, QImage.Format_RGBA8888)
+    painter = QPainter(shot)
+    painter.drawImage(QRect(native.mapTo(window, QPoint(0, 0)), native.size()), image)
+    painter.end()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    assert shot.save(str(path)), path
+
+
+def _idle(widget) -> bool:
+    return not widget.busy
+
+
+def test_manifest_names_the_widget():
+    npe2 = pytest.importorskip("npe2")
+    manifest = npe2.PluginManifest.from_file(
+        Path(neuvolex.napari.__file__).resolve().parent.parent / "napari.yaml"
+    )
+    assert manifest.name == "neuvolex"
+    (widget,) = manifest.contributions.widgets
+    assert widget.display_name == "neuvolex: scribble classifier"
+    (command,) = [c for c in manifest.contributions.commands if c.id == widget.command]
+    module, _, name = command.python_name.partition(":")
+    assert getattr(__import__(module, fromlist=[name]), name) is NeuvolexWidget
+
+
+def test_installed_plugin_is_discovered():
+    """With the wheel installed, napari finds the manifest through its entry point."""
+    npe2 = pytest.importorskip("npe2")
+    from importlib.metadata import entry_points
+
+    if not any(ep.name == "neuvolex" for ep in entry_points(group="napari.manifest")):
+        if os.environ.get("CI") == "true":
+            pytest.fail("the installed neuvolex has no napari.manifest entry point")
+        pytest.skip("SKIP: neuvolex is not installed with its napari.manifest entry point")
+    manifest = npe2.PluginManifest.from_distribution("neuvolex")
+    assert [w.display_name for w in manifest.contributions.widgets] == [
+        "neuvolex: scribble classifier"
+    ]
+
+
+def test_paint_and_classify_live(setup, qtbot, tmp_path):
+    viewer, image, widget = setup
+    scribbles = widget.scribbles_layer
+    # The scribbles layer sits over the image, selected, with the brush on label 1.
+    assert scribbles is not None and scribbles.name == SCRIBBLES
+    assert scribbles.data.shape == image.data.shape
+    assert tuple(scribbles.scale) == tuple(image.scale)
+    assert tuple(scribbles.translate) == tuple(image.translate)
+    assert viewer.layers.selection.active is scribbles
+    assert scribbles.mode == "paint" and scribbles.selected_label == 1
+    assert str(BACKGROUND) in widget.toolTip()
+    assert not widget.suggest_button.isEnabled()
+
+    viewer.dims.set_current_step(0, 20)
+    _paint_spheres(scribbles)  # three strokes
+
+    qtbot.waitUntil(lambda: widget.classes_layer is not None and _idle(widget), timeout=TIMEOUT_MS)
+    assert widget.run_count == 1  # three strokes, one debounced run
+    classes = widget.classes_layer
+    assert classes.name == CLASSES and classes in viewer.layers
+    assert tuple(classes.scale) == tuple(image.scale)
+    assert viewer.dims.current_step[0] == 20  # the shown slice stays
+    assert viewer.layers.selection.active is scribbles  # still painting
+    labels = np.asarray(classes.data)
+    assert labels.shape == image.data.shape
+    for value, centre in CENTRES.items():
+        inside = labels[_ball(centre, RADIUS - 2)]
+        assert np.mean(inside == value) > 0.9, (value, np.bincount(inside.ravel()))
+        sphere = _ball(centre, RADIUS)
+        dice = 2 * np.sum(sphere & (labels == value)) / (sphere.sum() + np.sum(labels == value))
+        assert dice > 0.8, (value, dice)
+    far = ~(_ball(CENTRES[1], RADIUS + 3) | _ball(CENTRES[2], RADIUS + 3))
+    assert np.mean(labels[far] == 0) > 0.9, np.bincount(labels[far].ravel())
+    _, probs, classes_list, _ = widget.last_result
+    assert {1, 2} <= set(classes_list)
+    assert probs is None  # not asked for: the probability layers are off
+    assert "classes" in widget.status.text()
+
+    # A screenshot with the widget docked and the classes over the image.
+    viewer.dims.set_current_step(0, CENTRES[1][0])
+    qtbot.wait(200)
+    _save_screenshot(viewer, SCREENSHOT)
+    assert SCREENSHOT.stat().st_size > 10_000
+
+    # Probability layers on demand: a run that keeps the probabilities.
+    widget.probs_check.setChecked(True)
+    qtbot.waitUntil(lambda: widget.run_count == 2 and _idle(widget), timeout=TIMEOUT_MS)
+    _, probs, classes_list, _ = widget.last_result
+    assert probs.shape == (len(classes_list), N, N, N)
+    prob_layers = [layer for layer in viewer.layers if layer.name.startswith("neuvolex p(")]
+    assert len(prob_layers) == len(classes_list)
+    assert widget.image_combo.count() == 1  # our own layers are not offered as images
+
+    # Suggest slice moves the viewer to a z slice of the volume.
+    assert widget.suggest_button.isEnabled()
+    widget.suggest_button.click()
+    suggested = widget.session.visited[-1]
+    assert 0 <= suggested < N
+    z_world = viewer.dims.point[0]
+    assert np.isclose(z_world, image.data_to_world([suggested, 0, 0])[0])
+
+    # Export writes NIfTI with the classes.
+    out = tmp_path / "classes.nii.gz"
+    assert widget.export(str(out)), widget.status.text()
+    assert out.exists()
+    nib = pytest.importorskip("nibabel")
+    written = np.asarray(nib.load(out).dataobj)
+    assert written.size == labels.size
+
+
+def test_preview_of_the_shown_slice_comes_first(setup, qtbot, volume):
+    """The slice on screen is labelled (Store.preview_slice) while the whole volume runs."""
+    viewer, image, widget = setup
+    scribbles = widget.scribbles_layer
+    widget.live_check.setChecked(False)
+    widget.trees_spin.setValue(30)
+    _paint_spheres(scribbles)
+    z = CENTRES[1][0]
+    viewer.dims.set_current_step(0, z)
+    assert widget.displayed_slice(image) == (0, z)
+
+    real = neuvolex.from_array(volume, spacing=tuple(image.scale), origin=tuple(image.translate))
+    gate = threading.Event()
+    gate.set()
+    previews, full_runs = [], []
+
+    class Gated:
+        classes = property(lambda self: real.classes)
+
+        def preview_slice(self, scribbles, **kwargs):
+            labels = real.preview_slice(scribbles, **kwargs)
+            previews.append((kwargs, np.array(labels)))
+            return labels
+
+        def classify(self, scribbles, **kwargs):
+            full_runs.append(kwargs)
+            assert gate.wait(3 * TIMEOUT_MS / 1000)
+            return real.classify(scribbles, **kwargs)
+
+        def __getattr__(self, name):
+            return getattr(real, name)
+
+    widget.session.store = Gated()
+    try:
+        gate.clear()  # the whole volume waits: only the preview can land
+        assert widget.classify_now()
+        qtbot.waitUntil(lambda: len(full_runs) == 1, timeout=TIMEOUT_MS)
+        qtbot.waitUntil(lambda: widget.classes_layer is not None, timeout=TIMEOUT_MS)
+        assert widget._worker is not None and widget.last_result is None  # still held
+        assert not widget.session.classified and not widget.export_button.isEnabled()
+        (kwargs, preview), = previews
+        assert kwargs["axis"] == 0 and kwargs["index"] == z
+        for key in ("features", "trees", "seed"):  # the settings of the whole run
+            assert kwargs[key] == full_runs[0][key], key
+        assert kwargs["trees"] == 30
+        classes = widget.classes_layer
+        assert classes.name == CLASSES and tuple(classes.scale) == tuple(image.scale)
+        assert tuple(classes.translate) == tuple(image.translate)
+        shown = np.asarray(classes.data)
+        assert shown.shape == image.data.shape
+        expected = real.preview_slice(
+            np.asarray(scribbles.data), axis="z", index=z, features="filters+xyz", trees=30, seed=0
+        )
+        assert expected.shape == (N, N)
+        np.testing.assert_array_equal(shown[z], expected)
+        np.testing.assert_array_equal(shown[z], preview)
+        assert np.count_nonzero(shown) == np.count_nonzero(shown[z])  # only the slice yet
+        inside = shown[z][_ball(CENTRES[1], RADIUS - 2)[z]]
+        assert np.mean(inside == 1) > 0.9, np.bincount(inside.ravel())
+        far = ~(_ball(CENTRES[1], RADIUS + 3) | _ball(CENTRES[2], RADIUS + 3))[z]
+        assert np.mean(shown[z][far] == 0) > 0.9, np.bincount(shown[z][far].ravel())
+        assert f"Preview of slice z = {z} in" in widget.status.text(), widget.status.text()
+        assert viewer.dims.current_step[0] == z
+        assert viewer.layers.selection.active is scribbles
+
+        gate.set()  # now the whole volume
+        qtbot.waitUntil(lambda: widget.last_result is not None and _idle(widget), timeout=TIMEOUT_MS)
+        labels = widget.last_result[0]
+        assert widget.classes_layer is classes
+        np.testing.assert_array_equal(np.asarray(classes.data), labels)
+        assert "classes" in widget.status.text() and "Preview" not in widget.status.text()
+        for value, centre in CENTRES.items():
+            inside = labels[_ball(centre, RADIUS - 2)]
+            assert np.mean(inside == value) > 0.9, (value, np.bincount(inside.ravel()))
+        assert np.mean(labels[z] == preview) > 0.95  # the prior changes little
+        assert len(full_runs) == 1 and len(previews) == 1
+
+        # Another shown axis: a y slice (dims rolled), into the classes the last run left.
+        viewer.dims.order = (1, 0, 2)
+        y = CENTRES[2][1]
+        viewer.dims.set_current_step(1, y)
+        assert widget.displayed_slice(image) == (1, y)
+        before = np.array(classes.data)
+        gate.clear()
+        assert widget.classify_now()
+        qtbot.waitUntil(lambda: f"slice y = {y} in" in widget.status.text(), timeout=TIMEOUT_MS)
+        kwargs, preview = previews[-1]
+        assert (kwargs["axis"], kwargs["index"], preview.shape) == (1, y, (N, N))
+        now = np.asarray(classes.data)
+        np.testing.assert_array_equal(now[:, y], preview)
+        np.testing.assert_array_equal(np.delete(now, y, axis=1), np.delete(before, y, axis=1))
+        inside = preview[_ball(CENTRES[2], RADIUS - 2)[:, y]]
+        assert np.mean(inside == 2) > 0.9, np.bincount(inside.ravel())
+        gate.set()
+        qtbot.waitUntil(lambda: len(full_runs) == 2 and _idle(widget), timeout=TIMEOUT_MS)
+
+        # 3-D view: no slice to preview, the whole volume only.
+        viewer.dims.ndisplay = 3
+        assert widget.displayed_slice(image) is None
+        assert widget.classify_now()
+        qtbot.waitUntil(lambda: len(full_runs) == 3 and _idle(widget), timeout=TIMEOUT_MS)
+        assert len(previews) == 2 and "classes" in widget.status.text()
+        viewer.dims.ndisplay = 2
+    finally:
+        gate.set()
+
+    # A preview refused (ValueError) shows as a failed run; the whole volume is not tried.
+    class Refusing(Gated):
+        def preview_slice(self, scribbles, **kwargs):
+            raise ValueError("the scribbles name one class only")
+
+    widget.session.store = Refusing()
+    runs = len(full_runs)
+    assert widget.classify_now()
+    qtbot.waitUntil(lambda: _idle(widget), timeout=TIMEOUT_MS)
+    assert "classification failed" in widget.status.text()
+    assert "one class only" in widget.status.text()
+    assert len(full_runs) == runs and widget.classify_button.isEnabled()
+
+
+def test_debounce_coalesces_and_reruns_with_newest(setup, qtbot):
+    viewer, image, widget = setup
+    scribbles = widget.scribbles_layer
+    _paint(scribbles, _ball(CENTRES[1], 2), 1)
+    for i in range(5):  # a burst of strokes, 100 ms apart
+        _paint(scribbles, _ball((4 + i, 4, 4), 1), BACKGROUND)
+        qtbot.wait(100)
+    assert widget.run_count == 0  # still inside the debounce interval
+    qtbot.waitUntil(lambda: widget.last_result is not None and _idle(widget), timeout=TIMEOUT_MS)
+    assert widget.run_count == 1
+
+    # A run that is going holds back the next: newer strokes make exactly one more run.
+    gate = threading.Event()
+    real = widget.session.store
+    seen = []
+
+    class Gated:
+        classes = property(lambda self: real.classes)
+
+        def classify(self, scribbles, **kwargs):
+            seen.append(np.unique(scribbles).tolist())
+            gate.wait(TIMEOUT_MS / 1000)
+            return real.classify(scribbles, **kwargs)
+
+        def __getattr__(self, name):
+            return getattr(real, name)
+
+    widget.session.store = Gated()
+    assert widget.classify_now()
+    qtbot.waitUntil(lambda: len(seen) == 1, timeout=TIMEOUT_MS)
+    _paint(scribbles, _ball(CENTRES[2], 2), 2)
+    for _ in range(3):
+        assert widget.classify_now()  # queued behind the running one, not stacked
+    gate.set()
+    qtbot.waitUntil(lambda: widget.run_count == 3 and _idle(widget), timeout=TIMEOUT_MS)
+    qtbot.wait(700)
+    assert widget.run_count == 3 and len(seen) == 2
+    assert 2 not in seen[0] and 2 in seen[1]  # the rerun used the newest scribbles
+    assert 2 in widget.last_result[2]
+
+
+def test_problems_show_in_the_status_line(setup, qtbot):
+    viewer, image, widget = setup
+    scribbles = widget.scribbles_layer
+    _paint(scribbles, _ball(CENTRES[1], 3), 1)  # one label only
+    qtbot.wait(800)  # past the debounce
+    assert widget.run_count == 0
+    assert "two different labels" in widget.status.text()
+    assert widget.classify_now() is False
+    assert widget.classes_layer is None
+
+    # An exception in the worker lands in the status line (and a notification), not a crash.
+    _paint(scribbles, _ball(CENTRES[2], 3), BACKGROUND)
+
+    class Broken:
+        classes: list = []
+
+        def classify(self, scribbles, **kwargs):
+            raise RuntimeError("disk full")
+
+    widget.session.store = Broken()
+    widget.live_check.setChecked(False)
+    assert widget.classify_now()
+    qtbot.waitUntil(lambda: _idle(widget), timeout=TIMEOUT_MS)
+    assert "classification failed" in widget.status.text()
+    assert "disk full" in widget.status.text()
+    assert widget.classes_layer is None
+    assert widget.classify_button.isEnabled()
+
+    # Features that need an INR are refused before training.
+    widget.features_combo.setCurrentText("inr")
+    assert widget.classify_now() is False
+    assert "Train INR" in widget.status.text()
+
+
+def test_train_inr_with_progress_then_cancel(setup, qtbot):
+    viewer, image, widget = setup
+    steps = []
+    widget._train_progress.connect(lambda done, total, message: steps.append((done, total)))
+    assert widget.train(seconds=1.0)
+    assert widget.train_button.text() == "Cancel training"
+    assert widget.train() is False  # one at a time
+    qtbot.waitUntil(lambda: widget._train_worker is None, timeout=TIMEOUT_MS)
+    assert "INR trained" in widget.status.text(), widget.status.text()
+    assert steps and all(done >= 0 and (total == 0 or done <= total) for done, total in steps)
+    assert widget.session.store.trained
+    assert widget.train_button.text() == "Train INR"
+
+    # 'inr' features are accepted once trained.
+    widget.live_check.setChecked(False)
+    widget.features_combo.setCurrentText("inr")
+    _paint(widget.scribbles_layer, _ball(CENTRES[1], 3), 1)
+    _paint(widget.scribbles_layer, _ball((4, 4, 4), 3), BACKGROUND)
+    assert widget.classify_now()
+    qtbot.waitUntil(lambda: widget.classes_layer is not None and _idle(widget), timeout=TIMEOUT_MS)
+    assert 1 in widget.last_result[2]
+
+    # Cancel: the button stops a running training at its next progress step.
+    steps.clear()
+    assert widget.train(seconds=30.0)
+    qtbot.waitUntil(lambda: len(steps) > 0, timeout=TIMEOUT_MS)
+    widget.train_button.click()
+    qtbot.waitUntil(lambda: widget._train_worker is None, timeout=TIMEOUT_MS)
+    assert "cancelled" in widget.status.text(), widget.status.text()
+
+
+def test_image_picker_follows_the_layer_list(make_napari_viewer, volume, qtbot):
+    viewer = make_napari_viewer()
+    widget = NeuvolexWidget(viewer)
+    viewer.window.add_dock_widget(widget, area="right")
+    assert widget.image_combo.count() == 0 and widget.image_layer is None
+    assert widget.classify_now() is False
+    assert "image" in widget.status.text().lower()
+
+    first = viewer.add_image(volume, name="first")
+    qtbot.waitUntil(lambda: widget.scribbles_layer is not None, timeout=5000)
+    assert widget.image_layer is first
+    assert viewer.layers.selection.active is widget.scribbles_layer
+    first_scribbles = widget.scribbles_layer
+
+    second = viewer.add_image(volume[::2], name="second")
+    flat = viewer.add_image(volume[0], name="flat")
+    qtbot.waitUntil(lambda: widget.image_combo.count() == 3, timeout=5000)
+    assert widget.image_layer is first  # adding layers keeps the choice
+    assert [widget.image_combo.itemText(i) for i in range(3)] == ["first", "second", "flat"]
+
+    widget.image_combo.setCurrentIndex(1)
+    assert widget.image_layer is second
+    assert widget.scribbles_layer is not first_scribbles
+    assert widget.scribbles_layer.data.shape == second.data.shape
+
+    widget.image_combo.setCurrentIndex(2)  # 2-D: refused with a reason
+    assert "dimensions" in widget.status.text()
+    assert widget.classify_now() is False
+
+    second.name = "renamed"
+    assert widget.image_combo.itemText(1) == "renamed"
+    viewer.layers.remove(first)
+    assert widget.image_combo.count() == 2
+    assert first_scribbles in viewer.layers  # the user's scribbles stay until they remove them
