@@ -17,6 +17,7 @@ Errors are ``ValueError`` (bad arguments or data, naming the argument) or ``Runt
 from __future__ import annotations
 
 import hashlib
+import json
 import os
 import shutil
 import tempfile
@@ -92,6 +93,8 @@ class Store:
         self._native = native
         self.classes: list[int] = []
         """The label of each probability channel of the last :meth:`classify`."""
+        self.last_report: Optional[dict] = None
+        """The last :meth:`classify`'s report (what ``neuvolex classify --report`` writes)."""
         self._finalizer = (
             weakref.finalize(self, shutil.rmtree, temporary, True) if temporary else None
         )
@@ -167,8 +170,6 @@ class Store:
         """Trains the INR on the store (CPU): ``preset`` is ``fast``, ``balanced`` or ``paper``;
         ``epochs`` or ``seconds`` override its budget. ``progress``: ``True`` for a tqdm bar,
         or ``callable(done, total, message)``. Returns the training report."""
-        import json
-
         return json.loads(
             _call(progress, "train", self._native.train, preset, epochs, seconds, seed)
         )
@@ -207,7 +208,7 @@ class Store:
         the raw class probabilities float32 ``[channel, z, y, x]`` (``None`` when
         ``probabilities=False``), channel ``k`` being the class ``self.classes[k]``.
         """
-        labels, proba, classes, _report = _call(
+        labels, proba, classes, report = _call(
             progress,
             "classify",
             self._native.classify,
@@ -225,7 +226,7 @@ class Store:
             probabilities,
         )
         self.classes = list(classes)
-        self.last_report = _report
+        self.last_report = json.loads(report)
         labels = labels.reshape(self.shape)
         if proba is not None:
             proba = proba.reshape((len(classes),) + self.shape)
@@ -279,8 +280,6 @@ class Store:
         """Recommended viewpoints (k-means on the features, view entropy, greedy selection):
         dicts with ``azimuth``, ``elevation`` (degrees), ``direction``, ``entropy``, ``gain``,
         best first; pass ``view=(v["azimuth"], v["elevation"])`` to :func:`render`."""
-        import json
-
         return json.loads(
             _call(progress, "viewpoints", self._native.viewpoints, k, features, views, max_views, seed)
         )

@@ -101,6 +101,8 @@ fn classify_config(
 struct Store {
     location: PathBuf,
     store: Arc<BrickStore>,
+    /// The trained INR, read once from the store (and replaced by `train`).
+    model: std::sync::Mutex<Option<Arc<neuvolex_features::InrModel>>>,
 }
 
 /// The axis index of `x`, `y` or `z`.
@@ -127,13 +129,21 @@ impl Store {
         Ok(Store {
             location,
             store: Arc::new(store),
+            model: Default::default(),
         })
     }
 
     /// The feature source of `set`: the store's model when the set needs one.
     fn features_of(&self, set: &FeatureSet) -> Result<OpenedFeatures, WorkError> {
         let model = if set.needs_model() {
-            pipeline::load_model(&self.store).map_err(WorkError::other)?
+            let mut held = self
+                .model
+                .lock()
+                .map_err(|_| WorkError::other("model lock"))?;
+            if held.is_none() {
+                *held = pipeline::load_model(&self.store).map_err(WorkError::other)?;
+            }
+            held.clone()
         } else {
             None
         };
@@ -147,9 +157,11 @@ impl Store {
         })
     }
 
-    /// The store reopened (after a step that published new arrays or labels).
-    fn refresh(&mut self) -> Result<(), WorkError> {
-        self.store = Arc::new(BrickStore::open(&self.location).map_err(WorkError::other)?);
+    /// The store reopened (after a step that published new labels).
+    fn refresh(&mut self) -> PyResult<()> {
+        let store = BrickStore::open(&self.location)
+            .map_err(|e| pyo3::exceptions::PyRuntimeError::new_err(e.to_string()))?;
+        self.store = Arc::new(store);
         Ok(())
     }
 }
@@ -390,6 +402,9 @@ impl Store {
             }
             let path = neuvolex_features::train::model_path(&store);
             neuvolex_features::checkpoint::save(&path, &t.model, None).map_err(WorkError::other)?;
+            if let Ok(mut held) = self.model.lock() {
+                *held = Some(Arc::new(t.model));
+            }
             Ok(serde_json::json!({
                 "model": path.to_string(),
                 "psnr": t.psnr,
@@ -491,7 +506,7 @@ impl Store {
             bricks_per_task: 1,
             prior,
         };
-        let (labels, proba, classes, report) = detached(py, progress, |ctl| {
+        let (labels, proba, classes, report, store) = detached(py, progress, |ctl| {
             let scr = scr.scribbles();
             // An earlier call stopped half way (Ctrl-C) left pending outputs of its own
             // scribbles: a new call starts over instead of being refused.
@@ -515,6 +530,7 @@ impl Store {
                     format!("classification failed: {:?}", o.dead)
                 }));
             }
+            // The store as the run left it: this handle serves the next calls.
             let store = BrickStore::open(&req.store).map_err(WorkError::other)?;
             let proba = if probabilities {
                 Some(pipeline::assemble_probabilities(&store).map_err(WorkError::other)?)
@@ -522,10 +538,9 @@ impl Store {
                 None
             };
             let report = serde_json::to_string(&o.report).map_err(WorkError::other)?;
-            Ok((o.labels, proba, o.report.labels.clone(), report))
+            Ok((o.labels, proba, o.report.labels.clone(), report, store))
         })?;
-        self.refresh()
-            .map_err(|e| PyValueError::new_err(format!("{e:?}")))?;
+        self.store = Arc::new(store);
         let max = labels.iter().copied().max().unwrap_or(0);
         let labels: Bound<'py, PyAny> = if max <= 255 {
             let v: Vec<u8> = labels.iter().map(|&l| l as u8).collect();
@@ -749,7 +764,6 @@ impl Store {
                 .map_err(WorkError::value)
         })?;
         self.refresh()
-            .map_err(|e| PyValueError::new_err(format!("{e:?}")))
     }
 
     /// Renders the volume: intensity with a transfer function, or a label image of the
@@ -770,17 +784,8 @@ impl Store {
         tf: Option<&str>,
         mode: Option<&str>,
     ) -> PyResult<Bound<'py, numpy::PyArray1<u8>>> {
-        let mode = match mode {
-            None if probabilities || labels.is_some() => Mode::Probabilistic,
-            None | Some("intensity") => Mode::Intensity,
-            Some("prob") | Some("probabilistic") => Mode::Probabilistic,
-            Some("prob-intensity") => Mode::ProbIntensity,
-            Some(o) => {
-                return Err(PyValueError::new_err(format!(
-                    "mode '{o}': expected 'intensity', 'prob' or 'prob-intensity'"
-                )))
-            }
-        };
+        let mode = Mode::from_name(mode, probabilities || labels.is_some())
+            .map_err(|e| PyValueError::new_err(format!("mode {e}")))?;
         if mode.needs_probs() && !probabilities && labels.is_none() {
             return Err(PyValueError::new_err(format!(
                 "mode {mode:?} needs labels or probabilities"
@@ -803,12 +808,8 @@ impl Store {
             Some(t) => {
                 TfFile::from_arg(t).map_err(|e| PyValueError::new_err(format!("tf: {e}")))?
             }
-            None => TfFile::preset(if self.store.info().stats.min < -500.0 {
-                "ct-bone"
-            } else {
-                "grey"
-            })
-            .map_err(|e| PyValueError::new_err(e.to_string()))?,
+            None => TfFile::preset(TfFile::default_preset(self.store.info().stats.min))
+                .map_err(|e| PyValueError::new_err(e.to_string()))?,
         };
         let store = self.store.clone();
         let labels = labels.map(str::to_string);

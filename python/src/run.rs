@@ -106,8 +106,8 @@ pub fn detached<T: Send>(
         }
         match r {
             Ok(Ok(v)) => Ok(v),
-            Ok(Err(e)) if cancel.load(Ordering::SeqCst) => {
-                Err(PyKeyboardInterrupt::new_err(format!("{e:?}")))
+            Ok(Err(WorkError::Value(m) | WorkError::Other(m))) if cancel.load(Ordering::SeqCst) => {
+                Err(PyKeyboardInterrupt::new_err(m))
             }
             Ok(Err(WorkError::Value(m))) => Err(PyValueError::new_err(m)),
             Ok(Err(WorkError::Other(m))) => Err(PyRuntimeError::new_err(m)),

@@ -113,6 +113,7 @@ def test_classify_finds_the_scribbled_objects_and_reports_probabilities():
     s = neuvolex.from_array(v, spacing=(2.0, 1.0, 1.0))
     labels, proba = s.classify(strokes(lab), trees=50)
     assert s.classes == [1, 2, 255]
+    assert s.last_report["trees"] == 50 and s.last_report["labels"] == [1, 2, 255]
     assert labels.dtype == np.uint8 and labels.shape == v.shape
     assert proba.shape == (3,) + v.shape and proba.dtype == np.float32
     np.testing.assert_allclose(proba.sum(axis=0), 1.0, atol=0.02)

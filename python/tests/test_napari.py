@@ -512,7 +512,7 @@ def test_image_picker_follows_the_layer_list(make_napari_viewer, volume, qtbot):
     first_scribbles = widget.scribbles_layer
 
     second = viewer.add_image(volume[::2], name="second")
-    flat = viewer.add_image(volume[0], name="flat")
+    viewer.add_image(volume[0], name="flat")
     qtbot.waitUntil(lambda: widget.image_combo.count() == 3, timeout=5000)
     assert widget.image_layer is first  # adding layers keeps the choice
     assert [widget.image_combo.itemText(i) for i in range(3)] == ["first", "second", "flat"]

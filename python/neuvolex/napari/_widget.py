@@ -550,11 +550,9 @@ class NeuvolexWidget(QWidget):
         where = [slice(None)] * len(shape)
         where[axis] = index
         where = tuple(where)
-        viewer = self.viewer
-        step = tuple(viewer.dims.current_step)
-        active = viewer.layers.selection.active
+        view = self._view()
         layer = session.classes
-        if layer is not None and layer in viewer.layers:
+        if layer is not None and layer in self.viewer.layers:
             data = layer.data
             if not isinstance(data, np.ndarray) or data.shape != shape:
                 layer.data = data = np.zeros(shape, dtype=labels.dtype)
@@ -565,19 +563,8 @@ class NeuvolexWidget(QWidget):
         else:
             data = np.zeros(shape, dtype=labels.dtype)
             data[where] = labels
-            layer = Labels(
-                data,
-                name=CLASSES,
-                opacity=0.5,
-                metadata={ROLE: "classes", "neuvolex_image": session.image.name},
-                **_geometry(session.image),
-            )
-            self._insert_below_scribbles(session, layer)
-            session.classes = layer
-        if tuple(viewer.dims.current_step) != step:
-            viewer.dims.current_step = step
-        if active is not None and active in viewer.layers:
-            viewer.layers.selection.active = active
+            self._add_classes_layer(session, data)
+        self._restore_view(view)
         self._preview_note = f"Preview of slice {_axis_name(axis)} = {index} in {seconds:.2f} s."
         self._set_status(f"{self._preview_note} Classifying the whole volume …")
 
@@ -591,27 +578,14 @@ class NeuvolexWidget(QWidget):
         labels, probs, classes, seconds = result
         self.last_result = session.result = result
         session.classified = True
-        viewer = self.viewer
-        step = tuple(viewer.dims.current_step)
-        active = viewer.layers.selection.active
-        if session.classes is not None and session.classes in viewer.layers:
+        view = self._view()
+        if session.classes is not None and session.classes in self.viewer.layers:
             session.classes.data = labels
         else:
-            layer = Labels(
-                labels,
-                name=CLASSES,
-                opacity=0.5,
-                metadata={ROLE: "classes", "neuvolex_image": session.image.name},
-                **_geometry(session.image),
-            )
-            self._insert_below_scribbles(session, layer)
-            session.classes = layer
+            self._add_classes_layer(session, labels)
         if self.probs_check.isChecked() and probs is not None:
             self._show_probs(session, probs, classes)
-        if tuple(viewer.dims.current_step) != step:
-            viewer.dims.current_step = step
-        if active is not None and active in viewer.layers:
-            viewer.layers.selection.active = active
+        self._restore_view(view)
         counts = np.bincount(labels.ravel().astype(np.int64, copy=False))
         summary = ", ".join(
             f"{_class_name(c)}: {int(counts[c]) if c < counts.size else 0} voxels"
@@ -622,6 +596,29 @@ class NeuvolexWidget(QWidget):
             f"{len(classes)} classes {list(classes)} in {seconds:.1f} s — {summary}"
         )
         self._update_buttons()
+
+    def _view(self) -> tuple:
+        """The viewer's current step and active layer, to put back after layers change."""
+        return tuple(self.viewer.dims.current_step), self.viewer.layers.selection.active
+
+    def _restore_view(self, view: tuple) -> None:
+        step, active = view
+        if tuple(self.viewer.dims.current_step) != step:
+            self.viewer.dims.current_step = step
+        if active is not None and active in self.viewer.layers:
+            self.viewer.layers.selection.active = active
+
+    def _add_classes_layer(self, session: _Session, data: np.ndarray) -> None:
+        """The "neuvolex classes" layer of ``session``'s image, below its scribbles."""
+        layer = Labels(
+            data,
+            name=CLASSES,
+            opacity=0.5,
+            metadata={ROLE: "classes", "neuvolex_image": session.image.name},
+            **_geometry(session.image),
+        )
+        self._insert_below_scribbles(session, layer)
+        session.classes = layer
 
     def _insert_below_scribbles(self, session: _Session, layer) -> None:
         layers = self.viewer.layers

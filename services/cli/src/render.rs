@@ -120,13 +120,8 @@ fn params(a: &RenderArgs, mode: Mode) -> Result<RenderParams> {
 
 /// Runs `neuvolex render`.
 pub fn run_render(a: &RenderArgs, quiet: bool) -> Result<()> {
-    let mode = match a.mode.as_deref() {
-        None if a.probs.is_some() || a.labels.is_some() => Mode::Probabilistic,
-        None | Some("intensity") => Mode::Intensity,
-        Some("prob") | Some("probabilistic") => Mode::Probabilistic,
-        Some("prob-intensity") => Mode::ProbIntensity,
-        Some(o) => bail!("--mode '{o}' must be intensity, prob or prob-intensity"),
-    };
+    let mode = Mode::from_name(a.mode.as_deref(), a.probs.is_some() || a.labels.is_some())
+        .map_err(|e| anyhow::anyhow!("--mode {e}"))?;
     if mode.needs_probs() && a.probs.is_none() && a.labels.is_none() {
         bail!("--mode {mode:?} needs --probs [ARRAY] or --labels NAME");
     }
@@ -141,11 +136,7 @@ pub fn run_render(a: &RenderArgs, quiet: bool) -> Result<()> {
     }
     let tf = match &a.tf {
         Some(t) => TfFile::from_arg(t)?,
-        None => {
-            // Hounsfield units reach down to air at about -1000.
-            let ct = store.info().stats.min < -500.0;
-            TfFile::preset(if ct { "ct-bone" } else { "grey" })?
-        }
+        None => TfFile::preset(TfFile::default_preset(store.info().stats.min))?,
     };
     let luts = tf.compile(&src.normaliser(), &src.classes());
     if a.out.extension().and_then(|e| e.to_str()) != Some("png") {

@@ -257,11 +257,7 @@ pub fn run_viewpoints(a: &ViewpointArgs, quiet: bool) -> Result<()> {
         let src = StoreSource::new(store.clone());
         let tf = match &a.tf {
             Some(t) => TfFile::from_arg(t)?,
-            None => TfFile::preset(if store.info().stats.min < -500.0 {
-                "ct-bone"
-            } else {
-                "grey"
-            })?,
+            None => TfFile::preset(TfFile::default_preset(store.info().stats.min))?,
         };
         let luts = tf.compile(&src.normaliser(), &[]);
         let mut r = Renderer::new(src, 1 << 30);

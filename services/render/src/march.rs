@@ -29,6 +29,18 @@ pub enum Mode {
 }
 
 impl Mode {
+    /// The mode named `intensity`, `prob` (or `probabilistic`) or `prob-intensity`; without a
+    /// name, `Probabilistic` when there are probabilities (or labels) to draw, else `Intensity`.
+    pub fn from_name(name: Option<&str>, has_probs: bool) -> Result<Mode, String> {
+        match name {
+            None if has_probs => Ok(Mode::Probabilistic),
+            None | Some("intensity") => Ok(Mode::Intensity),
+            Some("prob") | Some("probabilistic") => Ok(Mode::Probabilistic),
+            Some("prob-intensity") => Ok(Mode::ProbIntensity),
+            Some(o) => Err(format!("'{o}' must be intensity, prob or prob-intensity")),
+        }
+    }
+
     /// True when the mode reads class probabilities.
     pub fn needs_probs(self) -> bool {
         self != Mode::Intensity

@@ -312,6 +312,16 @@ impl TfFile {
         Self::parse(text, Path::new(&format!("preset:{name}")))
     }
 
+    /// The preset a volume gets when none is asked for: `ct-bone` for CT-like values (down to
+    /// air, about -1000 HU), `grey` otherwise.
+    pub fn default_preset(value_min: f64) -> &'static str {
+        if value_min < -500.0 {
+            "ct-bone"
+        } else {
+            "grey"
+        }
+    }
+
     /// `preset:NAME` or a file path.
     pub fn from_arg(arg: &str) -> Result<TfFile> {
         match arg.strip_prefix("preset:") {

@@ -147,11 +147,7 @@ pub(super) fn session_tf(s: &Session) -> ApiResult<neuvolex_render::TfFile> {
 }
 
 pub(super) fn default_preset(s: &Session) -> &'static str {
-    if s.store.info().stats.min < -500.0 {
-        "ct-bone"
-    } else {
-        "grey"
-    }
+    neuvolex_render::TfFile::default_preset(s.store.info().stats.min)
 }
 
 pub(super) async fn get_tf(
