@@ -71,7 +71,7 @@ cargo test --workspace --release --features neuvolex-tests/gpu,neuvolex/gpu "$@"
 # pytest-qt and napari (deploy/python.sh), then its tests: the API against the CLI built
 # above, and the napari widget headless (Qt's offscreen platform).
 if ./deploy/python.sh; then
-  QT_QPA_PLATFORM=offscreen target/pyenv/bin/python -m pytest -q -p no:cacheprovider python/tests || rc=$?
+  QT_QPA_PLATFORM=offscreen target/pyenv/bin/python -m pytest -q -rs -p no:cacheprovider python/tests || rc=$?
 else
   missing "could not build the Python wheel (deploy/python.sh)" "the Python tests"
   [ "${CI:-}" = "true" ] && rc=1
