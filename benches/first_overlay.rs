@@ -22,9 +22,8 @@
 use neuvolex_benches::{machine, shared};
 use neuvolex_bricks::synth::PhantomParams;
 use neuvolex_bricks::BrickStore;
-use neuvolex_classify::scribble::{Axis, Stroke};
+use neuvolex_classify::scribble::Stroke;
 use neuvolex_ingest::IngestOptions;
-use neuvolex_server::session::BACKGROUND;
 use neuvolex_server::{AppState, ServerConfig};
 use std::path::Path;
 use std::time::{Duration, Instant};
@@ -78,64 +77,6 @@ async fn classify_times(
     panic!("classification did not finish in 30 minutes");
 }
 
-/// A class stroke and a background stroke on axial slice `z`, along the longest runs of each
-/// in the ground truth `labels` (x fastest).
-fn strokes_on(labels: &[u32], dims: [usize; 3], z: usize, class: u32, dx: usize) -> Vec<Stroke> {
-    let run = |want: &dyn Fn(u32) -> bool| {
-        let mut best = (0usize, 0usize, 0usize);
-        for y in 0..dims[1] {
-            let mut len = 0;
-            for x in 0..dims[0] {
-                if want(labels[(z * dims[1] + y) * dims[0] + x]) {
-                    len += 1;
-                    if len > best.2 {
-                        best = (x + 1 - len, y, len);
-                    }
-                } else {
-                    len = 0;
-                }
-            }
-        }
-        let (x0, y, len) = best;
-        assert!(len >= 3, "no run of the class on slice {z}");
-        let a = (x0 + len / 4 + dx.min(len / 4)) as f32;
-        let b = (x0 + 3 * len / 4) as f32;
-        vec![[a, y as f32], [b, y as f32]]
-    };
-    vec![
-        Stroke {
-            class: 1,
-            axis: Axis::Z,
-            slice: z,
-            points: run(&|l| l == class),
-            radius: 1.0,
-        },
-        Stroke {
-            class: BACKGROUND,
-            axis: Axis::Z,
-            slice: z,
-            points: run(&|l| l == 0),
-            radius: 1.0,
-        },
-    ]
-}
-
-/// The most frequent non-zero label on slice `z`.
-fn main_class(labels: &[u32], dims: [usize; 3], z: usize) -> u32 {
-    let mut counts = std::collections::HashMap::new();
-    let n = dims[0] * dims[1];
-    for &l in &labels[z * n..(z + 1) * n] {
-        if l != 0 {
-            *counts.entry(l).or_insert(0usize) += 1;
-        }
-    }
-    counts
-        .into_iter()
-        .max_by_key(|e| e.1)
-        .map(|e| e.0)
-        .expect("a labelled voxel")
-}
-
 /// Waits for the background feature pass of `s` to announce every brick stored; seconds
 /// since `t0`, or `None` when nothing is kept (over the limit) within `patience`.
 async fn features_kept(
@@ -173,12 +114,12 @@ fn run_volume(name: &str, data: &Path, rel: &str, labels: &[u32], full: bool, re
             let open_s = t.elapsed().as_secs_f64();
             let dims = s.store.info().dims;
             let z = dims[2] / 2;
-            let class = main_class(labels, dims, z);
-            let fresh = strokes_on(labels, dims, z, class, 0);
+            let class = neuvolex_benches::main_class(labels, dims, z);
+            let fresh = neuvolex_benches::strokes_on(labels, dims, z, class, 0);
             let (f1, a1) = classify_times(&st, &s, fresh.clone(), z, full).await;
             // Warm: one more stroke on the same slice.
             let mut more = fresh.clone();
-            more.extend(strokes_on(labels, dims, z, class, 2).into_iter().take(1));
+            more.extend(neuvolex_benches::strokes_on(labels, dims, z, class, 2).into_iter().take(1));
             let (f2, a2) = classify_times(&st, &s, more, z, full).await;
             let fmt = |v: Option<f64>| v.map_or("—".to_string(), |v| format!("{v:.2}"));
             // Opened on open when the volume's features fit the limit.

@@ -244,3 +244,89 @@ pub fn arg<T: std::str::FromStr>(args: &[String], name: &str, default: T) -> T {
         .and_then(|v| v.parse().ok())
         .unwrap_or(default)
 }
+
+/// A class stroke and a background stroke on axial slice `z`, along the longest runs of each
+/// in the ground truth `labels` (x fastest).
+pub fn strokes_on(
+    labels: &[u32],
+    dims: [usize; 3],
+    z: usize,
+    class: u32,
+    dx: usize,
+) -> Vec<neuvolex_classify::scribble::Stroke> {
+    let run = |want: &dyn Fn(u32) -> bool| {
+        let mut best = (0usize, 0usize, 0usize);
+        for y in 0..dims[1] {
+            let mut len = 0;
+            for x in 0..dims[0] {
+                if want(labels[(z * dims[1] + y) * dims[0] + x]) {
+                    len += 1;
+                    if len > best.2 {
+                        best = (x + 1 - len, y, len);
+                    }
+                } else {
+                    len = 0;
+                }
+            }
+        }
+        let (x0, y, len) = best;
+        assert!(len >= 3, "no run of the class on slice {z}");
+        let a = (x0 + len / 4 + dx.min(len / 4)) as f32;
+        let b = (x0 + 3 * len / 4) as f32;
+        vec![[a, y as f32], [b, y as f32]]
+    };
+    vec![
+        neuvolex_classify::scribble::Stroke {
+            class: 1,
+            axis: neuvolex_classify::scribble::Axis::Z,
+            slice: z,
+            points: run(&|l| l == class),
+            radius: 1.0,
+        },
+        neuvolex_classify::scribble::Stroke {
+            class: neuvolex_server::session::BACKGROUND,
+            axis: neuvolex_classify::scribble::Axis::Z,
+            slice: z,
+            points: run(&|l| l == 0),
+            radius: 1.0,
+        },
+    ]
+}
+
+/// The most frequent non-zero label on slice `z`.
+pub fn main_class(labels: &[u32], dims: [usize; 3], z: usize) -> u32 {
+    let mut counts = std::collections::HashMap::new();
+    let n = dims[0] * dims[1];
+    for &l in &labels[z * n..(z + 1) * n] {
+        if l != 0 {
+            *counts.entry(l).or_insert(0usize) += 1;
+        }
+    }
+    counts
+        .into_iter()
+        .max_by_key(|e| e.1)
+        .map(|e| e.0)
+        .expect("a labelled voxel")
+}
+
+/// A session of `neuvolex serve` named `name` over `store` (2 GiB of features), with a class
+/// for each label of `truth` (0 is none); returns it and the class ids.
+pub fn session_with_classes(
+    name: &str,
+    store: std::sync::Arc<neuvolex_bricks::BrickStore>,
+    truth: &[u32],
+) -> (std::sync::Arc<neuvolex_server::session::Session>, Vec<u32>) {
+    let mut ids: Vec<u32> = truth.iter().copied().filter(|&x| x > 0).collect();
+    ids.sort_unstable();
+    ids.dedup();
+    let s = neuvolex_server::session::Session::new("bench".into(), name.into(), store, 2 << 30);
+    *s.classes.write().unwrap() = ids
+        .iter()
+        .map(|&id| neuvolex_bricks::synth::ClassInfo {
+            id,
+            name: format!("class {id}"),
+            color: neuvolex_bricks::synth::palette(id),
+        })
+        .collect();
+    (s, ids)
+}

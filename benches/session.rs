@@ -9,7 +9,6 @@
 //! features (one epoch); brain MRI with `local` (16.7 M voxels).
 
 use neuvolex_benches::{machine, peak_rss_mib, shared};
-use neuvolex_bricks::synth::{palette, ClassInfo};
 use neuvolex_bricks::{open_volume, BrickStore};
 use neuvolex_classify::scribble::{simulate, Level, SimConfig};
 use neuvolex_formats::MemVolume;
@@ -65,18 +64,7 @@ fn main() {
                 .map(|&x| x as u32)
                 .collect()
         };
-        let mut ids: Vec<u32> = truth.iter().copied().filter(|&x| x > 0).collect();
-        ids.sort_unstable();
-        ids.dedup();
-        let s = Session::new("bench".into(), name.into(), store.clone(), 2 << 30);
-        *s.classes.write().unwrap() = ids
-            .iter()
-            .map(|&id| ClassInfo {
-                id,
-                name: format!("class {id}"),
-                color: palette(id),
-            })
-            .collect();
+        let (s, ids) = neuvolex_benches::session_with_classes(name, store.clone(), &truth);
         if inr {
             s.set_model(neuvolex_benches::train_one_epoch(&store));
         }
@@ -107,8 +95,7 @@ fn main() {
                     *f = Some(t.elapsed().as_secs_f64());
                 }
             };
-            s.classify(g, neuvolex_server::actors::TREES, &on)
-                .expect("classify");
+            s.classify(g, s.round_trees(), &on).expect("classify");
             let all = t.elapsed().as_secs_f64();
             let first = first.lock().unwrap().unwrap_or(all);
             // Arg-max labels against the ground truth.

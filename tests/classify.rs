@@ -440,3 +440,43 @@ fn the_slice_preview_equals_the_full_classification_on_that_slice() {
     assert!(e.to_string().contains("outside the grid"), "{e}");
     assert!(preview_plane(&fx, &scr, &c, 2, 3, &|| true).is_err());
 }
+
+#[test]
+fn tube_measures_come_from_the_same_filter_bank_in_any_set() {
+    // A bright tube along z through a noisy background: the tube measures read from one filter
+    // bank beside `filters` equal those of `tubes` alone, and lineness marks the tube's axis.
+    let d = [24, 24, 20];
+    let mut v = neuvolex_tests::noise(d.iter().product(), 3, 0.0, 0.1);
+    for z in 0..d[2] {
+        for y in 0..d[1] {
+            for x in 0..d[0] {
+                let r2 = (x as f32 - 11.5).powi(2) + (y as f32 - 11.5).powi(2);
+                v[(z * d[1] + y) * d[0] + x] += 2.0 * (-r2 / (2.0 * 1.5 * 1.5)).exp();
+            }
+        }
+    }
+    let (_d, store) = store_of(&mut MemVolume::from_f32(d, &v), 16);
+    let both = BrickFeatures::new(&store, "filters+tubes".parse().unwrap(), None, false).unwrap();
+    let bank = BrickFeatures::new(&store, "filters".parse().unwrap(), None, false).unwrap();
+    let tubes = BrickFeatures::new(&store, "tubes".parse().unwrap(), None, false).unwrap();
+    assert_eq!(both.channels(), bank.channels() + tubes.channels());
+    let (cb, ct) = (bank.channels(), tubes.channels());
+    for b in store.bricks() {
+        let (x, f, t) = (
+            both.brick(&b).unwrap(),
+            bank.brick(&b).unwrap(),
+            tubes.brick(&b).unwrap(),
+        );
+        for ((row, fr), tr) in x.chunks(cb + ct).zip(f.chunks(cb)).zip(t.chunks(ct)) {
+            assert_eq!(&row[..cb], fr);
+            assert_eq!(&row[cb..], tr);
+        }
+    }
+    // Lineness at sigma 1.6 (the third scale) on the axis against 6 voxels off it.
+    let b = store.brick([0, 0, 0]).unwrap();
+    let t = tubes.brick(&b).unwrap();
+    let at = |x: usize, y: usize| t[((8 * b.size[1] + y) * b.size[0] + x) * ct + 2 * 2];
+    assert!(at(11, 11) > 0.5, "on the axis: {}", at(11, 11));
+    assert!(at(11, 11) > at(4, 11) + 0.3, "{} {}", at(11, 11), at(4, 11));
+    assert!("tubes+tubes".parse::<FeatureSet>().is_err());
+}

@@ -113,16 +113,13 @@ impl SessionFeatures {
         if self.closed.load(Ordering::SeqCst) {
             self.cache.lru.remove(&key);
         }
-        Ok(v.iter().map(|h| h.to_f32()).collect())
+        Ok(widen(&v))
     }
 
     /// The cached features of `b`, if any (f32 of the f16 values).
     pub fn cached(&self, set: &str, version: u64, b: &Brick) -> Option<Vec<f32>> {
         let key = (self.session.clone(), set.to_string(), version, b.index);
-        self.cache
-            .lru
-            .get(&key)
-            .map(|v| v.iter().map(|h| h.to_f32()).collect())
+        self.cache.lru.get(&key).map(|v| widen(&v))
     }
 
     /// The features of `part`, a box inside brick `whole`, rounded through f16 as [`Self::get`]
@@ -160,6 +157,15 @@ impl SessionFeatures {
     pub fn used(&self) -> usize {
         self.cache.used()
     }
+}
+
+/// Half-precision features widened to f32 in bulk (the slice conversion uses the CPU's
+/// vector instructions; element by element it dispatches per value).
+fn widen(h: &[half::f16]) -> Vec<f32> {
+    use half::slice::HalfFloatSliceExt;
+    let mut out = vec![0.0f32; h.len()];
+    h.convert_to_f32_slice(&mut out);
+    out
 }
 
 #[cfg(test)]

@@ -29,6 +29,7 @@ impl Component {
             Component::Classic(Classic::Intensity) => "intensity",
             Component::Classic(Classic::Local) => "local",
             Component::Classic(Classic::Filters) => "filters",
+            Component::Classic(Classic::Tubes) => "tubes",
             Component::Inr(FeatureKind::Hidden) => "hidden",
             Component::Inr(FeatureKind::Pos) => "pos",
             Component::Inr(FeatureKind::Mod) => "mod",
@@ -96,15 +97,15 @@ impl std::str::FromStr for FeatureSet {
         for p in s.split('+').map(str::trim) {
             let c = match p {
                 "xyz" => Component::Xyz,
-                "intensity" | "local" | "filters" => Component::Classic(p.parse()?),
+                "intensity" | "local" | "filters" | "tubes" => Component::Classic(p.parse()?),
                 "hidden" | "pos" | "mod" | "concat" | "region" => Component::Inr(p.parse()?),
                 "ctx" => Component::Context(Offsets::Axes),
                 "ctxp" => Component::Context(Offsets::Plane),
                 _ => {
                     return Err(format!(
                         "unknown feature '{p}' in '{s}': use inr, paper, or a '+' list of \
-                         intensity, local, filters, xyz, ctx, ctxp, hidden, pos, mod, concat, \
-                         region"
+                         intensity, local, filters, tubes, xyz, ctx, ctxp, hidden, pos, mod, \
+                         concat, region"
                     ))
                 }
             };
@@ -296,8 +297,25 @@ impl<'s> BrickFeatures<'s> {
         let norm = self.store.normaliser();
         let mut out = vec![0.0f32; n * ch];
         let mut off = 0;
+        // The filter bank once, when the tube measures derive from it beside it.
+        let has = |k: Classic| self.set.0.contains(&Component::Classic(k));
+        let mut bank = None;
+        if has(Classic::Filters) && has(Classic::Tubes) {
+            bank = Some(neuvolex_filters::compute(
+                Classic::Filters,
+                hb.as_ref().expect("read above"),
+                &norm,
+                dims,
+            ));
+        }
         for ((c, arr), &w) in self.set.0.iter().zip(&self.stored).zip(&self.widths) {
             let part = match c {
+                Component::Classic(Classic::Filters) if bank.is_some() => {
+                    bank.clone().expect("computed above")
+                }
+                Component::Classic(Classic::Tubes) if bank.is_some() => {
+                    neuvolex_filters::tubes_from_bank(bank.as_ref().expect("computed above"))
+                }
                 Component::Classic(k) => {
                     neuvolex_filters::compute(*k, hb.as_ref().expect("read above"), &norm, dims)
                 }

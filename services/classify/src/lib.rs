@@ -18,6 +18,7 @@ pub mod pipeline;
 pub mod preview;
 pub mod scribble;
 pub mod shard;
+pub mod stable;
 pub mod suggest;
 
 pub use components::{Partial, PriorConfig};
@@ -31,6 +32,7 @@ pub use shard::{
     classify_brick, classify_volume, f1_scores, fit, output_labels, predict_brick, training_set,
     BrickResult, ClassTable, Classified, ClassifyConfig, TrainingSet, F1,
 };
+pub use stable::StableConfig;
 pub use suggest::{SliceMass, Suggestion};
 
 use std::path::PathBuf;

@@ -62,6 +62,15 @@ pub struct EvalArgs {
     /// Mean F1 targets of the robot.
     #[arg(long, value_delimiter = ',', default_value = "0.7,0.8")]
     pub targets: Vec<f64>,
+    /// Voxels around a robot round's new strokes that count as near them (default: the filter
+    /// bank's halo); the F1 change beyond them is reported apart.
+    #[arg(long, default_value_t = neuvolex_eval::robot::default_margin())]
+    pub margin: usize,
+    /// Robot rounds: beyond the margin, a voxel keeps its previous label unless the new
+    /// probabilities prefer the new one by this much (the service's rule); `off` shows every
+    /// round's labels as they are.
+    #[arg(long, default_value_t = neuvolex_classify::StableConfig::default().delta.to_string())]
+    pub stable: String,
     /// The prior keeps an unscribbled component whose probability mass is at least this
     /// fraction of its class's largest scribbled component.
     #[arg(long, default_value_t = neuvolex_classify::PriorConfig::default().relative_mass)]
@@ -290,6 +299,18 @@ pub fn run_eval(a: &EvalArgs, quiet: bool) -> Result<()> {
                 .map(|s| s.parse::<Placement>().map_err(anyhow::Error::msg))
                 .collect::<Result<_>>()?,
             targets: a.targets.clone(),
+            margin: a.margin,
+            stable_delta: match a.stable.as_str() {
+                "off" => None,
+                v => Some(
+                    v.parse::<f32>()
+                        .ok()
+                        .filter(|d| (0.0..=1.0).contains(d))
+                        .ok_or_else(|| {
+                            anyhow::anyhow!("--stable {v}: off or a probability in 0..=1")
+                        })?,
+                ),
+            },
         };
         let rows = neuvolex_eval::robot::run(&cfg, &rc, &events)?;
         println!("\n{}", robot_table(&rows, &rc.targets));

@@ -568,6 +568,43 @@ fn classify_and_eval_on_the_phantom() {
             }
         }
     }
+    // Each round after the first records how the labels moved: the F1 change against the
+    // round before, and the changed voxels, of which those beyond the margin.
+    for r in rounds.iter().filter(|r| r["round"] != 0) {
+        let before = rounds
+            .iter()
+            .find(|q| {
+                ["method", "placement", "seed"].iter().all(|k| q[k] == r[k])
+                    && q["round"].as_u64().unwrap() + 1 == r["round"].as_u64().unwrap()
+            })
+            .unwrap();
+        let delta = r["delta"].as_f64().unwrap();
+        let want = r["mean_f1"].as_f64().unwrap() - before["mean_f1"].as_f64().unwrap();
+        assert!((delta - want).abs() < 1e-12, "{r}");
+        assert!(r["delta_outside"].as_f64().unwrap().abs() <= 1.0, "{r}");
+        assert!(
+            r["changed_outside"].as_u64() <= r["changed"].as_u64(),
+            "{r}"
+        );
+    }
+    for s in e["summary"].as_array().unwrap() {
+        for k in ["worse", "big_drops", "changed_outside"] {
+            assert!((0.0..=1.0).contains(&s[k].as_f64().unwrap()), "{s}");
+        }
+        assert!(s["worst_drop"].as_f64().unwrap() >= 0.0, "{s}");
+    }
+    assert!(out.contains("worse rounds"), "{out}");
+    fails(
+        &[
+            "eval",
+            "--datasets",
+            &spec,
+            "--interactive",
+            "--stable",
+            "2",
+        ],
+        "--stable 2: off or a probability in 0..=1",
+    );
     // Each round adds scribbled voxels.
     let first = rounds.iter().find(|r| r["round"] == 0).unwrap()["scribbled"].as_u64();
     let second = rounds.iter().find(|r| r["round"] == 1).unwrap()["scribbled"].as_u64();

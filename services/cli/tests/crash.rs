@@ -931,11 +931,15 @@ fn a_full_disk_in_the_server_gives_a_clear_error_and_keeps_the_previous_state() 
         std::fs::create_dir_all(&d).unwrap();
         std::os::unix::fs::symlink(base.join("work"), d.join("work")).unwrap();
         let data = support::data_root(&base);
+        // No background feature pass (`--feature-store-gib 0`): it writes into the same store,
+        // and a pass that failed on the full disk and removed its partial array freed room
+        // for the request under test (seen once in a local CI run). Only the request writes.
+        let quiet = ["--feature-store-gib", "0"];
         {
-            let srv = Server::start(&d, &data, &[], &[]);
+            let srv = Server::start(&d, &data, &quiet, &[]);
             (stage.setup)(&srv);
         }
-        let srv = Server::start(&d, &data, &[], &[]);
+        let srv = Server::start(&d, &data, &quiet, &[]);
         let id = (stage.prepare)(&srv);
         let before = (stage.digest)(&base);
         let filler = fill(fs.dir.path(), 0);

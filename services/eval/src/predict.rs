@@ -96,6 +96,11 @@ pub struct Prediction {
     pub slices: SliceMass,
     /// Most probable output label per voxel, whatever its probability (0 = background).
     pub best: Vec<u16>,
+    /// Class probabilities as the service keeps them (u8, `classes` per voxel in the
+    /// training set's class order; skipped bricks certain background).
+    pub probs: Vec<u8>,
+    /// Output label of each class index (0 for the background).
+    pub out_labels: Vec<u16>,
     /// Voxels the forest predicted (the rest lay in skipped empty bricks).
     pub voxels_predicted: u64,
     /// Wall-clock seconds of the prediction.
@@ -122,7 +127,11 @@ pub fn predict(
         total: bricks.len() as u64,
     });
     let done = AtomicU64::new(0);
-    type BrickOut = (Brick, Option<(Vec<u16>, Vec<f32>, Vec<u16>)>, SliceMass);
+    type BrickOut = (
+        Brick,
+        Option<(Vec<u16>, Vec<f32>, Vec<u16>, Vec<u8>)>,
+        SliceMass,
+    );
     let parts: Vec<BrickOut> = bricks
         .par_iter()
         .map(|b| -> Result<BrickOut> {
@@ -149,7 +158,11 @@ pub fn predict(
                     .collect();
                 let best: Vec<u16> = p.chunks(nc).map(|r| out_labels[argmax(r).0]).collect();
                 let m = SliceMass::of_brick(dims, b.origin, b.size, &p, nc);
-                (*b, Some((lab, conf, best)), m)
+                let u8s = p
+                    .iter()
+                    .map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8)
+                    .collect();
+                (*b, Some((lab, conf, best, u8s)), m)
             };
             events(EvalEvent::Bricks {
                 done: done.fetch_add(1, Ordering::Relaxed) + 1,
@@ -162,10 +175,16 @@ pub fn predict(
     let mut confidence = vec![1.0f32; n];
     let mut best = vec![0u16; n];
     let mut slices = SliceMass::zeros(dims, nc);
+    let mut probs = vec![0u8; n * nc];
+    if let Some(k) = bg {
+        probs.chunks_exact_mut(nc).for_each(|px| px[k] = 255);
+    }
     let mut voxels_predicted = 0;
     for (b, r, m) in parts {
         slices.merge(&m);
-        let Some((lab, conf, bst)) = r else { continue };
+        let Some((lab, conf, bst, u8s)) = r else {
+            continue;
+        };
         voxels_predicted += b.voxels() as u64;
         let mut k = 0;
         for z in 0..b.size[2] {
@@ -174,6 +193,8 @@ pub fn predict(
                 labels[row..row + b.size[0]].copy_from_slice(&lab[k..k + b.size[0]]);
                 confidence[row..row + b.size[0]].copy_from_slice(&conf[k..k + b.size[0]]);
                 best[row..row + b.size[0]].copy_from_slice(&bst[k..k + b.size[0]]);
+                probs[row * nc..(row + b.size[0]) * nc]
+                    .copy_from_slice(&u8s[k * nc..(k + b.size[0]) * nc]);
                 k += b.size[0];
             }
         }
@@ -183,6 +204,8 @@ pub fn predict(
         confidence,
         slices,
         best,
+        probs,
+        out_labels: out_labels.clone(),
         voxels_predicted,
         seconds: t0.elapsed().as_secs_f64(),
     })

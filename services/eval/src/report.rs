@@ -1,7 +1,7 @@
 //! Markdown tables of the results, as BENCHMARKS.md shows them.
 
 use crate::oneshot::Row;
-use crate::robot::{summarise, RoundRow};
+use crate::robot::{summarise, RoundRow, BIG_DROP};
 use std::fmt::Write;
 
 /// Mean and sample standard deviation.
@@ -120,7 +120,7 @@ pub fn robot_table(rows: &[RoundRow], targets: &[f64]) -> String {
     let mut s = String::new();
     let _ = writeln!(
         s,
-        "| dataset | method | INR | robot | {} | {} | s / round (predict) |",
+        "| dataset | method | INR | robot | {} | {} | worse rounds | drops > {BIG_DROP} | worst drop | mean change outside | worst drop outside | changed outside | s / round (predict) |",
         show.iter()
             .map(|r| format!("F1 r{r}"))
             .collect::<Vec<_>>()
@@ -133,7 +133,7 @@ pub fn robot_table(rows: &[RoundRow], targets: &[f64]) -> String {
     );
     let _ = writeln!(
         s,
-        "|---|---|---|---|{}{}---|",
+        "|---|---|---|---|{}{}---|---|---|---|---|---|---|",
         "---|".repeat(show.len()),
         "---|".repeat(targets.len())
     );
@@ -163,13 +163,19 @@ pub fn robot_table(rows: &[RoundRow], targets: &[f64]) -> String {
             .collect();
         let _ = writeln!(
             s,
-            "| {} | {} | {} | {} | {} | {} | {:.2} ({:.2}) |",
+            "| {} | {} | {} | {} | {} | {} | {:.0} % | {:.0} % | {:.3} | {:+.4} | {:.3} | {:.0} % | {:.2} ({:.2}) |",
             m.dataset,
             m.method,
             m.inr,
             m.placement,
             f1.join(" | "),
             to.join(" | "),
+            100.0 * m.worse,
+            100.0 * m.big_drops,
+            m.worst_drop,
+            m.mean_delta_outside,
+            m.worst_drop_outside,
+            100.0 * m.changed_outside,
             m.seconds,
             m.seconds_predict
         );

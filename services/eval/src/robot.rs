@@ -28,6 +28,7 @@ use neuvolex_bricks::rng::Rng;
 use neuvolex_classify::cache::FeatureCache;
 use neuvolex_classify::components::{label_brick, Partial};
 use neuvolex_classify::scribble::{erode, longest_stroke, stroke_length, Axis};
+use neuvolex_classify::stable::{delta_u8, near, stick};
 use neuvolex_classify::{
     rasterise, simulate, thicken, BrickFeatures, FeatureSet, Level, SimConfig, SliceMass, Stroke,
     F1,
@@ -81,6 +82,21 @@ pub struct RobotConfig {
     pub placements: Vec<Placement>,
     /// Mean F1 targets whose rounds are reported.
     pub targets: Vec<f64>,
+    /// Voxels (Chebyshev distance) around a round's new strokes that count as "near" them;
+    /// the F1 change beyond is what the stroke changed far from where it was drawn.
+    #[serde(default = "default_margin")]
+    pub margin: usize,
+    /// The stability rule ([`neuvolex_classify::stable`]): beyond the margin, a voxel keeps
+    /// its previous label unless the new probabilities prefer the new one by this much
+    /// (`None`: every round shows the new labels as they are).
+    #[serde(default)]
+    pub stable_delta: Option<f32>,
+}
+
+/// The default margin around a new stroke: the filter bank's halo, the image a scribbled
+/// voxel's features see. Beyond it, a voxel shares no image content with the stroke's rows.
+pub fn default_margin() -> usize {
+    neuvolex_filters::filter_halo()
 }
 
 impl Default for RobotConfig {
@@ -89,6 +105,8 @@ impl Default for RobotConfig {
             rounds: 10,
             placements: vec![Placement::Largest],
             targets: vec![0.7, 0.8],
+            margin: default_margin(),
+            stable_delta: Some(neuvolex_classify::stable::DEFAULT_DELTA),
         }
     }
 }
@@ -114,6 +132,19 @@ pub struct RoundRow {
     pub f1: Vec<F1>,
     /// Mean F1 over the ROI classes.
     pub mean_f1: f64,
+    /// Change of the mean F1 from the previous round (`None` at round 0).
+    #[serde(default)]
+    pub delta: Option<f64>,
+    /// Change of the mean F1 over the voxels farther than the margin from this round's
+    /// strokes: the previous and this round's labels scored on the same voxels.
+    #[serde(default)]
+    pub delta_outside: Option<f64>,
+    /// Voxels whose label changed from the previous round.
+    #[serde(default)]
+    pub changed: u64,
+    /// Of which farther than the margin from this round's strokes.
+    #[serde(default)]
+    pub changed_outside: u64,
     /// Scribbled voxels.
     pub scribbled: usize,
     /// The slice the product suggests next (axial).
@@ -407,6 +438,40 @@ pub fn next_strokes(
     order.into_iter().find_map(visit).unwrap_or_default()
 }
 
+/// Mean F1 of `labels` over the voxels `skip` leaves out.
+pub fn mean_f1_outside(labels: &[u16], truth: &[u32], skip: &[bool], classes: &[u32]) -> f64 {
+    let (l, t): (Vec<u16>, Vec<u32>) = labels
+        .iter()
+        .zip(truth)
+        .zip(skip)
+        .filter(|(_, &s)| !s)
+        .map(|((&l, &t), _)| (l, t))
+        .unzip();
+    score(&l, &t, classes).1
+}
+
+/// How one round's labels moved from the previous round's: the mean F1 change over the voxels
+/// not `close` to the round's new strokes ([`near`] them), the voxels changed, and those
+/// changed beyond.
+pub fn round_change(
+    prev: &[u16],
+    labels: &[u16],
+    truth: &[u32],
+    classes: &[u32],
+    close: &[bool],
+) -> (f64, u64, u64) {
+    let delta = mean_f1_outside(labels, truth, close, classes)
+        - mean_f1_outside(prev, truth, close, classes);
+    let (mut changed, mut far) = (0u64, 0u64);
+    for ((a, b), c) in prev.iter().zip(labels).zip(close) {
+        if a != b {
+            changed += 1;
+            far += u64::from(!c);
+        }
+    }
+    (delta, changed, far)
+}
+
 /// Axial slices showing a class in the truth.
 pub fn foreground_slices(truth: &[u32], dims: [usize; 3]) -> Vec<usize> {
     let sl = dims[0] * dims[1];
@@ -469,12 +534,13 @@ pub fn run(cfg: &EvalConfig, rc: &RobotConfig, events: Events) -> Result<Vec<Rou
                             )?;
                             let mut rng = Rng::new(seed ^ 0x0B07_u64);
                             let mut added: Vec<Stroke> = Vec::new();
+                            let mut prev: Option<(Vec<u16>, f64)> = None;
                             for round in 0..=rc.rounds {
                                 let scr = rasterise(&thicken(&strokes, cfg.thicken, dims), dims)?;
                                 let t0 = Instant::now();
                                 let t = train(&f, &scr, &cfg.classify)?;
                                 let p = predict(&f, &t.forest, &t.ts, &cfg.classify, events)?;
-                                let labels = match prior {
+                                let mut labels = match prior {
                                     Prior::None => p.labels.clone(),
                                     Prior::Components => {
                                         with_prior(
@@ -488,6 +554,31 @@ pub fn run(cfg: &EvalConfig, rc: &RobotConfig, events: Events) -> Result<Vec<Rou
                                         .0
                                     }
                                 };
+                                // Near this round's new strokes (none at round 0).
+                                let close = match &prev {
+                                    None => None,
+                                    Some(_) => {
+                                        let new =
+                                            rasterise(&thicken(&added, cfg.thicken, dims), dims)?;
+                                        let mut marked = vec![false; labels.len()];
+                                        new.voxels.iter().for_each(|v| marked[v.0 as usize] = true);
+                                        Some(near(&marked, dims, rc.margin))
+                                    }
+                                };
+                                if let (Some(d), Some((pl, _)), Some(close)) =
+                                    (rc.stable_delta, &prev, &close)
+                                {
+                                    let bg = p.out_labels.iter().position(|&o| o == 0);
+                                    stick(
+                                        &mut labels,
+                                        pl,
+                                        &p.probs,
+                                        &p.out_labels,
+                                        bg,
+                                        close,
+                                        delta_u8(d),
+                                    );
+                                }
                                 let seconds = t0.elapsed().as_secs_f64();
                                 let visited: Vec<usize> = strokes
                                     .iter()
@@ -495,6 +586,20 @@ pub fn run(cfg: &EvalConfig, rc: &RobotConfig, events: Events) -> Result<Vec<Rou
                                     .map(|s| s.slice)
                                     .collect();
                                 let (f1, mean_f1) = score(&labels, &ds.truth, &ds.classes);
+                                let (delta, delta_outside, changed, changed_outside) =
+                                    match (&prev, &close) {
+                                        (Some((pl, pf)), Some(close)) => {
+                                            let (d, c, far) = round_change(
+                                                pl,
+                                                &labels,
+                                                &ds.truth,
+                                                &ds.classes,
+                                                close,
+                                            );
+                                            (Some(mean_f1 - pf), Some(d), c, far)
+                                        }
+                                        _ => (None, None, 0, 0),
+                                    };
                                 let row = RoundRow {
                                     dataset: ds.spec.name.clone(),
                                     method: method.clone(),
@@ -505,6 +610,10 @@ pub fn run(cfg: &EvalConfig, rc: &RobotConfig, events: Events) -> Result<Vec<Rou
                                     strokes: std::mem::take(&mut added),
                                     f1,
                                     mean_f1,
+                                    delta,
+                                    delta_outside,
+                                    changed,
+                                    changed_outside,
                                     scribbled: scr.voxels.len(),
                                     suggested_slice: p.slices.suggest(2, &visited).map(|s| s.slice),
                                     seconds,
@@ -513,6 +622,7 @@ pub fn run(cfg: &EvalConfig, rc: &RobotConfig, events: Events) -> Result<Vec<Rou
                                 };
                                 events(EvalEvent::Round(row.clone()));
                                 rows.push(row);
+                                prev = Some((labels.clone(), mean_f1));
                                 if round == rc.rounds {
                                     break;
                                 }
@@ -559,11 +669,26 @@ pub struct Summary {
     pub f1: Vec<f64>,
     /// Per target, per seed: the first round at or above it (`None`: not within the rounds).
     pub rounds_to: Vec<Vec<Option<usize>>>,
+    /// Share of rounds (after round 0, all seeds) that lowered the mean F1.
+    pub worse: f64,
+    /// Share of rounds that lowered the mean F1 by more than [`BIG_DROP`].
+    pub big_drops: f64,
+    /// The largest drop of the mean F1 in one round (0 when none dropped).
+    pub worst_drop: f64,
+    /// Mean change of the mean F1 per round beyond the margin around the round's strokes.
+    pub mean_delta_outside: f64,
+    /// The largest drop beyond the margin (0 when none dropped).
+    pub worst_drop_outside: f64,
+    /// Share of the changed voxels that lay beyond the margin, over all rounds.
+    pub changed_outside: f64,
     /// Mean seconds per round (all rounds, all seeds).
     pub seconds: f64,
     /// Mean seconds per round predicting.
     pub seconds_predict: f64,
 }
+
+/// A one-round drop of the mean F1 a user notices (the bound for a round).
+pub const BIG_DROP: f64 = 0.02;
 
 /// Summarises round rows against `targets`.
 pub fn summarise(rows: &[RoundRow], targets: &[f64]) -> Vec<Summary> {
@@ -614,7 +739,19 @@ pub fn summarise(rows: &[RoundRow], targets: &[f64]) -> Vec<Summary> {
                 })
                 .collect();
             let n = sel.len().max(1) as f64;
+            let deltas: Vec<f64> = sel.iter().filter_map(|r| r.delta).collect();
+            let outside: Vec<f64> = sel.iter().filter_map(|r| r.delta_outside).collect();
+            let share = |k: usize| k as f64 / deltas.len().max(1) as f64;
+            let (changed, far) = sel.iter().fold((0u64, 0u64), |(a, b), r| {
+                (a + r.changed, b + r.changed_outside)
+            });
             Summary {
+                worse: share(deltas.iter().filter(|&&d| d < 0.0).count()),
+                big_drops: share(deltas.iter().filter(|&&d| d < -BIG_DROP).count()),
+                worst_drop: -deltas.iter().copied().fold(0.0, f64::min),
+                mean_delta_outside: outside.iter().sum::<f64>() / outside.len().max(1) as f64,
+                worst_drop_outside: -outside.iter().copied().fold(0.0, f64::min),
+                changed_outside: far as f64 / changed.max(1) as f64,
                 dataset,
                 method,
                 inr,
@@ -631,6 +768,96 @@ pub fn summarise(rows: &[RoundRow], targets: &[f64]) -> Vec<Summary> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn round_change_scores_beyond_the_margin() {
+        let d = [9, 7, 6];
+        let n: usize = d.iter().product();
+        let at = |x: usize, y: usize, z: usize| (z * d[1] + y) * d[0] + x;
+        // Truth: class 1 at x < 4. The previous labels miss it near the stroke (x = 0..2,
+        // z = 0) and claim it far away (x = 8, z = 5); the new labels fix the near miss and
+        // add a far error (x = 3, z = 5 lost): only the far change counts beyond the margin.
+        let truth: Vec<u32> = (0..n).map(|i| u32::from(i % d[0] < 4)).collect();
+        let mut prev: Vec<u16> = truth.iter().map(|&t| t as u16).collect();
+        for y in 0..d[1] {
+            for x in 0..3 {
+                prev[at(x, y, 0)] = 0;
+            }
+            prev[at(8, y, 5)] = 1;
+        }
+        let mut next = prev.clone();
+        for y in 0..d[1] {
+            for x in 0..3 {
+                next[at(x, y, 0)] = 1;
+            }
+            next[at(3, y, 5)] = 0;
+        }
+        let stroke: Vec<u64> = (0..d[1])
+            .flat_map(|y| (0..3).map(move |x| (y * d[0] + x) as u64))
+            .collect();
+        let close = near(&marked_of(&stroke, n), d, 2);
+        let (delta, changed, far) = round_change(&prev, &next, &truth, &[1], &close);
+        assert_eq!(changed, 3 * 7 + 7);
+        assert_eq!(far, 7, "the x = 3 column of z = 5");
+        assert!(
+            delta < 0.0,
+            "beyond the margin the round only lost: {delta}"
+        );
+        let (lo, hi) = (
+            mean_f1_outside(&prev, &truth, &near(&marked_of(&stroke, n), d, 2), &[1]),
+            mean_f1_outside(&next, &truth, &near(&marked_of(&stroke, n), d, 2), &[1]),
+        );
+        assert!((delta - (hi - lo)).abs() < 1e-12);
+        // With nothing beyond the margin changed, the change there is 0.
+        let (delta, _, far) = round_change(&prev, &prev, &truth, &[1], &close);
+        assert_eq!((delta, far), (0.0, 0));
+    }
+
+    fn marked_of(ids: &[u64], n: usize) -> Vec<bool> {
+        let mut m = vec![false; n];
+        ids.iter().for_each(|&i| m[i as usize] = true);
+        m
+    }
+
+    #[test]
+    fn summaries_count_worse_rounds_and_drops() {
+        let row = |seed: u64, round: usize, f: f64, d: Option<f64>, o: Option<f64>| RoundRow {
+            dataset: "d".into(),
+            method: "m".into(),
+            inr: "-".into(),
+            placement: Placement::Largest,
+            seed,
+            round,
+            strokes: Vec::new(),
+            f1: Vec::new(),
+            mean_f1: f,
+            delta: d,
+            delta_outside: o,
+            changed: 10,
+            changed_outside: 5 * u64::from(round > 0),
+            scribbled: 0,
+            suggested_slice: None,
+            seconds: 1.0,
+            seconds_fit: 0.5,
+            seconds_predict: 0.5,
+        };
+        let rows = vec![
+            row(0, 0, 0.5, None, None),
+            row(0, 1, 0.6, Some(0.1), Some(0.01)),
+            row(0, 2, 0.57, Some(-0.03), Some(-0.04)),
+            row(1, 0, 0.4, None, None),
+            row(1, 1, 0.39, Some(-0.01), Some(0.0)),
+            row(1, 2, 0.5, Some(0.11), Some(0.03)),
+        ];
+        let s = &summarise(&rows, &[0.55])[0];
+        assert_eq!(s.worse, 0.5);
+        assert_eq!(s.big_drops, 0.25);
+        assert!((s.worst_drop - 0.03).abs() < 1e-12);
+        assert!((s.worst_drop_outside - 0.04).abs() < 1e-12);
+        assert!((s.mean_delta_outside - 0.0).abs() < 1e-12);
+        assert!((s.changed_outside - 20.0 / 60.0).abs() < 1e-12);
+        assert_eq!(s.rounds_to, vec![vec![Some(1), None]]);
+    }
 
     #[test]
     fn strokes_stay_inside_their_region() {

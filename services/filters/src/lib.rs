@@ -45,6 +45,59 @@ pub enum Classic {
     Local,
     /// The Gaussian filter bank at [`SIGMAS`].
     Filters,
+    /// Tube and sheet measures of the filter bank's Hessian at each of [`SIGMAS`]
+    /// ([`tube_measures`]): what thin vessels, lumens and plates look like, as ratios a forest's
+    /// axis-aligned splits cannot form from the eigenvalues themselves.
+    Tubes,
+}
+
+/// Tube measures per scale: lineness and sheetness.
+pub const TUBES_PER_SIGMA: usize = 2;
+
+/// Frangi's shape constants (alpha = beta = 0.5).
+const FRANGI: f32 = 0.5;
+
+/// Lineness and sheetness of one voxel from its Hessian eigenvalues (any order), signed +1
+/// where the structure is brighter than its surroundings and -1 where darker.
+///
+/// With the eigenvalues ordered by magnitude (`|l1| <= |l2| <= |l3|`), Frangi's ratios are
+/// `ra = |l2| / |l3|` (1 on a line, 0 on a sheet) and `rb = |l1| / sqrt(|l2 l3|)` (0 on a line,
+/// 1 on a blob). Lineness is `(1 - exp(-ra^2 / 2a^2)) exp(-rb^2 / 2b^2)` where `l2` and `l3`
+/// share their sign (a tube, Frangi's vesselness without its contrast term), sheetness
+/// `exp(-ra^2 / 2a^2)` (one strong curvature: a plate, a thin cortex). Both lie in `[-1, 1]`,
+/// are invariant to the image's contrast and scale, and are 0 on flat image.
+pub fn tube_measures(h: [f32; 3]) -> [f32; 2] {
+    let mut l = h;
+    l.sort_by(|a, b| a.abs().total_cmp(&b.abs()));
+    let [l1, l2, l3] = l;
+    if l3.abs() <= f32::EPSILON {
+        return [0.0, 0.0];
+    }
+    let g = |r: f32| (-(r * r) / (2.0 * FRANGI * FRANGI)).exp();
+    let ra = l2.abs() / l3.abs();
+    let rb = l1.abs() / (l2.abs() * l3.abs()).sqrt().max(f32::MIN_POSITIVE);
+    // Bright structures curve down (negative second derivatives).
+    let line = if l2 * l3 > 0.0 {
+        -l3.signum() * (1.0 - g(ra)) * g(rb)
+    } else {
+        0.0
+    };
+    let sheet = -l3.signum() * g(ra);
+    [line, sheet]
+}
+
+/// The [`Classic::Tubes`] channels of a filter bank's output (`voxels x` [`SIGMAS`]`.len() *`
+/// [`PER_SIGMA`], as [`compute`] gives for [`Classic::Filters`]).
+pub fn tubes_from_bank(bank: &[f32]) -> Vec<f32> {
+    let ch = SIGMAS.len() * PER_SIGMA;
+    let mut out = Vec::with_capacity(bank.len() / ch * SIGMAS.len() * TUBES_PER_SIGMA);
+    for v in bank.chunks_exact(ch) {
+        for s in 0..SIGMAS.len() {
+            let h = &v[s * PER_SIGMA + 7..s * PER_SIGMA + 10];
+            out.extend_from_slice(&tube_measures([h[0], h[1], h[2]]));
+        }
+    }
+    out
 }
 
 impl Classic {
@@ -53,7 +106,7 @@ impl Classic {
         match self {
             Classic::Intensity => 0,
             Classic::Local => 1,
-            Classic::Filters => filter_halo(),
+            Classic::Filters | Classic::Tubes => filter_halo(),
         }
     }
 
@@ -63,6 +116,7 @@ impl Classic {
             Classic::Intensity => 1,
             Classic::Local => 11,
             Classic::Filters => SIGMAS.len() * PER_SIGMA,
+            Classic::Tubes => SIGMAS.len() * TUBES_PER_SIGMA,
         }
     }
 
@@ -95,6 +149,10 @@ impl Classic {
                     .map(move |n| format!("{n}_s{s}"))
                 })
                 .collect(),
+            Classic::Tubes => SIGMAS
+                .iter()
+                .flat_map(|s| ["line", "sheet"].map(move |n| format!("{n}_s{s}")))
+                .collect(),
         }
     }
 }
@@ -106,8 +164,9 @@ impl std::str::FromStr for Classic {
             "intensity" => Ok(Classic::Intensity),
             "local" => Ok(Classic::Local),
             "filters" => Ok(Classic::Filters),
+            "tubes" => Ok(Classic::Tubes),
             _ => Err(format!(
-                "unknown classic feature '{s}' (intensity, local, filters)"
+                "unknown classic feature '{s}' (intensity, local, filters, tubes)"
             )),
         }
     }
@@ -170,6 +229,7 @@ pub fn compute(kind: Classic, b: &HaloBrick, norm: &Normaliser, dims: [usize; 3]
             out
         }
         Classic::Filters => filter_bank(b, &n),
+        Classic::Tubes => tubes_from_bank(&filter_bank(b, &n)),
     }
 }
 
@@ -551,6 +611,28 @@ mod tests {
     }
 
     #[test]
+    fn tube_measures_tell_lines_sheets_and_blobs_apart() {
+        // A bright line: two strong negative curvatures, one flat direction.
+        let [line, sheet] = tube_measures([-0.02, -4.0, -4.2]);
+        assert!(line > 0.8 && sheet < 0.2, "{line} {sheet}");
+        // The same line dark (a lumen in bright tissue), eigenvalues in any order.
+        let [l, s] = tube_measures([4.2, 0.02, 4.0]);
+        assert!((l + line).abs() < 1e-6 && (s + sheet).abs() < 1e-6);
+        // A bright sheet: one strong curvature.
+        let [line, sheet] = tube_measures([0.01, -0.05, -5.0]);
+        assert!(line.abs() < 0.05 && sheet > 0.95, "{line} {sheet}");
+        // A blob: three alike.
+        let [line, sheet] = tube_measures([-3.0, -3.1, -3.2]);
+        assert!(line.abs() < 0.2 && sheet.abs() < 0.2, "{line} {sheet}");
+        // A saddle is no tube; flat image is nothing; contrast does not matter.
+        assert_eq!(tube_measures([2.0, -3.0, 0.1])[0], 0.0);
+        assert_eq!(tube_measures([0.0; 3]), [0.0, 0.0]);
+        let a = tube_measures([-0.1, -2.0, -3.0]);
+        let b = tube_measures([-10.0, -200.0, -300.0]);
+        assert!((a[0] - b[0]).abs() < 1e-5 && (a[1] - b[1]).abs() < 1e-5);
+    }
+
+    #[test]
     fn eigenvalues_match_known_matrices() {
         let close = |a: [f64; 3], b: [f64; 3]| a.iter().zip(&b).all(|(x, y)| (x - y).abs() < 1e-9);
         assert!(close(
@@ -810,5 +892,6 @@ mod tests {
         assert_eq!(&o[8..], &[1.0 / 3.0, 0.5, 0.0]);
         assert_eq!(Classic::Local.names().len(), 11);
         assert_eq!(Classic::Filters.names().len(), 50);
+        assert_eq!(Classic::Tubes.names().len(), Classic::Tubes.channels());
     }
 }

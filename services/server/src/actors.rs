@@ -234,8 +234,24 @@ pub struct Actors {
     stopping: Arc<AtomicBool>,
 }
 
-/// Forest size of interactive classification.
+/// Forest size of interactive classification on volumes up to [`ROUND_TREE_VOXELS`] / `TREES`
+/// predicted voxels.
 pub const TREES: usize = 50;
+
+/// The fewest trees a round uses: on the abdomen CT, 32 trees score within 0.012 mean F1 of 50
+/// at S1 and S2 (3 seeds), 16 lose up to 0.05 (BENCHMARKS.md, issue 31).
+pub const MIN_TREES: usize = 32;
+
+/// Tree-voxel visits one round's prediction makes at most before the forest shrinks: about
+/// 1.5 s of the service's prediction on 2 cores (the `rounds` bench measured 60-70 M a second,
+/// features read from the cache and converted included).
+pub const ROUND_TREE_VOXELS: u64 = 100_000_000;
+
+/// The forest size of a round that predicts `voxels` voxels: [`TREES`], fewer on large volumes
+/// so a round stays interactive, never below [`MIN_TREES`].
+pub fn trees_for(voxels: u64) -> usize {
+    ((ROUND_TREE_VOXELS / voxels.max(1)) as usize).clamp(MIN_TREES, TREES)
+}
 
 /// The actors' names, as [`Actors::crash`] and `actor_failed` events use them.
 pub const ACTORS: [&str; 5] = ["ingest", "classifier", "trainer", "renderer", "viewpoints"];
@@ -609,7 +625,7 @@ fn classify_job(job: ClassifyJob, hub: &Hub, cluster: Option<&ClusterExecutor>) 
             );
     };
     let t = std::time::Instant::now();
-    let r = s.classify_with(job.generation, TREES, &on_brick, cluster);
+    let r = s.classify_with(job.generation, s.round_trees(), &on_brick, cluster);
     let status = s.status.read().unwrap_or_else(|p| p.into_inner()).clone();
     tracing::info!(
         session = %id,
@@ -1197,4 +1213,19 @@ fn recommend(
     });
     hub.publish(Some(&s.id), "viewpoints", out.clone());
     Ok(out)
+}
+
+#[cfg(test)]
+mod tree_tests {
+    use super::*;
+
+    #[test]
+    fn large_volumes_get_fewer_trees_never_below_the_floor() {
+        assert_eq!(trees_for(1_380_000), TREES, "the abdomen CT");
+        assert_eq!(trees_for(2_000_000), TREES);
+        assert_eq!(trees_for(2_500_000), 40);
+        assert_eq!(trees_for(5_900_000), MIN_TREES, "a 6 M-voxel MRI");
+        assert_eq!(trees_for(118_000_000), MIN_TREES, "the phantom");
+        assert_eq!(trees_for(0), TREES);
+    }
 }

@@ -45,6 +45,20 @@ pub struct PriorSummary {
     pub voxels_cleared: u64,
     /// Doubtful voxels the kept parts grew into.
     pub voxels_grown: u64,
+    /// Voxels that kept the label the previous round showed (the stability rule): far from
+    /// the new strokes, where the new probabilities did not clearly prefer a change.
+    pub voxels_held: u64,
+}
+
+/// What the last complete classification showed, per brick, and what it was made from.
+#[derive(Debug, Clone)]
+pub struct Shown {
+    /// The strokes it was classified from.
+    pub strokes: Vec<neuvolex_classify::Stroke>,
+    /// Its feature set and model version.
+    pub features: String,
+    /// The labels shown per brick (after the prior, growth and the stability rule).
+    pub labels: HashMap<[usize; 3], Vec<u16>>,
 }
 
 impl PriorState {
@@ -207,6 +221,7 @@ pub fn compute_prior(s: &Session, probs: &Probs) -> ApiResult<PriorState> {
     if cfg.grow > 0 {
         grow_bricks(s, probs, &mut filtered, cfg.grow)?;
     }
+    let voxels_held = hold_shown(s, probs, &mut filtered)?;
     let mut changed = HashMap::new();
     let mut voxels_grown = 0;
     for (b, (raw, l)) in filtered {
@@ -232,8 +247,69 @@ pub fn compute_prior(s: &Session, probs: &Probs) -> ApiResult<PriorState> {
             kept: keep.iter().filter(|&&k| k).count(),
             voxels_cleared,
             voxels_grown,
+            voxels_held,
         },
     })
+}
+
+/// The stability rule over the filtered labels (`filtered[brick].1`): where the previous
+/// complete classification of this session came from the same features and a prefix of the
+/// current strokes, a voxel farther than the margin from the strokes added since keeps the
+/// label shown then unless the new probabilities prefer its new label by the rule's `delta`
+/// ([`neuvolex_classify::stable`]). Records what is shown now for the next round; returns the voxels held.
+fn hold_shown(
+    s: &Session,
+    probs: &Probs,
+    filtered: &mut HashMap<[usize; 3], (Vec<u16>, Vec<u16>)>,
+) -> ApiResult<u64> {
+    use neuvolex_classify::stable::{delta_u8, near, stick, StableConfig};
+    let strokes = s.strokes.read().unwrap_or_else(|p| p.into_inner()).clone();
+    let (set, model) = s.feature_source()?;
+    let features = format!("{set}/{}", model.as_ref().map_or(0, |m| m.0));
+    let cfg = StableConfig::default();
+    let mut shown = s.shown.lock().unwrap_or_else(|p| p.into_inner());
+    let mut held = 0;
+    if let Some(prev) = shown
+        .as_ref()
+        .filter(|p| p.features == features && strokes.starts_with(&p.strokes))
+    {
+        let d = s.store.info().dims;
+        let new = neuvolex_classify::rasterise(&strokes[prev.strokes.len()..], d)
+            .map_err(|e| ApiError::BadRequest(e.to_string()))?;
+        let mut marked = vec![false; d.iter().product()];
+        new.voxels.iter().for_each(|v| marked[v.0 as usize] = true);
+        let close = near(&marked, d, cfg.margin);
+        let out: Vec<u16> = probs
+            .ids
+            .iter()
+            .map(|&i| {
+                if i == BACKGROUND {
+                    0
+                } else {
+                    i.min(u16::MAX as u32) as u16
+                }
+            })
+            .collect();
+        let bg = probs.ids.iter().position(|&i| i == BACKGROUND);
+        let delta = delta_u8(cfg.delta);
+        for (idx, (_, l)) in filtered.iter_mut() {
+            let (Some(before), Some(px)) = (prev.labels.get(idx), probs.bricks.get(idx)) else {
+                continue;
+            };
+            let b = s.store.brick(*idx)?;
+            let mut near_b = Vec::with_capacity(b.voxels());
+            for row in b.rows(d) {
+                near_b.extend_from_slice(&close[row..row + b.size[0]]);
+            }
+            held += stick(l, before, px, &out, bg, &near_b, delta);
+        }
+    }
+    *shown = Some(Shown {
+        strokes,
+        features,
+        labels: filtered.iter().map(|(k, (_, l))| (*k, l.clone())).collect(),
+    });
+    Ok(held)
 }
 
 /// Grows the filtered labels (`filtered[brick].1`) `steps` voxels into doubtful voxels (raw
@@ -319,6 +395,66 @@ pub fn active_prior(s: &Session, probs: &Probs) -> Option<PriorState> {
         .as_ref()
         .filter(|p| p.generation == probs.generation)
         .cloned()
+}
+
+/// Every brick's probabilities, or a conflict while classification has not reached them all.
+pub fn complete_probs(s: &Session) -> ApiResult<std::sync::RwLockReadGuard<'_, Probs>> {
+    let p = s.probs.read().unwrap_or_else(|p| p.into_inner());
+    let total = s.store.bricks().count();
+    if p.ids.is_empty() || p.bricks.len() < total {
+        return Err(ApiError::Conflict(format!(
+            "classification has reached {} of {total} bricks: scribble two classes and wait \
+             for it to finish",
+            p.bricks.len()
+        )));
+    }
+    Ok(p)
+}
+
+/// One u8 per voxel of the volume (x fastest), computed by `f` from each voxel's class
+/// probabilities once every brick is classified.
+pub fn per_voxel(s: &Session, f: impl Fn(&Probs, &[u8]) -> u8) -> ApiResult<Vec<u8>> {
+    let d = s.store.info().dims;
+    let p = complete_probs(s)?;
+    let c = p.ids.len();
+    let mut out = vec![0u8; d.iter().product()];
+    for (idx, v) in &p.bricks {
+        let b = s.store.brick(*idx)?;
+        for z in 0..b.size[2] {
+            for y in 0..b.size[1] {
+                let row = ((b.origin[2] + z) * d[1] + b.origin[1] + y) * d[0] + b.origin[0];
+                for x in 0..b.size[0] {
+                    let i = (z * b.size[1] + y) * b.size[0] + x;
+                    out[row + x] = f(&p, &v[i * c..(i + 1) * c]);
+                }
+            }
+        }
+    }
+    Ok(out)
+}
+
+/// The arg-max label of every voxel (0 where the background wins or no class reaches 0.5),
+/// with the spatial prior's changes when it is on (dropped parts cleared, kept parts grown).
+pub fn label_voxels(s: &Session) -> ApiResult<Vec<u8>> {
+    let mut out = per_voxel(s, |p, px| label_of(&p.ids, px) as u8)?;
+    let probs = s.probs.read().unwrap_or_else(|p| p.into_inner());
+    if let Some(pr) = active_prior(s, &probs) {
+        let d = s.store.info().dims;
+        for (idx, changed) in pr.changed.iter() {
+            let b = s.store.brick(*idx)?;
+            for &(i, l) in changed.iter() {
+                let i = i as usize;
+                let (x, y, z) = (
+                    i % b.size[0],
+                    (i / b.size[0]) % b.size[1],
+                    i / (b.size[0] * b.size[1]),
+                );
+                out[((b.origin[2] + z) * d[1] + b.origin[1] + y) * d[0] + b.origin[0] + x] =
+                    l as u8;
+            }
+        }
+    }
+    Ok(out)
 }
 
 /// The slices to scribble next: for each axis, the slice with the best score

@@ -189,6 +189,10 @@ pub struct Session {
     /// The prior's verdict on the last complete classification (beside the raw
     /// probabilities, which it never changes).
     pub prior: RwLock<Option<crate::assist::PriorState>>,
+    /// The labels the last complete classification showed, for the stability rule
+    /// ([`neuvolex_classify::stable`]): a new round keeps them far from its new strokes unless
+    /// the new probabilities clearly prefer a change.
+    pub shown: Mutex<Option<crate::assist::Shown>>,
     /// The current model as a blob for cluster workers (version, identity, bytes).
     model_bytes: Mutex<Option<ModelBlob>>,
     /// The server's session memory: this session's render bricks and probabilities count
@@ -293,6 +297,7 @@ impl Session {
             preview: RwLock::new(None),
             prior_on: AtomicBool::new(true),
             prior: RwLock::new(None),
+            shown: Mutex::new(None),
             model_bytes: Mutex::new(None),
             memory: memory.clone(),
             render_owner,
@@ -313,12 +318,25 @@ impl Session {
             self.memory.release_probs(&mut held);
         }
         *self.renderer.lock().unwrap_or_else(|p| p.into_inner()) = None;
+        *self.shown.lock().unwrap_or_else(|p| p.into_inner()) = None;
         // The stored features' writer (and the store's lock, while they are pending) goes
         // with the last session holding them.
         *self.stored.lock().unwrap_or_else(|p| p.into_inner()) = None;
         let owner = self.render_owner;
         self.memory.render.retain(|k| k.0 != owner);
         self.features.close();
+    }
+
+    /// The forest size of this session's rounds ([`crate::actors::trees_for`] the voxels of its
+    /// occupied bricks, the ones a round predicts).
+    pub fn round_trees(&self) -> usize {
+        let voxels: u64 = self
+            .store
+            .occupied_bricks(None)
+            .iter()
+            .map(|b| b.voxels() as u64)
+            .sum();
+        crate::actors::trees_for(voxels)
     }
 
     /// Whether the spatial prior is on.
@@ -663,6 +681,7 @@ impl Session {
         on_brick: &(dyn Fn([usize; 3], usize, usize) + Sync),
         cluster: Option<&neuvolex_cluster::ClusterExecutor>,
     ) -> ApiResult<usize> {
+        let t0 = std::time::Instant::now();
         let scr = self.scribbles()?;
         let counts = scr.counts();
         let rois = counts.keys().filter(|&&c| c != BACKGROUND).count();
@@ -716,13 +735,15 @@ impl Session {
             self.set_status(|s| s.state = "cancelled".into());
             return Ok(0);
         }
+        // The CLI's and the evaluation's forest (balanced classes), at the session's size.
         let forest = Arc::new(fit(
             &ts,
             &neuvolex_classify::ForestConfig {
                 trees,
-                ..Default::default()
+                ..neuvolex_classify::ClassifyConfig::default().forest
             },
         )?);
+        let trained = t0.elapsed().as_secs_f64();
         let bricks = {
             let all: Vec<neuvolex_bricks::Brick> = self.store.bricks().collect();
             let strokes = self.strokes.read().unwrap_or_else(|p| p.into_inner());
@@ -849,8 +870,17 @@ impl Session {
             )));
         }
         let cancelled = cancelled || run.cancelled;
+        let predicted = t0.elapsed().as_secs_f64();
         if !cancelled {
             crate::assist::refresh_prior(self)?;
+            tracing::debug!(
+                session = %self.id,
+                generation,
+                train_s = trained,
+                predict_s = predicted - trained,
+                prior_s = t0.elapsed().as_secs_f64() - predicted,
+                "classified"
+            );
         }
         self.set_status(|s| s.state = if cancelled { "cancelled" } else { "done" }.into());
         Ok(done)

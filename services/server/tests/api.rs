@@ -1456,3 +1456,179 @@ async fn no_features_are_kept_past_the_limit() {
         .stored_for(&neuvolex_server::session::default_features())
         .is_none());
 }
+
+/// The shown labels of a session, the probabilities of voxel `v` (x fastest) and the
+/// output label of each probability channel.
+fn shown_and_probs(s: &neuvolex_server::session::Session) -> (Vec<u8>, Vec<u8>, Vec<u16>) {
+    let shown = neuvolex_server::assist::label_voxels(s).unwrap();
+    let d = s.store.info().dims;
+    let p = s.probs.read().unwrap();
+    let c = p.ids.len();
+    let mut probs = vec![0u8; shown.len() * c];
+    for (idx, v) in &p.bricks {
+        let b = s.store.brick(*idx).unwrap();
+        for (k, row) in b.rows(d).enumerate() {
+            let n = b.size[0];
+            probs[row * c..(row + n) * c].copy_from_slice(&v[k * n * c..(k + 1) * n * c]);
+        }
+    }
+    let out = p
+        .ids
+        .iter()
+        .map(|&i| if i == 255 { 0 } else { i as u16 })
+        .collect();
+    (shown, probs, out)
+}
+
+/// The forest size a session over `store` uses.
+fn s_trees(store: &std::sync::Arc<BrickStore>) -> usize {
+    neuvolex_server::session::Session::new("n".into(), "n".into(), store.clone(), 1 << 20)
+        .round_trees()
+}
+
+#[actix_web::test]
+async fn a_new_stroke_changes_far_labels_only_on_clear_evidence() {
+    use neuvolex_classify::scribble::{simulate, Level, SimConfig};
+    use neuvolex_classify::stable::{delta_u8, near, score, StableConfig};
+    use neuvolex_server::session::Session;
+    use std::sync::Arc;
+    let d = tempfile::tempdir().unwrap();
+    let sp = d.path().join("ph.zarr");
+    neuvolex_ingest::phantom_store(
+        &sp,
+        neuvolex_bricks::synth::PhantomParams::with_size(64, 0),
+        &neuvolex_ingest::IngestOptions {
+            brick: 16,
+            ..Default::default()
+        },
+        &mut |_| {},
+    )
+    .unwrap();
+    let store = Arc::new(BrickStore::open(&sp).unwrap());
+    let dims = store.info().dims;
+    let truth = store.read_labels_box("ground_truth", [0; 3], dims).unwrap();
+    let tf: Vec<f32> = truth.iter().map(|&t| t as f32).collect();
+    let strokes = |level, seed| {
+        let mut src = neuvolex_formats::MemVolume::from_f32(dims, &tf);
+        simulate(
+            &mut src,
+            &SimConfig {
+                level,
+                seed,
+                background: 255,
+                ..Default::default()
+            },
+        )
+        .unwrap()
+        .0
+    };
+    let first = strokes(Level::S1, 0);
+    // The added strokes: those of another simulation on one slice far from the first's.
+    let far_slice = |s: &neuvolex_classify::Stroke| {
+        first
+            .iter()
+            .all(|f| f.axis != s.axis || f.slice.abs_diff(s.slice) > 4)
+    };
+    let more: Vec<_> = strokes(Level::S2, 7)
+        .into_iter()
+        .filter(far_slice)
+        .collect();
+    let slice = (more[0].axis, more[0].slice);
+    let more: Vec<_> = more
+        .into_iter()
+        .filter(|s| (s.axis, s.slice) == slice)
+        .collect();
+    assert!(!more.is_empty());
+    let classes: Vec<neuvolex_bricks::synth::ClassInfo> = {
+        let mut ids: Vec<u32> = truth.iter().copied().filter(|&t| t > 0).collect();
+        ids.sort_unstable();
+        ids.dedup();
+        ids.iter()
+            .map(|&id| neuvolex_bricks::synth::ClassInfo {
+                id,
+                name: format!("c{id}"),
+                color: neuvolex_bricks::synth::palette(id),
+            })
+            .collect()
+    };
+    let open = || {
+        let s = Session::new("t".into(), "ph".into(), store.clone(), 1 << 30);
+        *s.classes.write().unwrap() = classes.clone();
+        s
+    };
+    let trees = s_trees(&store);
+    // One session classifies the first strokes, then the added ones.
+    let s = open();
+    let g = s.set_strokes(first.clone()).unwrap();
+    s.classify(g, trees, &|_, _, _| {}).unwrap();
+    let (before, _, _) = shown_and_probs(&s);
+    let (g, _) = s.add_strokes(more.clone()).unwrap();
+    s.classify(g, trees, &|_, _, _| {}).unwrap();
+    let (after, probs, out) = shown_and_probs(&s);
+    let held = s
+        .prior
+        .read()
+        .unwrap()
+        .as_ref()
+        .unwrap()
+        .summary
+        .voxels_held;
+    // A fresh session classifies all strokes at once: the same forest and probabilities,
+    // and the labels without the rule.
+    let f = open();
+    let all: Vec<_> = first.iter().chain(&more).cloned().collect();
+    let g = f.set_strokes(all.clone()).unwrap();
+    f.classify(g, trees, &|_, _, _| {}).unwrap();
+    let (fresh, fresh_probs, _) = shown_and_probs(&f);
+    assert_eq!(
+        fresh_probs, probs,
+        "the same strokes give the same probabilities"
+    );
+    assert_eq!(
+        f.prior
+            .read()
+            .unwrap()
+            .as_ref()
+            .unwrap()
+            .summary
+            .voxels_held,
+        0,
+        "a first classification holds nothing"
+    );
+    let cfg = StableConfig::default();
+    assert_eq!(
+        trees,
+        neuvolex_server::actors::TREES,
+        "a small volume keeps the full forest"
+    );
+    let mut marked = vec![false; after.len()];
+    for v in neuvolex_classify::rasterise(&more, dims).unwrap().voxels {
+        marked[v.0 as usize] = true;
+    }
+    let close = near(&marked, dims, cfg.margin);
+    let c = out.len();
+    let bg = out.iter().position(|&o| o == 0);
+    let mut expected_held = 0;
+    for v in 0..after.len() {
+        let px = &probs[v * c..(v + 1) * c];
+        let (new, old) = (fresh[v] as u16, before[v] as u16);
+        let want = if close[v]
+            || new == old
+            || score(px, &out, bg, new) as i32
+                >= score(px, &out, bg, old) as i32 + delta_u8(cfg.delta) as i32
+        {
+            new
+        } else {
+            expected_held += 1;
+            old
+        };
+        assert_eq!(after[v] as u16, want, "voxel {v}");
+    }
+    assert_eq!(held, expected_held);
+    assert!(held > 0, "nothing far away wobbled: the test shows nothing");
+    // Replaced strokes (not an extension of the last ones) start afresh.
+    let g = s.set_strokes(all[1..].to_vec()).unwrap();
+    s.classify(g, trees, &|_, _, _| {}).unwrap();
+    let summary = s.prior.read().unwrap().as_ref().unwrap().summary;
+    assert_eq!(summary.voxels_held, 0);
+}

@@ -3,6 +3,7 @@
 //! as OME-Zarr).
 
 use super::{blocking, AppState};
+use crate::assist::{complete_probs, label_voxels, per_voxel};
 use crate::error::{ApiError, ApiResult};
 use crate::session::{Session, BACKGROUND};
 use actix_web::{web, HttpResponse};
@@ -96,71 +97,6 @@ pub(super) async fn fractions(
     })
     .await?;
     Ok(HttpResponse::Ok().json(body))
-}
-
-/// Every brick's probabilities, or a conflict while classification has not reached them all.
-pub(super) fn complete_probs(
-    s: &Session,
-) -> ApiResult<std::sync::RwLockReadGuard<'_, crate::session::Probs>> {
-    let p = s.probs.read().unwrap_or_else(|p| p.into_inner());
-    let total = s.store.bricks().count();
-    if p.ids.is_empty() || p.bricks.len() < total {
-        return Err(ApiError::Conflict(format!(
-            "classification has reached {} of {total} bricks: scribble two classes and wait \
-             for it to finish",
-            p.bricks.len()
-        )));
-    }
-    Ok(p)
-}
-
-/// One u8 per voxel of the volume (x fastest), computed by `f` from each voxel's class
-/// probabilities once every brick is classified.
-pub(super) fn per_voxel(
-    s: &Session,
-    f: impl Fn(&crate::session::Probs, &[u8]) -> u8,
-) -> ApiResult<Vec<u8>> {
-    let d = s.store.info().dims;
-    let p = complete_probs(s)?;
-    let c = p.ids.len();
-    let mut out = vec![0u8; d.iter().product()];
-    for (idx, v) in &p.bricks {
-        let b = s.store.brick(*idx)?;
-        for z in 0..b.size[2] {
-            for y in 0..b.size[1] {
-                let row = ((b.origin[2] + z) * d[1] + b.origin[1] + y) * d[0] + b.origin[0];
-                for x in 0..b.size[0] {
-                    let i = (z * b.size[1] + y) * b.size[0] + x;
-                    out[row + x] = f(&p, &v[i * c..(i + 1) * c]);
-                }
-            }
-        }
-    }
-    Ok(out)
-}
-
-/// The arg-max label of every voxel (0 where the background wins or no class reaches 0.5),
-/// with the spatial prior's changes when it is on (dropped parts cleared, kept parts grown).
-pub(super) fn label_voxels(s: &Session) -> ApiResult<Vec<u8>> {
-    let mut out = per_voxel(s, |p, px| crate::assist::label_of(&p.ids, px) as u8)?;
-    let probs = s.probs.read().unwrap_or_else(|p| p.into_inner());
-    if let Some(pr) = crate::assist::active_prior(s, &probs) {
-        let d = s.store.info().dims;
-        for (idx, changed) in pr.changed.iter() {
-            let b = s.store.brick(*idx)?;
-            for &(i, l) in changed.iter() {
-                let i = i as usize;
-                let (x, y, z) = (
-                    i % b.size[0],
-                    (i / b.size[0]) % b.size[1],
-                    i / (b.size[0] * b.size[1]),
-                );
-                out[((b.origin[2] + z) * d[1] + b.origin[1] + y) * d[0] + b.origin[0] + x] =
-                    l as u8;
-            }
-        }
-    }
-    Ok(out)
 }
 
 /// One class's probability (0..255 for 0..1) of every voxel.

@@ -1,0 +1,285 @@
+//! Robot rounds in the service path (`cargo bench -p neuvolex-benches --bench rounds`).
+//!
+//! A session of `neuvolex serve` driven without HTTP, as the UI drives it: S1 strokes (seed 0)
+//! from the ground truth, then the robot user of `neuvolex eval --interactive`
+//! ([`neuvolex_eval::robot::next_strokes`], largest error region) adds one slice visit per
+//! round on the labels the session shows (the 0.5 rule, the spatial prior and the stability
+//! rule, as the overlays and exports show them). Each round is timed from the strokes'
+//! arrival to the first classified brick under the stroked slice (the overlay the user looks
+//! at) and to the whole round (training, every brick predicted, the prior and growth). The
+//! feature cache is warm after round 0, as in a session.
+//!
+//! Volumes: the abdomen CT (1.4 M voxels), a 160x232x160 crop of the brain MRI (5.9 M voxels,
+//! the size of the MRI), both from `../shared/data` (skipped where absent), and the
+//! 512x512x452 CT-like phantom (118 M voxels; its features pass the cache, so each round
+//! recomputes those it needs): three rounds of a class and a background stroke on a new axial
+//! slice, timed to the first overlay and then cancelled (`NEUVOLEX_BENCH_NO_PHANTOM` skips it).
+//! Rounds: `NEUVOLEX_BENCH_ROUNDS` (default 10).
+
+use neuvolex_benches::{machine, median_min_max, shared};
+use neuvolex_bricks::rng::Rng;
+use neuvolex_bricks::synth::PhantomParams;
+use neuvolex_bricks::{open_volume, BrickStore};
+use neuvolex_classify::scribble::{simulate, Level, SimConfig, Stroke};
+use neuvolex_classify::SliceMass;
+use neuvolex_eval::robot::{next_strokes, Placement};
+use neuvolex_formats::MemVolume;
+use neuvolex_ingest::{ingest, IngestOptions};
+use neuvolex_server::session::{Session, BACKGROUND};
+use std::path::Path;
+use std::sync::{Arc, Mutex};
+use std::time::Instant;
+
+/// A volume and its truth, `dims[0]` fastest.
+struct Volume {
+    name: String,
+    dims: [usize; 3],
+    values: Vec<f32>,
+    truth: Vec<u32>,
+}
+
+fn read(img: &Path, lab: &Path) -> (Vec<f32>, Vec<u32>, [usize; 3]) {
+    let mut v = open_volume(img, None).expect("image");
+    let d = v.meta().dims;
+    let values = MemVolume::read_all(v.as_mut()).expect("image").to_f32();
+    let mut l = open_volume(lab, None).expect("labels");
+    let truth = MemVolume::read_all(l.as_mut())
+        .expect("labels")
+        .to_f32()
+        .iter()
+        .map(|&x| x as u32)
+        .collect();
+    (values, truth, d)
+}
+
+/// The box `lo..lo+size` of a volume.
+fn crop<T: Copy>(v: &[T], d: [usize; 3], lo: [usize; 3], size: [usize; 3]) -> Vec<T> {
+    let mut out = Vec::with_capacity(size.iter().product());
+    for z in lo[2]..lo[2] + size[2] {
+        for y in lo[1]..lo[1] + size[1] {
+            let row = (z * d[1] + y) * d[0];
+            out.extend_from_slice(&v[row + lo[0]..row + lo[0] + size[0]]);
+        }
+    }
+    out
+}
+
+/// Classifies the session's strokes (generation `g`): seconds to the first brick under axial
+/// `slice` and to the end; `cancel_after_first` stops the run there (the phantom).
+fn timed_round(s: &Arc<Session>, g: u64, slice: usize, cancel_after_first: bool) -> (f64, f64) {
+    let brick = s.store.info().brick;
+    let t = Instant::now();
+    let first = Mutex::new(None::<f64>);
+    let on = |b: [usize; 3], _: usize, _: usize| {
+        let mut f = first.lock().unwrap();
+        if f.is_none() && b[2] == slice / brick {
+            *f = Some(t.elapsed().as_secs_f64());
+            if cancel_after_first {
+                s.bump_generation();
+            }
+        }
+    };
+    s.classify(g, s.round_trees(), &on).expect("classify");
+    let all = t.elapsed().as_secs_f64();
+    let first = first.lock().unwrap().unwrap_or(all);
+    (first, all)
+}
+
+fn mean_f1(shown: &[u16], truth: &[u32], ids: &[u32]) -> f64 {
+    let f1 = neuvolex_classify::shard::f1_scores(shown, truth, ids);
+    f1.iter().map(|f| f.f1).sum::<f64>() / f1.len().max(1) as f64
+}
+
+fn robot(v: &Volume, rounds: usize) {
+    let dir = tempfile::tempdir().expect("tmp");
+    let sp = dir.path().join("s.zarr");
+    let mut mem = MemVolume::from_f32(v.dims, &v.values);
+    let opts = IngestOptions {
+        brick: 32,
+        ..Default::default()
+    };
+    ingest(&mut mem, &sp, &opts, &mut |_| {}).expect("ingest");
+    let store = Arc::new(BrickStore::open(&sp).expect("store"));
+    let (s, ids) = neuvolex_benches::session_with_classes("rounds", store.clone(), &v.truth);
+    let tf: Vec<f32> = v.truth.iter().map(|&t| t as f32).collect();
+    let mut src = MemVolume::from_f32(v.dims, &tf);
+    let (strokes, _) = simulate(
+        &mut src,
+        &SimConfig {
+            level: Level::S1,
+            seed: 0,
+            background: BACKGROUND,
+            ..Default::default()
+        },
+    )
+    .expect("scribbles");
+    let slice = strokes.last().map_or(0, |s| s.slice);
+    let g = s.set_strokes(strokes).expect("strokes");
+    let (_, cold) = timed_round(&s, g, slice, false);
+    let shown_of = |s: &Session| -> Vec<u16> {
+        neuvolex_server::assist::label_voxels(s)
+            .expect("labels")
+            .into_iter()
+            .map(u16::from)
+            .collect()
+    };
+    let mut shown = shown_of(&s);
+    let mut f1 = vec![mean_f1(&shown, &v.truth, &ids)];
+    let (mut firsts, mut alls) = (Vec::new(), Vec::new());
+    let mut rng = Rng::new(0);
+    let radius = SimConfig::default().radius;
+    for _ in 0..rounds {
+        let added: Vec<Stroke> = next_strokes(
+            &v.truth,
+            &shown,
+            v.dims,
+            store.info().brick,
+            Placement::Largest,
+            &SliceMass::zeros(v.dims, 2),
+            &[],
+            &[],
+            &mut rng,
+            BACKGROUND,
+            radius,
+        );
+        if added.is_empty() {
+            break;
+        }
+        let slice = added[0].slice;
+        let (g, _) = s.add_strokes(added).expect("strokes");
+        let (first, all) = timed_round(&s, g, slice, false);
+        firsts.push(first);
+        alls.push(all);
+        shown = shown_of(&s);
+        f1.push(mean_f1(&shown, &v.truth, &ids));
+    }
+    let drops: Vec<f64> = f1.windows(2).map(|w| w[1] - w[0]).collect();
+    let worse = drops.iter().filter(|&&d| d < 0.0).count();
+    let worst = -drops.iter().copied().fold(0.0, f64::min);
+    let fmt = |v: &[f64]| {
+        median_min_max(v).map_or("-".into(), |(m, lo, hi)| {
+            format!("{m:.2} [{lo:.2}–{hi:.2}]")
+        })
+    };
+    println!(
+        "| {} | {} | {:.1} M | {} | {cold:.2} | {} | {} | {:.3} → {:.3} | {worse} of {} | {worst:.3} |",
+        v.name,
+        v.dims.map(|d| d.to_string()).join("x"),
+        v.truth.len() as f64 / 1e6,
+        s.round_trees(),
+        fmt(&firsts),
+        fmt(&alls),
+        f1[0],
+        f1[f1.len() - 1],
+        drops.len(),
+    );
+}
+
+/// The phantom: a class and a background stroke on a new axial slice per round, timed to the
+/// first overlay under it, then cancelled.
+fn phantom(rounds: usize) {
+    let dir = tempfile::tempdir().expect("tmp");
+    let sp = dir.path().join("phantom.zarr");
+    let opts = IngestOptions {
+        brick: 32,
+        ..Default::default()
+    };
+    let params = PhantomParams {
+        dims: [512, 512, 452],
+        seed: 0,
+        noise: 18.0,
+    };
+    let t = Instant::now();
+    neuvolex_ingest::phantom_store(&sp, params, &opts, &mut |_| {}).expect("phantom");
+    eprintln!("phantom written in {:.0} s", t.elapsed().as_secs_f64());
+    let store = Arc::new(BrickStore::open(&sp).expect("store"));
+    let d = store.info().dims;
+    let truth = store
+        .read_labels_box("ground_truth", [0; 3], d)
+        .expect("truth");
+    let (s, _) = neuvolex_benches::session_with_classes("phantom", store.clone(), &truth);
+    let mut firsts = Vec::new();
+    for r in 0..=rounds {
+        let z = d[2] / 2 + r * 40 - 40 * (rounds / 2);
+        let class = neuvolex_benches::main_class(&truth, d, z);
+        let strokes = neuvolex_benches::strokes_on(&truth, d, z, class, 0);
+        let (g, _) = s.add_strokes(strokes).expect("strokes");
+        let (first, _) = timed_round(&s, g, z, true);
+        if r > 0 {
+            firsts.push(first);
+        }
+    }
+    let fmt = |v: &[f64]| {
+        median_min_max(v).map_or("-".into(), |(m, lo, hi)| {
+            format!("{m:.2} [{lo:.2}–{hi:.2}]")
+        })
+    };
+    println!(
+        "| phantom | 512x512x452 | 118.5 M | {} | — | {} | — (cancelled after the first overlay) | — | — | — |",
+        s.round_trees(),
+        fmt(&firsts)
+    );
+}
+
+fn main() {
+    // `RUST_LOG=neuvolex_server=debug` prints each round's training, prediction and prior times.
+    if std::env::var_os("RUST_LOG").is_some() {
+        tracing_subscriber::fmt()
+            .with_env_filter(tracing_subscriber::EnvFilter::from_default_env())
+            .with_writer(std::io::stderr)
+            .init();
+    }
+    let rounds: usize = std::env::var("NEUVOLEX_BENCH_ROUNDS")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(10);
+    println!(
+        "machine: {}, {} threads",
+        machine(),
+        rayon::current_num_threads(),
+    );
+    println!("| volume | dims | voxels | trees | round 0 (cold features) s | first overlay s, median [range] | round s, median [range] | mean F1 r0 → last | worse rounds | worst drop |");
+    println!("|---|---|---|---|---|---|---|---|---|---|");
+    match (
+        shared("abdomen_ct/ct.nii.gz"),
+        shared("abdomen_ct/labels.nii.gz"),
+    ) {
+        (Some(img), Some(lab)) => {
+            let (values, truth, dims) = read(&img, &lab);
+            robot(
+                &Volume {
+                    name: "abdomen CT".into(),
+                    dims,
+                    values,
+                    truth,
+                },
+                rounds,
+            );
+        }
+        _ => println!("SKIP: abdomen_ct is absent (../shared/data)"),
+    }
+    match (
+        shared("brain_mri/t1_norm.nii.gz"),
+        shared("brain_mri/labels.nii.gz"),
+    ) {
+        (Some(img), Some(lab)) => {
+            let (values, truth, d) = read(&img, &lab);
+            let (lo, size) = ([48, 12, 48], [160, 232, 160]);
+            robot(
+                &Volume {
+                    name: "brain MRI crop".into(),
+                    dims: size,
+                    values: crop(&values, d, lo, size),
+                    truth: crop(&truth, d, lo, size),
+                },
+                rounds,
+            );
+        }
+        _ => println!("SKIP: brain_mri is absent (../shared/data)"),
+    }
+    if std::env::var_os("NEUVOLEX_BENCH_NO_PHANTOM").is_some() {
+        println!("SKIP: the phantom (NEUVOLEX_BENCH_NO_PHANTOM is set)");
+    } else {
+        phantom(3);
+    }
+}
