@@ -16,7 +16,7 @@
 //! slice, timed to the first overlay and then cancelled (`NEUVOLEX_BENCH_NO_PHANTOM` skips it).
 //! Rounds: `NEUVOLEX_BENCH_ROUNDS` (default 10).
 
-use neuvolex_benches::{machine, median_min_max, shared};
+use neuvolex_benches::{machine, shared, spread};
 use neuvolex_bricks::rng::Rng;
 use neuvolex_bricks::synth::PhantomParams;
 use neuvolex_bricks::{open_volume, BrickStore};
@@ -156,19 +156,14 @@ fn robot(v: &Volume, rounds: usize) {
     let drops: Vec<f64> = f1.windows(2).map(|w| w[1] - w[0]).collect();
     let worse = drops.iter().filter(|&&d| d < 0.0).count();
     let worst = -drops.iter().copied().fold(0.0, f64::min);
-    let fmt = |v: &[f64]| {
-        median_min_max(v).map_or("-".into(), |(m, lo, hi)| {
-            format!("{m:.2} [{lo:.2}–{hi:.2}]")
-        })
-    };
     println!(
         "| {} | {} | {:.1} M | {} | {cold:.2} | {} | {} | {:.3} → {:.3} | {worse} of {} | {worst:.3} |",
         v.name,
         v.dims.map(|d| d.to_string()).join("x"),
         v.truth.len() as f64 / 1e6,
         s.round_trees(),
-        fmt(&firsts),
-        fmt(&alls),
+        spread(&firsts, 2),
+        spread(&alls, 2),
         f1[0],
         f1[f1.len() - 1],
         drops.len(),
@@ -209,15 +204,10 @@ fn phantom(rounds: usize) {
             firsts.push(first);
         }
     }
-    let fmt = |v: &[f64]| {
-        median_min_max(v).map_or("-".into(), |(m, lo, hi)| {
-            format!("{m:.2} [{lo:.2}–{hi:.2}]")
-        })
-    };
     println!(
         "| phantom | 512x512x452 | 118.5 M | {} | — | {} | — (cancelled after the first overlay) | — | — | — |",
         s.round_trees(),
-        fmt(&firsts)
+        spread(&firsts, 2)
     );
 }
 

@@ -76,6 +76,17 @@ pub fn near(marked: &[bool], dims: [usize; 3], margin: usize) -> Vec<bool> {
     m
 }
 
+/// The voxels within `margin` of a scribbled voxel of `s` ([`near`] over its grid; no passes
+/// when nothing is scribbled).
+pub fn near_scribbles(s: &crate::Scribbles, margin: usize) -> Vec<bool> {
+    let mut marked = vec![false; s.dims.iter().product()];
+    s.voxels.iter().for_each(|v| marked[v.0 as usize] = true);
+    if s.voxels.is_empty() {
+        return marked;
+    }
+    near(&marked, s.dims, margin)
+}
+
 /// Dilates the line `m[s0 + k * stride]`, `k < len`, by `margin` along itself.
 fn dilate_line(
     m: &mut [bool],
@@ -181,6 +192,16 @@ mod tests {
         assert!(near(&marked, d, 0) == marked);
         assert!(near(&marked, d, 9).iter().all(|&v| v));
         assert!(!near(&vec![false; n], d, 3).iter().any(|&v| v));
+        let scr = crate::Scribbles {
+            dims: d,
+            voxels: vec![(at(2, 3, 4) as u64, 1)],
+        };
+        assert_eq!(near_scribbles(&scr, 1), m);
+        let none = crate::Scribbles {
+            dims: d,
+            voxels: Vec::new(),
+        };
+        assert!(!near_scribbles(&none, 3).iter().any(|&v| v));
         // Random marks against the distance itself.
         let mut rng = neuvolex_bricks::rng::Rng::new(5);
         let marked: Vec<bool> = (0..n).map(|_| rng.f32() < 0.02).collect();

@@ -28,7 +28,7 @@ use neuvolex_bricks::rng::Rng;
 use neuvolex_classify::cache::FeatureCache;
 use neuvolex_classify::components::{label_brick, Partial};
 use neuvolex_classify::scribble::{erode, longest_stroke, stroke_length, Axis};
-use neuvolex_classify::stable::{delta_u8, near, stick};
+use neuvolex_classify::stable::{delta_u8, near_scribbles, stick};
 use neuvolex_classify::{
     rasterise, simulate, thicken, BrickFeatures, FeatureSet, Level, SimConfig, SliceMass, Stroke,
     F1,
@@ -557,13 +557,10 @@ pub fn run(cfg: &EvalConfig, rc: &RobotConfig, events: Events) -> Result<Vec<Rou
                                 // Near this round's new strokes (none at round 0).
                                 let close = match &prev {
                                     None => None,
-                                    Some(_) => {
-                                        let new =
-                                            rasterise(&thicken(&added, cfg.thicken, dims), dims)?;
-                                        let mut marked = vec![false; labels.len()];
-                                        new.voxels.iter().for_each(|v| marked[v.0 as usize] = true);
-                                        Some(near(&marked, dims, rc.margin))
-                                    }
+                                    Some(_) => Some(near_scribbles(
+                                        &rasterise(&thicken(&added, cfg.thicken, dims), dims)?,
+                                        rc.margin,
+                                    )),
                                 };
                                 if let (Some(d), Some((pl, _)), Some(close)) =
                                     (rc.stable_delta, &prev, &close)
@@ -795,7 +792,13 @@ mod tests {
         let stroke: Vec<u64> = (0..d[1])
             .flat_map(|y| (0..3).map(move |x| (y * d[0] + x) as u64))
             .collect();
-        let close = near(&marked_of(&stroke, n), d, 2);
+        let close = near_scribbles(
+            &neuvolex_classify::Scribbles {
+                dims: d,
+                voxels: stroke.iter().map(|&i| (i, 1)).collect(),
+            },
+            2,
+        );
         let (delta, changed, far) = round_change(&prev, &next, &truth, &[1], &close);
         assert_eq!(changed, 3 * 7 + 7);
         assert_eq!(far, 7, "the x = 3 column of z = 5");
@@ -804,19 +807,13 @@ mod tests {
             "beyond the margin the round only lost: {delta}"
         );
         let (lo, hi) = (
-            mean_f1_outside(&prev, &truth, &near(&marked_of(&stroke, n), d, 2), &[1]),
-            mean_f1_outside(&next, &truth, &near(&marked_of(&stroke, n), d, 2), &[1]),
+            mean_f1_outside(&prev, &truth, &close, &[1]),
+            mean_f1_outside(&next, &truth, &close, &[1]),
         );
         assert!((delta - (hi - lo)).abs() < 1e-12);
         // With nothing beyond the margin changed, the change there is 0.
         let (delta, _, far) = round_change(&prev, &prev, &truth, &[1], &close);
         assert_eq!((delta, far), (0.0, 0));
-    }
-
-    fn marked_of(ids: &[u64], n: usize) -> Vec<bool> {
-        let mut m = vec![false; n];
-        ids.iter().for_each(|&i| m[i as usize] = true);
-        m
     }
 
     #[test]

@@ -262,7 +262,7 @@ fn hold_shown(
     probs: &Probs,
     filtered: &mut HashMap<[usize; 3], (Vec<u16>, Vec<u16>)>,
 ) -> ApiResult<u64> {
-    use neuvolex_classify::stable::{delta_u8, near, stick, StableConfig};
+    use neuvolex_classify::stable::{delta_u8, near_scribbles, stick, StableConfig};
     let strokes = s.strokes.read().unwrap_or_else(|p| p.into_inner()).clone();
     let (set, model) = s.feature_source()?;
     let features = format!("{set}/{}", model.as_ref().map_or(0, |m| m.0));
@@ -276,20 +276,8 @@ fn hold_shown(
         let d = s.store.info().dims;
         let new = neuvolex_classify::rasterise(&strokes[prev.strokes.len()..], d)
             .map_err(|e| ApiError::BadRequest(e.to_string()))?;
-        let mut marked = vec![false; d.iter().product()];
-        new.voxels.iter().for_each(|v| marked[v.0 as usize] = true);
-        let close = near(&marked, d, cfg.margin);
-        let out: Vec<u16> = probs
-            .ids
-            .iter()
-            .map(|&i| {
-                if i == BACKGROUND {
-                    0
-                } else {
-                    i.min(u16::MAX as u32) as u16
-                }
-            })
-            .collect();
+        let close = near_scribbles(&new, cfg.margin);
+        let out = neuvolex_classify::output_labels(&probs.ids, BACKGROUND);
         let bg = probs.ids.iter().position(|&i| i == BACKGROUND);
         let delta = delta_u8(cfg.delta);
         for (idx, (_, l)) in filtered.iter_mut() {
