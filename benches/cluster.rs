@@ -186,6 +186,7 @@ fn stages<E: Executor>(
         },
         bricks_per_task: 1,
         prior: None,
+        hold: None,
     };
     let t = Instant::now();
     let o = classify(&req, exec, &mut |_| {}).expect("classify");

@@ -197,6 +197,7 @@ class Store:
         prior_mass: Optional[float] = None,
         prior_grow: Optional[int] = None,
         probabilities: bool = True,
+        stable: Optional[float] = 0.25,
         progress: Progress = None,
     ) -> tuple[np.ndarray, Optional[np.ndarray]]:
         """Classifies every voxel from scribbles, as ``neuvolex classify`` does (the same
@@ -207,6 +208,14 @@ class Store:
         ``[z, y, x]`` (uint8, or uint16 past 255; 0 = background) after the spatial prior, and
         the raw class probabilities float32 ``[channel, z, y, x]`` (``None`` when
         ``probabilities=False``), channel ``k`` being the class ``self.classes[k]``.
+
+        Corrections stick: when these scribbles keep every scribble of this store's previous
+        call and add more, with the same settings and features, a voxel farther than the filter
+        bank's halo (24 voxels) from the added scribbles keeps the label the previous call
+        gave, unless the new probabilities prefer its new label by ``stable`` (0.25; the
+        session's rule). ``stable=None`` gives every label as this call alone finds it.
+        ``self.last_report["voxels_held"]`` counts the voxels that kept their label (``None``
+        when there was no previous call to hold to).
         """
         labels, proba, classes, report = _call(
             progress,
@@ -224,6 +233,7 @@ class Store:
             prior_mass,
             prior_grow,
             probabilities,
+            stable,
         )
         self.classes = list(classes)
         self.last_report = json.loads(report)

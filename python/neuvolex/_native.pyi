@@ -69,6 +69,7 @@ class Store:
         prior_mass: Optional[float] = None,
         prior_grow: Optional[int] = None,
         probabilities: bool = True,
+        stable: Optional[float] = 0.25,
         progress: ProgressCallback = None,
     ) -> tuple[np.ndarray, Optional[npt.NDArray[np.float32]], list[int], str]: ...
     def preview_slice(

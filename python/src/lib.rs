@@ -103,6 +103,16 @@ struct Store {
     store: Arc<BrickStore>,
     /// The trained INR, read once from the store (and replaced by `train`).
     model: std::sync::Mutex<Option<Arc<neuvolex_features::InrModel>>>,
+    /// The last classification's labels, for the stability rule of the next.
+    shown: Option<Shown>,
+}
+
+/// What a classification showed and what made it: the next one with the same `key` (settings,
+/// features and model) and more scribbles holds to it ([`neuvolex_classify::stable`]).
+struct Shown {
+    key: String,
+    scribbles: neuvolex_classify::Scribbles,
+    labels: Vec<u16>,
 }
 
 /// The axis index of `x`, `y` or `z`.
@@ -130,6 +140,7 @@ impl Store {
             location,
             store: Arc::new(store),
             model: Default::default(),
+            shown: None,
         })
     }
 
@@ -451,10 +462,13 @@ impl Store {
 
     /// Classifies every voxel from scribbles (the `neuvolex classify` pipeline): returns the
     /// label image (flat, x fastest, after the prior), the class probabilities (flat,
-    /// class-major), the label of each probability channel and the JSON report.
+    /// class-major), the label of each probability channel and the JSON report. With `stable`
+    /// (a `delta`, 0 to 1), a call whose scribbles extend the last call's, with the same
+    /// settings and features, holds to the labels that call gave beyond the margin of the new
+    /// strokes ([`neuvolex_classify::stable`]), as the service's session does.
     #[pyo3(signature = (scribbles, features="filters+xyz", prior=true, trees=100, seed=0,
         tau=0.5, min_split=8, class_weight="balanced", background=255,
-        prior_mass=None, prior_grow=None, probabilities=true, progress=None))]
+        prior_mass=None, prior_grow=None, probabilities=true, stable=Some(0.25), progress=None))]
     #[allow(clippy::too_many_arguments, clippy::type_complexity)]
     fn classify<'py>(
         &mut self,
@@ -471,6 +485,7 @@ impl Store {
         prior_mass: Option<f64>,
         prior_grow: Option<u32>,
         probabilities: bool,
+        stable: Option<f32>,
         progress: Option<&Bound<'py, PyAny>>,
     ) -> PyResult<(
         Bound<'py, PyAny>,
@@ -478,6 +493,11 @@ impl Store {
         Vec<u32>,
         String,
     )> {
+        if let Some(d) = stable.filter(|d| !(0.0..=1.0).contains(d)) {
+            return Err(PyValueError::new_err(format!(
+                "stable {d}: must be between 0 and 1 (None turns the rule off)"
+            )));
+        }
         let set = feature_set(features)?;
         let config = classify_config(trees, min_split, seed, class_weight, tau, background)?;
         let defaults = PriorConfig::default();
@@ -494,7 +514,12 @@ impl Store {
             None
         };
         let scr = ScribbleArray::extract(scribbles, "scribbles", self.store.info().dims)?;
-        let req = ClassifyRequest {
+        // The settings a held result must share (the model's identity is added once known).
+        let settings = format!(
+            "{set}|{config:?}|{prior:?}",
+            config = (trees, min_split, seed, class_weight, tau, background)
+        );
+        let mut req = ClassifyRequest {
             store: self.location.clone(),
             scribbles: PathBuf::from("scribbles"),
             features: set,
@@ -505,9 +530,32 @@ impl Store {
             config,
             bricks_per_task: 1,
             prior,
+            hold: None,
         };
-        let (labels, proba, classes, report, store) = detached(py, progress, |ctl| {
+        let shown = &self.shown;
+        let (labels, proba, classes, report, store, now) = detached(py, progress, |ctl| {
             let scr = scr.scribbles();
+            let model = self
+                .features_of(&req.features)?
+                .model
+                .map_or_else(String::new, |m| {
+                    neuvolex_features::stage::model_identity(&m)
+                });
+            let key = format!("{settings}|{model}");
+            req.hold = stable.and_then(|delta| {
+                shown
+                    .as_ref()
+                    .filter(|s| s.key == key)
+                    .map(|s| neuvolex_classify::stable::Hold {
+                        scribbles: s.scribbles.clone(),
+                        labels: s.labels.clone(),
+                        config: neuvolex_classify::stable::StableConfig {
+                            delta,
+                            ..Default::default()
+                        },
+                    })
+            });
+            let now = (key, scr.clone());
             // An earlier call stopped half way (Ctrl-C) left pending outputs of its own
             // scribbles: a new call starts over instead of being refused.
             for name in [pipeline::PROBA, pipeline::LABELS] {
@@ -538,9 +586,14 @@ impl Store {
                 None
             };
             let report = serde_json::to_string(&o.report).map_err(WorkError::other)?;
-            Ok((o.labels, proba, o.report.labels.clone(), report, store))
+            Ok((o.labels, proba, o.report.labels.clone(), report, store, now))
         })?;
         self.store = Arc::new(store);
+        self.shown = Some(Shown {
+            key: now.0,
+            scribbles: now.1,
+            labels: labels.clone(),
+        });
         let max = labels.iter().copied().max().unwrap_or(0);
         let labels: Bound<'py, PyAny> = if max <= 255 {
             let v: Vec<u8> = labels.iter().map(|&l| l as u8).collect();

@@ -131,6 +131,70 @@ def test_classify_finds_the_scribbled_objects_and_reports_probabilities():
     np.testing.assert_array_equal(labels, labels2)
 
 
+def _u8(p: np.ndarray) -> np.ndarray:
+    """Probabilities as the stability rule compares them: round(clamp(p) * 255), halves up."""
+    return np.floor(np.clip(p, 0, 1).astype(np.float32) * np.float32(255) + 0.5).astype(np.int32)
+
+
+def test_corrections_stick_beyond_the_margin_of_new_scribbles():
+    # Two spheres 63 voxels apart along x; a second call adds strokes on the far sphere only.
+    v, lab = spheres(shape=(40, 48, 140), noise=30.0)
+    first = strokes(lab)
+    second = first.copy()
+    zs = (16, 24)
+    for z in zs:
+        ys, xs = np.nonzero(lab[z] == 2)
+        assert len(ys) > 0
+        second[z, ys[::3], xs[::3]] = 2
+        second[z, 44, 100:132:2] = 255
+    trees = 8
+    s = neuvolex.from_array(v)
+    prev, _ = s.classify(first, trees=trees)
+    assert s.last_report["voxels_held"] is None, "nothing to hold to yet"
+    held, proba = s.classify(second, trees=trees)
+    n_held = s.last_report["voxels_held"]
+    # The same call on a fresh store: the same forest, every label as it alone finds it.
+    fresh = neuvolex.from_array(v)
+    alone, proba_alone = fresh.classify(second, trees=trees)
+    np.testing.assert_array_equal(proba, proba_alone)
+    # The rule, voxel by voxel: within 24 voxels (Chebyshev) of an added scribble the new
+    # label stands; beyond, a changed voxel keeps its label unless the new one is more
+    # probable by 0.25 (64 of 255).
+    near = np.zeros(v.shape, bool)
+    for z, y, x in zip(*np.nonzero((second != 0) & (first == 0))):
+        near[max(z - 24, 0):z + 25, max(y - 24, 0):y + 25, max(x - 24, 0):x + 25] = True
+    channel = {c: k for k, c in enumerate(fresh.classes)}
+    p8 = _u8(proba_alone)
+
+    def score(labels):
+        out = np.zeros(labels.shape, np.int32)
+        for value, k in [(c, channel[c]) for c in (1, 2)] + [(0, channel[255])]:
+            out[labels == value] = p8[k][labels == value]
+        return out
+
+    keep = (~near) & (alone != prev) & (score(alone) < score(prev) + 64)
+    expect = np.where(keep, prev, alone)
+    np.testing.assert_array_equal(held, expect)
+    assert n_held == int(keep.sum()) and n_held > 0, n_held
+    # Near the new strokes nothing is held, and the far sphere follows the new scribbles.
+    np.testing.assert_array_equal(held[near], alone[near])
+    # Off, another setting, or erased scribbles: every label as the call alone finds it.
+    s2 = neuvolex.from_array(v)
+    s2.classify(first, trees=trees)
+    off, _ = s2.classify(second, trees=trees, stable=None)
+    np.testing.assert_array_equal(off, alone)
+    s2.classify(first, trees=trees)
+    s2.classify(second, trees=trees + 1)
+    assert s2.last_report["voxels_held"] is None, "other settings"
+    erased = second.copy()
+    erased[first != 0] = 0
+    s2.classify(erased, trees=trees + 1)
+    assert s2.last_report["voxels_held"] is None, "erased scribbles"
+    for bad in (1.5, -0.1):
+        with pytest.raises(ValueError, match="stable"):
+            s2.classify(second, stable=bad)
+
+
 def _cli_classify(cli, tmp_path, volume, scribbles, trees, extra=()):
     store = tmp_path / "cli.zarr"
     out = tmp_path / "cli_labels.nii.gz"

@@ -101,6 +101,20 @@ impl SessionFeatures {
         b: &Brick,
         stored: Option<&PersistedFeatures>,
     ) -> Result<Vec<f32>, ClassifyError> {
+        Ok(widen(&self.get_f16_with(set, version, fx, b, stored)?))
+    }
+
+    /// [`Self::get_with`] as the cache holds it, in half precision and shared, without a copy
+    /// (what [`neuvolex_classify::Forest::predict_proba_f16`](crate::Forest::predict_proba_f16)
+    /// reads).
+    pub fn get_f16_with(
+        &self,
+        set: &str,
+        version: u64,
+        fx: &BrickFeatures,
+        b: &Brick,
+        stored: Option<&PersistedFeatures>,
+    ) -> Result<Arc<Vec<half::f16>>, ClassifyError> {
         let key = (self.session.clone(), set.to_string(), version, b.index);
         let v = self.cache.lru.get_or_try_insert(&key, || {
             let h: Vec<half::f16> = match stored.and_then(|p| p.read(b)) {
@@ -113,7 +127,7 @@ impl SessionFeatures {
         if self.closed.load(Ordering::SeqCst) {
             self.cache.lru.remove(&key);
         }
-        Ok(widen(&v))
+        Ok(v)
     }
 
     /// The cached features of `b`, if any (f32 of the f16 values).

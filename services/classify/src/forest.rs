@@ -11,7 +11,6 @@ use crate::packed::{Packed, TreeView};
 use neuvolex_bricks::rng::Rng;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
-use std::sync::OnceLock;
 
 /// Features considered per split.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -134,14 +133,7 @@ pub struct Forest {
 
 /// The coded forest, made on first use (`None`: the forest cannot be coded and predicts with
 /// the f32 walk); equality and serialisation ignore it.
-#[derive(Debug, Clone, Default)]
-struct PackedCell(OnceLock<Option<Packed>>);
-
-impl PartialEq for PackedCell {
-    fn eq(&self, _: &Self) -> bool {
-        true
-    }
-}
+type PackedCell = crate::packed::Derived<Option<Packed>>;
 
 /// Sorts `v` by the upper 32 bits of each item, keeping the input order of equal keys: a
 /// least-significant-digit radix sort in bytes (digits shared by every key are skipped), or an
@@ -622,20 +614,19 @@ impl Forest {
     }
 
     /// A zeroed `rows x classes` output for the rows of `x`, or the error naming ragged input.
-    fn output_for(&self, x: &[f32]) -> Result<Vec<f32>, ForestError> {
-        if !x.len().is_multiple_of(self.d) {
+    fn output_for(&self, values: usize) -> Result<Vec<f32>, ForestError> {
+        if !values.is_multiple_of(self.d) {
             return Err(ForestError::Input(format!(
-                "{} values are not whole rows of {} features",
-                x.len(),
+                "{values} values are not whole rows of {} features",
                 self.d
             )));
         }
-        Ok(vec![0.0f32; x.len() / self.d * self.classes])
+        Ok(vec![0.0f32; values / self.d * self.classes])
     }
 
     /// Class probabilities of `x` (`rows x d`), returned as `rows x classes`.
     pub fn predict_proba(&self, x: &[f32]) -> Result<Vec<f32>, ForestError> {
-        let mut out = self.output_for(x)?;
+        let mut out = self.output_for(x.len())?;
         let inv = 1.0 / self.trees.len() as f32;
         if let Some(p) = self.packed() {
             p.predict_into(x, &mut out, inv);
@@ -645,10 +636,28 @@ impl Forest {
         Ok(out)
     }
 
+    /// [`Forest::predict_proba`] of half-precision features (what the feature cache holds),
+    /// the same bits as predicting their f32 values: the coded forest codes each value by one
+    /// lookup in a per-feature table of the 65 536 f16 patterns (made on first use), without
+    /// widening the features.
+    pub fn predict_proba_f16(&self, x: &[half::f16]) -> Result<Vec<f32>, ForestError> {
+        let mut out = self.output_for(x.len())?;
+        let inv = 1.0 / self.trees.len() as f32;
+        if let Some(p) = self.packed() {
+            p.predict_into_f16(x, &mut out, inv);
+            return Ok(out);
+        }
+        use half::slice::HalfFloatSliceExt;
+        let mut wide = vec![0.0f32; x.len()];
+        x.convert_to_f32_slice(&mut wide);
+        self.predict_f32(&wide, &mut out, inv);
+        Ok(out)
+    }
+
     /// [`Forest::predict_proba`] by the f32 walk, without coding the features: the path for
     /// forests that cannot be coded, kept public to measure against.
     pub fn predict_proba_f32(&self, x: &[f32]) -> Result<Vec<f32>, ForestError> {
-        let mut out = self.output_for(x)?;
+        let mut out = self.output_for(x.len())?;
         self.predict_f32(x, &mut out, 1.0 / self.trees.len() as f32);
         Ok(out)
     }
@@ -1126,6 +1135,89 @@ mod tests {
         let last = bad.trees[2].nodes.len() as u32 - 1;
         bad.trees[2].nodes[0].left = last;
         assert!(bad.packed().is_none());
+    }
+
+    #[test]
+    fn half_precision_prediction_equals_predicting_the_widened_values_bit_for_bit() {
+        use half::f16;
+        let (n, d, c) = (3000, 6, 3);
+        // Trained on f16-rounded values, as the service's cache holds them, so thresholds sit
+        // between neighbouring f16 values.
+        let x: Vec<f32> = (0..n * d)
+            .map(|i| f16::from_f32(((i * 2654435761usize) % 1999) as f32 / 91.0 - 11.0).to_f32())
+            .collect();
+        let y: Vec<u16> = (0..n)
+            .map(|r| ((x[r * d] - x[r * d + 3]).abs() as u16 + (x[r * d + 1] > 0.5) as u16) % 3)
+            .collect();
+        let f = Forest::fit(
+            Dataset {
+                x: &x,
+                y: &y,
+                d,
+                classes: c,
+            },
+            &cfg(20),
+        )
+        .unwrap();
+        assert!(f.prepare());
+        let mut probe: Vec<f16> = x.iter().map(|&v| f16::from_f32(v)).collect();
+        // Every threshold's neighbours in f16, and the special values in every feature.
+        for t in &f.trees {
+            for nd in t.nodes.iter().filter(|nd| nd.threshold.is_finite()) {
+                let h = f16::from_f32(nd.threshold);
+                for v in [
+                    h,
+                    f16::from_bits(h.to_bits().wrapping_add(1)),
+                    f16::from_bits(h.to_bits().wrapping_sub(1)),
+                ] {
+                    let mut row: Vec<f16> = probe[..d].to_vec();
+                    row[nd.feature as usize] = v;
+                    probe.extend(row);
+                }
+            }
+        }
+        let specials = [
+            f16::NAN,
+            -f16::NAN,
+            f16::INFINITY,
+            f16::NEG_INFINITY,
+            f16::ZERO,
+            f16::NEG_ZERO,
+            f16::MAX,
+            f16::MIN,
+            f16::MIN_POSITIVE_SUBNORMAL,
+            -f16::MIN_POSITIVE_SUBNORMAL,
+        ];
+        for (k, &v) in specials.iter().enumerate() {
+            probe.extend((0..d).map(|j| {
+                if j == k % d {
+                    v
+                } else {
+                    specials[(k + j) % specials.len()]
+                }
+            }));
+        }
+        // Every bit pattern once, in whole rows.
+        probe.extend((0..=u16::MAX).map(f16::from_bits));
+        probe.truncate(probe.len() / d * d);
+        let wide: Vec<f32> = probe.iter().map(|v| v.to_f32()).collect();
+        let bits = |v: &[f32]| v.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
+        let want = f.predict_proba(&wide).unwrap();
+        assert_eq!(bits(&f.predict_proba_f16(&probe).unwrap()), bits(&want));
+        let mut walk = vec![0.0f32; want.len()];
+        f.predict_f32(&wide, &mut walk, 1.0 / 20.0);
+        assert_eq!(bits(&want), bits(&walk));
+        // Partial blocks of rows and of the coding's sub-blocks.
+        for rows in [1, 5, 1023, 1025, crate::packed::BLOCK + 3] {
+            let part: Vec<f16> = probe.iter().cycle().take(rows * d).copied().collect();
+            let wide: Vec<f32> = part.iter().map(|v| v.to_f32()).collect();
+            assert_eq!(
+                bits(&f.predict_proba_f16(&part).unwrap()),
+                bits(&f.predict_proba(&wide).unwrap()),
+                "{rows} rows"
+            );
+        }
+        assert!(f.predict_proba_f16(&probe[..d + 1]).is_err(), "ragged rows");
     }
 
     #[test]

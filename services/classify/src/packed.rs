@@ -20,8 +20,10 @@
 //! the leaves' fractions are added row by row in tree order, four classes at a time, so the
 //! sums are the bits of the f32 walk.
 
+use half::f16;
 use rayon::prelude::*;
 use std::hint::select_unpredictable;
+use std::sync::OnceLock;
 
 /// Code of a leaf: larger than every feature code, so a leaf's test always goes "left", to
 /// itself.
@@ -54,7 +56,28 @@ pub(crate) struct Packed {
     probs: Vec<f32>,
     /// `classes` rounded up to a multiple of 4, so a leaf's fractions add as whole vectors.
     width: usize,
+    /// The code of every f16 bit pattern per feature, made on the first f16 prediction.
+    half: HalfCodes,
 }
+
+/// A value derived from its owner and made on first use: equality ignores it (two owners
+/// that are equal derive the same value).
+#[derive(Debug, Clone, Default)]
+pub(crate) struct Derived<T>(pub(crate) OnceLock<T>);
+
+impl<T> PartialEq for Derived<T> {
+    fn eq(&self, _: &Self) -> bool {
+        true
+    }
+}
+
+/// Per feature, the code of each of the 65 536 f16 bit patterns (`feature << 16 | bits`):
+/// half-precision features code by one lookup each. Made once per forest.
+type HalfCodes = Derived<Vec<u16>>;
+
+/// Rows coded together from half precision: a sub-block's features and codes stay in L2
+/// while the per-feature tables take turns.
+const HALF_ROWS: usize = 1024;
 
 /// One tree as [`Packed::new`] reads it: per node `(feature, threshold, left)` with
 /// self-looping leaves (threshold `+inf`), the leaf index per node (`leaf` for splits) and the
@@ -152,6 +175,26 @@ impl Coder {
     /// The edges, ascending.
     fn edges(&self) -> &[f32] {
         &self.padded[..self.padded.len() - self.window]
+    }
+
+    /// [`Coder::code`] of every f16 bit pattern into `out` (65 536 codes, zeroed by the
+    /// caller: NaN patterns keep 0), by one merge of the ascending halves with the edges.
+    fn half_codes(&self, out: &mut [u16]) {
+        let e = self.edges();
+        // +0 to +inf ascend with their bits; -0 to -inf too, so -inf to -0 ascend backwards.
+        for run in [
+            &mut (0..=0x7c00u16) as &mut dyn Iterator<Item = u16>,
+            &mut (0x8000..=0xfc00u16).rev(),
+        ] {
+            let mut i = 0;
+            for b in run {
+                let v = f16::from_bits(b).to_f32();
+                while i < e.len() && e[i] < v {
+                    i += 1;
+                }
+                out[b as usize] = i as u16;
+            }
+        }
     }
 
     /// `#{i : e_i < v}` (0 for NaN), without data-dependent branches.
@@ -270,6 +313,7 @@ impl Packed {
             leaf_at,
             probs,
             width,
+            half: HalfCodes::default(),
         })
     }
 
@@ -285,6 +329,31 @@ impl Packed {
             }
             for (o, row) in out.chunks_exact_mut(d).zip(x.chunks_exact(d)) {
                 o[f] = c.code(row[f]);
+            }
+        }
+    }
+
+    /// The per-feature codes of every f16 bit pattern ([`HalfCodes`]), made on first use.
+    fn half_table(&self) -> &[u16] {
+        self.half.0.get_or_init(|| {
+            let mut t = vec![0u16; self.d << 16];
+            t.par_chunks_mut(1 << 16)
+                .zip(&self.coders)
+                .for_each(|(o, c)| c.half_codes(o));
+            t
+        })
+    }
+
+    /// Codes half-precision rows `x` into `out` by lookup: the same codes as [`Self::code_rows`]
+    /// gives their f32 values.
+    fn code_rows_f16(&self, table: &[u16], x: &[f16], out: &mut [u16]) {
+        let d = self.d;
+        for (xs, os) in x.chunks(HALF_ROWS * d).zip(out.chunks_mut(HALF_ROWS * d)) {
+            for (f, t) in table.chunks_exact(1 << 16).enumerate() {
+                let t: &[u16; 1 << 16] = t.try_into().expect("65 536 codes per feature");
+                for (o, row) in os.chunks_exact_mut(d).zip(xs.chunks_exact(d)) {
+                    o[f] = t[row[f].to_bits() as usize];
+                }
             }
         }
     }
@@ -310,6 +379,26 @@ impl Packed {
     /// Mean class fractions over the trees of every row of `x`, added into `out`
     /// (`rows x classes`, zeroed by the caller), scaled by `inv`.
     pub(crate) fn predict_into(&self, x: &[f32], out: &mut [f32], inv: f32) {
+        self.predict_coded(x, out, inv, |xb, codes| self.code_rows(xb, codes));
+    }
+
+    /// [`Self::predict_into`] of half-precision rows, coded by lookup: the same bits as
+    /// predicting their f32 values.
+    pub(crate) fn predict_into_f16(&self, x: &[f16], out: &mut [f32], inv: f32) {
+        let table = self.half_table();
+        self.predict_coded(x, out, inv, |xb, codes| {
+            self.code_rows_f16(table, xb, codes)
+        });
+    }
+
+    /// The blocked prediction of [`Self::predict_into`], with `code` coding a block's rows.
+    fn predict_coded<T: Sync>(
+        &self,
+        x: &[T],
+        out: &mut [f32],
+        inv: f32,
+        code: impl Fn(&[T], &mut [u16]) + Sync,
+    ) {
         let (d, c, w, block) = (self.d, self.classes, self.width, BLOCK);
         out.par_chunks_mut(block * c)
             .zip(x.par_chunks(block * d))
@@ -325,7 +414,7 @@ impl Packed {
                 },
                 |(codes, leaves, acc), (o, xb)| {
                     let nr = xb.len() / d;
-                    self.code_rows(xb, &mut codes[..nr * d]);
+                    code(xb, &mut codes[..nr * d]);
                     codes[nr * d..(nr + LANES) * d].fill(0);
                     let acc = &mut acc[..nr * w];
                     acc.fill(0.0);
@@ -505,6 +594,32 @@ mod tests {
             assert!(key(w[0]) < key(w[1]), "{} {}", w[0], w[1]);
         }
         assert_eq!(key(-0.0), key(0.0));
+    }
+
+    /// The lookup codes of half precision equal coding the widened value, for every f16 bit
+    /// pattern, on edge sets in and beyond f16's range and between its values.
+    #[test]
+    fn half_codes_equal_coding_every_widened_pattern() {
+        let mut rng = Rng::new(11);
+        for case in 0..40 {
+            let n = [0usize, 1, 3, 50, 700, 4000][case % 6];
+            let e: Vec<f32> = (0..n)
+                .map(|_| match case % 4 {
+                    0 => rng.uniform(-3.0, 3.0),
+                    1 => rng.uniform(-1e5, 1e5),
+                    2 => rng.uniform(-1e-6, 1e-6),
+                    _ => half::f16::from_f32(rng.uniform(-60.0, 60.0)).to_f32(),
+                })
+                .chain((case % 3 == 0).then_some(-0.0))
+                .collect();
+            let c = coder(e);
+            let mut t = vec![0u16; 1 << 16];
+            c.half_codes(&mut t);
+            for b in 0..=u16::MAX {
+                let v = half::f16::from_bits(b).to_f32();
+                assert_eq!(t[b as usize], c.code(v), "case {case}, {v:e} ({b:#06x})");
+            }
+        }
     }
 
     /// Against counting, on edge sets that are spread, clustered (one bucket holding most),

@@ -341,6 +341,11 @@ pub struct ClassifyRequest {
     /// The spatial prior applied to the label image (`None`: the forest's labels as they
     /// are). The probabilities and the per-brick label vectors stay raw either way.
     pub prior: Option<PriorConfig>,
+    /// An earlier result of the same settings to hold to ([`crate::stable`]): beyond the
+    /// margin of the strokes added since, a voxel keeps the label it showed unless the new
+    /// probabilities prefer the change by the rule's `delta`. Ignored unless these scribbles
+    /// keep every earlier one ([`crate::stable::added`]).
+    pub hold: Option<crate::stable::Hold>,
 }
 
 /// What the spatial prior did to the label image.
@@ -397,6 +402,9 @@ pub struct ClassifyReport {
     pub counts: Vec<(u16, u64)>,
     /// The spatial prior's effect (absent when it was off or the run did not finish).
     pub prior: Option<PriorReport>,
+    /// Voxels that kept the label of the result held to ([`ClassifyRequest::hold`]; absent
+    /// when there was none to hold to).
+    pub voxels_held: Option<u64>,
     /// How the stage ran.
     pub run: RunReport,
 }
@@ -656,6 +664,7 @@ pub fn classify_scribbles<E: Executor + ?Sized>(
     let mut counts = BTreeMap::<u16, u64>::new();
     let dead = run.dead.clone();
     let mut prior_report = None;
+    let mut voxels_held = None;
     let mut out_labels = Vec::new();
     if dead.is_empty() && !run.cancelled {
         let mut labels = assemble_labels(&store_arc, &stage.labels)?;
@@ -686,6 +695,9 @@ pub fn classify_scribbles<E: Executor + ?Sized>(
                 voxels_grown: v.grown,
                 seconds: t.elapsed().as_secs_f64(),
             });
+        }
+        if let Some(h) = &req.hold {
+            voxels_held = hold_to(&store_arc, &stage, &scr, h, &mut labels)?;
         }
         labels
             .iter()
@@ -738,6 +750,7 @@ pub fn classify_scribbles<E: Executor + ?Sized>(
             voxels_per_second: sum.voxels as f64 / seconds.max(1e-9),
             counts: counts.into_iter().collect(),
             prior: prior_report,
+            voxels_held,
             run,
         },
         classes,
@@ -745,6 +758,44 @@ pub fn classify_scribbles<E: Executor + ?Sized>(
         dead,
         labels: out_labels,
     })
+}
+
+/// Applies the stability rule of `hold` to the run's label image `labels`, with the run's
+/// probabilities rounded to u8 as the service holds them; the voxels held, or `None` when the
+/// scribbles do not extend the held result's (or its grid differs).
+fn hold_to(
+    store: &BrickStore,
+    stage: &PredictStage,
+    scr: &Scribbles,
+    h: &crate::stable::Hold,
+    labels: &mut [u16],
+) -> Result<Option<u64>, ClassifyError> {
+    use crate::stable::{added, delta_u8, near_scribbles, stick};
+    let Some(new) = added(&h.scribbles, scr).filter(|_| h.labels.len() == labels.len()) else {
+        return Ok(None);
+    };
+    let dims = store.info().dims;
+    let c = stage.out_labels.len().max(1);
+    let mut probs = vec![0u8; labels.len() * c];
+    for b in store.bricks() {
+        let p = stage.proba.read_brick(&b)?;
+        for (row, pr) in b.rows(dims).zip(p.chunks_exact(b.size[0] * c)) {
+            for (o, &v) in probs[row * c..(row + b.size[0]) * c].iter_mut().zip(pr) {
+                *o = (v.clamp(0.0, 1.0) * 255.0).round() as u8;
+            }
+        }
+    }
+    let close = near_scribbles(&new, h.config.margin);
+    let bg = stage.out_labels.iter().position(|&o| o == 0);
+    Ok(Some(stick(
+        labels,
+        &h.labels,
+        &probs,
+        &stage.out_labels,
+        bg,
+        &close,
+        delta_u8(h.config.delta),
+    )))
 }
 
 /// The store as workers should open it (see [`neuvolex_bricks::location::shared_path_string`]).
@@ -834,10 +885,11 @@ pub struct ProbaParams {
     pub f16_features: bool,
 }
 
-/// Features of a brick from somewhere else than the store (the service's feature cache); it
-/// must give what [`BrickFeatures`] gives (rounded to f16 when the params say so).
+/// Features of a brick from somewhere else than the store (the service's feature cache), in
+/// half precision: it must give what [`BrickFeatures`] gives, rounded to f16 (a stage with a
+/// hook needs [`ProbaParams::f16_features`]).
 pub type FeatureHook<'a> =
-    Box<dyn Fn(&Brick) -> Result<Vec<f32>, ClassifyError> + Send + Sync + 'a>;
+    Box<dyn Fn(&Brick) -> Result<Arc<Vec<half::f16>>, ClassifyError> + Send + Sync + 'a>;
 
 /// Predicts a task's bricks and returns their u8 probabilities (occupied bricks through the
 /// forest, empty ones background with certainty): the service's streaming classification.
@@ -857,6 +909,11 @@ impl<'a> ProbaStage<'a> {
         forest: Arc<Forest>,
         hook: Option<FeatureHook<'a>>,
     ) -> Result<Self, ClassifyError> {
+        if hook.is_some() && !params.f16_features {
+            return Err(ClassifyError::Input(
+                "a feature hook serves half-precision features; set f16_features".into(),
+            ));
+        }
         let forest_bytes =
             Arc::new(codec::encode(&*forest).map_err(|e| ClassifyError::Input(e.to_string()))?);
         Ok(ProbaStage {
@@ -915,7 +972,6 @@ impl Stage for ProbaStage<'_> {
         if self.params.f16_features {
             fx.set_quantise(crate::features::Quantise::F16);
         }
-        let out_labels = output_labels(&self.params.labels, self.params.background);
         let c = self.params.labels.len();
         let bg = self
             .params
@@ -928,15 +984,24 @@ impl Stage for ProbaStage<'_> {
                 ctx.check()?;
                 let b = self.src.store.brick(bi)?;
                 let u8s: Vec<u8> = if self.src.store.is_occupied(&b, None) {
-                    let f = match &self.hook {
-                        Some(h) => h(&b),
-                        None => fx.brick(&b),
+                    let failed =
+                        |e: &dyn std::fmt::Display| TaskError::Failed(format!("brick {bi:?}: {e}"));
+                    // The cache's half-precision features go to the forest as they are; the
+                    // store's are rounded through f16 by `fx` when the params say so.
+                    let p = match &self.hook {
+                        Some(h) => {
+                            let f = h(&b).map_err(|e| failed(&e))?;
+                            // A newer run may have begun while the features were computed.
+                            ctx.check()?;
+                            self.forest.predict_proba_f16(&f)
+                        }
+                        None => {
+                            let f = fx.brick(&b).map_err(|e| failed(&e))?;
+                            ctx.check()?;
+                            self.forest.predict_proba(&f)
+                        }
                     }
-                    .map_err(|e| TaskError::Failed(format!("brick {bi:?}: {e}")))?;
-                    // A newer run may have begun while the features were computed.
-                    ctx.check()?;
-                    let (p, _) = crate::shard::predict_brick(&self.forest, &f, &out_labels, 0.5)
-                        .map_err(|e| TaskError::Failed(format!("brick {bi:?}: {e}")))?;
+                    .map_err(|e| failed(&e))?;
                     p.iter()
                         .map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8)
                         .collect()

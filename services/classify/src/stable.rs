@@ -164,6 +164,56 @@ pub fn stick(
     kept
 }
 
+/// The strokes added since `before`: the voxels of `now` that `before` did not scribble, when
+/// `now` keeps every voxel of `before` with its label (a later round of the same user), else
+/// `None` (strokes were erased or relabelled: no round to hold to).
+pub fn added(before: &crate::Scribbles, now: &crate::Scribbles) -> Option<crate::Scribbles> {
+    if before.dims != now.dims {
+        return None;
+    }
+    // Both are sorted by voxel, one entry each: one merge.
+    let mut old = before.voxels.iter().peekable();
+    let mut new = Vec::new();
+    for &(v, l) in &now.voxels {
+        match old.peek() {
+            Some(&&(ov, ol)) if ov == v => {
+                if ol != l {
+                    return None;
+                }
+                old.next();
+            }
+            Some(&&(ov, _)) if ov < v => return None,
+            _ => new.push((v, l)),
+        }
+    }
+    old.next().is_none().then_some(crate::Scribbles {
+        dims: now.dims,
+        voxels: new,
+    })
+}
+
+/// A previous result that a new classification holds to with the rule: what it showed and the
+/// scribbles it came from (same settings and features; the caller checks).
+#[derive(Clone)]
+pub struct Hold {
+    /// The scribbles of the previous result.
+    pub scribbles: crate::Scribbles,
+    /// Its output labels per voxel (x fastest), as shown.
+    pub labels: Vec<u16>,
+    /// The rule's margin and `delta`.
+    pub config: StableConfig,
+}
+
+impl std::fmt::Debug for Hold {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Hold")
+            .field("scribbled", &self.scribbles.voxels.len())
+            .field("voxels", &self.labels.len())
+            .field("config", &self.config)
+            .finish()
+    }
+}
+
 /// `delta` (a probability) in the u8 steps [`stick`] compares.
 pub fn delta_u8(delta: f32) -> u8 {
     (delta.clamp(0.0, 1.0) * 255.0).round() as u8
@@ -172,6 +222,27 @@ pub fn delta_u8(delta: f32) -> u8 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn added_strokes_are_the_new_voxels_of_a_superset() {
+        let s = |v: &[(u64, u32)]| crate::Scribbles {
+            dims: [4, 4, 4],
+            voxels: v.to_vec(),
+        };
+        let before = s(&[(3, 1), (9, 2)]);
+        assert_eq!(
+            added(&before, &s(&[(1, 2), (3, 1), (5, 1), (9, 2), (20, 1)])),
+            Some(s(&[(1, 2), (5, 1), (20, 1)]))
+        );
+        assert_eq!(added(&before, &before), Some(s(&[])));
+        assert_eq!(added(&s(&[]), &before), Some(before.clone()));
+        assert_eq!(added(&before, &s(&[(3, 1), (9, 1)])), None, "relabelled");
+        assert_eq!(added(&before, &s(&[(3, 1)])), None, "erased last");
+        assert_eq!(added(&before, &s(&[(4, 1), (9, 2)])), None, "erased first");
+        let mut other = before.clone();
+        other.dims = [4, 4, 5];
+        assert_eq!(added(&before, &other), None, "another grid");
+    }
 
     #[test]
     fn near_is_a_box_dilation() {

@@ -168,6 +168,7 @@ pub fn run_classify(a: &ClassifyArgs, quiet: bool) -> Result<()> {
         config: a.forest.config()?,
         bricks_per_task: a.cluster.bricks_per_task,
         prior: Some(prior_config(a.prior_mass, a.prior_grow)?).filter(|_| !a.no_prior),
+        hold: None,
     };
     let exec = a.cluster.executor()?;
     let mut bar = crate::cluster::StageBar::new(quiet);

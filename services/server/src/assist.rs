@@ -311,36 +311,47 @@ fn grow_bricks(
     let d = s.store.info().dims;
     let c = probs.ids.len().max(1);
     let n: usize = d.iter().product();
-    let (mut labels, mut doubtful) = (vec![0u16; n], vec![0u16; n]);
-    let rows = |b: &neuvolex_bricks::Brick| {
-        let (o, sz) = (b.origin, b.size);
-        (0..sz[2]).flat_map(move |z| {
-            (0..sz[1]).map(move |y| ((o[2] + z) * d[1] + o[1] + y) * d[0] + o[0])
+    // Per brick, in parallel: each doubtful voxel's most probable class (0 elsewhere).
+    let local: Vec<([usize; 3], Vec<u16>)> = filtered
+        .par_iter()
+        .map(|(idx, (raw, _))| {
+            let px = &probs.bricks[idx];
+            let doubtful = raw
+                .iter()
+                .zip(px.chunks_exact(c))
+                .map(|(&r, p)| {
+                    if r == 0 {
+                        best_of(&probs.ids, p).0.min(u16::MAX as u32) as u16
+                    } else {
+                        0
+                    }
+                })
+                .collect();
+            (*idx, doubtful)
         })
-    };
-    for (idx, (raw, l)) in filtered.iter() {
+        .collect();
+    // Assembled row by row into the volume, grown, and cut back into the bricks.
+    let (mut labels, mut doubtful) = (vec![0u16; n], vec![0u16; n]);
+    for (idx, dl) in &local {
         let b = s.store.brick(*idx)?;
-        let px = &probs.bricks[idx];
-        for (k, row) in rows(&b).enumerate() {
+        let l = &filtered[idx].1;
+        for (k, row) in b.rows(d).enumerate() {
             let r = k * b.size[0]..(k + 1) * b.size[0];
             labels[row..row + b.size[0]].copy_from_slice(&l[r.clone()]);
-            for (i, j) in r.enumerate() {
-                if raw[j] == 0 {
-                    doubtful[row + i] = best_of(&probs.ids, &px[j * c..(j + 1) * c])
-                        .0
-                        .min(u16::MAX as u32) as u16;
-                }
-            }
+            doubtful[row..row + b.size[0]].copy_from_slice(&dl[r]);
         }
     }
     grow_in_memory(&mut labels, &doubtful, d, steps);
-    for (idx, (_, l)) in filtered.iter_mut() {
-        let b = s.store.brick(*idx)?;
-        for (k, row) in rows(&b).enumerate() {
-            l[k * b.size[0]..(k + 1) * b.size[0]].copy_from_slice(&labels[row..row + b.size[0]]);
-        }
-    }
-    Ok(())
+    filtered
+        .par_iter_mut()
+        .try_for_each(|(idx, (_, l))| -> ApiResult<()> {
+            let b = s.store.brick(*idx)?;
+            for (k, row) in b.rows(d).enumerate() {
+                l[k * b.size[0]..(k + 1) * b.size[0]]
+                    .copy_from_slice(&labels[row..row + b.size[0]]);
+            }
+            Ok(())
+        })
 }
 
 /// Recomputes the session's prior verdict once its probabilities are complete (called when a

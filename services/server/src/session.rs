@@ -822,7 +822,7 @@ impl Session {
                 // A render in flight goes first (it runs on its own threads meanwhile).
                 self.memory.yield_to_renders();
                 self.features
-                    .get_with(&name, version, &fx, b, stored.as_deref())
+                    .get_f16_with(&name, version, &fx, b, stored.as_deref())
             })),
         };
         let stage = ProbaStage::new(params, src, forest, hook)?;
