@@ -13,8 +13,10 @@
 //! the size of the MRI), both from `../shared/data` (skipped where absent), and the
 //! 512x512x452 CT-like phantom (118 M voxels; its features pass the cache, so each round
 //! recomputes those it needs): three rounds of a class and a background stroke on a new axial
-//! slice, timed to the first overlay and then cancelled (`NEUVOLEX_BENCH_NO_PHANTOM` skips it).
-//! Rounds: `NEUVOLEX_BENCH_ROUNDS` (default 10).
+//! slice, timed to the first overlay and then cancelled (`NEUVOLEX_BENCH_NO_PHANTOM` skips it);
+//! `NEUVOLEX_BENCH_PHANTOM_WHOLE=N` then runs N rounds more to their end (minutes each on 2
+//! cores: the features of most bricks are recomputed). Rounds: `NEUVOLEX_BENCH_ROUNDS`
+//! (default 10).
 
 use neuvolex_benches::{machine, shared, spread};
 use neuvolex_bricks::rng::Rng;
@@ -171,8 +173,9 @@ fn robot(v: &Volume, rounds: usize) {
 }
 
 /// The phantom: a class and a background stroke on a new axial slice per round, timed to the
-/// first overlay under it, then cancelled.
-fn phantom(rounds: usize) {
+/// first overlay under it, then cancelled; then `whole` rounds more that run to their end
+/// (features recomputed where the cache no longer holds them, the prior over 118 M voxels).
+fn phantom(rounds: usize, whole: usize) {
     let dir = tempfile::tempdir().expect("tmp");
     let sp = dir.path().join("phantom.zarr");
     let opts = IngestOptions {
@@ -208,6 +211,26 @@ fn phantom(rounds: usize) {
         "| phantom | 512x512x452 | 118.5 M | {} | — | {} | — (cancelled after the first overlay) | — | — | — |",
         s.round_trees(),
         spread(&firsts, 2)
+    );
+    if whole == 0 {
+        return;
+    }
+    let (mut firsts, mut alls) = (Vec::new(), Vec::new());
+    for r in 0..whole {
+        let z = d[2] / 2 + 20 + r * 40;
+        let class = neuvolex_benches::main_class(&truth, d, z);
+        let strokes = neuvolex_benches::strokes_on(&truth, d, z, class, 0);
+        let (g, _) = s.add_strokes(strokes).expect("strokes");
+        let (first, all) = timed_round(&s, g, z, false);
+        eprintln!("phantom whole round {r}: first overlay {first:.2} s, round {all:.1} s");
+        firsts.push(first);
+        alls.push(all);
+    }
+    println!(
+        "| phantom, whole rounds | 512x512x452 | 118.5 M | {} | — | {} | {} | — | — | — |",
+        s.round_trees(),
+        spread(&firsts, 2),
+        spread(&alls, 1)
     );
 }
 
@@ -270,6 +293,10 @@ fn main() {
     if std::env::var_os("NEUVOLEX_BENCH_NO_PHANTOM").is_some() {
         println!("SKIP: the phantom (NEUVOLEX_BENCH_NO_PHANTOM is set)");
     } else {
-        phantom(3);
+        let whole = std::env::var("NEUVOLEX_BENCH_PHANTOM_WHOLE")
+            .ok()
+            .and_then(|v| v.parse().ok())
+            .unwrap_or(0);
+        phantom(3, whole);
     }
 }
