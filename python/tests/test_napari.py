@@ -173,6 +173,24 @@ def _idle(widget) -> bool:
     return not widget.busy
 
 
+def test_the_status_line_counts_the_labels_the_stability_rule_kept():
+    from types import SimpleNamespace
+
+    from neuvolex.napari._widget import _held_note
+
+    assert "12 voxels far from the new strokes kept their label" in _held_note(
+        SimpleNamespace(last_report={"voxels_held": 12})
+    )
+    for store in (
+        SimpleNamespace(last_report={"voxels_held": 0}),
+        SimpleNamespace(last_report={"voxels_held": None}),
+        SimpleNamespace(last_report={}),
+        SimpleNamespace(),
+        None,
+    ):
+        assert _held_note(store) == ""
+
+
 def test_manifest_names_the_widget():
     npe2 = pytest.importorskip("npe2")
     manifest = npe2.PluginManifest.from_file(

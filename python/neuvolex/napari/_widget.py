@@ -96,6 +96,14 @@ def _class_name(value: int) -> str:
     return "background" if value in (0, BACKGROUND) else f"class {value}"
 
 
+def _held_note(store) -> str:
+    """What the stability rule kept in the store's last classification ('' when nothing):
+    voxels far from the new strokes that kept the label the previous run showed."""
+    report = getattr(store, "last_report", None)
+    held = report.get("voxels_held") if isinstance(report, dict) else None
+    return f"; {held} voxels far from the new strokes kept their label" if held else ""
+
+
 class NeuvolexWidget(QWidget):
     """neuvolex: scribble classifier (dock widget)."""
 
@@ -594,6 +602,7 @@ class NeuvolexWidget(QWidget):
         )
         self._set_status(
             f"{len(classes)} classes {list(classes)} in {seconds:.1f} s — {summary}"
+            f"{_held_note(session.store)}"
         )
         self._update_buttons()
 
