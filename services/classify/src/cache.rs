@@ -175,7 +175,7 @@ impl SessionFeatures {
 
 /// Half-precision features widened to f32 in bulk (the slice conversion uses the CPU's
 /// vector instructions; element by element it dispatches per value).
-fn widen(h: &[half::f16]) -> Vec<f32> {
+pub(crate) fn widen(h: &[half::f16]) -> Vec<f32> {
     use half::slice::HalfFloatSliceExt;
     let mut out = vec![0.0f32; h.len()];
     h.convert_to_f32_slice(&mut out);

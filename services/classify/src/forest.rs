@@ -647,10 +647,7 @@ impl Forest {
             p.predict_into_f16(x, &mut out, inv);
             return Ok(out);
         }
-        use half::slice::HalfFloatSliceExt;
-        let mut wide = vec![0.0f32; x.len()];
-        x.convert_to_f32_slice(&mut wide);
-        self.predict_f32(&wide, &mut out, inv);
+        self.predict_f32(&crate::cache::widen(x), &mut out, inv);
         Ok(out)
     }
 

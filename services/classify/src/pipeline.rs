@@ -770,32 +770,39 @@ fn hold_to(
     h: &crate::stable::Hold,
     labels: &mut [u16],
 ) -> Result<Option<u64>, ClassifyError> {
-    use crate::stable::{added, delta_u8, near_scribbles, stick};
+    use crate::stable::{added, delta_u8, near_scribbles, stick, to_u8};
     let Some(new) = added(&h.scribbles, scr).filter(|_| h.labels.len() == labels.len()) else {
         return Ok(None);
     };
     let dims = store.info().dims;
     let c = stage.out_labels.len().max(1);
-    let mut probs = vec![0u8; labels.len() * c];
-    for b in store.bricks() {
-        let p = stage.proba.read_brick(&b)?;
-        for (row, pr) in b.rows(dims).zip(p.chunks_exact(b.size[0] * c)) {
-            for (o, &v) in probs[row * c..(row + b.size[0]) * c].iter_mut().zip(pr) {
-                *o = (v.clamp(0.0, 1.0) * 255.0).round() as u8;
-            }
-        }
-    }
     let close = near_scribbles(&new, h.config.margin);
     let bg = stage.out_labels.iter().position(|&o| o == 0);
-    Ok(Some(stick(
-        labels,
-        &h.labels,
-        &probs,
-        &stage.out_labels,
-        bg,
-        &close,
-        delta_u8(h.config.delta),
-    )))
+    let delta = delta_u8(h.config.delta);
+    // Brick by brick, a row at a time: a row of the brick is a span of the volume.
+    let mut held = 0;
+    for b in store.bricks() {
+        let p: Vec<u8> = stage
+            .proba
+            .read_brick(&b)?
+            .iter()
+            .map(|&v| to_u8(v))
+            .collect();
+        let w = b.size[0];
+        for (row, pr) in b.rows(dims).zip(p.chunks_exact(w * c)) {
+            let r = row..row + w;
+            held += stick(
+                &mut labels[r.clone()],
+                &h.labels[r.clone()],
+                pr,
+                &stage.out_labels,
+                bg,
+                &close[r],
+                delta,
+            );
+        }
+    }
+    Ok(Some(held))
 }
 
 /// The store as workers should open it (see [`neuvolex_bricks::location::shared_path_string`]).
@@ -1002,9 +1009,7 @@ impl Stage for ProbaStage<'_> {
                         }
                     }
                     .map_err(|e| failed(&e))?;
-                    p.iter()
-                        .map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8)
-                        .collect()
+                    p.iter().map(|&v| crate::stable::to_u8(v)).collect()
                 } else {
                     // Empty brick: background with certainty.
                     let mut v = vec![0u8; b.voxels() * c];

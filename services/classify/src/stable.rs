@@ -214,9 +214,15 @@ impl std::fmt::Debug for Hold {
     }
 }
 
+/// A probability (clamped to 0..1) in the u8 steps the service keeps and [`stick`] compares,
+/// rounded to the nearest step: the one quantisation of the service, the robot and the pipeline.
+pub fn to_u8(p: f32) -> u8 {
+    (p.clamp(0.0, 1.0) * 255.0).round() as u8
+}
+
 /// `delta` (a probability) in the u8 steps [`stick`] compares.
 pub fn delta_u8(delta: f32) -> u8 {
-    (delta.clamp(0.0, 1.0) * 255.0).round() as u8
+    to_u8(delta)
 }
 
 #[cfg(test)]

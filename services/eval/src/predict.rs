@@ -160,7 +160,7 @@ pub fn predict(
                 let m = SliceMass::of_brick(dims, b.origin, b.size, &p, nc);
                 let u8s = p
                     .iter()
-                    .map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8)
+                    .map(|&v| neuvolex_classify::stable::to_u8(v))
                     .collect();
                 (*b, Some((lab, conf, best, u8s)), m)
             };

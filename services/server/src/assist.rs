@@ -285,11 +285,20 @@ fn hold_shown(
                 continue;
             };
             let b = s.store.brick(*idx)?;
-            let mut near_b = Vec::with_capacity(b.voxels());
-            for row in b.rows(d) {
-                near_b.extend_from_slice(&close[row..row + b.size[0]]);
+            let (w, c) = (b.size[0], out.len().max(1));
+            // A row of the brick is a span of the volume's near-the-strokes mask.
+            for (k, row) in b.rows(d).enumerate() {
+                let r = k * w..(k + 1) * w;
+                held += stick(
+                    &mut l[r.clone()],
+                    &before[r.clone()],
+                    &px[r.start * c..r.end * c],
+                    &out,
+                    bg,
+                    &close[row..row + w],
+                    delta,
+                );
             }
-            held += stick(l, before, px, &out, bg, &near_b, delta);
         }
     }
     *shown = Some(Shown {
