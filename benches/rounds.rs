@@ -15,8 +15,10 @@
 //! recomputes those it needs): three rounds of a class and a background stroke on a new axial
 //! slice, timed to the first overlay and then cancelled (`NEUVOLEX_BENCH_NO_PHANTOM` skips it);
 //! `NEUVOLEX_BENCH_PHANTOM_WHOLE=N` then runs N rounds more to their end (minutes each on 2
-//! cores: the features of most bricks are recomputed). Rounds: `NEUVOLEX_BENCH_ROUNDS`
-//! (default 10).
+//! cores: the features of most bricks are recomputed), and with
+//! `NEUVOLEX_BENCH_PHANTOM_STORED` set, first keeps every brick's features in the store, as
+//! `neuvolex serve` does in the background when a volume opens, so the rounds read them.
+//! Rounds: `NEUVOLEX_BENCH_ROUNDS` (default 10).
 
 use neuvolex_benches::{machine, shared, spread};
 use neuvolex_bricks::rng::Rng;
@@ -215,6 +217,28 @@ fn phantom(rounds: usize, whole: usize) {
     if whole == 0 {
         return;
     }
+    // The features kept in the store, as `neuvolex serve` computes them in the background
+    // when a volume opens (its `--feature-store-gib` set high enough for the phantom).
+    let stored = std::env::var_os("NEUVOLEX_BENCH_PHANTOM_STORED").is_some();
+    if stored {
+        let t = Instant::now();
+        // The pass ends when only it holds the session (a server that dropped it): the
+        // server's session table holds another, as this clone does.
+        let _table = s.clone();
+        let p = s.open_stored_features(u64::MAX).expect("stored features");
+        assert!(p.is_some(), "the phantom's features are kept");
+        let n = s
+            .prepare_features(&|done, total| {
+                if done % 500 == 0 || done == total {
+                    eprintln!("features kept: {done} of {total} bricks");
+                }
+            })
+            .expect("feature pass");
+        eprintln!(
+            "phantom features kept in the store ({n:?} bricks) in {:.0} s",
+            t.elapsed().as_secs_f64()
+        );
+    }
     let (mut firsts, mut alls) = (Vec::new(), Vec::new());
     for r in 0..whole {
         let z = d[2] / 2 + 20 + r * 40;
@@ -227,7 +251,12 @@ fn phantom(rounds: usize, whole: usize) {
         alls.push(all);
     }
     println!(
-        "| phantom, whole rounds | 512x512x452 | 118.5 M | {} | — | {} | {} | — | — | — |",
+        "| phantom, whole rounds{} | 512x512x452 | 118.5 M | {} | — | {} | {} | — | — | — |",
+        if stored {
+            ", features kept in the store"
+        } else {
+            ""
+        },
         s.round_trees(),
         spread(&firsts, 2),
         spread(&alls, 1)
