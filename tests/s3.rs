@@ -438,6 +438,27 @@ fn writer_lock_names_the_holder_and_stale_leases_are_taken_over() {
     // While held, the lock object names this process; a second "process" is refused.
     let mine = lock_holder(store.backend()).unwrap().unwrap();
     assert_eq!(mine.pid, std::process::id());
+    // A second acquisition in this process shares the lock; the object lists both purposes
+    // at once (not at the next renewal), and only the live ones.
+    let purpose_becomes = |want: &str| {
+        let t = Instant::now();
+        loop {
+            let p = lock_holder(store.backend()).unwrap().unwrap().purpose;
+            if p == want {
+                return;
+            }
+            assert!(t.elapsed() < Duration::from_secs(10), "{p}, not {want}");
+            std::thread::sleep(Duration::from_millis(20));
+        }
+    };
+    let second = store.writer_lock("export y").unwrap();
+    purpose_becomes("vectors x, export y");
+    let third = store.writer_lock("train").unwrap();
+    purpose_becomes("vectors x, export y, train");
+    drop(second);
+    purpose_becomes("vectors x, train");
+    drop(third);
+    purpose_becomes("vectors x");
     for b in store.bricks() {
         va.write_brick(&b, &vec![0.0; b.voxels()]).unwrap();
     }

@@ -14,7 +14,9 @@
 //! point (`commit::recover`, which `WriterLock::acquire` runs).
 //!
 //! Within one process the lock is shared: acquiring a store's lock while this process already
-//! holds it returns another handle to the same lock, released when the last handle drops.
+//! holds it returns another handle to the same lock, released when the last handle drops. The
+//! recorded purpose lists what every live acquisition is doing, and is rewritten as they come
+//! and go, so a refused writer names what the holder is doing now (not only what it did first).
 //!
 //! Writers take it for: ingest (over an existing store), adding a label image, and a vector
 //! array from creation to [`crate::VectorArray::finish`]. Cluster workers that only write bricks
@@ -114,12 +116,62 @@ fn lease() -> Duration {
 /// A held writer lock; released when the last clone is dropped.
 #[derive(Clone)]
 pub struct WriterLock {
-    held: Arc<Held>,
+    share: Arc<Share>,
 }
 
 impl std::fmt::Debug for WriterLock {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        write!(f, "WriterLock({})", self.held.backend.location())
+        write!(f, "WriterLock({})", self.share.held.backend.location())
+    }
+}
+
+/// One acquisition of a lock this process holds: its purpose is listed while it lives.
+struct Share {
+    held: Arc<Held>,
+    key: u64,
+}
+
+impl Drop for Share {
+    fn drop(&mut self) {
+        self.held.purposes.remove(self.key);
+        // The last acquisition releases the lock itself: nothing to record.
+        if Arc::strong_count(&self.held) > 1 {
+            self.held.record();
+        }
+    }
+}
+
+/// The purposes of a held lock's live acquisitions, in the order they were taken.
+#[derive(Default)]
+struct Purposes {
+    list: Mutex<(u64, Vec<(u64, String)>)>,
+}
+
+impl Purposes {
+    fn add(&self, purpose: &str) -> u64 {
+        let mut l = self.list.lock().unwrap_or_else(|p| p.into_inner());
+        l.0 += 1;
+        let key = l.0;
+        l.1.push((key, purpose.to_string()));
+        key
+    }
+
+    fn remove(&self, key: u64) {
+        let mut l = self.list.lock().unwrap_or_else(|p| p.into_inner());
+        l.1.retain(|(k, _)| *k != key);
+    }
+
+    /// The live purposes, comma-separated; `fallback` when none is left (the last handle is
+    /// dropping).
+    fn joined(&self, fallback: &str) -> String {
+        let l = self.list.lock().unwrap_or_else(|p| p.into_inner());
+        if l.1.is_empty() {
+            return fallback.to_string();
+        }
+        l.1.iter()
+            .map(|(_, p)| p.as_str())
+            .collect::<Vec<_>>()
+            .join(", ")
     }
 }
 
@@ -129,13 +181,76 @@ struct Held {
     kind: HeldKind,
     lost: Arc<AtomicBool>,
     id: String,
+    purposes: Arc<Purposes>,
+    recording: Mutex<()>,
+}
+
+impl Held {
+    /// The holder with the live acquisitions' purposes.
+    fn current(&self) -> LockHolder {
+        LockHolder {
+            purpose: self.purposes.joined(&self.holder.purpose),
+            ..self.holder.clone()
+        }
+    }
+
+    /// Records the live purposes where other processes read the holder: the lock file, or
+    /// (through the renewing thread) the lock object.
+    fn record(&self) {
+        match &self.kind {
+            HeldKind::Fs(f) => {
+                // One rewrite at a time, so the last one written holds the newest purposes.
+                let _g = self.recording.lock().unwrap_or_else(|p| p.into_inner());
+                if let Err(e) = write_holder(f, &self.current()) {
+                    tracing::warn!(
+                        "{}: recording the writer lock's purposes: {e}",
+                        self.backend.path().display()
+                    );
+                }
+            }
+            HeldKind::Object { stop } => {
+                if let Some(tx) = stop.lock().unwrap_or_else(|p| p.into_inner()).as_ref() {
+                    let _ = tx.send(Renew::Now);
+                }
+            }
+        }
+    }
+}
+
+/// What the renewing thread of an object lock is told.
+enum Renew {
+    /// Rewrite the lock now (its purposes changed).
+    Now,
+    /// Stop renewing: the lock is being released.
+    Stop,
 }
 
 enum HeldKind {
-    Fs(#[allow(dead_code)] std::fs::File),
+    Fs(std::fs::File),
     Object {
-        stop: Mutex<Option<mpsc::Sender<()>>>,
+        stop: Mutex<Option<mpsc::Sender<Renew>>>,
     },
+}
+
+/// Writes `holder` into the lock file `f` as one positioned write, then cuts the file to it.
+fn write_holder(f: &std::fs::File, holder: &LockHolder) -> std::io::Result<()> {
+    use std::os::unix::fs::FileExt;
+    let text = serde_json::to_vec(holder).unwrap_or_default();
+    f.write_all_at(&text, 0)?;
+    f.set_len(text.len() as u64)
+}
+
+/// Parses a lock file or object, reading again briefly if it was caught mid-rewrite.
+fn read_holder(read: &dyn Fn() -> Option<Vec<u8>>) -> Option<LockHolder> {
+    for i in 0..3 {
+        if let Some(h) = read().and_then(|b| serde_json::from_slice::<LockHolder>(&b).ok()) {
+            return Some(h);
+        }
+        if i < 2 {
+            std::thread::sleep(Duration::from_millis(5));
+        }
+    }
+    None
 }
 
 fn registry() -> &'static Mutex<HashMap<String, Weak<Held>>> {
@@ -162,8 +277,13 @@ impl WriterLock {
             None => backend.location().to_string(),
         };
         let mut reg = registry().lock().unwrap_or_else(|p| p.into_inner());
-        if let Some(h) = reg.get(&id).and_then(Weak::upgrade) {
-            return Ok(WriterLock { held: h });
+        if let Some(held) = reg.get(&id).and_then(Weak::upgrade) {
+            drop(reg);
+            let key = held.purposes.add(purpose);
+            held.record();
+            return Ok(WriterLock {
+                share: Arc::new(Share { held, key }),
+            });
         }
         let holder = LockHolder {
             host: crate::fsstore::host_name(),
@@ -184,20 +304,23 @@ impl WriterLock {
         });
         on_acquired(backend)?;
         reg.insert(id, Arc::downgrade(&held));
-        Ok(WriterLock { held })
+        let key = held.purposes.add(purpose);
+        Ok(WriterLock {
+            share: Arc::new(Share { held, key }),
+        })
     }
 
-    /// Who holds it (this process).
-    pub fn holder(&self) -> &LockHolder {
-        &self.held.holder
+    /// Who holds it (this process), with the purposes of its live acquisitions.
+    pub fn holder(&self) -> LockHolder {
+        self.share.held.current()
     }
 
     /// Errors if the lock was lost (an S3 lease that someone broke or took over): a writer
     /// checks this before it publishes anything.
     pub fn check(&self) -> Result<()> {
-        if self.held.lost.load(Ordering::SeqCst) {
+        if self.share.held.lost.load(Ordering::SeqCst) {
             return Err(BrickError::Locked {
-                path: self.held.backend.path(),
+                path: self.share.held.backend.path(),
                 holder: "another writer (this process's lease was broken or expired)".into(),
                 hint: "; nothing was published, run the stage again".into(),
             });
@@ -207,13 +330,12 @@ impl WriterLock {
 }
 
 fn acquire_fs(backend: &Arc<Backend>, holder: LockHolder, id: String) -> Result<Held> {
-    use std::io::{Read, Seek, Write};
     let root = backend.local_root().unwrap_or(std::path::Path::new("."));
     let path = root.join(LOCK_KEY);
     if let Some(d) = path.parent() {
         std::fs::create_dir_all(d).map_err(|e| BrickError::io(d, e))?;
     }
-    let mut f = std::fs::OpenOptions::new()
+    let f = std::fs::OpenOptions::new()
         .read(true)
         .write(true)
         .create(true)
@@ -223,11 +345,9 @@ fn acquire_fs(backend: &Arc<Backend>, holder: LockHolder, id: String) -> Result<
     match f.try_lock() {
         Ok(()) => {}
         Err(std::fs::TryLockError::WouldBlock) => {
-            let mut s = String::new();
-            let _ = f.read_to_string(&mut s);
-            let who = serde_json::from_str::<LockHolder>(&s)
+            let who = read_holder(&|| std::fs::read(&path).ok())
                 .map(|h| h.to_string())
-                .unwrap_or_else(|_| "another process".into());
+                .unwrap_or_else(|| "another process".into());
             return Err(BrickError::Locked {
                 path: backend.path(),
                 holder: who,
@@ -237,17 +357,15 @@ fn acquire_fs(backend: &Arc<Backend>, holder: LockHolder, id: String) -> Result<
         }
         Err(std::fs::TryLockError::Error(e)) => return Err(BrickError::io(&path, e)),
     }
-    let text = serde_json::to_vec(&holder).unwrap_or_default();
-    f.set_len(0)
-        .and_then(|_| f.rewind())
-        .and_then(|_| f.write_all(&text))
-        .map_err(|e| BrickError::io(&path, e))?;
+    write_holder(&f, &holder).map_err(|e| BrickError::io(&path, e))?;
     Ok(Held {
         backend: backend.clone(),
         holder,
         kind: HeldKind::Fs(f),
         lost: Arc::new(AtomicBool::new(false)),
         id,
+        purposes: Default::default(),
+        recording: Mutex::new(()),
     })
 }
 
@@ -312,16 +430,24 @@ fn start_object(
     lease: Duration,
     id: String,
 ) -> Result<Held> {
-    let (tx, rx) = mpsc::channel::<()>();
+    let (tx, rx) = mpsc::channel::<Renew>();
     let lost = Arc::new(AtomicBool::new(false));
-    let (b, mut h, l) = (backend.clone(), holder.clone(), lost.clone());
+    let purposes = Arc::new(Purposes::default());
+    let (b, mut h, l, ps) = (
+        backend.clone(),
+        holder.clone(),
+        lost.clone(),
+        purposes.clone(),
+    );
+    let first = holder.purpose.clone();
     std::thread::Builder::new()
         .name("neuvolex-lock".into())
         .spawn(move || loop {
             match rx.recv_timeout(lease / 3) {
-                Err(mpsc::RecvTimeoutError::Timeout) => {}
-                _ => return,
+                Err(mpsc::RecvTimeoutError::Timeout) | Ok(Renew::Now) => {}
+                Ok(Renew::Stop) | Err(mpsc::RecvTimeoutError::Disconnected) => return,
             }
+            h.purpose = ps.joined(&first);
             let ours = match b.get_versioned(LOCK_KEY) {
                 Ok(Some((bytes, v))) => serde_json::from_slice::<LockHolder>(&bytes)
                     .ok()
@@ -357,6 +483,8 @@ fn start_object(
         },
         lost,
         id,
+        purposes,
+        recording: Mutex::new(()),
     })
 }
 
@@ -369,7 +497,7 @@ impl Drop for Held {
         drop(reg);
         if let HeldKind::Object { stop } = &self.kind {
             if let Some(tx) = stop.lock().unwrap_or_else(|p| p.into_inner()).take() {
-                let _ = tx.send(());
+                let _ = tx.send(Renew::Stop);
             }
             if self.lost.load(Ordering::SeqCst) {
                 return;
@@ -406,17 +534,14 @@ pub fn lock_holder(backend: &Arc<Backend>) -> Result<Option<LockHolder>> {
             match f.try_lock() {
                 Ok(()) => Ok(None),
                 Err(std::fs::TryLockError::WouldBlock) => Ok(Some(
-                    std::fs::read(&path)
-                        .ok()
-                        .and_then(|b| serde_json::from_slice(&b).ok())
-                        .unwrap_or(LockHolder {
-                            host: "?".into(),
-                            pid: 0,
-                            purpose: "?".into(),
-                            token: String::new(),
-                            acquired_unix: 0,
-                            expires_unix: 0,
-                        }),
+                    read_holder(&|| std::fs::read(&path).ok()).unwrap_or(LockHolder {
+                        host: "?".into(),
+                        pid: 0,
+                        purpose: "?".into(),
+                        token: String::new(),
+                        acquired_unix: 0,
+                        expires_unix: 0,
+                    }),
                 )),
                 Err(std::fs::TryLockError::Error(e)) => Err(BrickError::io(&path, e)),
             }
@@ -466,10 +591,23 @@ mod tests {
         let l1 = WriterLock::acquire(&b, "test").unwrap();
         let l2 = WriterLock::acquire(&b, "test again").unwrap();
         assert_eq!(l1.holder().token, l2.holder().token);
-        assert!(lock_holder(&b).unwrap().is_some());
+        let seen = || lock_holder(&b).unwrap().unwrap().purpose;
+        // Another process reads every live acquisition's purpose, in order.
+        assert_eq!(seen(), "test, test again");
+        assert_eq!(l2.holder().purpose, "test, test again");
         assert!(break_lock(&b).is_err());
+        // The first acquisition ends: the holder names what is still going on, and a
+        // clone of a handle is the same acquisition.
+        let l2b = l2.clone();
         drop(l1);
+        assert_eq!(seen(), "test again");
         drop(l2);
+        assert_eq!(seen(), "test again");
+        let l4 = WriterLock::acquire(&b, "fourth").unwrap();
+        assert_eq!(seen(), "test again, fourth");
+        drop(l2b);
+        assert_eq!(seen(), "fourth");
+        drop(l4);
         assert!(lock_holder(&b).unwrap().is_none());
         let l3 = WriterLock::acquire(&b, "third").unwrap();
         assert_ne!(l3.holder().purpose, "test");
