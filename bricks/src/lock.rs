@@ -182,7 +182,6 @@ struct Held {
     lost: Arc<AtomicBool>,
     id: String,
     purposes: Arc<Purposes>,
-    recording: Mutex<()>,
 }
 
 impl Held {
@@ -200,8 +199,8 @@ impl Held {
         match &self.kind {
             HeldKind::Fs(f) => {
                 // One rewrite at a time, so the last one written holds the newest purposes.
-                let _g = self.recording.lock().unwrap_or_else(|p| p.into_inner());
-                if let Err(e) = write_holder(f, &self.current()) {
+                let f = f.lock().unwrap_or_else(|p| p.into_inner());
+                if let Err(e) = write_holder(&f, &self.current()) {
                     tracing::warn!(
                         "{}: recording the writer lock's purposes: {e}",
                         self.backend.path().display()
@@ -226,7 +225,8 @@ enum Renew {
 }
 
 enum HeldKind {
-    Fs(std::fs::File),
+    /// The locked file; its mutex serialises the rewrites of the holder.
+    Fs(Mutex<std::fs::File>),
     Object {
         stop: Mutex<Option<mpsc::Sender<Renew>>>,
     },
@@ -361,11 +361,10 @@ fn acquire_fs(backend: &Arc<Backend>, holder: LockHolder, id: String) -> Result<
     Ok(Held {
         backend: backend.clone(),
         holder,
-        kind: HeldKind::Fs(f),
+        kind: HeldKind::Fs(Mutex::new(f)),
         lost: Arc::new(AtomicBool::new(false)),
         id,
         purposes: Default::default(),
-        recording: Mutex::new(()),
     })
 }
 
@@ -484,7 +483,6 @@ fn start_object(
         lost,
         id,
         purposes,
-        recording: Mutex::new(()),
     })
 }
 
