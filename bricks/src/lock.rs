@@ -240,17 +240,40 @@ fn write_holder(f: &std::fs::File, holder: &LockHolder) -> std::io::Result<()> {
     f.set_len(text.len() as u64)
 }
 
-/// Parses a lock file or object, reading again briefly if it was caught mid-rewrite.
-fn read_holder(read: &dyn Fn() -> Option<Vec<u8>>) -> Option<LockHolder> {
-    for i in 0..3 {
-        if let Some(h) = read().and_then(|b| serde_json::from_slice::<LockHolder>(&b).ok()) {
-            return Some(h);
+/// Reads a lock file or object with `read`, again (up to three tries, 5 ms apart) while the
+/// read fails or its bytes (from `bytes`) do not parse as a holder: a reader can catch the
+/// holder rewriting it (`Held::record`). The last read is returned as it is.
+fn read_settled<T>(
+    read: &dyn Fn() -> Result<Option<T>>,
+    bytes: fn(&T) -> &[u8],
+) -> Result<Option<T>> {
+    let mut tries = 0;
+    loop {
+        let r = read();
+        tries += 1;
+        let settled = match &r {
+            Ok(None) => true,
+            Ok(Some(t)) => serde_json::from_slice::<LockHolder>(bytes(t)).is_ok(),
+            Err(_) => false,
+        };
+        if settled || tries == 3 {
+            return r;
         }
-        if i < 2 {
-            std::thread::sleep(Duration::from_millis(5));
-        }
+        std::thread::sleep(Duration::from_millis(5));
     }
-    None
+}
+
+/// The holder recorded in a lock file, read as [`read_settled`] does (`None` if unreadable).
+fn read_file_holder(path: &std::path::Path) -> Option<LockHolder> {
+    read_settled(&|| Ok(std::fs::read(path).ok()), |b: &Vec<u8>| b)
+        .ok()
+        .flatten()
+        .and_then(|b| serde_json::from_slice(&b).ok())
+}
+
+/// The lock object and its version, read as [`read_settled`] does.
+fn read_object(backend: &Backend) -> Result<Option<(Vec<u8>, crate::backend::Version)>> {
+    read_settled(&|| backend.get_versioned(LOCK_KEY), |(b, _)| b)
 }
 
 fn registry() -> &'static Mutex<HashMap<String, Weak<Held>>> {
@@ -345,7 +368,7 @@ fn acquire_fs(backend: &Arc<Backend>, holder: LockHolder, id: String) -> Result<
     match f.try_lock() {
         Ok(()) => {}
         Err(std::fs::TryLockError::WouldBlock) => {
-            let who = read_holder(&|| std::fs::read(&path).ok())
+            let who = read_file_holder(&path)
                 .map(|h| h.to_string())
                 .unwrap_or_else(|| "another process".into());
             return Err(BrickError::Locked {
@@ -374,7 +397,7 @@ fn acquire_object(backend: &Arc<Backend>, mut holder: LockHolder, id: String) ->
     let body = |h: &LockHolder| serde_json::to_vec_pretty(h).unwrap_or_default();
     let mut taken = backend.create_new(LOCK_KEY, body(&holder))?;
     if !taken {
-        let Some((bytes, version)) = backend.get_versioned(LOCK_KEY)? else {
+        let Some((bytes, version)) = read_object(backend)? else {
             // Released between our create and read: try once more.
             return if backend.create_new(LOCK_KEY, body(&holder))? {
                 start_object(backend, holder, lease, id)
@@ -531,22 +554,20 @@ pub fn lock_holder(backend: &Arc<Backend>) -> Result<Option<LockHolder>> {
             };
             match f.try_lock() {
                 Ok(()) => Ok(None),
-                Err(std::fs::TryLockError::WouldBlock) => Ok(Some(
-                    read_holder(&|| std::fs::read(&path).ok()).unwrap_or(LockHolder {
+                Err(std::fs::TryLockError::WouldBlock) => {
+                    Ok(Some(read_file_holder(&path).unwrap_or(LockHolder {
                         host: "?".into(),
                         pid: 0,
                         purpose: "?".into(),
                         token: String::new(),
                         acquired_unix: 0,
                         expires_unix: 0,
-                    }),
-                )),
+                    })))
+                }
                 Err(std::fs::TryLockError::Error(e)) => Err(BrickError::io(&path, e)),
             }
         }
-        None => Ok(backend
-            .get(LOCK_KEY)?
-            .and_then(|b| serde_json::from_slice(&b).ok())),
+        None => Ok(read_object(backend)?.and_then(|(b, _)| serde_json::from_slice(&b).ok())),
     }
 }
 
