@@ -127,8 +127,20 @@ impl Drop for Worker {
         self.kill9();
         if std::thread::panicking() {
             let log = self.log.lock().unwrap_or_else(|e| e.into_inner());
-            eprintln!("--- worker log ({} lines, last 40) ---", log.len());
-            for line in log.iter().skip(log.len().saturating_sub(40)) {
+            // The first lines name a startup failure (a backtrace follows it); the last ones
+            // what it did lately.
+            eprintln!(
+                "--- worker log ({} lines, first 8 and last 40) ---",
+                log.len()
+            );
+            let tail = log.len().saturating_sub(40).max(8);
+            for line in log.iter().take(8.min(log.len())) {
+                eprintln!("{line}");
+            }
+            if tail > 8 {
+                eprintln!("[… {} lines]", tail - 8);
+            }
+            for line in log.iter().skip(tail) {
                 eprintln!("{line}");
             }
         }

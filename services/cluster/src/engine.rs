@@ -26,6 +26,20 @@ pub const STOP: &str = "nvx.workers.stop";
 /// What a connection error says when the server answers without JetStream.
 const NOT_ENABLED: &str = "JetStream is not enabled on this server";
 
+/// Whether a JetStream set-up error may pass by waiting: every one but a refusal of
+/// permission (the server answered and will answer the same).
+fn setup_may_pass(e: &ClusterError) -> bool {
+    match e {
+        ClusterError::JetStream { detail, .. } => {
+            let d = detail.to_ascii_lowercase();
+            !["permission", "authoriz", "not allowed"]
+                .iter()
+                .any(|t| d.contains(t))
+        }
+        _ => false,
+    }
+}
+
 /// Task subject of a run: `nvx.task.<stage>.<stage key>.<run>`.
 pub fn task_subject(stage: &str, key: u64, run: &str) -> String {
     format!("nvx.task.{stage}.{key:016x}.{run}")
@@ -72,18 +86,24 @@ pub struct EngineConfig {
     pub max_deliver: i64,
     /// Bound on connecting and on every JetStream request.
     pub connect_timeout: Duration,
+    /// How long connecting keeps setting up the streams, consumer and blob store while the
+    /// server answers but JetStream does not yet (starting, busy, or set up by another process
+    /// at the same moment). A worker waits at least `no_worker_timeout`.
+    pub setup_timeout: Duration,
     /// A coordinator gives up when no worker has been seen for this long.
     pub no_worker_timeout: Duration,
 }
 
 impl EngineConfig {
-    /// Defaults: AckWait 30 s, MaxDeliver 3, 5 s to connect, 60 s without workers.
+    /// Defaults: AckWait 30 s, MaxDeliver 3, 5 s to connect, 20 s to set up JetStream, 60 s
+    /// without workers.
     pub fn new(url: &str) -> Self {
         EngineConfig {
             url: url.to_string(),
             ack_wait: Duration::from_secs(30),
             max_deliver: 3,
             connect_timeout: Duration::from_secs(5),
+            setup_timeout: Duration::from_secs(20),
             no_worker_timeout: Duration::from_secs(60),
         }
     }
@@ -149,27 +169,52 @@ impl Engine {
             .timeout(cfg.connect_timeout.max(Duration::from_secs(5)))
             .build(client.clone());
         let mut e = Engine { cfg, client, js };
-        let limit = e.cfg.connect_timeout * 4;
-        let t0 = std::time::Instant::now();
+        // A server that has just started listens a moment before JetStream answers; of
+        // processes that create the streams at once, all but one are told the subjects overlap
+        // (the next look finds the stream); and on a busy machine (a disk that stalls the
+        // server's metadata writes) a request times out. So set-up is tried again, each attempt
+        // bounded, until `setup_timeout`; only what waiting cannot change ends it early.
+        let (window, t0) = (e.cfg.setup_timeout, std::time::Instant::now());
+        let attempt = e.cfg.connect_timeout.max(Duration::from_secs(5)) * 4;
+        let mut tries = 0u32;
         loop {
-            match tokio::time::timeout(limit, e.ensure()).await {
-                Err(_) => return Err(bad("JetStream did not answer in time".into())),
+            tries += 1;
+            let last = match tokio::time::timeout(attempt, e.ensure()).await {
                 Ok(Ok(())) => return Ok(e),
-                Ok(Err(x)) => {
-                    // A server that has just started listens a moment before JetStream answers;
-                    // and of processes that create the streams at once, all but one are told
-                    // the subjects overlap (the next look finds the stream). On a busy machine a
-                    // request can time out and one attempt take seconds, so the retries last as
-                    // long as one attempt may.
-                    let s = x.to_string();
-                    let transient = [NOT_ENABLED, "overlap", "already in use", "timed out"]
-                        .iter()
-                        .any(|t| s.contains(t));
-                    if !transient || t0.elapsed() >= limit {
-                        return Err(x);
-                    }
+                Ok(Err(x)) if !setup_may_pass(&x) => return Err(x),
+                Ok(Err(x)) => x,
+                Err(_) => crate::js(
+                    "set-up",
+                    format!("no answer within {:.0} s", attempt.as_secs_f64()),
+                ),
+            };
+            if t0.elapsed() >= window {
+                return Err(bad(format!(
+                    "JetStream set-up did not complete in {:.0} s ({tries} tries); last: {last}",
+                    t0.elapsed().as_secs_f64()
+                )));
+            }
+            tracing::debug!(tries, "JetStream set-up: {last}; trying again");
+            tokio::time::sleep(Duration::from_millis(250)).await;
+        }
+    }
+
+    /// [`Engine::connect`], then the workers' pull consumer: what a worker needs to start.
+    pub async fn connect_worker(
+        cfg: EngineConfig,
+        name: &str,
+    ) -> Result<(Engine, consumer::PullConsumer)> {
+        let window = cfg.setup_timeout;
+        let t0 = std::time::Instant::now();
+        let engine = Engine::connect(cfg, name).await?;
+        loop {
+            match engine.consumer().await {
+                Ok(c) => return Ok((engine, c)),
+                Err(x) if setup_may_pass(&x) && t0.elapsed() < window => {
+                    tracing::debug!("workers' consumer: {x}; trying again");
                     tokio::time::sleep(Duration::from_millis(250)).await;
                 }
+                Err(x) => return Err(x),
             }
         }
     }
@@ -177,7 +222,11 @@ impl Engine {
     async fn ensure(&mut self) -> Result<()> {
         let hint = |e: &dyn std::fmt::Display| {
             let s = e.to_string();
-            if s.contains("not enabled") || s.contains("503") || s.contains("no responders") {
+            let l = s.to_ascii_lowercase();
+            if ["not enabled", "503", "no responders", "unavailable"]
+                .iter()
+                .any(|t| l.contains(t))
+            {
                 format!("{s}: {NOT_ENABLED} (start nats-server with -js)")
             } else {
                 s
@@ -315,19 +364,45 @@ impl Engine {
         }
     }
 
-    /// The blob stored under `key`.
+    /// The blob stored under `key`. Publishing an object again purges the chunks of the copy
+    /// it replaces, so a read that began on that copy waits for chunks that will never come, or
+    /// ends early with a wrong digest: a read that fails, or has no data for a request timeout,
+    /// starts again from the newest copy (3 reads at most), never a hang.
     pub async fn get_blob(&self, key: &str) -> Result<Vec<u8>> {
         use tokio::io::AsyncReadExt;
+        let stall = self.cfg.connect_timeout.max(Duration::from_secs(5));
         let b = self.blobs().await?;
-        let mut o = b
-            .get(key)
-            .await
-            .map_err(|e| js(&format!("blob '{key}'"), e))?;
-        let mut v = Vec::new();
-        o.read_to_end(&mut v)
-            .await
-            .map_err(|e| js(&format!("blob '{key}'"), e))?;
-        Ok(v)
+        let mut last = String::new();
+        for _ in 0..3 {
+            let mut o = b
+                .get(key)
+                .await
+                .map_err(|e| js(&format!("blob '{key}'"), e))?;
+            let mut v = Vec::new();
+            let mut buf = vec![0u8; 1 << 16];
+            loop {
+                match tokio::time::timeout(stall, o.read(&mut buf)).await {
+                    Ok(Ok(0)) => return Ok(v),
+                    Ok(Ok(n)) => v.extend_from_slice(&buf[..n]),
+                    // Chunks purged under the read end it early: "wrong digest".
+                    Ok(Err(e)) => {
+                        last = format!("{e} after {} bytes", v.len());
+                        tracing::debug!("blob '{key}': {last}; reading again");
+                        break;
+                    }
+                    Err(_) => {
+                        last = format!(
+                            "no data for {:.0} s after {} bytes (replaced while read?)",
+                            stall.as_secs_f64(),
+                            v.len()
+                        );
+                        tracing::debug!("blob '{key}': {last}; reading again");
+                        break;
+                    }
+                }
+            }
+        }
+        Err(js(&format!("blob '{key}'"), last))
     }
 
     /// True unless the coordinator of `run` is certainly gone: nobody listens on its

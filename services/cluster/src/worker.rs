@@ -135,7 +135,9 @@ fn default_name() -> String {
 }
 
 /// Serves tasks from the cluster until stopped (SIGINT/SIGTERM, `nvx.workers.stop`, or
-/// `max_tasks`), calling `events` as tasks start and end.
+/// `max_tasks`), calling `events` as tasks start and end. It keeps setting up JetStream as long
+/// as a coordinator waits for workers (`no_worker_timeout`), and fails at once where the server
+/// cannot be reached or refuses it.
 pub fn serve(
     cfg: EngineConfig,
     registry: Registry,
@@ -159,8 +161,10 @@ async fn serve_async(
     events: &mut (dyn FnMut(WorkerEvent) + Send),
 ) -> Result<WorkerSummary> {
     let name = opts.name.clone().unwrap_or_else(default_name);
-    let engine = Engine::connect(cfg, &name).await?;
-    let consumer = engine.consumer().await?;
+    // A worker keeps setting up as long as a coordinator would wait for it.
+    let mut cfg = cfg;
+    cfg.setup_timeout = cfg.setup_timeout.max(cfg.no_worker_timeout);
+    let (engine, consumer) = Engine::connect_worker(cfg, &name).await?;
     let stop = Arc::new(AtomicBool::new(false));
     let cancelled: Arc<Mutex<HashSet<String>>> = Arc::default();
     let current: Arc<Mutex<Current>> = Arc::default();
