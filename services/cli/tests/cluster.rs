@@ -134,7 +134,7 @@ impl Drop for Worker {
                 log.len()
             );
             let tail = log.len().saturating_sub(40).max(8);
-            for line in log.iter().take(8.min(log.len())) {
+            for line in log.iter().take(8) {
                 eprintln!("{line}");
             }
             if tail > 8 {

@@ -129,6 +129,26 @@ impl Engine {
     /// Connects (bounded by `connect_timeout`) and makes sure the streams, the workers'
     /// consumer and the blob store exist.
     pub async fn connect(cfg: EngineConfig, name: &str) -> Result<Engine> {
+        Ok(Engine::connect_with(cfg, name, false).await?.0)
+    }
+
+    /// [`Engine::connect`], then the workers' pull consumer: what a worker needs to start.
+    pub async fn connect_worker(
+        cfg: EngineConfig,
+        name: &str,
+    ) -> Result<(Engine, consumer::PullConsumer)> {
+        let (e, c) = Engine::connect_with(cfg, name, true).await?;
+        let c = c.ok_or_else(|| js("workers' consumer", "not looked up"))?;
+        Ok((e, c))
+    }
+
+    /// Connects and sets up, then looks up the workers' consumer where `worker`; the set-up
+    /// and the lookup are tried again together.
+    async fn connect_with(
+        cfg: EngineConfig,
+        name: &str,
+        worker: bool,
+    ) -> Result<(Engine, Option<consumer::PullConsumer>)> {
         let url = cfg.url.clone();
         let bad = |detail: String| ClusterError::Connect {
             url: url.clone(),
@@ -179,8 +199,16 @@ impl Engine {
         let mut tries = 0u32;
         loop {
             tries += 1;
-            let last = match tokio::time::timeout(attempt, e.ensure()).await {
-                Ok(Ok(())) => return Ok(e),
+            let step = async {
+                e.ensure().await?;
+                if worker {
+                    e.consumer().await.map(Some)
+                } else {
+                    Ok(None)
+                }
+            };
+            let last = match tokio::time::timeout(attempt, step).await {
+                Ok(Ok(c)) => return Ok((e, c)),
                 Ok(Err(x)) if !setup_may_pass(&x) => return Err(x),
                 Ok(Err(x)) => x,
                 Err(_) => crate::js(
@@ -196,26 +224,6 @@ impl Engine {
             }
             tracing::debug!(tries, "JetStream set-up: {last}; trying again");
             tokio::time::sleep(Duration::from_millis(250)).await;
-        }
-    }
-
-    /// [`Engine::connect`], then the workers' pull consumer: what a worker needs to start.
-    pub async fn connect_worker(
-        cfg: EngineConfig,
-        name: &str,
-    ) -> Result<(Engine, consumer::PullConsumer)> {
-        let window = cfg.setup_timeout;
-        let t0 = std::time::Instant::now();
-        let engine = Engine::connect(cfg, name).await?;
-        loop {
-            match engine.consumer().await {
-                Ok(c) => return Ok((engine, c)),
-                Err(x) if setup_may_pass(&x) && t0.elapsed() < window => {
-                    tracing::debug!("workers' consumer: {x}; trying again");
-                    tokio::time::sleep(Duration::from_millis(250)).await;
-                }
-                Err(x) => return Err(x),
-            }
         }
     }
 
@@ -372,14 +380,13 @@ impl Engine {
         use tokio::io::AsyncReadExt;
         let stall = self.cfg.connect_timeout.max(Duration::from_secs(5));
         let b = self.blobs().await?;
-        let mut last = String::new();
+        let (mut last, mut buf) = (String::new(), vec![0u8; 1 << 16]);
         for _ in 0..3 {
             let mut o = b
                 .get(key)
                 .await
                 .map_err(|e| js(&format!("blob '{key}'"), e))?;
             let mut v = Vec::new();
-            let mut buf = vec![0u8; 1 << 16];
             loop {
                 match tokio::time::timeout(stall, o.read(&mut buf)).await {
                     Ok(Ok(0)) => return Ok(v),

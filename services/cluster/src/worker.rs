@@ -155,14 +155,13 @@ pub fn serve(
 }
 
 async fn serve_async(
-    cfg: EngineConfig,
+    mut cfg: EngineConfig,
     registry: Registry,
     opts: WorkerOptions,
     events: &mut (dyn FnMut(WorkerEvent) + Send),
 ) -> Result<WorkerSummary> {
     let name = opts.name.clone().unwrap_or_else(default_name);
     // A worker keeps setting up as long as a coordinator would wait for it.
-    let mut cfg = cfg;
     cfg.setup_timeout = cfg.setup_timeout.max(cfg.no_worker_timeout);
     let (engine, consumer) = Engine::connect_worker(cfg, &name).await?;
     let stop = Arc::new(AtomicBool::new(false));
