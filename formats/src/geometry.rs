@@ -82,7 +82,9 @@ pub struct NiftiFrame {
     pub qform_code: i16,
     /// `sform_code` (same codes); the sform matrix is the volume's affine.
     pub sform_code: i16,
-    /// The qform as an affine ([`quatern_affine`]), when `qform_code > 0`.
+    /// The quaternion fields as an affine ([`quatern_affine`]): the qform when
+    /// `qform_code > 0`; with code 0, the fields as the header had them (written back as they
+    /// were, offsets included).
     pub qform: Option<[[f64; 4]; 4]>,
 }
 

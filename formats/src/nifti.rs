@@ -184,14 +184,14 @@ pub fn parse_header(path: &Path, b: &[u8]) -> Result<(VolumeMeta, Endian, u64)> 
     };
     let qform = h.i16(252);
     let sform = h.i16(254);
-    let qform_affine = (qform > 0).then(|| {
-        crate::geometry::quatern_affine(
-            [h.f32(256), h.f32(260), h.f32(264)],
-            spacing,
-            qfac,
-            [h.f32(268), h.f32(272), h.f32(276)],
-        )
-    });
+    // The quaternion fields as an affine: the qform when `qform_code > 0`, and kept as the
+    // header has them (offsets included) with code 0 too, so a file written for the volume
+    // carries them unchanged.
+    let quatern = [h.f32(256), h.f32(260), h.f32(264)];
+    let qoffset = [h.f32(268), h.f32(272), h.f32(276)];
+    let qform_fields = (quatern.iter().chain(&qoffset).all(|v| v.is_finite()))
+        .then(|| crate::geometry::quatern_affine(quatern, spacing, qfac, qoffset));
+    let qform_affine = if qform > 0 { qform_fields } else { None };
     let affine = if sform > 0 {
         let mut a = [[0.0; 4]; 4];
         for (r, row) in a.iter_mut().enumerate().take(3) {
@@ -209,7 +209,7 @@ pub fn parse_header(path: &Path, b: &[u8]) -> Result<(VolumeMeta, Endian, u64)> 
     let nifti = Some(crate::geometry::NiftiFrame {
         qform_code: qform,
         sform_code: sform,
-        qform: qform_affine,
+        qform: qform_fields,
     });
     let meta = VolumeMeta {
         dims,
@@ -428,6 +428,34 @@ mod tests {
         };
         assert!(close(&m.affine, &sform), "{:?}", m.affine);
         assert!(close(&f.qform.unwrap(), &qform), "{:?}", f.qform);
+    }
+
+    /// A source with `qform_code` 0 but quaternion fields and offsets set (as the abdomen CT
+    /// has): a file written for it has the same code and the same fields.
+    #[test]
+    fn unknown_qform_keeps_its_fields() {
+        use crate::geometry::{diag_affine, quatern_affine, NiftiFrame};
+        let spacing = [3.0, 3.0, 3.0];
+        let qform = quatern_affine([0.0; 3], spacing, 1.0, [-177.95, 11.319, 94.3]);
+        let mut meta = VolumeMeta::new([4, 5, 6], DType::I16);
+        meta.spacing = spacing;
+        meta.affine = diag_affine(spacing, [-177.95, 11.319, 94.3]);
+        meta.nifti = Some(NiftiFrame {
+            qform_code: 0,
+            sform_code: 2,
+            qform: Some(qform),
+        });
+        let h = build_header(&meta);
+        let off = |i: usize| f32::from_le_bytes(h[268 + 4 * i..272 + 4 * i].try_into().unwrap());
+        assert_eq!([off(0), off(1), off(2)], [-177.95, 11.319, 94.3]);
+        let (m, _, _) = parse_header(Path::new("q0.nii"), &h).unwrap();
+        let f = m.nifti.unwrap();
+        assert_eq!((f.qform_code, f.sform_code), (0, 2));
+        let q = f.qform.unwrap();
+        assert!(
+            (0..3).all(|i| (q[i][3] - qform[i][3]).abs() < 1e-4),
+            "{q:?}"
+        );
     }
 
     #[test]

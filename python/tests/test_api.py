@@ -320,11 +320,31 @@ def test_a_raising_callback_stops_the_work():
 def test_ctrl_c_cancels_between_bricks_and_leaves_the_store_usable():
     v, lab = spheres((96, 96, 96))
     s = neuvolex.from_array(v, brick=16)
-    timer = threading.Timer(0.5, _thread.interrupt_main)
-    timer.start()
-    with pytest.raises(KeyboardInterrupt):
-        s.classify(strokes(lab), trees=400)
-    timer.cancel()
+    # Ctrl+C once the first brick is done (a fixed timer raced the work on a fast machine: the
+    # classification could end before it fired). 215 bricks of 400 trees remain then, far more
+    # than the few milliseconds the interrupt takes to arrive.
+    started = threading.Event()
+    seen = []
+
+    def interrupt():
+        if started.wait(60):
+            _thread.interrupt_main()
+
+    t = threading.Thread(target=interrupt)
+    t.start()
+
+    def progress(d, n, m):
+        seen.append((d, n))
+        started.set()
+
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            s.classify(strokes(lab), trees=400, progress=progress)
+    finally:
+        started.set()
+        t.join()
+    # A whole run ends on (216, 216), its last brick.
+    assert seen and seen[-1] != (216, 216), f"the work was not cut short: {seen[-3:]}"
     labels, _ = s.classify(strokes(lab), trees=20)
     assert (labels[lab == 1] == 1).mean() > 0.9
 

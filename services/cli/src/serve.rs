@@ -201,6 +201,7 @@ pub fn run_serve(a: &ServeArgs) -> Result<()> {
         let engines = state.actors.compute().clone();
         let st = state.clone();
         actix_web::rt::spawn(AppState::reap_idle(state.clone()));
+        actix_web::rt::spawn(AppState::autosave(state.clone()));
         let server = actix_web::HttpServer::new(move || {
             actix_web::App::new()
                 .app_data(state.clone())
@@ -259,7 +260,7 @@ pub fn run_serve(a: &ServeArgs) -> Result<()> {
             let t = std::time::Instant::now();
             let saved = st.shutdown(SHUTDOWN_GRACE).await;
             tracing::info!(
-                "{} session(s) saved in {} after {:.2} s; closing connections",
+                "{} session file(s) written in {} after {:.2} s; closing connections",
                 saved.len(),
                 state_dir.display(),
                 t.elapsed().as_secs_f64()

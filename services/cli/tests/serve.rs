@@ -81,14 +81,15 @@ fn sigterm_stops_a_training_server_within_two_seconds_and_keeps_complete_state()
     let l = neuvolex_features::checkpoint::load(&ckpt).unwrap();
     assert_eq!(l.model.dims, [48, 48, 42]);
     assert!(l.header.state.unwrap().step > 0);
-    // The session was saved, whole.
-    let saved = d.path().join("work/sessions/phantom.zarr.json");
+    // The session was saved, whole, to a file of its own.
+    let saved = d.path().join(format!("work/sessions/{id}.json"));
     let v: Value = serde_json::from_str(&std::fs::read_to_string(&saved).unwrap()).unwrap();
     assert_eq!(
         numbers_as_f64(&v["strokes"]),
         numbers_as_f64(&phantom_strokes())
     );
     assert_eq!(v["volume"], "phantom.zarr");
+    assert_eq!(v["id"], json!(id));
     let partial: Vec<_> = std::fs::read_dir(saved.parent().unwrap())
         .unwrap()
         .flatten()
@@ -105,9 +106,10 @@ fn sigterm_stops_a_training_server_within_two_seconds_and_keeps_complete_state()
         &[],
         Some(&json!({"volume": "phantom.zarr", "restore": true})),
     );
-    assert_eq!(st, 201, "{body}");
+    assert_eq!(st, 200, "the saved session is resumed: {body}");
     let v: Value = serde_json::from_str(&body).unwrap();
     assert_eq!(v["strokes"], 3, "{v}");
+    assert_eq!(v["id"], json!(id), "under its own id");
     let id = v["id"].as_str().unwrap();
     let ev = event_stream(a);
     let (st, _) = http(
@@ -377,7 +379,7 @@ fn sigterm_with_a_render_and_an_export_in_flight_stops_within_two_seconds() {
         }
     }
     // The session was saved, whole.
-    let saved = d.path().join("work/sessions/phantom.zarr.json");
+    let saved = d.path().join(format!("work/sessions/{id}.json"));
     let v: Value = serde_json::from_str(&std::fs::read_to_string(&saved).unwrap()).unwrap();
     assert_eq!(
         numbers_as_f64(&v["strokes"]),
@@ -480,4 +482,118 @@ fn a_cli_writer_and_the_server_take_turns_on_the_store() {
     );
     let (st, _) = train("stop");
     assert_eq!(st, 202);
+}
+
+/// Issue 45: the autosave keeps strokes as they come, so `kill -9` of the server loses at most
+/// the last second of them. Strokes are sent one at a time, 100 ms apart, for 3 s; the server
+/// is killed with SIGKILL at once after the last; a new server resumes the session by its id
+/// and holds every stroke sent up to a second before the kill, in order, with the redo stack
+/// and the page's settings.
+#[test]
+fn kill_9_loses_at_most_the_last_second_of_strokes() {
+    let d = tempfile::tempdir().unwrap();
+    let data = data_root(d.path());
+    let mut srv = Server::start(d.path(), &data, &["--feature-store-gib=0"], &[]);
+    let a = &srv.addr.clone();
+    let (st, body) = http(
+        a,
+        "POST",
+        "/api/sessions",
+        &[],
+        Some(&json!({"volume": "phantom.zarr"})),
+    );
+    assert_eq!(st, 201, "{body}");
+    let id = serde_json::from_str::<Value>(&body).unwrap()["id"]
+        .as_str()
+        .unwrap()
+        .to_string();
+    let (st, _) = http(
+        a,
+        "PUT",
+        &format!("/api/sessions/{id}/ui"),
+        &[],
+        Some(&json!({"idx": {"x": 1, "y": 2, "z": 3}})),
+    );
+    assert_eq!(st, 204);
+    let stroke = |i: usize| {
+        json!({"class": if i.is_multiple_of(2) { 1 } else { 255 }, "axis": "z", "slice": 5 + i % 30,
+               "points": [[2 + i % 40, 3], [4 + i % 40, 6]], "radius": 1.0})
+    };
+    let mut sent: Vec<(Instant, usize)> = Vec::new();
+    let t0 = Instant::now();
+    let mut i = 0;
+    while t0.elapsed() < Duration::from_secs(3) {
+        let (st, body) = http(
+            a,
+            "POST",
+            &format!("/api/sessions/{id}/strokes"),
+            &[],
+            Some(&json!([stroke(i)])),
+        );
+        assert_eq!(st, 202, "{body}");
+        sent.push((Instant::now(), i + 1));
+        i += 1;
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    // The undo stack of the page: the last stroke undone, kept for redo.
+    let strokes: Vec<Value> = (0..i - 1).map(stroke).collect();
+    let (st, _) = http(
+        a,
+        "PUT",
+        &format!("/api/sessions/{id}/strokes"),
+        &[],
+        Some(&json!({"strokes": strokes, "redo": [stroke(i - 1)]})),
+    );
+    assert_eq!(st, 202);
+    std::thread::sleep(Duration::from_millis(1000));
+    srv.signal("-KILL");
+    let killed = Instant::now();
+    srv.wait_exit(Duration::from_secs(10));
+    // Everything sent a second before the kill is there.
+    let must = sent
+        .iter()
+        .filter(|(t, _)| killed.duration_since(*t) >= Duration::from_secs(1))
+        .map(|&(_, n)| n)
+        .max()
+        .unwrap_or(0);
+    assert!(must >= 20, "the test sent too little: {must}");
+    let srv2 = Server::start(d.path(), &data, &["--feature-store-gib=0"], &[]);
+    let a = &srv2.addr.clone();
+    let (st, body) = http(a, "GET", "/api/sessions", &[], None);
+    assert_eq!(st, 200);
+    assert!(body.contains(&id), "the saved session is listed: {body}");
+    let (st, body) = http(
+        a,
+        "POST",
+        "/api/sessions",
+        &[],
+        Some(&json!({"resume": id})),
+    );
+    assert_eq!(st, 200, "{body}");
+    let (_, body) = http(a, "GET", &format!("/api/sessions/{id}/state"), &[], None);
+    let v: Value = serde_json::from_str(&body).unwrap();
+    let got = v["strokes"].as_array().unwrap().len() + v["redo"].as_array().map_or(0, Vec::len);
+    eprintln!("kill -9: {got} of {i} strokes kept ({must} sent a second or more before the kill)");
+    assert!(
+        got >= must,
+        "lost strokes: {got} kept, {must} sent a second before the kill"
+    );
+    let want: Vec<Value> = (0..got).map(|k| numbers_as_f64(&stroke(k))).collect();
+    let mut have: Vec<Value> = v["strokes"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(numbers_as_f64)
+        .collect();
+    have.extend(
+        v["redo"]
+            .as_array()
+            .into_iter()
+            .flatten()
+            .rev()
+            .map(numbers_as_f64),
+    );
+    assert_eq!(have, want, "the strokes kept, in order");
+    assert_eq!(v["redo"].as_array().map(Vec::len), Some(1), "{v}");
+    assert_eq!(v["ui"]["idx"]["z"], 3, "{v}");
 }

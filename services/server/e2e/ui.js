@@ -15,27 +15,16 @@
 //      convention puts them, pixels scaled by voxel spacing; then the neurological toggle;
 //   7. the server killed: the page shows that it is disconnected.
 // A screenshot of each state goes to SHOTS_DIR.
-const { chromium } = require("playwright-core");
+const { launch, pixels, changed } = require("./common");
 const path = require("path");
 
-const pixels = (page, sel) => page.evaluate((sel) => {
-  const el = document.querySelector(sel);
-  const c = document.createElement("canvas");
-  c.width = el.naturalWidth || el.width; c.height = el.naturalHeight || el.height;
-  const g = c.getContext("2d"); g.drawImage(el, 0, 0);
-  return Array.from(g.getImageData(0, 0, c.width, c.height).data);
-}, sel);
-const changed = (a, b) => { let n = 0; for (let i = 0; i < Math.min(a.length, b.length); i += 4) if (Math.abs(a[i] - b[i]) + Math.abs(a[i + 1] - b[i + 1]) + Math.abs(a[i + 2] - b[i + 2]) > 30) n++; return n; };
 const failures = [];
 const check = (ok, what) => { if (!ok) failures.push(what); };
 
 (async () => {
   const [url, shots, pid] = process.argv.slice(2);
   const shot = (name) => page.screenshot({ path: path.join(shots, name + ".png") });
-  const browser = await chromium.launch({
-    executablePath: process.env.CHROMIUM || "/usr/bin/chromium",
-    args: ["--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run", "--disable-background-networking", "--disable-component-update", "--disable-sync"],
-  });
+  const browser = await launch();
   const page = await browser.newPage({ viewport: { width: 1280, height: 860 } });
   const errors = [], missing = [];
   page.on("pageerror", (e) => errors.push(e.message));
@@ -55,7 +44,9 @@ const check = (ok, what) => { if (!ok) failures.push(what); };
   const renderBefore = await pixels(page, "#render");
   // 2. Scribbles for two classes in the axial view: class 1 on the bright column in the middle,
   // background on the air at the border and on the soft tissue.
-  const box = await page.locator("#cz").boundingBox();
+  // The axial slice's rectangle on the page (each view fits its slice into its pane).
+  const cbox = await page.locator("#cz").boundingBox(), vr = await page.evaluate(() => viewRect("z"));
+  const box = { x: cbox.x + vr.x, y: cbox.y + vr.y, width: vr.w, height: vr.h };
   const draw = async (x0, y0, x1, y1) => {
     await page.mouse.move(box.x + box.width * x0, box.y + box.height * y0);
     await page.mouse.down();
@@ -176,11 +167,18 @@ const check = (ok, what) => { if (!ok) failures.push(what); };
   const views = () => page.evaluate(() => {
     const out = {};
     for (const a of ["x", "y", "z"]) {
+      // The slice is the grey pixels (the pane around it is not grey); the marker's centroid
+      // is taken relative to the slice's rectangle.
       const c = document.getElementById("c" + a), g = c.getContext("2d"), d = g.getImageData(0, 0, c.width, c.height).data;
-      let sx = 0, sy = 0, n = 0;
-      for (let y = 0; y < c.height; y++) for (let x = 0; x < c.width; x++) if (d[(y * c.width + x) * 4] > 200) { sx += x; sy += y; n++; }
+      let sx = 0, sy = 0, n = 0, x0 = 1e9, x1 = -1, y0 = 1e9, y1 = -1;
+      for (let y = 0; y < c.height; y++) for (let x = 0; x < c.width; x++) {
+        const i = (y * c.width + x) * 4;
+        if (d[i] === d[i + 1] && d[i + 1] === d[i + 2] && d[i + 3] === 255) { x0 = Math.min(x0, x); x1 = Math.max(x1, x); y0 = Math.min(y0, y); y1 = Math.max(y1, y); }
+        if (d[i] > 200) { sx += x; sy += y; n++; }
+      }
+      const w = x1 - x0 + 1, h = y1 - y0 + 1;
       const v = c.closest(".view"), t = (k) => v.querySelector(".m" + k).textContent;
-      out[document.getElementById("n" + a).textContent.split(" ")[0]] = { w: c.width, h: c.height, cx: sx / n / c.width, cy: sy / n / c.height, letters: t("l") + t("r") + t("t") + t("b") };
+      out[document.getElementById("n" + a).textContent.split(" ")[0]] = { w, h, cx: (sx / n - x0) / w, cy: (sy / n - y0) / h, letters: t("l") + t("r") + t("t") + t("b") };
     }
     return out;
   });

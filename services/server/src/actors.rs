@@ -234,24 +234,7 @@ pub struct Actors {
     stopping: Arc<AtomicBool>,
 }
 
-/// Forest size of interactive classification on volumes up to [`ROUND_TREE_VOXELS`] / `TREES`
-/// predicted voxels.
-pub const TREES: usize = 50;
-
-/// The fewest trees a round uses: on the abdomen CT, 32 trees score within 0.012 mean F1 of 50
-/// at S1 and S2 (3 seeds), 16 lose up to 0.05 (BENCHMARKS.md, issue 31).
-pub const MIN_TREES: usize = 32;
-
-/// Tree-voxel visits one round's prediction makes at most before the forest shrinks: about
-/// 1.5 s of the service's prediction on 2 cores (the `rounds` bench measured 60-70 M a second,
-/// features read from the cache and converted included).
-pub const ROUND_TREE_VOXELS: u64 = 100_000_000;
-
-/// The forest size of a round that predicts `voxels` voxels: [`TREES`], fewer on large volumes
-/// so a round stays interactive, never below [`MIN_TREES`].
-pub fn trees_for(voxels: u64) -> usize {
-    ((ROUND_TREE_VOXELS / voxels.max(1)) as usize).clamp(MIN_TREES, TREES)
-}
+pub use crate::session::{trees_for, MIN_TREES, ROUND_TREE_VOXELS, TREES};
 
 /// The actors' names, as [`Actors::crash`] and `actor_failed` events use them.
 pub const ACTORS: [&str; 5] = ["ingest", "classifier", "trainer", "renderer", "viewpoints"];
@@ -967,7 +950,7 @@ fn render(
     // the prior's verdict (a new one, or the toggle, changes labels anywhere).
     let flavour = if labels {
         let probs = s.probs.read().unwrap_or_else(|p| p.into_inner());
-        let prior = crate::assist::active_prior(s, &probs).map(|p| p.generation);
+        let prior = s.active_prior(&probs).map(|p| p.generation);
         format!("labels|{}|{prior:?}", probs.generation)
     } else {
         "probabilities".to_string()
@@ -1003,7 +986,11 @@ fn render(
                 dirty = all();
                 st.labels = flavour;
             }
-            g.invalidate(&dirty)?;
+            if let Err(e) = g.invalidate(&dirty) {
+                restore_dirty(s, dirty);
+                st.labels.clear();
+                return Err(e.into());
+            }
             let img = g.render(params, &luts)?;
             return crate::imaging::png(img.width, img.height, 3, &img.to_rgb8());
         }
@@ -1024,18 +1011,37 @@ fn render(
             .into_iter()
             .collect();
     let key = format!("{params:?}|{tf:?}|{classes:?}");
-    let img = if key == st.key && params.mode.needs_probs() {
-        match st.renderer.update_bricks(&dirty)? {
-            Some(img) => img,
-            None => st.renderer.render(params, &luts)?,
-        }
+    let frame = if key == st.key && params.mode.needs_probs() {
+        st.renderer.update_bricks(&dirty).and_then(|img| match img {
+            Some(img) => Ok(img),
+            None => st.renderer.render(params, &luts),
+        })
     } else {
         // The changed bricks' cached copies are stale for this frame too.
-        st.renderer.invalidate(&dirty)?;
-        st.renderer.render(params, &luts)?
+        st.renderer
+            .invalidate(&dirty)
+            .and_then(|()| st.renderer.render(params, &luts))
+    };
+    let img = match frame {
+        Ok(img) => img,
+        Err(e) => {
+            // A cancelled or failed frame has not drawn the changed bricks: they stay dirty,
+            // and the next frame starts from scratch, so no change is ever lost.
+            restore_dirty(s, dirty);
+            st.key.clear();
+            return Err(e.into());
+        }
     };
     st.key = key;
     crate::imaging::png(img.width, img.height, 3, &img.to_rgb8())
+}
+
+/// Puts bricks a render took from the session's dirty set back into it.
+fn restore_dirty(s: &Session, dirty: Vec<[usize; 3]>) {
+    s.dirty
+        .lock()
+        .unwrap_or_else(|p| p.into_inner())
+        .extend(dirty);
 }
 
 /// Opacity of a labelled voxel in the 3-D label view.

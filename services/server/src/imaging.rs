@@ -103,3 +103,22 @@ pub fn preview_png(
     }
     png(2 * width, height, 1, &px)
 }
+
+/// Whether a volume's stored intensities look like CT Hounsfield units (so its window presets
+/// and readout are in HU). The store keeps the source's values after NIfTI `scl_slope` and
+/// `scl_inter`, and no modality tag survives ingest, so this decides from the data: CT holds air
+/// at about -1000 HU (scanners pad with -1024, -2048 or -3024), and MRI, PET and microscopy
+/// hold no values below -500. A minimum in [-3100, -500] therefore means CT.
+pub fn looks_like_ct(min: f64) -> bool {
+    (-3100.0..=-500.0).contains(&min)
+}
+
+/// The unit of a volume's stored intensities: `HU` for CT ([`looks_like_ct`]), else empty
+/// (arbitrary scanner units).
+pub fn intensity_unit(min: f64) -> &'static str {
+    if looks_like_ct(min) {
+        "HU"
+    } else {
+        ""
+    }
+}

@@ -11,8 +11,9 @@
 //!   failed actor and reports it.
 //! - [`http`]: the routes; every malformed request gets a 4xx with a message.
 //! - [`paths`]: volumes only from the configured data root.
-//! - [`assist`]: the spatial prior over the streamed probabilities and the next-slice
-//!   suggestion.
+//! - [`labels`]: the one owner of what the session shows: the streamed probabilities, the
+//!   prior's verdict, and the label history that undo, redo and restores show again.
+//! - [`assist`]: the next-slice suggestion and per-voxel views of the labels.
 //! - [`memory`]: the server-wide budgets of what sessions hold (features, render bricks,
 //!   probabilities), and the priority of renders over classification.
 //! - [`access`]: the token, host and origin checks, the request timeout and the shutdown gate
@@ -28,6 +29,7 @@ pub mod compute;
 pub mod error;
 pub mod http;
 pub mod imaging;
+pub mod labels;
 pub mod memory;
 pub mod paths;
 pub mod session;

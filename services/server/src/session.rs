@@ -16,7 +16,7 @@ use neuvolex_render::{BrickSource, StoreSource, VolumeGeom};
 use neuvolex_tasks::executor::CancelPoll;
 use neuvolex_tasks::{Event, Executor, LocalExecutor};
 use serde::Serialize;
-use std::collections::{BTreeSet, HashMap};
+use std::collections::BTreeSet;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, RwLock};
 
@@ -27,6 +27,25 @@ use neuvolex_session::SessionFile;
 /// The feature set the service classifies with (`neuvolex classify --features` defaults to
 /// the same).
 pub const DEFAULT_FEATURES: &str = "filters+xyz";
+
+/// Forest size of interactive classification on volumes up to [`ROUND_TREE_VOXELS`] / `TREES`
+/// predicted voxels.
+pub const TREES: usize = 50;
+
+/// The fewest trees a round uses: on the abdomen CT, 32 trees score within 0.012 mean F1 of 50
+/// at S1 and S2 (3 seeds), 16 lose up to 0.05 (BENCHMARKS.md, issue 31).
+pub const MIN_TREES: usize = 32;
+
+/// Tree-voxel visits one round's prediction makes at most before the forest shrinks: about
+/// 1.5 s of the service's prediction on 2 cores (the `rounds` bench measured 60-70 M a second,
+/// features read from the cache and converted included).
+pub const ROUND_TREE_VOXELS: u64 = 100_000_000;
+
+/// The forest size of a round that predicts `voxels` voxels: [`TREES`], fewer on large volumes
+/// so a round stays interactive, never below [`MIN_TREES`].
+pub fn trees_for(voxels: u64) -> usize {
+    ((ROUND_TREE_VOXELS / voxels.max(1)) as usize).clamp(MIN_TREES, TREES)
+}
 
 /// A feature set the page offers, with the trade measured in BENCHMARKS.md (mean F1 over the
 /// ROI classes of a one-shot classification, seeds 0-2, 100 trees, the spatial prior on).
@@ -92,29 +111,7 @@ pub fn now_ms() -> u64 {
 /// The label strokes use for background/other.
 pub const BACKGROUND: u32 = neuvolex_session::BACKGROUND;
 
-/// Class probabilities received so far, per brick (u8, voxel-major).
-#[derive(Default)]
-pub struct Probs {
-    /// Class id of each channel (ascending; the background label included).
-    pub ids: Vec<u32>,
-    /// Stroke generation they belong to.
-    pub generation: u64,
-    /// Bricks classified so far.
-    pub bricks: HashMap<[usize; 3], Arc<Vec<u8>>>,
-}
-
-impl Probs {
-    /// Class probabilities of voxel `p` (None before classification reached its brick).
-    pub fn at(&self, store: &BrickStore, p: [usize; 3]) -> Option<&[u8]> {
-        let b = store.info().brick;
-        let br = store.brick(p.map(|v| v / b)).ok()?;
-        let data = self.bricks.get(&br.index)?;
-        let l = [0, 1, 2].map(|k| p[k] - br.origin[k]);
-        let i = (l[2] * br.size[1] + l[1]) * br.size[0] + l[0];
-        let c = self.ids.len();
-        data.get(i * c..(i + 1) * c)
-    }
-}
+pub use crate::labels::Probs;
 
 /// Classification progress.
 #[derive(Debug, Clone, Default, Serialize)]
@@ -188,11 +185,22 @@ pub struct Session {
     pub prior_on: AtomicBool,
     /// The prior's verdict on the last complete classification (beside the raw
     /// probabilities, which it never changes).
-    pub prior: RwLock<Option<crate::assist::PriorState>>,
-    /// The labels the last complete classification showed, for the stability rule
-    /// ([`neuvolex_classify::stable`]): a new round keeps them far from its new strokes unless
-    /// the new probabilities clearly prefer a change.
-    pub shown: Mutex<Option<crate::assist::Shown>>,
+    pub prior: RwLock<Option<crate::labels::PriorState>>,
+    /// The labels every complete round showed, and the one shown now: the base of the
+    /// stability rule ([`neuvolex_classify::stable`]) and what undo, redo and a restore show
+    /// again ([`crate::labels`]).
+    pub labels: Mutex<crate::labels::LabelHistory>,
+    /// The undone strokes, the next to redo last (the page's redo stack, saved with the
+    /// session).
+    pub redo: RwLock<Vec<Stroke>>,
+    /// The page's own settings (slice positions, zoom, window/level, ...), saved with the
+    /// session as sent.
+    pub ui: RwLock<Option<serde_json::Value>>,
+    /// Bumped by every change the session file keeps ([`Self::touch`]); the autosave writes
+    /// while it differs from what was saved last.
+    pub edits: AtomicU64,
+    /// The [`Self::edits`] value (and label history revision) the last save wrote.
+    pub saved: Mutex<(u64, u64)>,
     /// The current model as a blob for cluster workers (version, identity, bytes).
     model_bytes: Mutex<Option<ModelBlob>>,
     /// The server's session memory: this session's render bricks and probabilities count
@@ -297,7 +305,11 @@ impl Session {
             preview: RwLock::new(None),
             prior_on: AtomicBool::new(true),
             prior: RwLock::new(None),
-            shown: Mutex::new(None),
+            labels: Mutex::new(crate::labels::LabelHistory::default()),
+            redo: RwLock::new(Vec::new()),
+            ui: RwLock::new(None),
+            edits: AtomicU64::new(0),
+            saved: Mutex::new((0, 0)),
             model_bytes: Mutex::new(None),
             memory: memory.clone(),
             render_owner,
@@ -318,7 +330,10 @@ impl Session {
             self.memory.release_probs(&mut held);
         }
         *self.renderer.lock().unwrap_or_else(|p| p.into_inner()) = None;
-        *self.shown.lock().unwrap_or_else(|p| p.into_inner()) = None;
+        self.labels
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .clear();
         // The stored features' writer (and the store's lock, while they are pending) goes
         // with the last session holding them.
         *self.stored.lock().unwrap_or_else(|p| p.into_inner()) = None;
@@ -327,7 +342,7 @@ impl Session {
         self.features.close();
     }
 
-    /// The forest size of this session's rounds ([`crate::actors::trees_for`] the voxels of its
+    /// The forest size of this session's rounds ([`trees_for`] the voxels of its
     /// occupied bricks, the ones a round predicts).
     pub fn round_trees(&self) -> usize {
         let voxels: u64 = self
@@ -336,7 +351,56 @@ impl Session {
             .iter()
             .map(|b| b.voxels() as u64)
             .sum();
-        crate::actors::trees_for(voxels)
+        trees_for(voxels)
+    }
+
+    /// Records a change the session file keeps (strokes, redo, classes, transfer function,
+    /// features, prior, page settings): the autosave writes it within its period.
+    pub fn touch(&self) {
+        self.edits.fetch_add(1, Ordering::SeqCst);
+    }
+
+    /// Settles the labels of the current probabilities once they are complete: the prior's
+    /// verdict, growth and the stability rule against the label history, or a recorded round
+    /// shown again ([`crate::labels::settle_labels`]). Called when a classification finishes
+    /// and when the prior is switched on.
+    pub fn refresh_prior(&self) -> ApiResult<crate::labels::PriorSummary> {
+        let probs = self.probs.read().unwrap_or_else(|p| p.into_inner());
+        let total = self.store.bricks().count();
+        if !self.prior_enabled() || probs.ids.is_empty() || probs.bricks.len() < total {
+            return Ok(self.prior_summary());
+        }
+        let st = crate::labels::settle_labels(&self.store, &probs, &self.labels)?;
+        drop(probs);
+        let sum = st.summary;
+        *self.prior.write().unwrap_or_else(|p| p.into_inner()) = Some(st);
+        Ok(sum)
+    }
+
+    /// What the prior does now.
+    pub fn prior_summary(&self) -> crate::labels::PriorSummary {
+        let mut sum = self
+            .prior
+            .read()
+            .unwrap_or_else(|p| p.into_inner())
+            .as_ref()
+            .map(|p| p.summary)
+            .unwrap_or_default();
+        sum.enabled = self.prior_enabled();
+        sum
+    }
+
+    /// The verdict that applies to `probs` (this session's), when the prior is on.
+    pub fn active_prior(&self, probs: &Probs) -> Option<crate::labels::PriorState> {
+        if !self.prior_enabled() {
+            return None;
+        }
+        self.prior
+            .read()
+            .unwrap_or_else(|p| p.into_inner())
+            .as_ref()
+            .filter(|p| p.generation == probs.generation)
+            .cloned()
     }
 
     /// Whether the spatial prior is on.
@@ -349,7 +413,40 @@ impl Session {
         let _writer = self.stroke_writer.lock().unwrap_or_else(|p| p.into_inner());
         self.check_strokes(&strokes)?;
         *self.strokes.write().unwrap_or_else(|p| p.into_inner()) = strokes;
+        self.touch();
         Ok(self.generation.fetch_add(1, Ordering::SeqCst) + 1)
+    }
+
+    /// Replaces the strokes and the redo stack together (an undo or a redo of the page);
+    /// returns the new generation.
+    pub fn set_strokes_and_redo(&self, strokes: Vec<Stroke>, redo: Vec<Stroke>) -> ApiResult<u64> {
+        let _writer = self.stroke_writer.lock().unwrap_or_else(|p| p.into_inner());
+        self.check_strokes(&strokes)?;
+        self.check_strokes(&redo)
+            .map_err(|e| ApiError::BadRequest(format!("redo: {e}")))?;
+        *self.strokes.write().unwrap_or_else(|p| p.into_inner()) = strokes;
+        *self.redo.write().unwrap_or_else(|p| p.into_inner()) = redo;
+        self.touch();
+        Ok(self.generation.fetch_add(1, Ordering::SeqCst) + 1)
+    }
+
+    /// The session's line: its strokes, then the undone ones in the order a redo brings them
+    /// back (the saved label rounds are made from prefixes of it).
+    pub fn line(&self) -> Vec<Stroke> {
+        let mut l = self
+            .strokes
+            .read()
+            .unwrap_or_else(|p| p.into_inner())
+            .clone();
+        l.extend(
+            self.redo
+                .read()
+                .unwrap_or_else(|p| p.into_inner())
+                .iter()
+                .rev()
+                .cloned(),
+        );
+        l
     }
 
     /// Appends strokes to the session's list, atomically with respect to other appends and
@@ -367,6 +464,7 @@ impl Session {
         self.check_strokes(&all)?;
         let n = all.len();
         *self.strokes.write().unwrap_or_else(|p| p.into_inner()) = all;
+        self.touch();
         Ok((self.generation.fetch_add(1, Ordering::SeqCst) + 1, n))
     }
 
@@ -405,6 +503,12 @@ impl Session {
                 .map(|t| t.0.clone()),
             view: None,
             features: Some(self.feature_set().to_string()),
+            id: Some(self.id.clone()),
+            redo: self.redo.read().unwrap_or_else(|p| p.into_inner()).clone(),
+            ui: self.ui.read().unwrap_or_else(|p| p.into_inner()).clone(),
+            prior: Some(self.prior_enabled()),
+            rounds: Vec::new(),
+            saved_ms: None,
         }
     }
 
@@ -424,6 +528,14 @@ impl Session {
         *self.tf.write().unwrap_or_else(|p| p.into_inner()) =
             tf.map(|t| (f.tf.clone().unwrap_or_default(), t));
         *self.strokes.write().unwrap_or_else(|p| p.into_inner()) = f.strokes.clone();
+        *self.redo.write().unwrap_or_else(|p| p.into_inner()) = f.redo.clone();
+        if let Some(ui) = &f.ui {
+            *self.ui.write().unwrap_or_else(|p| p.into_inner()) = Some(ui.clone());
+        }
+        if let Some(on) = f.prior {
+            self.prior_on.store(on, Ordering::SeqCst);
+        }
+        self.touch();
         if let Some(name) = &f.features {
             // A set that needs an INR this volume does not have yet keeps the current one:
             // the strokes still apply.
@@ -497,6 +609,7 @@ impl Session {
     pub fn set_feature_set(&self, name: &str) -> ApiResult<u64> {
         let set = self.check_feature_set(name)?;
         *self.feature_set.write().unwrap_or_else(|p| p.into_inner()) = set;
+        self.touch();
         Ok(self.bump_generation())
     }
 
@@ -624,7 +737,12 @@ impl Session {
             .read()
             .unwrap_or_else(|p| p.into_inner())
             .clone();
-        let mut s = rasterise(&strokes, self.store.info().dims)
+        self.scribbles_of(&strokes)
+    }
+
+    /// The scribbled voxels of `strokes` on this session's grid (class 0 strokes erase).
+    pub fn scribbles_of(&self, strokes: &[Stroke]) -> ApiResult<Scribbles> {
+        let mut s = rasterise(strokes, self.store.info().dims)
             .map_err(|e| ApiError::BadRequest(e.to_string()))?;
         s.voxels.retain(|v| v.1 != 0);
         Ok(s)
@@ -682,7 +800,15 @@ impl Session {
         cluster: Option<&neuvolex_cluster::ClusterExecutor>,
     ) -> ApiResult<usize> {
         let t0 = std::time::Instant::now();
-        let scr = self.scribbles()?;
+        // The strokes this round is made from, read once: the probabilities and the labels
+        // settled over them name these, whatever arrives meanwhile.
+        let strokes = Arc::new(
+            self.strokes
+                .read()
+                .unwrap_or_else(|p| p.into_inner())
+                .clone(),
+        );
+        let scr = self.scribbles_of(&strokes)?;
         let counts = scr.counts();
         let rois = counts.keys().filter(|&&c| c != BACKGROUND).count();
         if counts.len() < 2 || rois == 0 {
@@ -746,7 +872,6 @@ impl Session {
         let trained = t0.elapsed().as_secs_f64();
         let bricks = {
             let all: Vec<neuvolex_bricks::Brick> = self.store.bricks().collect();
-            let strokes = self.strokes.read().unwrap_or_else(|p| p.into_inner());
             let focus = *self.focus.lock().unwrap_or_else(|p| p.into_inner());
             brick_order(&all, strokes.last(), focus)
         };
@@ -778,6 +903,8 @@ impl Session {
             }
             p.ids = ts.labels.clone();
             p.generation = generation;
+            p.strokes = strokes.clone();
+            p.features = format!("{set}/{version}");
         }
         self.set_status(|s| {
             s.state = "classifying".into();
@@ -872,7 +999,7 @@ impl Session {
         let cancelled = cancelled || run.cancelled;
         let predicted = t0.elapsed().as_secs_f64();
         if !cancelled {
-            crate::assist::refresh_prior(self)?;
+            self.refresh_prior()?;
             tracing::debug!(
                 session = %self.id,
                 generation,
@@ -956,7 +1083,7 @@ pub fn brick_order(
 
 /// Intensity from the store, probabilities from the session's streamed bricks: the class
 /// probabilities themselves, or (`labels`) the current labels as one-hot channels
-/// ([`crate::assist::one_hot_labels`]: the 0.5 rule, the prior's changes when it is on), the
+/// ([`crate::labels::one_hot_labels`]: the 0.5 rule, the prior's changes when it is on), the
 /// same labels the overlays, fractions and exports show.
 pub struct SessionSource {
     inner: StoreSource,
@@ -991,7 +1118,7 @@ impl SessionSource {
             .ids
             .clone();
         if self.labels && !ids.is_empty() {
-            crate::assist::label_channels(&ids)
+            crate::labels::label_channels(&ids)
         } else {
             ids
         }
@@ -1002,7 +1129,7 @@ impl SessionSource {
     fn one_hot(
         &self,
         pr: &Probs,
-        prior: Option<&crate::assist::PriorState>,
+        prior: Option<&crate::labels::PriorState>,
         channels: &[u32],
         n: [usize; 3],
     ) -> Option<Arc<Vec<u8>>> {
@@ -1018,7 +1145,7 @@ impl SessionSource {
                 return Some(h.data.clone());
             }
         }
-        let data = Arc::new(crate::assist::one_hot_labels(
+        let data = Arc::new(crate::labels::one_hot_labels(
             &pr.ids,
             probs,
             changes.map(|c| c.as_slice()),
@@ -1082,8 +1209,8 @@ impl BrickSource for SessionSource {
         }
         let geom = self.geom();
         let (ch, p) = if self.labels {
-            let channels = crate::assist::label_channels(&pr.ids);
-            let prior = crate::assist::active_prior(&self.session, &pr);
+            let channels = crate::labels::label_channels(&pr.ids);
+            let prior = self.session.active_prior(&pr);
             let p = assemble(&geom, index, channels.len(), |n| {
                 Ok(self.one_hot(&pr, prior.as_ref(), &channels, n))
             })?;

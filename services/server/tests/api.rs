@@ -1189,8 +1189,8 @@ print("ok", len(files))
 }
 
 /// The real abdomen CT (3 mm voxels, origin (-178, 11.3, 94.3)): a session's exported labels
-/// and probabilities have its grid, and its sform and qform (codes and matrices), as nibabel
-/// reads them. Skips visibly without `../shared/data`, fails under CI=true.
+/// and probabilities have its grid, and its sform and qform (codes and matrices, and the
+/// quaternion fields with their offsets although its qform_code is 0), as nibabel reads them. Skips visibly without `../shared/data`, fails under CI=true.
 #[actix_web::test]
 async fn the_abdomen_ct_labels_lie_on_the_ct() {
     let ct = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
@@ -1230,6 +1230,9 @@ for f in files:
             assert np.allclose(mine[0], theirs[0], atol=1e-4), (f, mine[0], theirs[0])
     # What a viewer places the voxels by.
     assert np.allclose(img.affine, src.affine, atol=1e-4), (f, img.affine, src.affine)
+    # The quaternion fields as the source has them, offsets included (its qform_code is 0).
+    for k in ("quatern_b", "quatern_c", "quatern_d", "qoffset_x", "qoffset_y", "qoffset_z"):
+        assert np.isclose(img.header[k], src.header[k], atol=1e-4), (f, k, img.header[k], src.header[k])
 print("ok", src.affine[:3, 3])
 "#,
         ct = ct.to_str().unwrap(),
@@ -1260,7 +1263,7 @@ async fn idle_sessions_are_saved_and_closed_but_training_ones_stay() {
     let open: Vec<String> = st.all_sessions().iter().map(|s| s.id.clone()).collect();
     assert_eq!(open, vec![b.id.clone()], "the training session stays open");
     // Closing saved its state first, for the next open.
-    let saved = neuvolex_server::http::state_path(&cfg.work_dir, "ph.zarr");
+    let saved = neuvolex_server::http::session_path(&cfg.work_dir, &a.id);
     let text = std::fs::read_to_string(&saved).unwrap();
     let back: Value = serde_json::from_str(&text).unwrap();
     assert_eq!(
@@ -1488,69 +1491,14 @@ fn s_trees(store: &std::sync::Arc<BrickStore>) -> usize {
 
 #[actix_web::test]
 async fn a_new_stroke_changes_far_labels_only_on_clear_evidence() {
-    use neuvolex_classify::scribble::{simulate, Level, SimConfig};
     use neuvolex_classify::stable::{delta_u8, near, score, StableConfig};
     use neuvolex_server::session::Session;
     use std::sync::Arc;
     let d = tempfile::tempdir().unwrap();
-    let sp = d.path().join("ph.zarr");
-    neuvolex_ingest::phantom_store(
-        &sp,
-        neuvolex_bricks::synth::PhantomParams::with_size(64, 0),
-        &neuvolex_ingest::IngestOptions {
-            brick: 16,
-            ..Default::default()
-        },
-        &mut |_| {},
-    )
-    .unwrap();
-    let store = Arc::new(BrickStore::open(&sp).unwrap());
+    let case = rule_case(&d.path().join("ph.zarr"));
+    let store = Arc::new(case.store);
     let dims = store.info().dims;
-    let truth = store.read_labels_box("ground_truth", [0; 3], dims).unwrap();
-    let tf: Vec<f32> = truth.iter().map(|&t| t as f32).collect();
-    let strokes = |level, seed| {
-        let mut src = neuvolex_formats::MemVolume::from_f32(dims, &tf);
-        simulate(
-            &mut src,
-            &SimConfig {
-                level,
-                seed,
-                background: 255,
-                ..Default::default()
-            },
-        )
-        .unwrap()
-        .0
-    };
-    let first = strokes(Level::S1, 0);
-    // The added strokes: those of another simulation on one slice far from the first's.
-    let far_slice = |s: &neuvolex_classify::Stroke| {
-        first
-            .iter()
-            .all(|f| f.axis != s.axis || f.slice.abs_diff(s.slice) > 4)
-    };
-    let more: Vec<_> = strokes(Level::S2, 7)
-        .into_iter()
-        .filter(far_slice)
-        .collect();
-    let slice = (more[0].axis, more[0].slice);
-    let more: Vec<_> = more
-        .into_iter()
-        .filter(|s| (s.axis, s.slice) == slice)
-        .collect();
-    assert!(!more.is_empty());
-    let classes: Vec<neuvolex_bricks::synth::ClassInfo> = {
-        let mut ids: Vec<u32> = truth.iter().copied().filter(|&t| t > 0).collect();
-        ids.sort_unstable();
-        ids.dedup();
-        ids.iter()
-            .map(|&id| neuvolex_bricks::synth::ClassInfo {
-                id,
-                name: format!("c{id}"),
-                color: neuvolex_bricks::synth::palette(id),
-            })
-            .collect()
-    };
+    let (first, more, classes) = (case.first, case.more, case.classes);
     let open = || {
         let s = Session::new("t".into(), "ph".into(), store.clone(), 1 << 30);
         *s.classes.write().unwrap() = classes.clone();
@@ -1631,4 +1579,102 @@ async fn a_new_stroke_changes_far_labels_only_on_clear_evidence() {
     s.classify(g, trees, &|_, _, _| {}).unwrap();
     let summary = s.prior.read().unwrap().as_ref().unwrap().summary;
     assert_eq!(summary.voxels_held, 0);
+}
+
+#[actix_web::test]
+async fn the_voxel_readout_gives_source_units_world_position_and_label() {
+    let (_d, cfg) = data();
+    // A CT-like NIfTI stored as raw values with scl_slope 2 and scl_inter -1024, in an
+    // LPS-ordered grid with anisotropic voxels: the readout is in HU, at the affine's position.
+    let dims = [8usize, 6, 4];
+    let raw: Vec<f32> = (0..dims.iter().product::<usize>())
+        .map(|i| i as f32)
+        .collect();
+    let mut vol = neuvolex_formats::MemVolume::from_f32(dims, &raw);
+    vol.meta.spacing = [2.0, 1.5, 3.0];
+    vol.meta.affine = [
+        [-2.0, 0.0, 0.0, 40.0],
+        [0.0, -1.5, 0.0, 36.0],
+        [0.0, 0.0, 3.0, -48.0],
+        [0.0, 0.0, 0.0, 1.0],
+    ];
+    vol.meta.scaling = Some((2.0, -1024.0));
+    neuvolex_formats::nifti::write_nifti(&cfg.data_root.join("hu.nii"), &mut vol, 4).unwrap();
+    // The same grid without scaling: values 0..192, no air, so not CT.
+    let mut mr = neuvolex_formats::MemVolume::from_f32(dims, &raw);
+    neuvolex_formats::nifti::write_nifti(&cfg.data_root.join("mr.nii"), &mut mr, 4).unwrap();
+    let app = app!(cfg);
+    let s = open_session_on(&app, "hu.nii").await;
+    assert_eq!(s["unit"], "HU", "{s}");
+    assert_eq!(s["affine"][0], json!([-2.0, 0.0, 0.0, 40.0]), "{s}");
+    let id = s["id"].as_str().unwrap().to_string();
+    let get = |uri: String| test::TestRequest::get().uri(&uri).to_request();
+    let v: Value =
+        test::call_and_read_body_json(&app, get(format!("/api/sessions/{id}/voxel/3/2/1"))).await;
+    let i = 3 + 8 * 2 + 48;
+    assert_eq!(v["index"], json!([3, 2, 1]));
+    assert_eq!(v["value"].as_f64().unwrap(), 2.0 * i as f64 - 1024.0, "{v}");
+    assert_eq!(v["unit"], "HU");
+    assert_eq!(v["world"], json!([34.0, 33.0, -45.0]), "{v}");
+    assert!(v["label"].is_null(), "nothing classified yet: {v}");
+    // Bad coordinates: a clear 400, never a panic.
+    for bad in [
+        "8/0/0",
+        "0/6/0",
+        "0/0/4",
+        "-1/0/0",
+        "a/0/0",
+        "99999999999999999999/0/0",
+    ] {
+        let r = test::call_service(&app, get(format!("/api/sessions/{id}/voxel/{bad}"))).await;
+        assert_eq!(r.status(), 400, "{bad}");
+        let e: Value = test::read_body_json(r).await;
+        assert!(
+            e["error"].as_str().is_some_and(|m| !m.is_empty()),
+            "{bad}: {e}"
+        );
+    }
+    let r = test::call_service(&app, get("/api/sessions/nope/voxel/0/0/0".into())).await;
+    assert_eq!(r.status(), 404);
+    let r = test::call_service(&app, get(format!("/api/sessions/{id}/voxel/8/0/0"))).await;
+    let e: Value = test::read_body_json(r).await;
+    assert!(e["error"].as_str().unwrap().contains("outside"), "{e}");
+
+    let s = open_session_on(&app, "mr.nii").await;
+    assert_eq!(s["unit"], "", "no air, not CT: {s}");
+    let id = s["id"].as_str().unwrap().to_string();
+    let v: Value =
+        test::call_and_read_body_json(&app, get(format!("/api/sessions/{id}/voxel/3/2/1"))).await;
+    assert_eq!(
+        (v["value"].as_f64(), &v["unit"]),
+        (Some(i as f64), &json!("")),
+        "{v}"
+    );
+
+    // The phantom (CT in HU): its stored value, and after classification the scribbled spine
+    // voxel's label, name and probabilities.
+    let s = open_session_on(&app, "ph.zarr").await;
+    assert_eq!(s["unit"], "HU", "{s}");
+    let id = s["id"].as_str().unwrap().to_string();
+    let g = put_strokes(&app, &id, 0).await;
+    wait_done(&app, &id, g).await;
+    let store = BrickStore::open(cfg.data_root.join("ph.zarr")).unwrap();
+    let want = store.read_box(0, [24, 30, 21], [1, 1, 1]).unwrap()[0] as f64;
+    let v: Value =
+        test::call_and_read_body_json(&app, get(format!("/api/sessions/{id}/voxel/24/30/21")))
+            .await;
+    assert_eq!(v["value"].as_f64().unwrap(), want, "{v}");
+    assert_eq!(v["label"], 1, "the scribbled spine voxel: {v}");
+    let name = s["classes"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|c| c["id"] == 1)
+        .unwrap()["name"]
+        .clone();
+    assert_eq!(v["label_name"], name, "{v}");
+    let p = v["probabilities"].as_object().unwrap();
+    assert!(p["1"].as_f64().unwrap() >= 0.5, "{v}");
+    let sum: f64 = p.values().map(|x| x.as_f64().unwrap()).sum();
+    assert!((sum - 1.0).abs() < 0.05, "probabilities sum to 1: {v}");
 }

@@ -91,6 +91,55 @@ pub struct SessionFile {
     /// or any `neuvolex classify --features` set); absent: the default.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub features: Option<String>,
+    /// The session's id on the server that saved it (absent in files of earlier versions).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub id: Option<String>,
+    /// The undone strokes, the next one to redo last (the page's redo stack).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub redo: Vec<Stroke>,
+    /// The page's own settings (slice positions, zoom, window/level, ...): a JSON object of at
+    /// most [`MAX_UI`] bytes, kept as sent.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub ui: Option<serde_json::Value>,
+    /// Whether the spatial prior is on (absent: on).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub prior: Option<bool>,
+    /// The labels each kept round showed, oldest first, by the label bricks saved beside the
+    /// file ([`RoundRef`]).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub rounds: Vec<RoundRef>,
+    /// When the server saved it, in ms since the Unix epoch.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub saved_ms: Option<u64>,
+}
+
+/// Most bytes of a session's `ui` settings.
+pub const MAX_UI: usize = 64 << 10;
+/// Most rounds a session file lists.
+pub const MAX_ROUNDS: usize = 1024;
+
+/// The labels one complete round of a session showed: made from the first `strokes` strokes
+/// of the session's line (its strokes, then its redo stack from the next to redo on) with the
+/// feature set and model version `features`, and saved as one label file per brick.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RoundRef {
+    /// How many strokes of the line the round was classified from.
+    pub strokes: usize,
+    /// The feature set and model version (`SET/VERSION`).
+    pub features: String,
+    /// Each brick's grid index and the name of its saved label file.
+    pub bricks: Vec<([usize; 3], String)>,
+}
+
+impl SessionFile {
+    /// The session's line: its strokes, then the undone ones in the order a redo brings them
+    /// back. Round `n` was classified from the first `n` strokes of it.
+    pub fn line(&self) -> Vec<Stroke> {
+        let mut l = self.strokes.clone();
+        l.extend(self.redo.iter().rev().cloned());
+        l
+    }
 }
 
 fn format_tag() -> String {
@@ -176,6 +225,46 @@ pub fn validate_strokes(strokes: &[Stroke], classes: &[ClassInfo]) -> Result<(),
     Ok(())
 }
 
+/// Checks a session id: 1 to 64 ASCII letters, digits, `-`, `_` or `.`, not starting with a
+/// dot (ids name files and appear in URLs).
+pub fn validate_id(id: &str) -> Result<(), String> {
+    let ok = !id.is_empty()
+        && id.len() <= 64
+        && !id.starts_with('.')
+        && id
+            .chars()
+            .all(|c| c.is_ascii_alphanumeric() || matches!(c, '-' | '_' | '.'));
+    if ok {
+        Ok(())
+    } else {
+        Err(format!(
+            "id '{}' must be 1-64 letters, digits, '-', '_' or '.', not starting with '.'",
+            id.escape_debug()
+        ))
+    }
+}
+
+/// Checks the page's settings: a JSON object of at most [`MAX_UI`] bytes.
+pub fn validate_ui(ui: &serde_json::Value) -> Result<(), String> {
+    if !ui.is_object() {
+        return Err("ui must be a JSON object".into());
+    }
+    let n = ui.to_string().len();
+    if n > MAX_UI {
+        return Err(format!("ui is {n} bytes, at most {MAX_UI}"));
+    }
+    Ok(())
+}
+
+/// Whether `name` can be a saved label file: 1 to 64 lowercase hex digits and `-`.
+pub fn label_file_name(name: &str) -> bool {
+    !name.is_empty()
+        && name.len() <= 64
+        && name
+            .chars()
+            .all(|c| c.is_ascii_digit() || ('a'..='f').contains(&c) || c == '-')
+}
+
 impl SessionFile {
     /// Parses and validates a session file; `source` names it in errors. The strokes are checked
     /// against a volume's grid by [`SessionFile::check_grid`].
@@ -215,6 +304,49 @@ impl SessionFile {
         }
         validate_classes(&self.classes).map_err(|d| err(source, d))?;
         validate_strokes(&self.strokes, &self.classes).map_err(|d| err(source, d))?;
+        validate_strokes(&self.redo, &self.classes)
+            .map_err(|d| err(source, format!("redo: {d}")))?;
+        if let Some(id) = &self.id {
+            validate_id(id).map_err(|d| err(source, d))?;
+        }
+        if let Some(ui) = &self.ui {
+            validate_ui(ui).map_err(|d| err(source, d))?;
+        }
+        let line = self.strokes.len() + self.redo.len();
+        if self.rounds.len() > MAX_ROUNDS {
+            return Err(err(
+                source,
+                format!("{} rounds: at most {MAX_ROUNDS}", self.rounds.len()),
+            ));
+        }
+        for (i, r) in self.rounds.iter().enumerate() {
+            if r.strokes == 0 || r.strokes > line {
+                return Err(err(
+                    source,
+                    format!(
+                        "rounds[{i}]: {} strokes, but the session has {line} (redo included)",
+                        r.strokes
+                    ),
+                ));
+            }
+            if r.features.is_empty() || r.features.len() > 256 || r.features.contains('\0') {
+                return Err(err(
+                    source,
+                    format!("rounds[{i}]: features must be SET/VERSION"),
+                ));
+            }
+            for (idx, name) in &r.bricks {
+                if idx.iter().any(|&v| v > 1 << 20) || !label_file_name(name) {
+                    return Err(err(
+                        source,
+                        format!(
+                            "rounds[{i}]: brick {idx:?} file '{}' is not a label file name",
+                            name.escape_debug()
+                        ),
+                    ));
+                }
+            }
+        }
         self.tf_file(source)?;
         if let Some(f) = &self.features {
             f.parse::<neuvolex_classify::features::FeatureSet>()
@@ -251,6 +383,7 @@ impl SessionFile {
     /// rasterised within the limits.
     pub fn check_grid(&self, dims: [usize; 3], source: &str) -> Result<(), SessionError> {
         rasterise(&self.strokes, dims).map_err(|e| err(source, format!("strokes: {e}")))?;
+        rasterise(&self.redo, dims).map_err(|e| err(source, format!("redo: {e}")))?;
         Ok(())
     }
 
@@ -327,6 +460,52 @@ mod tests {
             let e = SessionFile::parse(text, "t.json").unwrap_err();
             assert!(e.to_string().contains("not a neuvolex session file"), "{e}");
         }
+    }
+
+    #[test]
+    fn the_session_id_redo_page_settings_and_rounds_are_kept_and_checked() {
+        let mut j = good();
+        j["id"] = "s-0123456789ab".into();
+        j["redo"] = serde_json::json!([
+            {"class": 2, "axis": "y", "slice": 7, "points": [[2, 2]], "radius": 1}
+        ]);
+        j["ui"] = serde_json::json!({"idx": {"z": 3}, "window": 400});
+        j["prior"] = false.into();
+        j["rounds"] = serde_json::json!([
+            {"strokes": 3, "features": "filters+xyz/0", "bricks": [[[0, 0, 0], "0123abcd0123abcd-4096"]]}
+        ]);
+        let s = SessionFile::parse(&j.to_string(), "a.json").unwrap();
+        // The line: the strokes, then the redo stack from the next to redo on.
+        let line = s.line();
+        assert_eq!(line.len(), 3);
+        assert_eq!(line[2], s.redo[0]);
+        assert_eq!(SessionFile::parse(&s.to_json(), "b.json").unwrap(), s);
+        assert!(s.check_grid([16, 16, 8], "a.json").is_ok());
+        let cases: Vec<(&str, serde_json::Value, &str)> = vec![
+            ("/id", "../x".into(), "id '../x' must be"),
+            ("/ui", serde_json::json!([1]), "ui must be a JSON object"),
+            ("/rounds/0/strokes", 4.into(), "rounds[0]: 4 strokes"),
+            ("/rounds/0/strokes", 0.into(), "rounds[0]: 0 strokes"),
+            (
+                "/rounds/0/bricks/0/1",
+                "../../etc".into(),
+                "is not a label file name",
+            ),
+            ("/redo/0/class", 9.into(), "redo: strokes[0]: class 9"),
+        ];
+        for (ptr, v, want) in cases {
+            let mut k = j.clone();
+            *k.pointer_mut(ptr).unwrap() = v;
+            let e = SessionFile::parse(&k.to_string(), "bad.json").unwrap_err();
+            assert!(e.to_string().contains(want), "{ptr}: {e}");
+        }
+        let mut k = j.clone();
+        k["ui"] = serde_json::json!({"x": "a".repeat(MAX_UI)});
+        let e = SessionFile::parse(&k.to_string(), "big.json").unwrap_err();
+        assert!(e.to_string().contains("at most 65536"), "{e}");
+        // A redo stroke off the grid is named.
+        let e = s.check_grid([16, 6, 8], "a.json").unwrap_err();
+        assert!(e.to_string().contains("redo:"), "{e}");
     }
 
     #[test]

@@ -124,6 +124,8 @@ pub struct AppState {
     pub(crate) shutdown: tokio::sync::watch::Sender<bool>,
     pub(crate) started: Instant,
     pub(crate) next: AtomicU64,
+    /// Held while a saved session is reopened, so two tabs resuming it at once open it once.
+    resuming: tokio::sync::Mutex<()>,
 }
 
 impl AppState {
@@ -136,6 +138,11 @@ impl AppState {
             cfg.render_cache_bytes,
             cfg.probs_bytes,
         );
+        // Label bricks no saved session lists any more (rounds forgotten, sessions deleted).
+        let removed = crate::labels::collect_garbage(&cfg.work_dir);
+        if removed > 0 {
+            tracing::info!("removed {removed} label bricks no saved session lists");
+        }
         web::Data::new(AppState {
             features: memory.features.clone(),
             memory,
@@ -147,6 +154,7 @@ impl AppState {
             shutdown: tokio::sync::watch::channel(false).0,
             started: Instant::now(),
             next: AtomicU64::new(1),
+            resuming: tokio::sync::Mutex::new(()),
         })
     }
 
@@ -204,17 +212,29 @@ impl AppState {
             return;
         };
         let every = (idle / 4).clamp(Duration::from_millis(100), Duration::from_secs(60));
+        Self::every(state, every, |st| {
+            st.close_idle();
+        })
+        .await
+    }
+
+    /// Runs `f` on the blocking pool every `period` until shutdown.
+    async fn every(
+        state: web::Data<AppState>,
+        period: Duration,
+        f: impl Fn(&AppState) + Send + Sync + Copy + 'static,
+    ) {
         let mut stop = state.shutdown.subscribe();
         loop {
             tokio::select! {
-                _ = tokio::time::sleep(every) => {}
+                _ = tokio::time::sleep(period) => {}
                 _ = stop.changed() => return,
             }
             if state.shutting_down() {
                 return;
             }
             let st = state.clone();
-            let _ = web::block(move || st.close_idle()).await;
+            let _ = web::block(move || f(&st)).await;
         }
     }
 
@@ -236,6 +256,142 @@ impl AppState {
     /// Opens `rel` (a store, or a file the ingest actor turns into a store in the work
     /// folder) as a new session.
     pub async fn open(&self, rel: &str) -> ApiResult<Arc<Session>> {
+        self.open_as(rel, new_id()).await
+    }
+
+    /// Re-attaches to session `id`: the open one, or the one saved under that id
+    /// ([`session_path`]), reopened with its strokes, redo stack, classes, transfer function,
+    /// features, prior, page settings and label history, so it shows the labels it showed
+    /// when it was saved. Returns the session and whether it was reopened from its file.
+    pub async fn resume(&self, id: &str) -> ApiResult<(Arc<Session>, bool)> {
+        neuvolex_session::validate_id(id).map_err(ApiError::BadRequest)?;
+        let _one = self.resuming.lock().await;
+        if let Ok(s) = self.session(id) {
+            return Ok((s, false));
+        }
+        let p = session_path(&self.cfg.work_dir, id);
+        let src = p.display().to_string();
+        let p2 = p.clone();
+        let text = blocking(move || match std::fs::read_to_string(&p2) {
+            Ok(t) => Ok(t),
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => Err(ApiError::NotFound(format!(
+                "no session '{id}' is open or saved",
+                id = p2.file_stem().unwrap_or_default().to_string_lossy()
+            ))),
+            Err(e) => Err(ApiError::Internal(format!("{}: {e}", p2.display()))),
+        })
+        .await?;
+        let f = neuvolex_session::SessionFile::parse(&text, &src)
+            .map_err(|e| ApiError::BadRequest(e.to_string()))?;
+        let s = self.open_as(&f.volume, id.to_string()).await?;
+        let (s2, work) = (s.clone(), self.cfg.work_dir.clone());
+        let restored = blocking(move || restore(&work, &s2, &f, &src)).await;
+        match restored {
+            Ok(g) => {
+                if !s
+                    .strokes
+                    .read()
+                    .unwrap_or_else(|p| p.into_inner())
+                    .is_empty()
+                {
+                    self.actors.classify(s.clone(), g)?;
+                }
+                Ok((s, true))
+            }
+            Err(e) => {
+                // A file that does not fit the volume leaves nothing half-open.
+                let _ = self.close_unsaved(&s);
+                Err(e)
+            }
+        }
+    }
+
+    /// The saved and the open sessions, newest first: id, volume, whether open, strokes, and
+    /// when last changed or saved (ms since the Unix epoch).
+    pub fn list(&self) -> Vec<serde_json::Value> {
+        let open = self.all_sessions();
+        let mut out: Vec<(u64, serde_json::Value)> = open
+            .iter()
+            .map(|s| {
+                let t = s.last_used.load(Ordering::Relaxed);
+                (
+                    t,
+                    serde_json::json!({
+                        "id": s.id, "volume": s.name, "open": true,
+                        "strokes": s.strokes.read().unwrap_or_else(|p| p.into_inner()).len(),
+                        "updated_ms": t,
+                    }),
+                )
+            })
+            .collect();
+        for (id, f) in saved_sessions(&self.cfg.work_dir) {
+            if open.iter().any(|s| s.id == id) {
+                continue;
+            }
+            let t = f.saved_ms.unwrap_or(0);
+            out.push((
+                t,
+                serde_json::json!({
+                    "id": id, "volume": f.volume, "open": false,
+                    "strokes": f.strokes.len(), "updated_ms": t,
+                }),
+            ));
+        }
+        out.sort_by_key(|x| std::cmp::Reverse(x.0));
+        out.into_iter().map(|x| x.1).collect()
+    }
+
+    /// The newest saved session of volume `rel` that is not open, if any.
+    pub fn newest_saved(&self, rel: &str) -> Option<String> {
+        let open = self.all_sessions();
+        saved_sessions(&self.cfg.work_dir)
+            .into_iter()
+            .filter(|(id, f)| f.volume == rel && !open.iter().any(|s| &s.id == id))
+            .max_by_key(|(_, f)| f.saved_ms.unwrap_or(0))
+            .map(|(id, _)| id)
+    }
+
+    /// Writes every open session whose state changed since it was last saved (the autosave,
+    /// [`Self::autosave`]); returns the files written. A failed write is logged and retried at
+    /// the next pass.
+    pub fn save_changed(&self) -> Vec<PathBuf> {
+        let mut out = Vec::new();
+        for s in self.all_sessions() {
+            if s.closing.load(Ordering::SeqCst) || !unsaved(&s) {
+                continue;
+            }
+            match save_state(&self.cfg.work_dir, &s) {
+                Ok(Some(p)) => out.push(p),
+                Ok(None) => {}
+                Err(e) => tracing::warn!("session {} not saved: {e}", s.id),
+            }
+        }
+        out
+    }
+
+    /// Saves changed sessions every [`AUTOSAVE`] until shutdown (spawn it on the server's
+    /// runtime): a crash or `kill -9` loses at most that much of the work, plus the write.
+    pub async fn autosave(state: web::Data<AppState>) {
+        Self::every(state, AUTOSAVE, |st| {
+            st.save_changed();
+        })
+        .await
+    }
+
+    /// Removes a session that failed to reopen, without saving it.
+    fn close_unsaved(&self, s: &Session) -> ApiResult<()> {
+        stop_work(s);
+        self.sessions
+            .write()
+            .unwrap_or_else(|p| p.into_inner())
+            .remove(&s.id);
+        s.closing.store(true, Ordering::SeqCst);
+        s.release_memory();
+        Ok(())
+    }
+
+    /// Opens `rel` as a session named `id`.
+    async fn open_as(&self, rel: &str, id: String) -> ApiResult<Arc<Session>> {
         // Reserve a place first, so concurrent opens (each ingesting for a while) cannot
         // exceed the limit together.
         {
@@ -289,7 +445,6 @@ impl AppState {
             }
         };
         let n = self.next.fetch_add(1, Ordering::SeqCst);
-        let id = format!("s{n}");
         let s = Session::with_memory(
             id.clone(),
             rel.to_string(),
@@ -373,7 +528,8 @@ impl AppState {
     /// Begins shutdown and returns once in-flight work has stopped, or after `grace`: new
     /// requests get 503 and event streams end; every training is stopped (it saves its
     /// checkpoint) and every classification made stale; each session's state is saved to
-    /// `WORK/sessions/` (atomically). Returns the session files written.
+    /// `WORK/sessions/` (atomically). Returns the session files written (sessions with
+    /// nothing to keep write none).
     pub async fn shutdown(&self, grace: Duration) -> Vec<PathBuf> {
         let deadline = Instant::now() + grace;
         self.shutdown.send_replace(true);
@@ -391,6 +547,7 @@ impl AppState {
                     save_state(&work, s)
                         .map_err(|e| tracing::error!("session {} not saved: {e}", s.id))
                         .ok()
+                        .flatten()
                 })
                 .collect::<Vec<_>>()
         })
@@ -416,31 +573,161 @@ pub(crate) fn stop_work(s: &Session) {
     s.bump_generation();
 }
 
-/// Where a volume's session is saved between runs: `WORK/sessions/NAME.json`.
-pub fn state_path(work: &std::path::Path, volume: &str) -> PathBuf {
-    let name: String = volume
-        .chars()
-        .map(|c| {
-            if c.is_ascii_alphanumeric() || c == '.' || c == '-' {
-                c
-            } else {
-                '_'
-            }
-        })
-        .collect();
-    work.join("sessions").join(format!("{name}.json"))
+/// How often the autosave looks for changed sessions ([`AppState::autosave`]).
+pub const AUTOSAVE: Duration = Duration::from_millis(250);
+
+/// Most rounds of its label history a session file keeps (the newest of its line).
+pub const SAVED_ROUNDS: usize = 64;
+
+/// A new session id: `s-` and 12 random hex digits. It names the session's file and stays the
+/// same across reloads and restarts (the page keeps it in its URL).
+pub fn new_id() -> String {
+    let mut b = [0u8; 6];
+    if getrandom::fill(&mut b).is_err() {
+        // No entropy source: the clock and a counter still give ids unique on this server.
+        static N: AtomicU64 = AtomicU64::new(0);
+        let t = crate::session::now_ms() ^ (N.fetch_add(1, Ordering::SeqCst) << 40);
+        b.copy_from_slice(&t.to_le_bytes()[..6]);
+    }
+    format!(
+        "s-{}",
+        b.iter().map(|v| format!("{v:02x}")).collect::<String>()
+    )
 }
 
-/// Writes a session's state atomically (temporary file, fsync, rename): a crash leaves the
-/// previous file or the new one, never a part, and the temporaries a killed server left are
-/// removed by the next save. Sessions without strokes are not saved.
-pub(crate) fn save_state(work: &std::path::Path, s: &Session) -> std::io::Result<PathBuf> {
-    let state = s.state();
-    let p = state_path(work, &s.name);
-    if state.strokes.is_empty() && state.tf.is_none() {
-        return Ok(p);
+/// Where session `id` is saved: `WORK/sessions/ID.json` (its label bricks beside, in
+/// [`crate::labels::bricks_dir`]).
+pub fn session_path(work: &std::path::Path, id: &str) -> PathBuf {
+    work.join("sessions").join(format!("{id}.json"))
+}
+
+/// Every readable saved session under `WORK/sessions/`, with its id (the file's name: files of
+/// earlier versions, saved per volume, keep theirs). Unreadable files are logged and skipped.
+pub fn saved_sessions(work: &std::path::Path) -> Vec<(String, neuvolex_session::SessionFile)> {
+    let Ok(dir) = std::fs::read_dir(work.join("sessions")) else {
+        return Vec::new();
+    };
+    let mut out = Vec::new();
+    for e in dir.flatten() {
+        let p = e.path();
+        let Some(id) = p
+            .file_stem()
+            .and_then(|s| s.to_str())
+            .filter(|_| p.extension().is_some_and(|x| x == "json"))
+        else {
+            continue;
+        };
+        if neuvolex_session::validate_id(id).is_err() {
+            continue;
+        }
+        let src = p.display().to_string();
+        match std::fs::read_to_string(&p)
+            .map_err(|e| e.to_string())
+            .and_then(|t| neuvolex_session::SessionFile::parse(&t, &src).map_err(|e| e.to_string()))
+        {
+            Ok(f) => out.push((id.to_string(), f)),
+            Err(e) => tracing::warn!("saved session skipped: {src}: {e}"),
+        }
     }
+    out
+}
+
+/// Whether the session changed since its last save.
+fn unsaved(s: &Session) -> bool {
+    let rev = s
+        .labels
+        .lock()
+        .unwrap_or_else(|p| p.into_inner())
+        .revision();
+    let saved = *s.saved.lock().unwrap_or_else(|p| p.into_inner());
+    saved != (s.edits.load(Ordering::SeqCst), rev)
+}
+
+/// Applies a saved session to a freshly opened one: its state, then its label history (a
+/// damaged or missing label file is logged and the labels are classified afresh). Returns the
+/// stroke generation to classify.
+pub(crate) fn restore(
+    work: &std::path::Path,
+    s: &Session,
+    f: &neuvolex_session::SessionFile,
+    src: &str,
+) -> ApiResult<u64> {
+    let g = s.apply_state(f, src)?;
+    restore_rounds(work, s, f, src);
+    let rev = s
+        .labels
+        .lock()
+        .unwrap_or_else(|p| p.into_inner())
+        .revision();
+    *s.saved.lock().unwrap_or_else(|p| p.into_inner()) = (s.edits.load(Ordering::SeqCst), rev);
+    Ok(g)
+}
+
+/// Reads a session file's label history into the session (see [`restore`]).
+pub(crate) fn restore_rounds(
+    work: &std::path::Path,
+    s: &Session,
+    f: &neuvolex_session::SessionFile,
+    src: &str,
+) {
+    if f.rounds.is_empty() {
+        return;
+    }
+    let key = match s.feature_source() {
+        Ok((set, model)) => format!("{set}/{}", model.map_or(0, |m| m.0)),
+        Err(_) => return,
+    };
+    match crate::labels::load_rounds(work, &s.store, &f.rounds, &f.line()) {
+        Ok(rounds) => s
+            .labels
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .restore(rounds, &f.strokes, &key),
+        Err(e) => tracing::warn!(
+            "{src}: label history not restored ({e}); the labels are classified afresh"
+        ),
+    }
+}
+
+/// Writes a session's state atomically (temporary file, fsync, rename): first the label
+/// bricks of its history not saved yet (the newest [`SAVED_ROUNDS`] rounds of its line), then
+/// the file that lists them, so a crash leaves the previous file or the new one, each whole
+/// with its bricks. Serialised per session. A session with nothing to keep (never changed,
+/// no strokes) writes nothing: `None`.
+pub(crate) fn save_state(work: &std::path::Path, s: &Session) -> ApiResult<Option<PathBuf>> {
+    let mut saved = s.saved.lock().unwrap_or_else(|p| p.into_inner());
+    let edits = s.edits.load(Ordering::SeqCst);
+    let rev = s
+        .labels
+        .lock()
+        .unwrap_or_else(|p| p.into_inner())
+        .revision();
+    let p = session_path(work, &s.id);
+    if edits == 0 && rev == 0 && !p.exists() {
+        return Ok(None);
+    }
+    let mut state = file_with_rounds(work, s)?;
+    state.saved_ms = Some(crate::session::now_ms());
     neuvolex_bricks::atomic::replace_file(&p, state.to_json().as_bytes())
-        .map_err(std::io::Error::other)?;
-    Ok(p)
+        .map_err(|e| ApiError::write_failed(format!("{}: {e}", p.display())))?;
+    *saved = (edits, rev);
+    Ok(Some(p))
+}
+
+/// The session as a session file with its label history: the newest [`SAVED_ROUNDS`] rounds
+/// of its line, their bricks written to [`crate::labels::bricks_dir`] first where missing.
+pub(crate) fn file_with_rounds(
+    work: &std::path::Path,
+    s: &Session,
+) -> ApiResult<neuvolex_session::SessionFile> {
+    let mut state = s.state();
+    let line = state.line();
+    let rounds = s
+        .labels
+        .lock()
+        .unwrap_or_else(|p| p.into_inner())
+        .on_line(&line);
+    let keep = rounds.len().saturating_sub(SAVED_ROUNDS);
+    state.rounds = crate::labels::save_bricks(work, &rounds[keep..], &line)?;
+    Ok(state)
 }

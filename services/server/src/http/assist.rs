@@ -20,7 +20,7 @@ pub(super) async fn get_prior(
     id: web::Path<String>,
 ) -> ApiResult<HttpResponse> {
     let s = st.session(&id)?;
-    Ok(HttpResponse::Ok().json(crate::assist::prior_summary(&s)))
+    Ok(HttpResponse::Ok().json(s.prior_summary()))
 }
 
 #[derive(Deserialize)]
@@ -36,6 +36,7 @@ pub(super) async fn put_prior(
 ) -> ApiResult<HttpResponse> {
     let s = st.session(&id)?;
     s.prior_on.store(req.enabled, Ordering::SeqCst);
-    let sum = blocking(move || crate::assist::refresh_prior(&s)).await?;
+    s.touch();
+    let sum = blocking(move || s.refresh_prior()).await?;
     Ok(HttpResponse::Ok().json(sum))
 }

@@ -11,7 +11,10 @@ mod strokes;
 mod training;
 mod views;
 
-pub use app::{state_path, AppState, ServerConfig, DEFAULT_IDLE_CLOSE, MAX_BODY, MAX_SESSIONS};
+pub use app::{
+    new_id, saved_sessions, session_path, AppState, ServerConfig, AUTOSAVE, DEFAULT_IDLE_CLOSE,
+    MAX_BODY, MAX_SESSIONS, SAVED_ROUNDS,
+};
 
 use crate::error::{ApiError, ApiResult};
 use crate::session::{Session, BACKGROUND};
@@ -36,7 +39,12 @@ fn info(s: &Session) -> serde_json::Value {
         // views' orientation and edge letters).
         "directions": neuvolex_formats::geometry::axis_directions(&s.store.meta().affine)
             .map(String::from),
+        // The voxel -> world (mm) affine, row-major 4x4, for the slice positions and readout.
+        "affine": i.affine,
         "range": [i.stats.min, i.stats.max], "percentiles": [i.stats.p0_5, i.stats.p99_5],
+        // The intensities' unit ("HU" for CT, decided from the data), for the window/level
+        // presets and the readout.
+        "unit": crate::imaging::intensity_unit(i.stats.min),
         "histogram": i.stats.histogram,
         "classes": *s.classes.read().unwrap_or_else(|p| p.into_inner()),
         "background": BACKGROUND,
@@ -47,7 +55,7 @@ fn info(s: &Session) -> serde_json::Value {
         "features": s.feature_set().to_string(),
         "model_version": model.map_or(0, |m| m.0),
         "tf": s.tf.read().unwrap_or_else(|p| p.into_inner()).as_ref().map(|t| t.0.clone()),
-        "prior": crate::assist::prior_summary(s),
+        "prior": s.prior_summary(),
     })
 }
 
@@ -93,6 +101,8 @@ pub fn configure(cfg: &mut web::ServiceConfig) {
                     .route("/backend", web::get().to(server::backend))
                     .route("/events", web::get().to(server::events))
                     .route("/sessions", web::post().to(sessions::open))
+                    .route("/sessions", web::get().to(sessions::list))
+                    .route("/sessions/{id}/ui", web::put().to(sessions::put_ui))
                     .route("/sessions/{id}", web::get().to(sessions::get_session))
                     .route("/sessions/{id}", web::delete().to(sessions::close_session))
                     .route(
@@ -102,6 +112,10 @@ pub fn configure(cfg: &mut web::ServiceConfig) {
                     .route(
                         "/sessions/{id}/overlay/{axis}/{index}",
                         web::get().to(slices::overlay),
+                    )
+                    .route(
+                        "/sessions/{id}/voxel/{x}/{y}/{z}",
+                        web::get().to(slices::voxel),
                     )
                     .route(
                         "/sessions/{id}/strokes",

@@ -44,7 +44,7 @@ pub(super) async fn fractions(
     let s = st.session(&id)?;
     let body = blocking(move || {
         let p = s.probs.read().unwrap_or_else(|p| p.into_inner());
-        let prior = crate::assist::active_prior(&s, &p);
+        let prior = s.active_prior(&p);
         let c = p.ids.len().max(1);
         let slot = |label: u32| {
             let id = if label == 0 {

@@ -7,16 +7,28 @@ use actix_web::{web, HttpResponse};
 use serde::Deserialize;
 use std::sync::atomic::Ordering;
 
+/// A page asset: the copy embedded at build time, or, where `NEUVOLEX_STATIC_DIR` names a
+/// folder (UI development), the file of that name read from it at each request.
+fn asset(name: &str, embedded: &'static str) -> String {
+    match std::env::var_os("NEUVOLEX_STATIC_DIR") {
+        Some(dir) => std::fs::read_to_string(std::path::Path::new(&dir).join(name))
+            .unwrap_or_else(|e| format!("/* {name}: {e} */")),
+        None => embedded.to_string(),
+    }
+}
+
 pub(super) async fn index() -> HttpResponse {
     HttpResponse::Ok()
         .content_type("text/html; charset=utf-8")
-        .body(include_str!("../../static/index.html"))
+        .insert_header(("Cache-Control", "no-cache"))
+        .body(asset("index.html", include_str!("../../static/index.html")))
 }
 
 pub(super) async fn app_js() -> HttpResponse {
     HttpResponse::Ok()
         .content_type("text/javascript; charset=utf-8")
-        .body(include_str!("../../static/app.js"))
+        .insert_header(("Cache-Control", "no-cache"))
+        .body(asset("app.js", include_str!("../../static/app.js")))
 }
 
 pub(super) async fn favicon() -> HttpResponse {

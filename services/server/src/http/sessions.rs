@@ -1,6 +1,6 @@
 //! Sessions: open (restoring the saved state), describe, close; the session file; classes.
 
-use super::{blocking, info, state_path, AppState, MAX_BODY};
+use super::{blocking, info, AppState, MAX_BODY};
 use crate::error::{ApiError, ApiResult};
 use actix_web::{web, HttpResponse};
 use neuvolex_bricks::synth::ClassInfo;
@@ -9,39 +9,67 @@ use serde::Deserialize;
 #[derive(Deserialize)]
 #[serde(deny_unknown_fields)]
 pub(super) struct OpenReq {
-    volume: String,
-    /// Restore the state saved when this volume's last session closed or the server stopped.
+    /// Open a new session on this volume.
+    #[serde(default)]
+    volume: Option<String>,
+    /// With `volume`: resume the newest saved session of that volume instead, if there is one.
     #[serde(default)]
     restore: bool,
+    /// Re-attach to this session: the open one, or reopen the one saved under this id.
+    #[serde(default)]
+    resume: Option<String>,
 }
 
+/// `POST /sessions`: `{volume}` opens a new session; `{resume: ID}` re-attaches to session ID
+/// (open, or reopened from its file: 200) and `{volume, restore: true}` to the newest saved
+/// session of that volume (a new one where none is saved).
 pub(super) async fn open(
     st: web::Data<AppState>,
     req: web::Json<OpenReq>,
 ) -> ApiResult<HttpResponse> {
     let req = req.into_inner();
-    let s = st.open(&req.volume).await?;
-    if req.restore {
-        let p = state_path(&st.cfg.work_dir, &s.name);
-        let s2 = s.clone();
-        let restored = blocking(move || {
-            let Ok(text) = std::fs::read_to_string(&p) else {
-                return Ok(None);
-            };
-            let src = p.display().to_string();
-            let f = neuvolex_session::SessionFile::parse(&text, &src)
-                .map_err(|e| ApiError::BadRequest(e.to_string()))?;
-            s2.apply_state(&f, &src).map(Some)
-        })
-        .await;
-        match restored {
-            Ok(Some(g)) => st.actors.classify(s.clone(), g)?,
-            Ok(None) => {}
-            // A damaged saved state does not keep the volume from opening.
-            Err(e) => tracing::warn!("not restoring {}: {e}", s.name),
+    let resume = match (&req.volume, req.resume) {
+        (Some(_), Some(_)) => {
+            return Err(ApiError::BadRequest(
+                "give either volume (a new session) or resume (an existing one), not both".into(),
+            ))
         }
+        (None, None) => {
+            return Err(ApiError::BadRequest(
+                "give volume (a new session) or resume (a session id)".into(),
+            ))
+        }
+        (Some(v), None) if req.restore => st.newest_saved(v),
+        (_, r) => r,
+    };
+    if let Some(id) = resume {
+        let (s, _) = st.resume(&id).await?;
+        return Ok(HttpResponse::Ok().json(info(&s)));
     }
+    let s = st.open(req.volume.as_deref().unwrap_or_default()).await?;
     Ok(HttpResponse::Created().json(info(&s)))
+}
+
+/// `GET /sessions`: the open and the saved sessions, newest first.
+pub(super) async fn list(st: web::Data<AppState>) -> ApiResult<HttpResponse> {
+    let st2 = st.clone();
+    let v = blocking(move || Ok(st2.list())).await?;
+    Ok(HttpResponse::Ok().json(serde_json::json!({ "sessions": v })))
+}
+
+/// `PUT /sessions/{id}/ui`: the page's own settings (a JSON object of at most
+/// `neuvolex_session::MAX_UI` bytes), saved with the session.
+pub(super) async fn put_ui(
+    st: web::Data<AppState>,
+    id: web::Path<String>,
+    ui: web::Json<serde_json::Value>,
+) -> ApiResult<HttpResponse> {
+    let s = st.session(&id)?;
+    let ui = ui.into_inner();
+    neuvolex_session::validate_ui(&ui).map_err(ApiError::BadRequest)?;
+    *s.ui.write().unwrap_or_else(|p| p.into_inner()) = Some(ui);
+    s.touch();
+    Ok(HttpResponse::NoContent().finish())
 }
 
 pub(super) async fn get_session(
@@ -62,13 +90,18 @@ pub(super) async fn close_session(
     Ok(HttpResponse::NoContent().finish())
 }
 
-/// The session file: volume, classes, strokes and transfer function.
+/// The session file: volume, classes, strokes, redo stack, transfer function, features,
+/// prior, page settings, and the label rounds of its last save.
 pub(super) async fn get_state(
     st: web::Data<AppState>,
     id: web::Path<String>,
 ) -> ApiResult<HttpResponse> {
     let s = st.session(&id)?;
-    Ok(HttpResponse::Ok().json(s.state()))
+    let (s2, work) = (s.clone(), st.cfg.work_dir.clone());
+    // The label bricks its rounds name are written first, so loading the file on this server
+    // brings the labels back.
+    let state = blocking(move || super::app::file_with_rounds(&work, &s2)).await?;
+    Ok(HttpResponse::Ok().json(state))
 }
 
 /// Loads a session file into the session: every part is validated (and the strokes checked
@@ -104,8 +137,15 @@ pub(super) async fn put_state(
         )));
     }
     let permit = st.actors.reserve_classify()?;
-    let s2 = s.clone();
-    let generation = blocking(move || s2.apply_state(&f, &src)).await?;
+    let (s2, work) = (s.clone(), st.cfg.work_dir.clone());
+    let generation = blocking(move || {
+        let g = s2.apply_state(&f, &src)?;
+        // A file saved by this server brings its label history, so the labels it showed come
+        // back voxel for voxel (without it, they are classified afresh).
+        super::app::restore_rounds(&work, &s2, &f, &src);
+        Ok(g)
+    })
+    .await?;
     permit.send(s.clone(), generation);
     Ok(HttpResponse::Ok().json(info(&s)))
 }
@@ -119,6 +159,7 @@ pub(super) async fn put_classes(
     let c = classes.into_inner();
     neuvolex_session::validate_classes(&c).map_err(ApiError::BadRequest)?;
     *s.classes.write().unwrap_or_else(|p| p.into_inner()) = c;
+    s.touch();
     // Recolouring changes the render classes; the next render starts from scratch.
     Ok(HttpResponse::Ok().json(info(&s)))
 }

@@ -95,7 +95,7 @@ pub(super) async fn overlay(
         let (w, h) = (d[a.u], d[a.v]);
         let classes = s.classes.read().unwrap_or_else(|p| p.into_inner()).clone();
         let probs = s.probs.read().unwrap_or_else(|p| p.into_inner());
-        let prior = crate::assist::active_prior(&s, &probs);
+        let prior = s.active_prior(&probs);
         let ids = &probs.ids;
         let color = |id: u32| {
             classes
@@ -167,4 +167,77 @@ pub(super) async fn overlay(
     })
     .await?;
     Ok(HttpResponse::Ok().content_type("image/png").body(bytes))
+}
+
+/// What the cursor readout shows for one voxel: its index, its world position (the source's
+/// affine applied), its intensity in the source's units (the store keeps values after NIfTI
+/// `scl_slope`/`scl_inter`), and the label shown there with the class probabilities.
+pub(super) async fn voxel(
+    st: web::Data<AppState>,
+    path: web::Path<(String, usize, usize, usize)>,
+) -> ApiResult<HttpResponse> {
+    let (id, x, y, z) = path.into_inner();
+    let s = st.session(&id)?;
+    let d = s.store.info().dims;
+    let p = [x, y, z];
+    if (0..3).any(|k| p[k] >= d[k]) {
+        return Err(ApiError::BadRequest(format!(
+            "voxel ({x}, {y}, {z}) outside the volume's {} x {} x {} voxels",
+            d[0], d[1], d[2]
+        )));
+    }
+    let body = blocking(move || -> ApiResult<serde_json::Value> {
+        let value = s.store.read_box(0, p, [1, 1, 1])?[0] as f64;
+        let info = s.store.info();
+        let a = info.affine;
+        let world: Vec<f64> = (0..3)
+            .map(|r| a[r][0] * x as f64 + a[r][1] * y as f64 + a[r][2] * z as f64 + a[r][3])
+            .collect();
+        let classes = s.classes.read().unwrap_or_else(|p| p.into_inner()).clone();
+        let name = |id: u32| match id {
+            0 => "unlabelled".to_string(),
+            crate::session::BACKGROUND => "background".to_string(),
+            _ => classes
+                .iter()
+                .find(|c| c.id == id)
+                .map_or_else(|| format!("class {id}"), |c| c.name.clone()),
+        };
+        let probs = s.probs.read().unwrap_or_else(|p| p.into_inner());
+        let (label, probabilities) = match probs.at(&s.store, p) {
+            Some(px) => {
+                let mut label = crate::assist::label_of(&probs.ids, px);
+                // The spatial prior's verdict where it changes the forest's (as the overlay).
+                if s.prior_enabled() {
+                    let prior = s.prior.read().unwrap_or_else(|p| p.into_inner());
+                    if let Some(l) = prior
+                        .as_ref()
+                        .filter(|pr| pr.generation == probs.generation)
+                        .and_then(|pr| pr.label(&s.store, p))
+                    {
+                        label = l as u32;
+                    }
+                }
+                let map: serde_json::Map<String, serde_json::Value> = probs
+                    .ids
+                    .iter()
+                    .zip(px)
+                    .map(|(id, &v)| (id.to_string(), serde_json::json!(v as f64 / 255.0)))
+                    .collect();
+                (Some(label), Some(map))
+            }
+            None => (None, None),
+        };
+        drop(probs);
+        Ok(serde_json::json!({
+            "index": p,
+            "world": world,
+            "value": value,
+            "unit": crate::imaging::intensity_unit(info.stats.min),
+            "label": label,
+            "label_name": label.map(name),
+            "probabilities": probabilities,
+        }))
+    })
+    .await?;
+    Ok(HttpResponse::Ok().json(body))
 }

@@ -36,18 +36,46 @@ pub(super) fn set_focus(s: &Session, q: &StrokesQuery) -> ApiResult<()> {
     Ok(())
 }
 
+/// The body of `PUT .../strokes`: the whole stroke list, or the list with the page's redo
+/// stack (undo and redo send both, so a reload keeps redo).
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct WithRedo {
+    strokes: Vec<Stroke>,
+    redo: Vec<Stroke>,
+}
+
 pub(super) async fn put_strokes(
     st: web::Data<AppState>,
     id: web::Path<String>,
     q: web::Query<StrokesQuery>,
-    strokes: web::Json<Vec<Stroke>>,
+    body: web::Json<serde_json::Value>,
 ) -> ApiResult<HttpResponse> {
     let s = st.session(&id)?;
     set_focus(&s, &q)?;
-    let strokes = strokes.into_inner();
+    let body = body.into_inner();
+    let bad = |e: serde_json::Error| {
+        ApiError::BadRequest(format!(
+            "malformed request: strokes: {e} (send a list of strokes, or \
+             {{\"strokes\": [...], \"redo\": [...]}})"
+        ))
+    };
+    let (strokes, redo) = if body.is_array() {
+        (
+            serde_json::from_value::<Vec<Stroke>>(body).map_err(bad)?,
+            None,
+        )
+    } else {
+        let w = serde_json::from_value::<WithRedo>(body).map_err(bad)?;
+        (w.strokes, Some(w.redo))
+    };
     let permit = st.actors.reserve_classify()?;
     let s2 = s.clone();
-    let generation = blocking(move || s2.set_strokes(strokes)).await?;
+    let generation = blocking(move || match redo {
+        Some(r) => s2.set_strokes_and_redo(strokes, r),
+        None => s2.set_strokes(strokes),
+    })
+    .await?;
     permit.send(s.clone(), generation);
     Ok(HttpResponse::Accepted().json(serde_json::json!({"generation": generation})))
 }

@@ -194,5 +194,6 @@ pub(super) async fn put_tf(
         Some((v, tf))
     };
     *s.tf.write().unwrap_or_else(|p| p.into_inner()) = parsed;
+    s.touch();
     Ok(HttpResponse::Ok().json(info(&s)))
 }

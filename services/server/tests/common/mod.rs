@@ -3,7 +3,8 @@
 #![allow(dead_code, unused_macros)]
 
 use actix_web::test;
-use neuvolex_bricks::synth::PhantomParams;
+use neuvolex_bricks::synth::{ClassInfo, PhantomParams};
+use neuvolex_classify::scribble::Stroke;
 use neuvolex_ingest::IngestOptions;
 use neuvolex_server::ServerConfig;
 use serde_json::{json, Value};
@@ -195,4 +196,101 @@ where
         .to_request();
     let r: Value = test::call_and_read_body_json(app, req).await;
     r["generation"].as_u64().unwrap()
+}
+
+/// A case where the stability rule acts: a 64^3 phantom store (16^3 bricks) at `path`, S1
+/// scribbles from its truth (seed 0), the S2 strokes (seed 7) of one slice far from them, one
+/// more S2 stroke on another far slice, and the phantom's classes.
+pub struct RuleCase {
+    pub store: neuvolex_bricks::BrickStore,
+    pub first: Vec<Stroke>,
+    pub more: Vec<Stroke>,
+    pub extra: Stroke,
+    pub classes: Vec<ClassInfo>,
+}
+
+pub fn rule_case(path: &std::path::Path) -> RuleCase {
+    use neuvolex_classify::scribble::{simulate, Level, SimConfig};
+    let store = neuvolex_ingest::phantom_store(
+        path,
+        PhantomParams::with_size(64, 0),
+        &IngestOptions {
+            brick: 16,
+            ..Default::default()
+        },
+        &mut |_| {},
+    )
+    .unwrap();
+    let dims = store.info().dims;
+    let truth = store.read_labels_box("ground_truth", [0; 3], dims).unwrap();
+    let tf: Vec<f32> = truth.iter().map(|&t| t as f32).collect();
+    let sim = |level, seed| {
+        let mut src = neuvolex_formats::MemVolume::from_f32(dims, &tf);
+        simulate(
+            &mut src,
+            &SimConfig {
+                level,
+                seed,
+                background: 255,
+                ..Default::default()
+            },
+        )
+        .unwrap()
+        .0
+    };
+    let first = sim(Level::S1, 0);
+    // Strokes of another simulation on slices far from the first's.
+    let far: Vec<Stroke> = sim(Level::S2, 7)
+        .into_iter()
+        .filter(|s| {
+            first
+                .iter()
+                .all(|f| f.axis != s.axis || f.slice.abs_diff(s.slice) > 4)
+        })
+        .collect();
+    let slice = (far[0].axis, far[0].slice);
+    let more: Vec<Stroke> = far
+        .iter()
+        .filter(|s| (s.axis, s.slice) == slice)
+        .cloned()
+        .collect();
+    assert!(!more.is_empty());
+    let extra = far
+        .iter()
+        .find(|s| (s.axis, s.slice) != slice)
+        .unwrap_or(&first[0])
+        .clone();
+    let mut ids: Vec<u32> = truth.iter().copied().filter(|&t| t > 0).collect();
+    ids.sort_unstable();
+    ids.dedup();
+    let classes = ids
+        .iter()
+        .map(|&id| ClassInfo {
+            id,
+            name: format!("c{id}"),
+            color: neuvolex_bricks::synth::palette(id),
+        })
+        .collect();
+    RuleCase {
+        store,
+        first,
+        more,
+        extra,
+        classes,
+    }
+}
+
+/// One request; its status and its JSON body (`null` when the body is not JSON).
+pub async fn call<S>(app: &S, req: actix_http::Request) -> (u16, Value)
+where
+    S: actix_web::dev::Service<
+        actix_http::Request,
+        Response = actix_web::dev::ServiceResponse,
+        Error = actix_web::Error,
+    >,
+{
+    let r = test::call_service(app, req).await;
+    let code = r.status().as_u16();
+    let body = test::read_body(r).await;
+    (code, serde_json::from_slice(&body).unwrap_or(Value::Null))
 }
