@@ -8,6 +8,7 @@
 //   2. strokes, an undone stroke (redo), a class colour and the page's settings survive a
 //      reload: same session id, strokes, redo stack, colour and settings;
 //   3. a second tab on the same URL shows the same session, and its stroke reaches the first;
+//      the bare URL resumes the newest session (only Open starts one);
 //   4. after a burst of strokes, prior toggles and colour changes the 3-D image equals a fresh
 //      render of the same state (at most MAX_STALE pixels differ by more than 30 in RGB);
 //   5. dragging the 3-D view rotates it (azimuth and image change), the wheel zooms it;
@@ -224,6 +225,17 @@ const check = (ok, what) => { if (!ok) failures.push(what); console.log(`${ok ? 
   };
   await openVolume("z-corner-marker.nii");
   check((await page.evaluate(() => S.id)) !== id, "Open starts a new session");
+  // The bare URL (no ?session) resumes the newest session and opens none: only Open does.
+  const newest = await page.evaluate(() => S.id);
+  const count = async () => page.evaluate(async () => (await (await fetch("/api/sessions")).json()).sessions.length);
+  const before9 = await count();
+  const bare = await ctx.newPage(); watch(bare);
+  await bare.goto(url);
+  await opened(bare);
+  const got = await bare.evaluate(() => S.id);
+  const after9 = await count();
+  check(got === newest && after9 === before9, `the bare URL resumes the newest session (${got}, want ${newest}; sessions ${before9} -> ${after9})`);
+  await bare.close();
   await page.selectOption("#mode", "intensity");
   for (const [az, el] of [[30, 20], [-120, 35], [150, -30], [80, 70]]) {
     await page.evaluate(([az, el]) => { $("az").value = az; $("el").value = el; $("zoom").value = 1; render(); }, [az, el]);

@@ -1028,9 +1028,19 @@ document.addEventListener("keydown", (e) => {
 });
 loadBackend();
 $("ovl").addEventListener("input", () => uiChanged());
-// On load: the session the URL names, else a new one on the first volume.
+// On load: the session the URL names; without one, the newest session (open or saved) on a
+// volume of this data root, as reopening an application brings back the last document; a new
+// session on the first volume only when there is none (only Open starts one otherwise).
 loadVolumes().then(async () => {
   const want = new URLSearchParams(location.search).get("session");
   if (want && (await resumeSession(want))) return;
+  if (!want) {
+    try {
+      const vols = [...$("volume").options].map((o) => o.value);
+      const l = await api("GET", "/api/sessions");
+      const last = (l.sessions || []).find((s) => vols.includes(s.volume));
+      if (last && (await resumeSession(last.id))) return;
+    } catch (_) { /* no list: a new session below */ }
+  }
   if ($("volume").options.length) open();
 });
