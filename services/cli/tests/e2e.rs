@@ -148,24 +148,7 @@ fn browser_session_survives_reloads_and_the_3d_view_stays_current() {
 /// The grid of [`write_marker`] with only a bright 8-voxel cube in the patient's
 /// right-anterior-superior corner, for the 3-D view's orientation marker.
 fn write_corner(path: &std::path::Path) {
-    let d = [40usize, 48, 32];
-    let mut v = vec![100f32; d.iter().product()];
-    for z in 24..d[2] {
-        for y in 0..8 {
-            for x in 0..8 {
-                v[(z * d[1] + y) * d[0] + x] = 1000.0;
-            }
-        }
-    }
-    let mut vol = neuvolex_formats::MemVolume::from_f32(d, &v);
-    vol.meta.spacing = [2.0, 1.5, 3.0];
-    vol.meta.affine = [
-        [-2.0, 0.0, 0.0, 40.0],
-        [0.0, -1.5, 0.0, 36.0],
-        [0.0, 0.0, 3.0, -48.0],
-        [0.0, 0.0, 0.0, 1.0],
-    ];
-    neuvolex_formats::nifti::write_nifti(path, &mut vol, 8).unwrap();
+    write_lps(path, |x, y, z| x < 8 && y < 8 && z >= 24);
 }
 
 /// A 40x48x32 volume in an LPS-ordered grid (x toward the patient's left, y posterior, z
@@ -173,14 +156,21 @@ fn write_corner(path: &std::path::Path) {
 /// column, the right-superior wall and the anterior-superior wall, so each view has a bright
 /// corner on the patient's right, front or top.
 fn write_marker(path: &std::path::Path) {
+    // At least two of: right, anterior, superior.
+    write_lps(path, |x, y, z| {
+        (x < 8) as u8 + (y < 8) as u8 + (z >= 24) as u8 >= 2
+    });
+}
+
+/// The 40x48x32 LPS-ordered grid of [`write_marker`] as NIfTI: 100 everywhere, 1000 where
+/// `bright(x, y, z)`.
+fn write_lps(path: &std::path::Path, bright: impl Fn(usize, usize, usize) -> bool) {
     let d = [40usize, 48, 32];
     let mut v = vec![100f32; d.iter().product()];
     for z in 0..d[2] {
         for y in 0..d[1] {
             for x in 0..d[0] {
-                // At least two of: right, anterior, superior.
-                let n = (x < 8) as u8 + (y < 8) as u8 + (z >= 24) as u8;
-                if n >= 2 {
+                if bright(x, y, z) {
                     v[(z * d[1] + y) * d[0] + x] = 1000.0;
                 }
             }

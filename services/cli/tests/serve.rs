@@ -495,18 +495,7 @@ fn kill_9_loses_at_most_the_last_second_of_strokes() {
     let data = data_root(d.path());
     let mut srv = Server::start(d.path(), &data, &["--feature-store-gib=0"], &[]);
     let a = &srv.addr.clone();
-    let (st, body) = http(
-        a,
-        "POST",
-        "/api/sessions",
-        &[],
-        Some(&json!({"volume": "phantom.zarr"})),
-    );
-    assert_eq!(st, 201, "{body}");
-    let id = serde_json::from_str::<Value>(&body).unwrap()["id"]
-        .as_str()
-        .unwrap()
-        .to_string();
+    let id = open_phantom(a, false);
     let (st, _) = http(
         a,
         "PUT",

@@ -9,9 +9,7 @@ use crate::session::Session;
 use neuvolex_classify::suggest::SliceMass;
 use rayon::prelude::*;
 
-pub use crate::labels::{
-    label_channels, label_of, one_hot_labels, PriorChanges, PriorState, PriorSummary, Probs,
-};
+use crate::labels::{label_of, Probs};
 
 /// Every brick's probabilities, or a conflict while classification has not reached them all.
 pub fn complete_probs(s: &Session) -> ApiResult<std::sync::RwLockReadGuard<'_, Probs>> {

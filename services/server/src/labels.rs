@@ -35,6 +35,12 @@ pub const HISTORY_ROUNDS: usize = 128;
 /// counted once); the oldest rounds go first.
 pub const HISTORY_BYTES: usize = 64 << 20;
 
+/// The key a round's labels are recorded under for feature set `set` and model `version`
+/// (`SET/VERSION`; version 0 without a model).
+pub fn features_key(set: &impl std::fmt::Display, version: u64) -> String {
+    format!("{set}/{version}")
+}
+
 /// Class probabilities received so far, per brick (u8, voxel-major).
 #[derive(Default)]
 pub struct Probs {

@@ -904,7 +904,7 @@ impl Session {
             p.ids = ts.labels.clone();
             p.generation = generation;
             p.strokes = strokes.clone();
-            p.features = format!("{set}/{version}");
+            p.features = crate::labels::features_key(&set, version);
         }
         self.set_status(|s| {
             s.state = "classifying".into();

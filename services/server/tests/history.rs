@@ -52,6 +52,14 @@ fn close_req(id: &str) -> actix_http::Request {
         .to_request()
 }
 
+/// `PUT /api/sessions/{id}/WHAT` with a JSON body.
+fn put_req(id: &str, what: &str, body: &Value) -> actix_http::Request {
+    test::TestRequest::put()
+        .uri(&format!("/api/sessions/{id}/{what}"))
+        .set_json(body)
+        .to_request()
+}
+
 /// The labels the session shows: its label export (NIfTI, gzip), byte for byte.
 async fn labels<S>(app: &S, id: &str) -> Vec<u8>
 where
@@ -86,10 +94,7 @@ where
 {
     let (code, v) = call(
         app,
-        test::TestRequest::put()
-            .uri(&format!("/api/sessions/{id}/strokes"))
-            .set_json(json!({"strokes": strokes, "redo": redo}))
-            .to_request(),
+        put_req(id, "strokes", &json!({"strokes": strokes, "redo": redo})),
     )
     .await;
     assert_eq!(code, 202, "{v}");
@@ -114,14 +119,7 @@ async fn undo_redo_reload_restart_and_load_show_the_labels_last_shown() {
         assert_eq!(code, 201, "{v}");
         let id = v["id"].as_str().unwrap().to_string();
         assert!(id.starts_with("s-") && id.len() == 14, "{id}");
-        let (code, _) = call(
-            &app,
-            test::TestRequest::put()
-                .uri(&format!("/api/sessions/{id}/classes"))
-                .set_json(&classes)
-                .to_request(),
-        )
-        .await;
+        let (code, _) = call(&app, put_req(&id, "classes", &classes)).await;
         assert_eq!(code, 200);
         // Round 1, then the added strokes: the rule holds far labels.
         let (l1, _) = round(&app, &id, &first, &[]).await;
@@ -136,14 +134,7 @@ async fn undo_redo_reload_restart_and_load_show_the_labels_last_shown() {
         assert_eq!(code, 201);
         let fresh = v["id"].as_str().unwrap().to_string();
         assert_ne!(fresh, id, "a new session gets a new id");
-        call(
-            &app,
-            test::TestRequest::put()
-                .uri(&format!("/api/sessions/{fresh}/classes"))
-                .set_json(&classes)
-                .to_request(),
-        )
-        .await;
+        call(&app, put_req(&fresh, "classes", &classes)).await;
         let (f2, _) = round(&app, &fresh, &all, &[]).await;
         assert!(differing(&f2, &l2) > 0, "fresh labels equal the held ones");
         // Undo and redo there: the fresh labels come back, not the rule held against the
@@ -195,10 +186,11 @@ async fn undo_redo_reload_restart_and_load_show_the_labels_last_shown() {
         // The page's settings are kept.
         let (code, _) = call(
             &app,
-            test::TestRequest::put()
-                .uri(&format!("/api/sessions/{id}/ui"))
-                .set_json(json!({"idx": {"x": 3, "y": 4, "z": 5}, "window": 400}))
-                .to_request(),
+            put_req(
+                &id,
+                "ui",
+                &json!({"idx": {"x": 3, "y": 4, "z": 5}, "window": 400}),
+            ),
         )
         .await;
         assert_eq!(code, 204);
@@ -310,37 +302,24 @@ async fn resuming_refuses_bad_ids_and_damaged_files_clearly() {
     // A session with a round, saved.
     let (_, v) = call(&app, open_req(json!({"volume": "ph.zarr"}))).await;
     let id = v["id"].as_str().unwrap().to_string();
-    call(
-        &app,
-        test::TestRequest::put()
-            .uri(&format!("/api/sessions/{id}/classes"))
-            .set_json(&classes)
-            .to_request(),
-    )
-    .await;
+    call(&app, put_req(&id, "classes", &classes)).await;
     let (l1, _) = round(&app, &id, &first, &[]).await;
     // Bad page settings are refused and change nothing.
     for (ui, needle) in [
         (json!([1, 2]), "ui must be a JSON object"),
         (json!({"x": "a".repeat(70_000)}), "at most 65536"),
     ] {
-        let (c, v) = call(
-            &app,
-            test::TestRequest::put()
-                .uri(&format!("/api/sessions/{id}/ui"))
-                .set_json(&ui)
-                .to_request(),
-        )
-        .await;
+        let (c, v) = call(&app, put_req(&id, "ui", &ui)).await;
         assert_eq!(c, 400);
         assert!(v["error"].as_str().unwrap().contains(needle), "{v}");
     }
     let (c, v) = call(
         &app,
-        test::TestRequest::put()
-            .uri(&format!("/api/sessions/{id}/strokes"))
-            .set_json(json!({"strokes": [], "redo": [], "extra": 1}))
-            .to_request(),
+        put_req(
+            &id,
+            "strokes",
+            &json!({"strokes": [], "redo": [], "extra": 1}),
+        ),
     )
     .await;
     assert_eq!(c, 400);

@@ -300,7 +300,8 @@ impl AppState {
             }
             Err(e) => {
                 // A file that does not fit the volume leaves nothing half-open.
-                let _ = self.close_unsaved(&s);
+                stop_work(&s);
+                self.forget(&s);
                 Err(e)
             }
         }
@@ -378,16 +379,15 @@ impl AppState {
         .await
     }
 
-    /// Removes a session that failed to reopen, without saving it.
-    fn close_unsaved(&self, s: &Session) -> ApiResult<()> {
-        stop_work(s);
+    /// Takes a session out of the server (its work already stopped) and gives back what it
+    /// held in memory: after its save ([`Self::close`]), or unsaved when it failed to reopen.
+    fn forget(&self, s: &Session) {
         self.sessions
             .write()
             .unwrap_or_else(|p| p.into_inner())
             .remove(&s.id);
         s.closing.store(true, Ordering::SeqCst);
         s.release_memory();
-        Ok(())
     }
 
     /// Opens `rel` as a session named `id`.
@@ -516,12 +516,7 @@ impl AppState {
                 s.id
             ))
         })?;
-        self.sessions
-            .write()
-            .unwrap_or_else(|p| p.into_inner())
-            .remove(&s.id);
-        s.closing.store(true, Ordering::SeqCst);
-        s.release_memory();
+        self.forget(s);
         Ok(())
     }
 
@@ -674,7 +669,7 @@ pub(crate) fn restore_rounds(
         return;
     }
     let key = match s.feature_source() {
-        Ok((set, model)) => format!("{set}/{}", model.map_or(0, |m| m.0)),
+        Ok((set, model)) => crate::labels::features_key(&set, model.map_or(0, |m| m.0)),
         Err(_) => return,
     };
     match crate::labels::load_rounds(work, &s.store, &f.rounds, &f.line()) {

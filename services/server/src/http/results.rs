@@ -33,7 +33,7 @@ pub(super) async fn export_scribbles(
 }
 
 /// The share of each class among the voxels classified so far, counted on the labels the
-/// overlays and the label export show: each voxel's label ([`crate::assist::label_of`]) with
+/// overlays and the label export show: each voxel's label ([`crate::labels::label_of`]) with
 /// the spatial prior's changes when it is on. Unlabelled voxels (the background, or no class
 /// reaching 0.5) count as the background, or as id 0 ("unlabelled") when no background was
 /// scribbled.
@@ -62,7 +62,7 @@ pub(super) async fn fractions(
             labels.clear();
             labels.extend(
                 v.chunks_exact(c)
-                    .map(|px| crate::assist::label_of(&p.ids, px)),
+                    .map(|px| crate::labels::label_of(&p.ids, px)),
             );
             if let Some(changed) = prior.as_ref().and_then(|pr| pr.changed.get(idx)) {
                 for &(i, l) in changed.iter() {

@@ -150,7 +150,7 @@ pub(super) async fn overlay(
                 } else {
                     // The one label rule the fractions, the 3-D labels and the exports use
                     // (ties included).
-                    let mut id = crate::assist::label_of(ids, p);
+                    let mut id = crate::labels::label_of(ids, p);
                     if let Some(l) = prior.as_ref().and_then(|pr| pr.label(&s.store, vox)) {
                         id = l as u32;
                     }
@@ -205,7 +205,7 @@ pub(super) async fn voxel(
         let probs = s.probs.read().unwrap_or_else(|p| p.into_inner());
         let (label, probabilities) = match probs.at(&s.store, p) {
             Some(px) => {
-                let mut label = crate::assist::label_of(&probs.ids, px);
+                let mut label = crate::labels::label_of(&probs.ids, px);
                 // The spatial prior's verdict where it changes the forest's (as the overlay).
                 if s.prior_enabled() {
                     let prior = s.prior.read().unwrap_or_else(|p| p.into_inner());
