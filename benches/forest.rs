@@ -1,10 +1,12 @@
 //! Random-forest benchmark against scikit-learn on identical inputs
 //! (`cargo bench -p neuvolex-benches --bench forest -- [--trees 1000] [--rounds 3]`).
 //!
-//! Inputs are real: the 64-D INR features of the abdomen CT (trained 1 epoch) with its
-//! ground-truth labels. 20 000 voxels drawn at random (seeded) train both forests; 1 000 000
-//! other voxels are predicted. Same settings on both sides (trees, min_samples_split 8,
-//! max_features sqrt, no bootstrap, Gini) and the same threads (rayon's pool; `n_jobs`).
+//! The task is the product's, on real data: the abdomen CT with the default feature set
+//! (`filters+xyz`, the filter bank plus position, no model) and the simulated S2 scribbles
+//! (`scribble-sim --level S2 --seed 0`, background 255) as the training rows; every voxel of the
+//! volume is predicted and scored against the ground truth. Same settings on both sides as the
+//! product's classifier (trees, min_samples_split 8, max_features sqrt, no bootstrap, Gini,
+//! balanced class weights) and the same threads (rayon's pool; `n_jobs`).
 //!
 //! Rounds interleave: each round fits a new forest on each side (seed / random_state = the
 //! round) and then predicts with it on each side, scikit-learn in a persistent Python process
@@ -12,15 +14,20 @@
 //! the arrays once. Timed regions: the *fit* is `Forest::fit` plus the coding of the forest
 //! for prediction (`Forest::prepare`, shown apart) against scikit-learn's `fit` (which builds
 //! its tree arrays inside); the *predict* is `Forest::predict` (probabilities and argmax)
-//! against `predict_proba` plus the argmax. Reported: median [min-max] of each and the
-//! per-round ratio, and the mean F1 over the four foreground classes on both sides.
+//! against `predict_proba` plus the argmax. Rounds are paired by index: a round where either
+//! side failed is dropped from both. Reported: median (the mean of the two middle rounds for
+//! an even count) [min-max] of each, the per-round ratio, and the mean F1 over the foreground
+//! classes on both sides, with whether they agree to 0.01.
 
-use neuvolex_benches::{arg, load_average, machine, ratio_spread, shared, spread, JsonChild};
+use neuvolex_benches::{
+    arg, load_average, machine, median_min_max, ratio_spread, shared, spread, JsonChild,
+};
 use neuvolex_bricks::{open_volume, BrickStore};
-use neuvolex_classify::{Dataset, Forest, ForestConfig};
-use neuvolex_features::extract::extract_brick;
-use neuvolex_features::rng::Rng;
-use neuvolex_features::FeatureKind;
+use neuvolex_classify::features::DEFAULT_FEATURES;
+use neuvolex_classify::{
+    simulate, training_set, BrickFeatures, ClassifyConfig, Dataset, Forest, ForestConfig, Level,
+    SimConfig,
+};
 use neuvolex_ingest::{ingest, IngestOptions};
 use std::time::Instant;
 
@@ -49,12 +56,16 @@ fn f1_mean(pred: &[u16], truth: &[u16], classes: usize) -> (f64, Vec<f64>) {
     (f1s.iter().sum::<f64>() / f1s.len().max(1) as f64, f1s)
 }
 
-/// Training and test rows: `(d, classes, x_train, y_train, x_test, y_test)`.
+/// Training and test rows: `(d, classes, x_train, y_train, x_test, y_test)`, class 0 the
+/// background.
 type Inputs = (usize, usize, Vec<f32>, Vec<u16>, Vec<f32>, Vec<u16>);
 
-/// The bench's inputs from the abdomen CT: ingest into `work`, one INR epoch, 64-D hidden
-/// features of every voxel, 20 000 seeded training rows and 1 000 000 test rows.
+/// The bench's inputs from the abdomen CT: ingest into `work`, the default features, the S2
+/// scribbles (seed 0) as training rows and every voxel as test rows. Classes are the
+/// scribbles' labels in order with the background (255 in the scribbles, 0 in the ground truth)
+/// first, so class 0 is the background on both sides.
 fn make_inputs(ct: &std::path::Path, lab: &std::path::Path, work: &std::path::Path) -> Inputs {
+    const BACKGROUND: u32 = 255;
     let sp = work.join("ct.zarr");
     let mut src = open_volume(ct, None).expect("ct");
     ingest(src.as_mut(), &sp, &IngestOptions::default(), &mut |_| {}).expect("ingest");
@@ -63,37 +74,63 @@ fn make_inputs(ct: &std::path::Path, lab: &std::path::Path, work: &std::path::Pa
     store
         .add_labels("gt", l.as_mut(), &[], &mut |_| {})
         .expect("labels");
-    let model = neuvolex_benches::train_one_epoch(&store);
-    // Features and labels of every voxel, brick by brick.
-    let (mut x, mut y) = (Vec::new(), Vec::new());
-    for b in store.bricks() {
-        x.extend(extract_brick(&model, &store, &b, FeatureKind::Hidden).expect("features"));
-        y.extend(
-            store
-                .read_labels_box("gt", b.origin, b.size)
-                .expect("labels")
+    let (_, scr) = simulate(
+        open_volume(lab, None).expect("labels").as_mut(),
+        &SimConfig {
+            level: Level::S2,
+            seed: 0,
+            background: BACKGROUND,
+            ..SimConfig::default()
+        },
+    )
+    .expect("S2 scribbles");
+    let set = DEFAULT_FEATURES.parse().expect("feature set");
+    let fx = BrickFeatures::new(&store, set, None, false).expect("features");
+    let ts = training_set(&fx, &scr, BACKGROUND).expect("training set");
+    assert!(
+        ts.labels.contains(&BACKGROUND),
+        "the background is scribbled"
+    );
+    // The class of a label: the background 0, the others from 1 in the scribbles' order.
+    let fg: Vec<u32> = ts
+        .labels
+        .iter()
+        .copied()
+        .filter(|&c| c != BACKGROUND)
+        .collect();
+    let class = |label: u32| -> u16 {
+        match label {
+            0 | BACKGROUND => 0,
+            l => fg
                 .iter()
-                .map(|&v| v as u16),
-        );
-    }
-    let d = 64;
-    let n = y.len();
-    let classes = *y.iter().max().unwrap_or(&0) as usize + 1;
-    let mut order: Vec<usize> = (0..n).collect();
-    Rng::new(0).shuffle(&mut order);
-    let ntr = 20_000.min(n / 2);
-    let nte = 1_000_000.min(n - ntr);
-    let gather = |ids: &[usize]| -> (Vec<f32>, Vec<u16>) {
-        (
-            ids.iter()
-                .flat_map(|&i| x[i * d..(i + 1) * d].iter().copied())
-                .collect(),
-            ids.iter().map(|&i| y[i]).collect(),
-        )
+                .position(|&c| c == l)
+                .map_or(u16::MAX, |k| k as u16 + 1),
+        }
     };
-    let (xtr, ytr) = gather(&order[..ntr]);
-    let (xte, yte) = gather(&order[ntr..ntr + nte]);
-    (d, classes, xtr, ytr, xte, yte)
+    let ytr: Vec<u16> = ts.y.iter().map(|&k| class(ts.labels[k as usize])).collect();
+    let (d, classes) = (ts.d, ts.labels.len());
+    // Every voxel, brick by brick; a ground-truth class the scribbles never name is left out.
+    let (mut xte, mut yte) = (Vec::new(), Vec::new());
+    for b in store.bricks() {
+        let f = fx.brick(&b).expect("features");
+        let truth = store
+            .read_labels_box("gt", b.origin, b.size)
+            .expect("labels");
+        for (row, &t) in f.chunks_exact(d).zip(&truth) {
+            let c = class(t);
+            if c != u16::MAX {
+                xte.extend_from_slice(row);
+                yte.push(c);
+            }
+        }
+    }
+    println!(
+        "inputs: {DEFAULT_FEATURES} ({d} features), S2 scribbles: {} training rows over {classes} classes {:?}, {} test rows (every voxel)",
+        ytr.len(),
+        ts.labels,
+        yte.len()
+    );
+    (d, classes, ts.x, ytr, xte, yte)
 }
 
 /// Writes the inputs as raw little-endian arrays and `meta.json` (what `forest_sklearn.py`
@@ -119,7 +156,8 @@ fn save_inputs(dir: &std::path::Path, (d, classes, xtr, ytr, xte, yte): &Inputs)
     );
     w(
         "meta.json",
-        format!("{{\"d\": {d}, \"classes\": {classes}}}").into_bytes(),
+        format!("{{\"d\": {d}, \"classes\": {classes}, \"class_weight\": \"balanced\"}}")
+            .into_bytes(),
     );
 }
 
@@ -206,12 +244,13 @@ fn main() {
     let (mut fit, mut pack, mut predict) = (Vec::new(), Vec::new(), Vec::new());
     let (mut sk_fit, mut sk_predict) = (Vec::new(), Vec::new());
     let (mut f1, mut sk_f1) = (Vec::new(), Vec::new());
+    let mut dropped = Vec::new();
     let mut last = None;
     for round in 0..rounds {
         let cfg = ForestConfig {
             trees,
             seed: round as u64,
-            ..ForestConfig::default()
+            ..ClassifyConfig::default().forest
         };
         let t = Instant::now();
         let f = Forest::fit(
@@ -227,26 +266,43 @@ fn main() {
         let t_fit = t.elapsed().as_secs_f64();
         let coded = f.prepare();
         let total = t.elapsed().as_secs_f64();
-        fit.push(total);
-        pack.push(total - t_fit);
-        if let Some(r) = sk.as_mut().and_then(|s| s.send("fit")) {
-            sk_fit.push(r["fit_s"].as_f64().unwrap_or(f64::NAN));
-        }
+        let sk_fit_s = sk
+            .as_mut()
+            .and_then(|s| s.send("fit"))
+            .and_then(|r| r["fit_s"].as_f64());
         let t = Instant::now();
         let pred = f.predict(&xte).expect("predict");
-        predict.push(t.elapsed().as_secs_f64());
-        f1.push(f1_mean(&pred, &yte, classes).0);
-        if let Some(r) = sk.as_mut().and_then(|s| s.send("predict")) {
-            sk_predict.push(r["predict_s"].as_f64().unwrap_or(f64::NAN));
-            sk_f1.push(r["f1_mean"].as_f64().unwrap_or(f64::NAN));
-        }
+        let predict_s = t.elapsed().as_secs_f64();
+        let round_f1 = f1_mean(&pred, &yte, classes).0;
+        let sk_pred = sk
+            .as_mut()
+            .and_then(|s| s.send("predict"))
+            .and_then(|r| Some((r["predict_s"].as_f64()?, r["f1_mean"].as_f64()?)));
         if !coded {
             eprintln!(
                 "note: round {round}'s forest could not be coded; it predicts with the f32 walk"
             );
         }
         last = Some(f);
+        // Rounds are paired by index: a round that failed on either side counts on neither.
+        let (Some(sk_fit_s), Some((sk_predict_s, sk_round_f1))) = (sk_fit_s, sk_pred) else {
+            eprintln!("note: round {round} failed on the scikit-learn side; dropped from both");
+            dropped.push(round);
+            continue;
+        };
+        fit.push(total);
+        pack.push(total - t_fit);
+        predict.push(predict_s);
+        f1.push(round_f1);
+        sk_fit.push(sk_fit_s);
+        sk_predict.push(sk_predict_s);
+        sk_f1.push(sk_round_f1);
     }
+    println!(
+        "rounds: {} paired, {} dropped {dropped:?}",
+        fit.len(),
+        dropped.len()
+    );
     let f = last.expect("one round");
     let mut depths = f.depths();
     depths.sort_unstable();
@@ -267,9 +323,7 @@ fn main() {
     });
     println!("forest digest (last round): {digest:016x}");
     let rate = |t: &[f64]| {
-        let mut s: Vec<f64> = t.iter().copied().filter(|x| x.is_finite()).collect();
-        s.sort_by(f64::total_cmp);
-        s.get(s.len() / 2).map_or("-".into(), |m| {
+        median_min_max(t).map_or("-".into(), |(m, _, _)| {
             format!("{:.0} k rows/s", nte as f64 / m / 1e3)
         })
     };
@@ -293,8 +347,18 @@ fn main() {
         rate(&sk_predict),
         spread(&sk_f1, 3)
     );
-    let cond = format!("the same 20 000 training and {nte} test rows of the abdomen CT's 64-D INR features, same settings; {threads} threads each; {rounds} rounds");
-    let f1s = format!("mean F1 {} against {}", spread(&f1, 3), spread(&sk_f1, 3));
+    let cond = format!("the abdomen CT's S2 scribbles ({} rows) and every voxel ({nte} rows), {DEFAULT_FEATURES} ({d} features), the classifier's settings (balanced class weights); {threads} threads each; {} paired rounds of {rounds}", ytr.len(), fit.len());
+    // F1 equal on both sides: the medians within 0.01.
+    let equal = match (median_min_max(&f1), median_min_max(&sk_f1)) {
+        (Some((a, _, _)), Some((b, _, _))) if (a - b).abs() <= 0.01 => "equal to 0.01",
+        (Some(_), Some(_)) => "NOT equal to 0.01",
+        _ => "not compared",
+    };
+    let f1s = format!(
+        "mean F1 {} against {} ({equal})",
+        spread(&f1, 3),
+        spread(&sk_f1, 3)
+    );
     println!(
         "summary: | random forest fit, {trees} trees, against scikit-learn {version} | {cond}; timed: Forest::fit + coding against fit | {} s | {} s | {} | {f1s} |",
         spread(&fit, 2),

@@ -1,7 +1,7 @@
 """scikit-learn's RandomForestClassifier on the inputs written by `benches/forest.rs`.
 
 Same settings as neuvolex's forest: n_estimators=T, min_samples_split=8, max_features='sqrt',
-bootstrap=False, Gini, n_jobs=THREADS. Loads the arrays once (outside every timed region), prints
+bootstrap=False, Gini, class_weight from meta.json (the classifier's "balanced"), n_jobs=THREADS. Loads the arrays once (outside every timed region), prints
 `{"ready": version}`, then serves commands on stdin, one per line, so the bench can interleave
 its rounds with neuvolex's:
 
@@ -41,6 +41,7 @@ def main():
         if cmd == "fit":
             rf = RandomForestClassifier(n_estimators=trees, min_samples_split=8,
                                         max_features="sqrt", bootstrap=False, n_jobs=threads,
+                                        class_weight=meta.get("class_weight"),
                                         random_state=rounds)
             rounds += 1
             t = time.perf_counter()

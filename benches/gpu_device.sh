@@ -10,7 +10,8 @@
 #
 # On the device machine (carry [".gpubench", ".gl"]), the printed command unpacks the loader,
 # points Vulkan at NVIDIA's ICD and runs the bench with PyTorch on CUDA in the same run,
-# writing the JSON report and the log under $OUT. The comparison with PyTorch (inr_gpu.rs's
+# writing the JSON report, the log and provenance.txt (commit, dirty flag, build and device
+# machines, driver, PyTorch, CUDA and numpy versions) under $OUT. The comparison with PyTorch (inr_gpu.rs's
 # `vs_torch_gpu`) uses the device's python3 (which holds torch), .gpubench/inr_torch.py, and
 # one persistent PyTorch process: compile and CUDA-graph capture of every variant, a screening
 # round, then 3 interleaved rounds of 400 steps x 16384 samples each side (about 3 minutes).
@@ -23,7 +24,7 @@ device_command() {
   # nvidia-smi samples utilisation and memory every second beside the bench (smi.csv); the
   # bench is capped so the whole command ends inside one 10-minute device call.
   cat <<'EOF'
-for f in .gl/*.deb; do dpkg -x $f /; done; ldconfig; export VK_DRIVER_FILES=/usr/local/nvidia/share/vulkan/icd.d/nvidia_icd.json; export NEUVOLEX_DATA=$PWD/.gpubench/data NEUVOLEX_TORCH_SCRIPT=$PWD/.gpubench/inr_torch.py NEUVOLEX_TORCH_PYTHON=python3 BENCH_DATE=$(date -u +%F); nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv | tee $OUT/gpu.txt; nvidia-smi --query-gpu=timestamp,utilization.gpu,memory.used --format=csv,noheader -l 1 >$OUT/smi.csv 2>&1 & set -o pipefail; timeout 540 .gpubench/inr_gpu --cap-s 60 --sweep-s 8 --torch-steps 400 --rounds 3 --cpu-s 5 --out $OUT/inr_gpu.json 2>&1 | tee $OUT/inr_gpu.log; kill %1 2>/dev/null; awk -F', ' '{u=$2+0; s+=u; n++; if(u>0){b++}} END {if(n) printf "nvidia-smi: %d samples, mean utilisation %.0f %%, busy in %d\n", n, s/n, b}' $OUT/smi.csv
+cat .gpubench/provenance.txt | tee $OUT/provenance.txt; echo "device: $(grep -m1 'model name' /proc/cpuinfo | cut -d: -f2 | xargs), $(nproc) threads, $(awk '/MemTotal/ {printf "%.0f GiB", $2 / 1048576}' /proc/meminfo), $(nvidia-smi --query-gpu=name,driver_version --format=csv,noheader | head -1)" | tee -a $OUT/provenance.txt; python3 -c 'import torch, numpy; print(f"device references: torch {torch.__version__} (CUDA {torch.version.cuda}, cuDNN {torch.backends.cudnn.version()}), numpy {numpy.__version__}")' | tee -a $OUT/provenance.txt; for f in .gl/*.deb; do dpkg -x $f /; done; ldconfig; export VK_DRIVER_FILES=/usr/local/nvidia/share/vulkan/icd.d/nvidia_icd.json; export NEUVOLEX_DATA=$PWD/.gpubench/data NEUVOLEX_TORCH_SCRIPT=$PWD/.gpubench/inr_torch.py NEUVOLEX_TORCH_PYTHON=python3 BENCH_DATE=$(date -u +%F); nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv | tee $OUT/gpu.txt; nvidia-smi --query-gpu=timestamp,utilization.gpu,memory.used --format=csv,noheader -l 1 >$OUT/smi.csv 2>&1 & set -o pipefail; timeout 540 .gpubench/inr_gpu --cap-s 60 --sweep-s 8 --torch-steps 400 --rounds 3 --cpu-s 5 --out $OUT/inr_gpu.json 2>&1 | tee $OUT/inr_gpu.log; kill %1 2>/dev/null; awk -F', ' '{u=$2+0; s+=u; n++; if(u>0){b++}} END {if(n) printf "nvidia-smi: %d samples, mean utilisation %.0f %%, busy in %d\n", n, s/n, b}' $OUT/smi.csv
 EOF
 }
 
@@ -51,6 +52,16 @@ cp "$exe" .gpubench/inr_gpu
 # Without debug information: the device call carries at most 64 MiB.
 strip .gpubench/inr_gpu
 cp benches/inr_torch.py .gpubench/
+# Where the figures come from: the device copy has no git history, so the commit, the dirty
+# flag and the build machine are recorded here and printed by the device command (with the
+# device's CPU, GPU, driver, and the versions of PyTorch, CUDA and numpy it runs against).
+dirty=$(git status --porcelain --untracked-files=no | wc -l)
+{
+  echo "commit: $(git rev-parse HEAD) ($(git log -1 --format=%cs)), $([ "$dirty" -eq 0 ] && echo clean || echo "dirty ($dirty tracked files modified)")"
+  echo "built: $(date -u '+%F %H:%M') UTC on $(grep -m1 'model name' /proc/cpuinfo | cut -d: -f2 | xargs), $(rustc --version)"
+  echo "inr_gpu sha256: $(sha256sum .gpubench/inr_gpu | cut -c1-16)"
+} >.gpubench/provenance.txt
+cat .gpubench/provenance.txt
 data="${NEUVOLEX_DATA:-$root/../shared/data}"
 for rel in tooth/tooth.nhdr tooth/tooth.raw abdomen_ct/ct.nii.gz scivis/bonsai.nii.gz; do
   if [ -f "$data/$rel" ]; then

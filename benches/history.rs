@@ -131,11 +131,13 @@ fn run(name: &str, store: &BrickStore, per: HashMap<[usize; 3], Vec<u16>>) {
             strokes: Arc::new(line[..1].to_vec()),
             features: "filters+xyz/0".into(),
             labels: r1.clone(),
+            verdicts: Default::default(),
         }),
         Arc::new(Round {
             strokes: Arc::new(line.clone()),
             features: "filters+xyz/0".into(),
             labels: r2,
+            verdicts: Default::default(),
         }),
     ];
     let (mut t_save1, mut t_save2, mut t_load) = (Vec::new(), Vec::new(), Vec::new());

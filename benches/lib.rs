@@ -204,12 +204,20 @@ impl Drop for JsonChild {
     }
 }
 
-/// The median (the upper one of an even count), smallest and largest of the finite values of
-/// `v`, or `None` where there are none.
+/// The median (the mean of the two middle values of an even count), smallest and largest of
+/// the finite values of `v`, or `None` where there are none.
 pub fn median_min_max(v: &[f64]) -> Option<(f64, f64, f64)> {
     let mut s: Vec<f64> = v.iter().copied().filter(|x| x.is_finite()).collect();
     s.sort_by(f64::total_cmp);
-    Some((*s.get(s.len() / 2)?, s[0], s[s.len() - 1]))
+    let n = s.len();
+    // The true median: the middle value, or the mean of the two middle values for an even
+    // count (so two rounds report their mean, not their maximum).
+    let m = match n {
+        0 => return None,
+        _ if n % 2 == 1 => s[n / 2],
+        _ => 0.5 * (s[n / 2 - 1] + s[n / 2]),
+    };
+    Some((m, s[0], s[n - 1]))
 }
 
 /// `median [min-max]` of `v` (non-finite values left out) with `digits` decimals, or `-`.
@@ -329,4 +337,20 @@ pub fn session_with_classes(
         })
         .collect();
     (s, ids)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::median_min_max;
+
+    #[test]
+    fn median_is_the_middle_or_the_mean_of_the_two_middle_values() {
+        assert_eq!(median_min_max(&[3.0, 1.0, 2.0]), Some((2.0, 1.0, 3.0)));
+        assert_eq!(median_min_max(&[4.0, 1.0]), Some((2.5, 1.0, 4.0)));
+        assert_eq!(
+            median_min_max(&[f64::NAN, 5.0, 1.0, 2.0, 9.0]),
+            Some((3.5, 1.0, 9.0))
+        );
+        assert_eq!(median_min_max(&[f64::NAN]), None);
+    }
 }

@@ -72,6 +72,10 @@ cargo test --workspace --release --features neuvolex-tests/gpu,neuvolex/gpu "$@"
 # above, and the napari widget headless (Qt's offscreen platform).
 if ./deploy/python.sh; then
   QT_QPA_PLATFORM=offscreen target/pyenv/bin/python -m pytest -q -rs -p no:cacheprovider python/tests || rc=$?
+  # As users install it: `pip install ./python` into a fresh venv, then import and classify
+  # (cargo shares target/ for the library crates; pyo3, numpy and the package's crate rebuild
+  # for the fresh venv's interpreter: 1 to 5 minutes on a 2-core machine, python/README.md).
+  ./deploy/python.sh install || rc=$?
 else
   missing "could not build the Python wheel (deploy/python.sh)" "the Python tests"
   [ "${CI:-}" = "true" ] && rc=1

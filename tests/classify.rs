@@ -5,9 +5,9 @@ use neuvolex_bricks::synth::{Phantom, PhantomChannel, PhantomParams};
 use neuvolex_bricks::BrickStore;
 use neuvolex_classify::features::Quantise;
 use neuvolex_classify::{
-    classify_volume, f1_scores, fit, load_scribbles, simulate, training_set, BrickFeatures,
-    ClassTable, ClassifyConfig, ClassifyError, FeatureSet, ForestConfig, Level, Scribbles,
-    SimConfig,
+    classify_brick, classify_volume, f1_scores, fit, load_scribbles, output_labels, simulate,
+    training_set, BrickFeatures, ClassTable, ClassifyConfig, ClassifyError, FeatureSet,
+    ForestConfig, Level, Scribbles, SimConfig,
 };
 use neuvolex_features::extract::write_features;
 use neuvolex_features::{train, Budget, FeatureKind, InrConfig, TrainConfig};
@@ -83,7 +83,22 @@ fn phantom_classification_is_accurate_and_deterministic() {
         .unwrap()
         .install(|| run(&store, "local", &scr, &c).unwrap());
     assert_eq!(a.labels, b.labels);
-    // Empty bricks were skipped, not predicted.
+    // Empty bricks were skipped, not predicted: exactly the bricks whose every voxel lies below
+    // the store's background threshold and that hold no ROI scribble, found here from the
+    // phantom's voxels and the scribbles themselves.
+    let image = truth_of_f32(&mut Phantom::new(p, PhantomChannel::Image));
+    let empty = empty_bricks(&image, p.dims, 16, store.info().background, &scr, 255);
+    let total = store.bricks().count();
+    eprintln!("{} of {total} bricks empty", empty.len());
+    assert!(scr.counts().contains_key(&255), "background is scribbled");
+    assert!(
+        !empty.is_empty() && empty.len() < total,
+        "the phantom has empty and occupied bricks: {} of {total}",
+        empty.len()
+    );
+    assert!(a.bricks_skipped > 0);
+    assert_eq!(a.bricks_skipped, empty.len());
+    assert_eq!(a.bricks_predicted, total - empty.len());
     let all = run(
         &store,
         "local",
@@ -94,8 +109,68 @@ fn phantom_classification_is_accurate_and_deterministic() {
         },
     )
     .unwrap();
-    assert!(all.bricks_predicted >= a.bricks_predicted);
-    assert_eq!(a.bricks_predicted + a.bricks_skipped, all.bricks_predicted);
+    assert_eq!((all.bricks_skipped, all.bricks_predicted), (0, total));
+    // Brick by brick, the skipped ones are the empty ones.
+    let fx = BrickFeatures::new(&store, "local".parse().unwrap(), None, false).unwrap();
+    let ts = training_set(&fx, &scr, c.background).unwrap();
+    let forest = fit(&ts, &c.forest).unwrap();
+    let out = output_labels(&ts.labels, c.background);
+    for b in store.bricks() {
+        let r = classify_brick(&fx, &forest, &ts.labels, &out, &ts.roi_bricks, &c, &b).unwrap();
+        assert_eq!(r.skipped, empty.contains(&b.index), "brick {:?}", b.index);
+    }
+    // A skipped brick is background; every other voxel is labelled as without skipping.
+    let dims = p.dims;
+    for (i, (&x, &y)) in a.labels.iter().zip(&all.labels).enumerate() {
+        let v = [
+            i % dims[0],
+            (i / dims[0]) % dims[1],
+            i / (dims[0] * dims[1]),
+        ];
+        if empty.contains(&v.map(|k| k / 16)) {
+            assert_eq!(x, 0, "voxel {v:?} of a skipped brick");
+        } else {
+            assert_eq!(x, y, "voxel {v:?} of a predicted brick");
+        }
+    }
+}
+
+fn truth_of_f32(src: &mut dyn VolumeSource) -> Vec<f32> {
+    MemVolume::read_all(src).unwrap().to_f32()
+}
+
+/// Grid indices of the bricks of side `brick` whose voxels all lie below `threshold` and that
+/// hold no scribble other than `background`.
+fn empty_bricks(
+    image: &[f32],
+    dims: [usize; 3],
+    brick: usize,
+    threshold: f64,
+    scr: &Scribbles,
+    background: u32,
+) -> std::collections::BTreeSet<[usize; 3]> {
+    let of = |i: usize| {
+        [
+            i % dims[0] / brick,
+            (i / dims[0]) % dims[1] / brick,
+            i / (dims[0] * dims[1]) / brick,
+        ]
+    };
+    let grid = dims.map(|d| d.div_ceil(brick));
+    let mut empty: std::collections::BTreeSet<[usize; 3]> = (0..grid[2])
+        .flat_map(|z| (0..grid[1]).flat_map(move |y| (0..grid[0]).map(move |x| [x, y, z])))
+        .collect();
+    for (i, &v) in image.iter().enumerate() {
+        if v as f64 >= threshold {
+            empty.remove(&of(i));
+        }
+    }
+    for &(i, c) in &scr.voxels {
+        if c != background {
+            empty.remove(&of(i as usize));
+        }
+    }
+    empty
 }
 
 #[test]
@@ -332,32 +407,47 @@ fn features_missing_for_a_brick_is_an_error_naming_it() {
         .find(|p| p.file_name().is_some_and(|n| n != "zarr.json"))
         .expect("a chunk file");
     std::fs::remove_file(&chunk).unwrap();
-    let (_, scr) = simulate(
-        &mut Phantom::new(p, PhantomChannel::Labels),
-        &SimConfig::default(),
-    )
-    .unwrap();
     let fx = BrickFeatures::new(&store, "paper".parse().unwrap(), Some(m), true).unwrap();
-    let e = store
+    let failing: Vec<_> = store
         .bricks()
-        .map(|b| fx.brick(&b))
-        .find_map(|r| r.err())
-        .expect("a brick without features")
-        .to_string();
+        .filter_map(|b| fx.brick(&b).err().map(|e| (b, e.to_string())))
+        .collect();
+    assert_eq!(
+        failing.len(),
+        1,
+        "exactly the brick whose chunk was removed fails"
+    );
+    let (gone, e) = &failing[0];
     assert!(e.contains("inr_hidden") && e.contains("brick"), "{e}");
-    let _ = training_set(&fx, &scr, 255);
+    // Training reads the features of the bricks the scribbles touch: two classes scribbled
+    // inside the brick without features give an error naming the array, the same two classes
+    // scribbled in another brick give the training set.
+    let dims = p.dims;
+    let at = |v: [usize; 3]| ((v[2] * dims[1] + v[1]) * dims[0] + v[0]) as u64;
+    let inside = |o: [usize; 3], k: usize| [o[0] + k, o[1], o[2]];
+    let other = store.bricks().find(|b| b.index != gone.index).unwrap();
+    for (b, missing) in [(*gone, true), (other, false)] {
+        let scr = Scribbles {
+            dims,
+            voxels: vec![(at(inside(b.origin, 0)), 1), (at(inside(b.origin, 1)), 255)],
+        };
+        match training_set(&fx, &scr, 255) {
+            Err(e) if missing => assert!(e.to_string().contains("inr_hidden"), "{e}"),
+            Err(e) => panic!("brick {:?} has its features, yet: {e}", b.index),
+            Ok(_) if missing => panic!("brick {:?} has no features, yet training read it", b.index),
+            Ok(ts) => assert_eq!((ts.y.len(), ts.labels.clone()), (2, vec![1, 255])),
+        }
+    }
 }
 
 fn walk(d: &std::path::Path) -> Vec<std::path::PathBuf> {
     let mut out = Vec::new();
-    if let Ok(rd) = std::fs::read_dir(d) {
-        for e in rd.flatten() {
-            let p = e.path();
-            if p.is_dir() {
-                out.extend(walk(&p));
-            } else {
-                out.push(p);
-            }
+    for e in std::fs::read_dir(d).unwrap() {
+        let p = e.unwrap().path();
+        if p.is_dir() {
+            out.extend(walk(&p));
+        } else {
+            out.push(p);
         }
     }
     out

@@ -189,7 +189,14 @@ fn labels_and_ome_reader_through_a_url() {
     let got = store
         .read_labels_box("gt", [0; 3], store.info().dims)
         .unwrap();
-    assert!(got.iter().zip(&want.bytes).all(|(&a, &b)| a == b as u32));
+    // Every voxel (a zip of unequal lengths would compare only the shorter).
+    assert_eq!(want.meta.dtype, neuvolex_formats::DType::U8);
+    let want_u32: Vec<u32> = want.bytes.iter().map(|&b| b as u32).collect();
+    assert_eq!(got.len(), p.dims.iter().product::<usize>());
+    assert!(
+        got == want_u32,
+        "labels read through the URL differ from the phantom's"
+    );
     // The OME-Zarr reader opens the label image by URL (its datasets point at the generation).
     let mut src = neuvolex_bricks::omezarr::OmeZarrSource::open(loc.join("labels/gt")).unwrap();
     use neuvolex_formats::VolumeSource;
@@ -329,7 +336,15 @@ fn done_markers_resume_on_both_backends() {
 
 /// A reader of a brick being rewritten sees the old or the new chunk, never a mix; a reader of
 /// a stage output sees the previous complete array until the new one is published.
+///
+/// The reader reads the brick in a loop while the writer rewrites it, alternating the whole
+/// chunk between two values. Every read must succeed (the brick exists before the reader
+/// starts) and give one of the two whole chunks. A read counts as overlapping when a write was
+/// in progress as it started or a write started before it ended (two counters the writer bumps
+/// around each write); the writer goes on until 20 reads overlapped and the reader saw both
+/// values, bounded by 5 000 writes and 60 s, and at least one overlapping read is required.
 fn no_torn_reads(store: &BrickStore) {
+    use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering::SeqCst};
     let bricks: Vec<_> = store.bricks().collect();
     let mut v1 = store.create_vectors("t", 4, VectorEncoding::F16).unwrap();
     for b in &bricks {
@@ -338,33 +353,70 @@ fn no_torn_reads(store: &BrickStore) {
     v1.finish().unwrap();
     let b = bricks[bricks.len() / 2];
     let mut v2 = store.create_vectors("t", 4, VectorEncoding::F16).unwrap();
-    let stop = std::sync::atomic::AtomicBool::new(false);
-    std::thread::scope(|s| {
+    v2.write_brick(&b, &vec![3.0; b.voxels() * 4]).unwrap();
+    let (started, finished) = (AtomicUsize::new(0), AtomicUsize::new(0));
+    let overlapped = AtomicUsize::new(0);
+    let seen = [AtomicBool::new(false), AtomicBool::new(false)];
+    let stop = AtomicBool::new(false);
+    let (writes, reads) = std::thread::scope(|s| {
         let reader = s.spawn(|| {
-            let (mut reads, t) = (0, Instant::now());
-            while !stop.load(std::sync::atomic::Ordering::SeqCst) && t.elapsed().as_secs() < 60 {
-                if let Ok(x) = v2.read_brick(&b) {
-                    assert!(
-                        x.iter().all(|&y| y == x[0]) && (x[0] == 2.0 || x[0] == 3.0),
-                        "torn chunk: {} then {}",
-                        x[0],
-                        x.iter().find(|&&y| y != x[0]).unwrap_or(&x[0])
-                    );
-                    reads += 1;
+            let mut reads = 0usize;
+            while !stop.load(SeqCst) {
+                let (s0, f0) = (started.load(SeqCst), finished.load(SeqCst));
+                let x = v2
+                    .read_brick(&b)
+                    .unwrap_or_else(|e| panic!("read {reads} of a brick being rewritten: {e}"));
+                if s0 > f0 || started.load(SeqCst) > s0 {
+                    overlapped.fetch_add(1, SeqCst);
                 }
+                assert!(
+                    x.iter().all(|&y| y == x[0]) && (x[0] == 2.0 || x[0] == 3.0),
+                    "torn chunk: {} then {}",
+                    x[0],
+                    x.iter().find(|&&y| y != x[0]).unwrap_or(&x[0])
+                );
+                seen[(x[0] == 3.0) as usize].store(true, SeqCst);
+                reads += 1;
                 // The published array is the complete previous one throughout.
-                let old = store.open_vectors("t").unwrap().read_brick(&b).unwrap();
-                assert!(old.iter().all(|&y| y == 1.0));
+                if reads.is_multiple_of(8) {
+                    let old = store.open_vectors("t").unwrap().read_brick(&b).unwrap();
+                    assert!(old.iter().all(|&y| y == 1.0));
+                }
             }
             reads
         });
-        for i in 0..30 {
-            let val = if i % 2 == 0 { 2.0 } else { 3.0 };
-            v2.write_brick(&b, &vec![val; b.voxels() * 4]).unwrap();
+        // Stops the reader however this thread leaves (a failed write must not hang the scope).
+        struct StopOnExit<'a>(&'a AtomicBool);
+        impl Drop for StopOnExit<'_> {
+            fn drop(&mut self) {
+                self.0.store(true, SeqCst);
+            }
         }
-        stop.store(true, std::sync::atomic::Ordering::SeqCst);
-        assert!(reader.join().unwrap() > 0);
+        let _stop = StopOnExit(&stop);
+        let t = Instant::now();
+        let mut writes = 0usize;
+        let enough = || overlapped.load(SeqCst) >= 20 && seen.iter().all(|s| s.load(SeqCst));
+        // The reader ends early only by failing; its panic is re-raised by the join below.
+        while !enough() && !reader.is_finished() && writes < 5000 && t.elapsed().as_secs() < 60 {
+            let val = if writes.is_multiple_of(2) { 2.0 } else { 3.0 };
+            started.fetch_add(1, SeqCst);
+            v2.write_brick(&b, &vec![val; b.voxels() * 4]).unwrap();
+            finished.fetch_add(1, SeqCst);
+            writes += 1;
+        }
+        stop.store(true, SeqCst);
+        (writes, reader.join().unwrap())
     });
+    let overlapped = overlapped.into_inner();
+    eprintln!("{writes} writes, {reads} reads, {overlapped} of them during a write");
+    assert!(
+        overlapped > 0,
+        "no read overlapped a write ({writes} writes, {reads} reads)"
+    );
+    assert!(
+        seen.iter().all(|s| s.load(SeqCst)),
+        "the reader saw one version only ({writes} writes, {reads} reads)"
+    );
     for c in &bricks {
         v2.write_brick(c, &vec![5.0; c.voxels() * 4]).unwrap();
     }

@@ -1,11 +1,11 @@
 //! numpy arrays in and out: volumes read in place where numpy's layout allows (C order),
 //! label and scribble arrays checked voxel by voxel.
 
+use crate::run::bad_argument;
 use neuvolex_classify::Scribbles;
 use neuvolex_formats::meta::{slab_of, MemVolume, Slab};
 use neuvolex_formats::{DType, VolumeMeta, VolumeSource};
 use numpy::{PyReadonlyArray3, PyUntypedArrayMethods};
-use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
 use std::borrow::Cow;
 use std::path::{Path, PathBuf};
@@ -93,9 +93,9 @@ fn checked<'py>(a: &Bound<'py, PyAny>, name: &str) -> PyResult<(Guard<'py>, DTyp
     let ndim: usize = a
         .getattr("ndim")
         .and_then(|n| n.extract())
-        .map_err(|_| PyValueError::new_err(format!("{name}: expected a numpy array")))?;
+        .map_err(|_| bad_argument(format!("{name}: expected a numpy array")))?;
     if ndim != 3 {
-        return Err(PyValueError::new_err(format!(
+        return Err(bad_argument(format!(
             "{name}: expected a 3-D array [z, y, x], got {ndim} dimensions"
         )));
     }
@@ -105,14 +105,14 @@ fn checked<'py>(a: &Bound<'py, PyAny>, name: &str) -> PyResult<(Guard<'py>, DTyp
         .map(|s| s.to_string())
         .unwrap_or_default();
     let (g, d) = Guard::extract(a).ok_or_else(|| {
-        PyValueError::new_err(format!(
+        bad_argument(format!(
             "{name}: dtype {dt} is not supported (uint8, int8, uint16, int16, uint32, int32, \
              int64, uint64, float32, float64)"
         ))
     })?;
     let s = g.shape();
     if s.contains(&0) {
-        return Err(PyValueError::new_err(format!(
+        return Err(bad_argument(format!(
             "{name}: shape {s:?} has an empty axis"
         )));
     }
@@ -124,7 +124,7 @@ impl<'py> VolumeArray<'py> {
     pub fn extract(a: &Bound<'py, PyAny>, name: &str) -> PyResult<Self> {
         let (guard, dtype, dims) = checked(a, name)?;
         if matches!(guard, Guard::I64(_) | Guard::U64(_)) {
-            return Err(PyValueError::new_err(format!(
+            return Err(bad_argument(format!(
                 "{name}: 64-bit integer volumes are not stored; convert to int32 or float32"
             )));
         }
@@ -167,6 +167,64 @@ impl VolumeSource for BorrowedVolume<'_> {
     }
 }
 
+/// A volume read slab by slab from a Python callable `reader(z0, depth)` that returns a
+/// numpy array `[depth, y, x]` of the volume's type (a dask or zarr array, sliced).
+pub struct PySlabs {
+    meta: VolumeMeta,
+    reader: Py<PyAny>,
+    name: PathBuf,
+}
+
+impl PySlabs {
+    /// A volume of `meta` read through `reader`.
+    pub fn new(meta: VolumeMeta, reader: Py<PyAny>) -> Self {
+        PySlabs {
+            meta,
+            reader,
+            name: PathBuf::from("array"),
+        }
+    }
+}
+
+impl VolumeSource for PySlabs {
+    fn meta(&self) -> &VolumeMeta {
+        &self.meta
+    }
+    fn path(&self) -> &Path {
+        &self.name
+    }
+    fn read_slab(&mut self, z0: usize, depth: usize) -> neuvolex_formats::Result<Slab> {
+        neuvolex_formats::meta::check_slab_range(&self.meta, &self.name, z0, depth)?;
+        let bad = |m: String| neuvolex_formats::FormatError::InvalidArgument(format!("array: {m}"));
+        let bytes = Python::attach(|py| -> Result<Vec<u8>, String> {
+            let a = self
+                .reader
+                .call1(py, (z0, depth))
+                .map_err(|e| format!("reading slices {z0}..{}: {e}", z0 + depth))?;
+            let v = VolumeArray::extract(a.bind(py), "slab").map_err(|e| e.to_string())?;
+            let want = [self.meta.dims[0], self.meta.dims[1], depth];
+            if v.dims != want || v.dtype != self.meta.dtype {
+                return Err(format!(
+                    "slab {z0}..{}: got {:?} {:?}, expected {:?} {:?} (x, y, z)",
+                    z0 + depth,
+                    v.dims,
+                    v.dtype,
+                    want,
+                    self.meta.dtype
+                ));
+            }
+            Ok(v.bytes().into_owned())
+        })
+        .map_err(bad)?;
+        Ok(Slab {
+            z0,
+            depth,
+            dtype: self.meta.dtype,
+            bytes,
+        })
+    }
+}
+
 /// An integer label array (scribbles or labels) on a store's grid: its non-zero voxels.
 pub struct ScribbleArray {
     dims: [usize; 3],
@@ -179,14 +237,14 @@ impl ScribbleArray {
     pub fn extract(a: &Bound<'_, PyAny>, name: &str, dims: [usize; 3]) -> PyResult<Self> {
         let (g, _, got) = checked(a, name)?;
         if got != dims {
-            return Err(PyValueError::new_err(format!(
+            return Err(bad_argument(format!(
                 "{name}: shape {:?} differs from the volume's [z, y, x] {:?}",
                 [got[2], got[1], got[0]],
                 [dims[2], dims[1], dims[0]]
             )));
         }
         let v = g.integers().ok_or_else(|| {
-            PyValueError::new_err(format!(
+            bad_argument(format!(
                 "{name}: expected an integer array (0 = unlabelled), not floating point"
             ))
         })?;
@@ -194,7 +252,7 @@ impl ScribbleArray {
         for (i, x) in v {
             if !(0..=u32::MAX as i64).contains(&x) {
                 let (w, h) = (dims[0] as u64, dims[1] as u64);
-                return Err(PyValueError::new_err(format!(
+                return Err(bad_argument(format!(
                     "{name}: voxel [z, y, x] = [{}, {}, {}] holds {x}; labels must be 0..=4294967295",
                     i / (w * h),
                     (i / w) % h,
@@ -212,6 +270,21 @@ impl ScribbleArray {
             dims: self.dims,
             voxels: self.voxels.clone(),
         }
+    }
+
+    /// Scribbles kept from an earlier call (a saved session): `voxels` as (index, label), x
+    /// fastest.
+    pub fn from_parts(dims: [usize; 3], voxels: Vec<(u64, u32)>) -> Self {
+        ScribbleArray { dims, voxels }
+    }
+
+    /// Every voxel's label, x fastest (0 where unlabelled).
+    pub fn dense(&self) -> Vec<u32> {
+        let mut v = vec![0u32; self.dims.iter().product()];
+        for &(i, l) in &self.voxels {
+            v[i as usize] = l;
+        }
+        v
     }
 
     /// The distinct non-zero labels.

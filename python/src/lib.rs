@@ -20,10 +20,9 @@ use neuvolex_formats::VolumeMeta;
 use neuvolex_render::{BrickSource, Camera, Mode, RenderParams, Renderer, StoreSource, TfFile};
 use neuvolex_tasks::{LocalExecutor, RunEvent};
 use numpy::IntoPyArray;
-use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
 use pyo3::types::PyAny;
-use run::{detached, Ctl, WorkError};
+use run::{bad_argument, detached, Ctl, WorkError};
 use std::path::PathBuf;
 use std::sync::Arc;
 
@@ -69,7 +68,7 @@ fn classify_config(
     tau: f32,
     background: u32,
 ) -> PyResult<ClassifyConfig> {
-    let bad = |m: String| Err(PyValueError::new_err(m));
+    let bad = |m: String| Err(bad_argument(m));
     if trees == 0 || trees > 100_000 {
         return bad(format!("trees {trees}: must be 1..=100000"));
     }
@@ -103,16 +102,18 @@ struct Store {
     store: Arc<BrickStore>,
     /// The trained INR, read once from the store (and replaced by `train`).
     model: std::sync::Mutex<Option<Arc<neuvolex_features::InrModel>>>,
-    /// The last classification's labels, for the stability rule of the next.
-    shown: Option<Shown>,
 }
 
-/// What a classification showed and what made it: the next one with the same `key` (settings,
-/// features and model) and more scribbles holds to it ([`neuvolex_classify::stable`]).
+/// What a session's round showed and what made it: the next round with the same `key`
+/// (settings, features and model) and more scribbles holds to it
+/// ([`neuvolex_classify::stable`]).
 struct Shown {
     key: String,
     scribbles: neuvolex_classify::Scribbles,
     labels: Vec<u16>,
+    /// The round's own decisions (the forest's labels, and the labels after the prior), for
+    /// the rule to hold them ([`neuvolex_classify::stable::Hold::verdicts`]).
+    verdicts: Option<neuvolex_classify::stable::RoundVerdicts>,
 }
 
 /// The axis index of `x`, `y` or `z`.
@@ -121,7 +122,7 @@ fn axis_index(axis: &str) -> PyResult<usize> {
         "x" => Ok(0),
         "y" => Ok(1),
         "z" => Ok(2),
-        o => Err(PyValueError::new_err(format!(
+        o => Err(bad_argument(format!(
             "axis '{o}': expected 'x', 'y' or 'z'"
         ))),
     }
@@ -130,17 +131,16 @@ fn axis_index(axis: &str) -> PyResult<usize> {
 fn feature_set(features: &str) -> PyResult<FeatureSet> {
     features
         .parse()
-        .map_err(|e: String| PyValueError::new_err(format!("features '{features}': {e}")))
+        .map_err(|e: String| bad_argument(format!("features '{features}': {e}")))
 }
 
 impl Store {
     fn opened(location: PathBuf) -> Result<Store, WorkError> {
-        let store = BrickStore::open(&location).map_err(WorkError::other)?;
+        let store = BrickStore::open(&location).map_err(|e| WorkError::bricks(&e))?;
         Ok(Store {
             location,
             store: Arc::new(store),
             model: Default::default(),
-            shown: None,
         })
     }
 
@@ -170,8 +170,7 @@ impl Store {
 
     /// The store reopened (after a step that published new labels).
     fn refresh(&mut self) -> PyResult<()> {
-        let store = BrickStore::open(&self.location)
-            .map_err(|e| pyo3::exceptions::PyRuntimeError::new_err(e.to_string()))?;
+        let store = BrickStore::open(&self.location).map_err(|e| bad_argument(e.to_string()))?;
         self.store = Arc::new(store);
         Ok(())
     }
@@ -197,7 +196,8 @@ impl Store {
         progress: Option<&Bound<'_, PyAny>>,
     ) -> PyResult<Store> {
         detached(py, progress, move |ctl| {
-            let mut src = neuvolex_bricks::open_volume(&source, None).map_err(WorkError::value)?;
+            let mut src =
+                neuvolex_bricks::open_volume(&source, None).map_err(|e| WorkError::bricks(&e))?;
             let opts = neuvolex_ingest::IngestOptions {
                 brick,
                 overwrite: force,
@@ -209,7 +209,7 @@ impl Store {
                 &opts,
                 &mut brick_progress(ctl, "ingest"),
             )
-            .map_err(WorkError::value)?;
+            .map_err(|e| WorkError::ingest(&e))?;
             Store::opened(store)
         })
     }
@@ -234,7 +234,7 @@ impl Store {
         meta.spacing = spacing;
         meta.affine = affine;
         meta.validate(std::path::Path::new("array"))
-            .map_err(|e| PyValueError::new_err(e.to_string()))?;
+            .map_err(|e| bad_argument(e.to_string()))?;
         let bytes = vol.bytes();
         detached(py, progress, move |ctl| {
             let mut src = arrays::BorrowedVolume::new(meta, bytes);
@@ -244,9 +244,129 @@ impl Store {
                 ..Default::default()
             };
             neuvolex_ingest::ingest(&mut src, &store, &opts, &mut brick_progress(ctl, "ingest"))
-                .map_err(WorkError::value)?;
+                .map_err(|e| WorkError::ingest(&e))?;
             Store::opened(store)
         })
+    }
+
+    /// Ingests a volume that `reader(z0, depth)` hands over slab by slab (a C-ordered numpy
+    /// array `[depth, y, x]` of `dtype` each call), never whole: dask, zarr or memory-mapped
+    /// arrays larger than memory. `shape` is `[z, y, x]`; spacing and affine as `from_array`.
+    #[staticmethod]
+    #[pyo3(signature = (reader, shape, dtype, spacing, affine, store, brick=64, force=false,
+        progress=None))]
+    #[allow(clippy::too_many_arguments)]
+    fn from_slabs(
+        py: Python<'_>,
+        reader: Py<PyAny>,
+        shape: [usize; 3],
+        dtype: &str,
+        spacing: [f64; 3],
+        affine: [[f64; 4]; 4],
+        store: PathBuf,
+        brick: usize,
+        force: bool,
+        progress: Option<&Bound<'_, PyAny>>,
+    ) -> PyResult<Store> {
+        use neuvolex_formats::DType as D;
+        let dt = match dtype {
+            "uint8" => D::U8,
+            "int8" => D::I8,
+            "uint16" => D::U16,
+            "int16" => D::I16,
+            "uint32" => D::U32,
+            "int32" => D::I32,
+            "float32" => D::F32,
+            "float64" => D::F64,
+            o => {
+                return Err(bad_argument(format!(
+                    "array: dtype {o} is not supported (uint8, int8, uint16, int16, uint32, \
+                     int32, float32, float64)"
+                )))
+            }
+        };
+        if shape.contains(&0) {
+            return Err(bad_argument(format!(
+                "array: shape {shape:?} has an empty axis"
+            )));
+        }
+        let mut meta = VolumeMeta::new([shape[2], shape[1], shape[0]], dt);
+        meta.spacing = spacing;
+        meta.affine = affine;
+        meta.validate(std::path::Path::new("array"))
+            .map_err(|e| bad_argument(e.to_string()))?;
+        detached(py, progress, move |ctl| {
+            let mut src = arrays::PySlabs::new(meta, reader);
+            let opts = neuvolex_ingest::IngestOptions {
+                brick,
+                overwrite: force,
+                ..Default::default()
+            };
+            neuvolex_ingest::ingest(&mut src, &store, &opts, &mut brick_progress(ctl, "ingest"))
+                .map_err(|e| WorkError::ingest(&e))?;
+            Store::opened(store)
+        })
+    }
+
+    /// Writes the generated phantom (an abdomen-like CT, `size` voxels wide) with its ground
+    /// truth as label image `ground_truth` into a new store at `store` and opens it.
+    #[staticmethod]
+    #[pyo3(signature = (store, size=96, seed=0, brick=32, force=false))]
+    fn phantom(
+        py: Python<'_>,
+        store: PathBuf,
+        size: usize,
+        seed: u64,
+        brick: usize,
+        force: bool,
+    ) -> PyResult<Store> {
+        if !(8..=2048).contains(&size) {
+            return Err(bad_argument(format!("size {size}: must be 8..=2048")));
+        }
+        detached(py, None, move |ctl| {
+            let opts = neuvolex_ingest::IngestOptions {
+                brick,
+                overwrite: force,
+                ..Default::default()
+            };
+            neuvolex_ingest::phantom_store(
+                &store,
+                neuvolex_bricks::synth::PhantomParams::with_size(size, seed),
+                &opts,
+                &mut brick_progress(ctl, "phantom"),
+            )
+            .map_err(|e| WorkError::bricks(&e))?;
+            Store::opened(store)
+        })
+    }
+
+    /// The names of the store's label images.
+    #[getter]
+    fn label_names(&self) -> Vec<String> {
+        self.store.info().labels.clone()
+    }
+
+    /// Label image `name` of the store, flat (x fastest).
+    fn read_labels<'py>(
+        &self,
+        py: Python<'py>,
+        name: &str,
+    ) -> PyResult<Bound<'py, numpy::PyArray1<u32>>> {
+        if !self.store.info().labels.iter().any(|l| l == name) {
+            return Err(bad_argument(format!(
+                "labels '{name}': the store has {:?}",
+                self.store.info().labels
+            )));
+        }
+        let store = self.store.clone();
+        let name = name.to_string();
+        let v = detached(py, None, move |_| {
+            let dims = store.info().dims;
+            store
+                .read_labels_box(&name, [0, 0, 0], dims)
+                .map_err(|e| WorkError::bricks(&e))
+        })?;
+        Ok(v.into_pyarray(py))
     }
 
     /// Where the store is.
@@ -273,10 +393,20 @@ impl Store {
         self.store.meta().affine
     }
 
-    /// The source's voxel type (`u8`, `i16`, `f32`, ...).
+    /// The source's voxel type as numpy names it (`uint8`, `int16`, `float32`, ...).
     #[getter]
-    fn dtype(&self) -> String {
-        format!("{:?}", self.store.info().source_dtype).to_lowercase()
+    fn dtype(&self) -> &'static str {
+        use neuvolex_formats::DType as D;
+        match self.store.info().source_dtype {
+            D::U8 => "uint8",
+            D::I8 => "int8",
+            D::U16 => "uint16",
+            D::I16 => "int16",
+            D::U32 => "uint32",
+            D::I32 => "int32",
+            D::F32 => "float32",
+            D::F64 => "float64",
+        }
     }
 
     /// The brick edge in voxels.
@@ -313,7 +443,8 @@ impl Store {
     ) -> PyResult<Bound<'py, numpy::PyArray1<f32>>> {
         let loc = self.location.clone();
         let v = detached(py, progress, move |ctl| {
-            let mut src = neuvolex_bricks::open_volume(&loc, None).map_err(WorkError::other)?;
+            let mut src =
+                neuvolex_bricks::open_volume(&loc, None).map_err(|e| WorkError::bricks(&e))?;
             let meta = src.meta().clone();
             let slice = meta.slice_len();
             let mut out = vec![0f32; meta.voxels() as usize];
@@ -350,11 +481,11 @@ impl Store {
         use neuvolex_features::{Budget, InrConfig, Preset, TrainConfig, TrainEvent};
         let p: Preset = preset
             .parse()
-            .map_err(|e: String| PyValueError::new_err(format!("preset '{preset}': {e}")))?;
+            .map_err(|e: String| bad_argument(format!("preset '{preset}': {e}")))?;
         for (name, v) in [("epochs", epochs), ("seconds", seconds)] {
             if let Some(v) = v {
                 if !(v > 0.0 && v.is_finite()) {
-                    return Err(PyValueError::new_err(format!(
+                    return Err(bad_argument(format!(
                         "{name} {v}: must be a positive number"
                     )));
                 }
@@ -372,7 +503,9 @@ impl Store {
         let ms_budget = seconds.map_or(0, |s| (s * 1e3) as u64);
         let store = self.store.clone();
         detached(py, progress, move |ctl| {
-            let _lock = store.writer_lock("train").map_err(WorkError::other)?;
+            let _lock = store
+                .writer_lock("train")
+                .map_err(|e| WorkError::bricks(&e))?;
             let ckpt = neuvolex_features::train::checkpoint_path(&store);
             // Progress in samples against the budget; a budget in seconds only counts
             // milliseconds instead.
@@ -431,9 +564,7 @@ impl Store {
     fn feature_channels(&self, py: Python<'_>, features: &str) -> PyResult<usize> {
         let set = feature_set(features)?;
         let src = detached(py, None, |_| self.features_of(&set))?;
-        let fx = src
-            .features()
-            .map_err(|e| PyValueError::new_err(e.to_string()))?;
+        let fx = src.features().map_err(|e| bad_argument(e.to_string()))?;
         Ok(fx.channels())
     }
 
@@ -449,7 +580,7 @@ impl Store {
         let b = self
             .store
             .brick(index)
-            .map_err(|e| PyValueError::new_err(format!("brick {index:?}: {e}")))?;
+            .map_err(|e| bad_argument(format!("brick {index:?}: {e}")))?;
         let size = b.size;
         let v = detached(py, None, |_| {
             let src = self.features_of(&set)?;
@@ -460,15 +591,13 @@ impl Store {
         Ok((v.into_pyarray(py), size))
     }
 
-    /// Classifies every voxel from scribbles (the `neuvolex classify` pipeline): returns the
-    /// label image (flat, x fastest, after the prior), the class probabilities (flat,
-    /// class-major), the label of each probability channel and the JSON report. With `stable`
-    /// (a `delta`, 0 to 1), a call whose scribbles extend the last call's, with the same
-    /// settings and features, holds to the labels that call gave beyond the margin of the new
-    /// strokes ([`neuvolex_classify::stable`]), as the service's session does.
-    #[pyo3(signature = (scribbles, features="filters+xyz", prior=true, trees=100, seed=0,
-        tau=0.5, min_split=8, class_weight="balanced", background=255,
-        prior_mass=None, prior_grow=None, probabilities=true, stable=Some(0.25), progress=None))]
+    /// Classifies every voxel from scribbles (the `neuvolex classify` pipeline), a function of
+    /// its arguments only: returns the label image (flat, x fastest, after the prior), the
+    /// class probabilities (flat, voxel-major: channels innermost), the label of each
+    /// probability channel and the JSON report. The settings are checked as the CLI checks
+    /// them; the Python layer passes [`defaults`] where the caller gives none.
+    #[pyo3(signature = (scribbles, features, prior, trees, seed, tau, min_split, class_weight,
+        background, prior_mass, prior_grow, probabilities, progress=None))]
     #[allow(clippy::too_many_arguments, clippy::type_complexity)]
     fn classify<'py>(
         &mut self,
@@ -485,131 +614,31 @@ impl Store {
         prior_mass: Option<f64>,
         prior_grow: Option<u32>,
         probabilities: bool,
-        stable: Option<f32>,
         progress: Option<&Bound<'py, PyAny>>,
-    ) -> PyResult<(
-        Bound<'py, PyAny>,
-        Option<Bound<'py, numpy::PyArray1<f32>>>,
-        Vec<u32>,
-        String,
-    )> {
-        if let Some(d) = stable.filter(|d| !(0.0..=1.0).contains(d)) {
-            return Err(PyValueError::new_err(format!(
-                "stable {d}: must be between 0 and 1 (None turns the rule off)"
-            )));
-        }
-        let set = feature_set(features)?;
-        let config = classify_config(trees, min_split, seed, class_weight, tau, background)?;
-        let defaults = PriorConfig::default();
-        let prior = if prior {
-            let mass = prior_mass.unwrap_or(defaults.relative_mass);
-            let grow = prior_grow.unwrap_or(defaults.grow);
-            Some(
-                PriorConfig::new(mass)
-                    .map_err(|e| PyValueError::new_err(format!("prior_mass {mass}: {e}")))?
-                    .with_grow(grow)
-                    .map_err(|e| PyValueError::new_err(format!("prior_grow {grow}: {e}")))?,
-            )
-        } else {
-            None
-        };
-        let scr = ScribbleArray::extract(scribbles, "scribbles", self.store.info().dims)?;
-        // The settings a held result must share (the model's identity is added once known).
-        let settings = format!(
-            "{set}|{config:?}|{prior:?}",
-            config = (trees, min_split, seed, class_weight, tau, background)
-        );
-        let mut req = ClassifyRequest {
-            store: self.location.clone(),
-            scribbles: PathBuf::from("scribbles"),
-            features: set,
-            classes: None,
-            out: None,
-            force: false,
-            stored_features: false,
-            config,
-            bricks_per_task: 1,
+    ) -> PyResult<Classified<'py>> {
+        let s = Settings::new(
+            features,
             prior,
-            hold: None,
-        };
-        let shown = &self.shown;
-        let (labels, proba, classes, report, store, now) = detached(py, progress, |ctl| {
-            let scr = scr.scribbles();
-            let model = self
-                .features_of(&req.features)?
-                .model
-                .map_or_else(String::new, |m| {
-                    neuvolex_features::stage::model_identity(&m)
-                });
-            let key = format!("{settings}|{model}");
-            req.hold = stable.and_then(|delta| {
-                shown
-                    .as_ref()
-                    .filter(|s| s.key == key)
-                    .map(|s| neuvolex_classify::stable::Hold {
-                        scribbles: s.scribbles.clone(),
-                        labels: s.labels.clone(),
-                        config: neuvolex_classify::stable::StableConfig {
-                            delta,
-                            ..Default::default()
-                        },
-                    })
-            });
-            let now = (key, scr.clone());
-            // An earlier call stopped half way (Ctrl-C) left pending outputs of its own
-            // scribbles: a new call starts over instead of being refused.
-            for name in [pipeline::PROBA, pipeline::LABELS] {
-                self.store
-                    .discard_pending_vectors(name)
-                    .map_err(WorkError::other)?;
-            }
-            let o =
-                pipeline::classify_scribbles(&req, scr, &executor(ctl), &mut task_progress(ctl))
-                    .map_err(|e| match e {
-                        neuvolex_classify::ClassifyError::File { .. }
-                        | neuvolex_classify::ClassifyError::Input(_)
-                        | neuvolex_classify::ClassifyError::Scribble(_) => WorkError::value(e),
-                        e => WorkError::other(e),
-                    })?;
-            if !o.dead.is_empty() || o.labels.is_empty() {
-                return Err(WorkError::Other(if ctl.cancelled() {
-                    "classification cancelled".into()
-                } else {
-                    format!("classification failed: {:?}", o.dead)
-                }));
-            }
-            // The store as the run left it: this handle serves the next calls.
-            let store = BrickStore::open(&req.store).map_err(WorkError::other)?;
-            let proba = if probabilities {
-                Some(pipeline::assemble_probabilities(&store).map_err(WorkError::other)?)
-            } else {
-                None
-            };
-            let report = serde_json::to_string(&o.report).map_err(WorkError::other)?;
-            Ok((o.labels, proba, o.report.labels.clone(), report, store, now))
-        })?;
-        self.store = Arc::new(store);
-        self.shown = Some(Shown {
-            key: now.0,
-            scribbles: now.1,
-            labels: labels.clone(),
-        });
-        let max = labels.iter().copied().max().unwrap_or(0);
-        let labels: Bound<'py, PyAny> = if max <= 255 {
-            let v: Vec<u8> = labels.iter().map(|&l| l as u8).collect();
-            v.into_pyarray(py).into_any()
-        } else {
-            labels.into_pyarray(py).into_any()
-        };
-        Ok((labels, proba.map(|p| p.into_pyarray(py)), classes, report))
+            trees,
+            seed,
+            tau,
+            min_split,
+            class_weight,
+            background,
+            prior_mass,
+            prior_grow,
+        )?;
+        let scr = ScribbleArray::extract(scribbles, "scribbles", self.store.info().dims)?;
+        let o = self.run_classify(py, scr, &s, probabilities, None, None, progress)?;
+        Ok(o.into_py(py))
     }
 
     /// The forest's labels on one slice before the rest of the volume (and before the
     /// spatial prior): the same forest as `classify` with these settings, only the bricks
     /// crossing the slice read. Returns the plane (flat, the lower remaining axis fastest)
     /// and its size.
-    #[pyo3(signature = (scribbles, axis, index, features="filters+xyz", trees=100, seed=0,
-        tau=0.5, min_split=8, class_weight="balanced", background=255))]
+    #[pyo3(signature = (scribbles, axis, index, features, trees, seed, tau, min_split,
+        class_weight, background))]
     #[allow(clippy::too_many_arguments)]
     fn preview_slice<'py>(
         &self,
@@ -625,31 +654,8 @@ impl Store {
         class_weight: &str,
         background: u32,
     ) -> PyResult<(Bound<'py, numpy::PyArray1<u16>>, [usize; 2])> {
-        let a = axis_index(axis)?;
-        let dims = self.store.info().dims;
-        if index >= dims[a] {
-            return Err(PyValueError::new_err(format!(
-                "index {index}: the volume has {} slices along {axis}",
-                dims[a]
-            )));
-        }
-        let set = feature_set(features)?;
         let config = classify_config(trees, min_split, seed, class_weight, tau, background)?;
-        let scr = ScribbleArray::extract(scribbles, "scribbles", dims)?;
-        let plane = detached(py, None, |ctl| {
-            let src = self.features_of(&set)?;
-            let fx = src.features().map_err(WorkError::value)?;
-            let scr = scr.scribbles();
-            let cancel = ctl.cancel.clone();
-            neuvolex_classify::preview::preview_plane(&fx, &scr, &config, a, index, &move || {
-                cancel.load(std::sync::atomic::Ordering::SeqCst)
-            })
-            .map_err(|e| match e {
-                neuvolex_classify::ClassifyError::Volume(e) => WorkError::other(e),
-                e => WorkError::value(format!("scribbles: {e}")),
-            })
-        })?;
-        Ok((plane.labels.into_pyarray(py), plane.size))
+        self.run_preview(py, scribbles, axis, index, features, config, None)
     }
 
     /// The most doubtful slice along `axis` (`x`, `y` or `z`) under the last classification's
@@ -695,15 +701,13 @@ impl Store {
         use neuvolex_viewpoints::scores::SelectConfig;
         use neuvolex_viewpoints::{direction_to_view, KMeansConfig, RecommendConfig};
         if k == 0 || k > u16::MAX as usize {
-            return Err(PyValueError::new_err(format!("k {k}: must be 1..=65535")));
+            return Err(bad_argument(format!("k {k}: must be 1..=65535")));
         }
         if views == 0 || views > 1_000_000 {
-            return Err(PyValueError::new_err(format!(
-                "views {views}: must be 1..=1000000"
-            )));
+            return Err(bad_argument(format!("views {views}: must be 1..=1000000")));
         }
         if max_views == 0 {
-            return Err(PyValueError::new_err("max_views 0: must be at least 1"));
+            return Err(bad_argument("max_views 0: must be at least 1"));
         }
         let set = feature_set(features)?;
         let cfg = RecommendConfig {
@@ -758,7 +762,7 @@ impl Store {
         force: bool,
     ) -> PyResult<()> {
         if path.exists() && !force {
-            return Err(PyValueError::new_err(format!(
+            return Err(bad_argument(format!(
                 "{}: exists (pass force=True to replace it)",
                 path.display()
             )));
@@ -801,7 +805,7 @@ impl Store {
         let loc = self.location.clone();
         let name = name.to_string();
         detached(py, None, move |_| {
-            let mut store = BrickStore::open(&loc).map_err(WorkError::other)?;
+            let mut store = BrickStore::open(&loc).map_err(|e| WorkError::bricks(&e))?;
             let mut v = lab.label_volume(&store.meta());
             let classes: Vec<neuvolex_bricks::synth::ClassInfo> = lab
                 .classes()
@@ -814,16 +818,17 @@ impl Store {
                 .collect();
             store
                 .add_labels(&name, &mut v, &classes, &mut |_| {})
-                .map_err(WorkError::value)
+                .map_err(|e| WorkError::bricks(&e))
         })?;
         self.refresh()
     }
 
-    /// Renders the volume: intensity with a transfer function, or a label image of the
-    /// store (`labels`) or the last classification's probabilities (`probabilities`) as
-    /// colours. Returns RGBA bytes (rows top first) and the size.
+    /// Renders the volume: intensity with a transfer function, or as colours a label image
+    /// of the store (`labels`), labels in memory (`label_array`, an integer array `[z, y, x]`,
+    /// not saved anywhere) or the last classification's probabilities (`probabilities`).
+    /// Returns RGBA bytes (rows top first).
     #[pyo3(signature = (labels=None, probabilities=false, azimuth=30.0, elevation=20.0,
-        width=512, height=512, tf=None, mode=None))]
+        width=512, height=512, tf=None, mode=None, label_array=None))]
     #[allow(clippy::too_many_arguments)]
     fn render<'py>(
         &self,
@@ -836,11 +841,17 @@ impl Store {
         height: usize,
         tf: Option<&str>,
         mode: Option<&str>,
+        label_array: Option<&Bound<'py, PyAny>>,
     ) -> PyResult<Bound<'py, numpy::PyArray1<u8>>> {
-        let mode = Mode::from_name(mode, probabilities || labels.is_some())
-            .map_err(|e| PyValueError::new_err(format!("mode {e}")))?;
-        if mode.needs_probs() && !probabilities && labels.is_none() {
-            return Err(PyValueError::new_err(format!(
+        let memory = label_array
+            .map(|a| ScribbleArray::extract(a, "labels", self.store.info().dims))
+            .transpose()?
+            .map(|a| Arc::new(a.dense()));
+        let coloured = probabilities || labels.is_some() || memory.is_some();
+        let mode =
+            Mode::from_name(mode, coloured).map_err(|e| bad_argument(format!("mode {e}")))?;
+        if mode.needs_probs() && !coloured {
+            return Err(bad_argument(format!(
                 "mode {mode:?} needs labels or probabilities"
             )));
         }
@@ -856,13 +867,11 @@ impl Store {
             ..RenderParams::default()
         };
         p.validate()
-            .map_err(|e| PyValueError::new_err(format!("render: {e}")))?;
+            .map_err(|e| bad_argument(format!("render: {e}")))?;
         let tf = match tf {
-            Some(t) => {
-                TfFile::from_arg(t).map_err(|e| PyValueError::new_err(format!("tf: {e}")))?
-            }
+            Some(t) => TfFile::from_arg(t).map_err(|e| bad_argument(format!("tf: {e}")))?,
             None => TfFile::preset(TfFile::default_preset(self.store.info().stats.min))
-                .map_err(|e| PyValueError::new_err(e.to_string()))?,
+                .map_err(|e| bad_argument(e.to_string()))?,
         };
         let store = self.store.clone();
         let labels = labels.map(str::to_string);
@@ -877,6 +886,9 @@ impl Store {
                 src = src
                     .with_labels(l)
                     .map_err(|e| WorkError::Value(format!("labels '{l}': {e}")))?;
+            }
+            if let Some(l) = memory {
+                src = src.with_label_array(l).map_err(WorkError::value)?;
             }
             let luts = tf.compile(&src.normaliser(), &src.classes());
             let img = Renderer::new(src, 1 << 30)
@@ -905,10 +917,575 @@ impl Store {
     }
 }
 
+/// What `classify` returns to Python: the labels, the probabilities (or `None`), the label
+/// of each probability channel, and the JSON report.
+type Classified<'py> = (
+    Bound<'py, PyAny>,
+    Option<Bound<'py, numpy::PyArray1<f32>>>,
+    Vec<u32>,
+    String,
+);
+
+/// The settings of one classification, checked.
+struct Settings {
+    set: FeatureSet,
+    config: ClassifyConfig,
+    prior: Option<PriorConfig>,
+    /// What a held result must share (the model's identity is added once known).
+    key: String,
+}
+
+impl Settings {
+    #[allow(clippy::too_many_arguments)]
+    fn new(
+        features: &str,
+        prior: bool,
+        trees: usize,
+        seed: u64,
+        tau: f32,
+        min_split: usize,
+        class_weight: &str,
+        background: u32,
+        prior_mass: Option<f64>,
+        prior_grow: Option<u32>,
+    ) -> PyResult<Settings> {
+        let set = feature_set(features)?;
+        let config = classify_config(trees, min_split, seed, class_weight, tau, background)?;
+        let defaults = PriorConfig::default();
+        let prior = if prior {
+            let mass = prior_mass.unwrap_or(defaults.relative_mass);
+            let grow = prior_grow.unwrap_or(defaults.grow);
+            Some(
+                PriorConfig::new(mass)
+                    .map_err(|e| bad_argument(format!("prior_mass {mass}: {e}")))?
+                    .with_grow(grow)
+                    .map_err(|e| bad_argument(format!("prior_grow {grow}: {e}")))?,
+            )
+        } else {
+            None
+        };
+        let key = format!(
+            "{set}|{config:?}|{prior:?}",
+            config = (trees, min_split, seed, class_weight, tau, background)
+        );
+        Ok(Settings {
+            set,
+            config,
+            prior,
+            key,
+        })
+    }
+}
+
+/// A classification's results, before they become numpy arrays.
+struct Outcome {
+    labels: Vec<u16>,
+    proba: Option<Vec<f32>>,
+    classes: Vec<u32>,
+    report: String,
+    shown: Shown,
+}
+
+impl Outcome {
+    /// As Python values: labels in the smallest unsigned type that holds them.
+    fn into_py(self, py: Python<'_>) -> Classified<'_> {
+        Outcome::py_values(py, self.labels, self.proba, self.classes, self.report)
+    }
+
+    /// [`Outcome::into_py`] of the parts.
+    fn py_values(
+        py: Python<'_>,
+        labels: Vec<u16>,
+        proba: Option<Vec<f32>>,
+        classes: Vec<u32>,
+        report: String,
+    ) -> Classified<'_> {
+        let max = labels.iter().copied().max().unwrap_or(0);
+        let labels: Bound<'_, PyAny> = if max <= 255 {
+            let v: Vec<u8> = labels.iter().map(|&l| l as u8).collect();
+            v.into_pyarray(py).into_any()
+        } else {
+            labels.into_pyarray(py).into_any()
+        };
+        (labels, proba.map(|p| p.into_pyarray(py)), classes, report)
+    }
+}
+
+/// The class probabilities the last run wrote, voxel-major (x fastest, channels innermost):
+/// the package's one channel convention, `[z, y, x, channel]`.
+fn probabilities_last(store: &BrickStore) -> Result<Vec<f32>, WorkError> {
+    let va = store
+        .open_vectors(pipeline::PROBA)
+        .map_err(|e| WorkError::bricks(&e))?;
+    let c = va.info().channels;
+    let dims = store.info().dims;
+    let n: usize = dims.iter().product();
+    let mut out = vec![0f32; n * c];
+    for b in store.bricks() {
+        let p = va.read_brick(&b).map_err(|e| WorkError::bricks(&e))?;
+        let w = b.size[0];
+        for (k, row) in b.rows(dims).enumerate() {
+            out[row * c..(row + w) * c].copy_from_slice(&p[k * w * c..(k + 1) * w * c]);
+        }
+    }
+    Ok(out)
+}
+
+/// Feature bricks a [`Session`] keeps between its rounds, in f32 (so a round gives what a
+/// fresh computation gives), up to a byte budget: once full it keeps no more.
+struct Memo {
+    map: std::sync::Mutex<std::collections::HashMap<MemoKey, Arc<Vec<f32>>>>,
+    used: std::sync::atomic::AtomicUsize,
+    budget: usize,
+}
+
+/// A memo entry: the feature set and model, and the brick's origin and size.
+type MemoKey = (String, [usize; 3], [usize; 3]);
+
+impl Memo {
+    fn new(budget: usize) -> Self {
+        Memo {
+            map: Default::default(),
+            used: Default::default(),
+            budget,
+        }
+    }
+
+    /// The memo of the features named `key` (feature set and model identity).
+    fn for_key(self: &Arc<Self>, key: String) -> neuvolex_classify::FeatureMemo {
+        use std::sync::atomic::Ordering;
+        let memo = self.clone();
+        Arc::new(move |b, compute| {
+            let k = (key.clone(), b.origin, b.size);
+            if let Some(v) = memo.map.lock().ok().and_then(|m| m.get(&k).cloned()) {
+                return Ok(v.as_ref().clone());
+            }
+            let v = compute()?;
+            let cost = v.len() * 4;
+            if memo.used.load(Ordering::SeqCst) + cost <= memo.budget {
+                if let Ok(mut m) = memo.map.lock() {
+                    if m.insert(k, Arc::new(v.clone())).is_none() {
+                        memo.used.fetch_add(cost, Ordering::SeqCst);
+                    }
+                }
+            }
+            Ok(v)
+        })
+    }
+
+    /// Bytes of features kept.
+    fn used(&self) -> usize {
+        self.used.load(std::sync::atomic::Ordering::SeqCst)
+    }
+}
+
+impl Store {
+    /// The identity of the model `set` reads ('' when it needs none).
+    fn model_key(&self, set: &FeatureSet) -> Result<String, WorkError> {
+        Ok(self.features_of(set)?.model.map_or_else(String::new, |m| {
+            neuvolex_features::stage::model_identity(&m)
+        }))
+    }
+
+    /// Runs the `neuvolex classify` pipeline on `scr` with settings `s`; with `hold` (the
+    /// result shown last and the rule's settings), holds to it when it was made with the same
+    /// settings and model ([`neuvolex_classify::stable`], through the pipeline's
+    /// [`ClassifyRequest::hold`]); with `memo`, keeps and reuses feature bricks.
+    #[allow(clippy::too_many_arguments)]
+    fn run_classify(
+        &mut self,
+        py: Python<'_>,
+        scr: ScribbleArray,
+        s: &Settings,
+        probabilities: bool,
+        hold: Option<(&Shown, neuvolex_classify::StableConfig)>,
+        memo: Option<&Arc<Memo>>,
+        progress: Option<&Bound<'_, PyAny>>,
+    ) -> PyResult<Outcome> {
+        let mut req = ClassifyRequest {
+            store: self.location.clone(),
+            scribbles: PathBuf::from("scribbles"),
+            features: s.set.clone(),
+            classes: None,
+            out: None,
+            force: false,
+            stored_features: false,
+            config: s.config.clone(),
+            bricks_per_task: 1,
+            prior: s.prior,
+            hold: None,
+        };
+        let (o, proba, store, key, scr) = detached(py, progress, |ctl| {
+            let scr = scr.scribbles();
+            let model = self.model_key(&req.features)?;
+            let key = format!("{}|{model}", s.key);
+            req.hold = hold
+                .filter(|(shown, _)| shown.key == key)
+                .map(|(shown, config)| neuvolex_classify::stable::Hold {
+                    scribbles: shown.scribbles.clone(),
+                    labels: shown.labels.clone(),
+                    config,
+                    verdicts: shown.verdicts.clone(),
+                });
+            let memo = memo.map(|m| m.for_key(format!("{}|{model}", req.features)));
+            // An earlier call stopped half way (Ctrl-C) left pending outputs of its own
+            // scribbles: a new call starts over instead of being refused.
+            for name in [pipeline::PROBA, pipeline::LABELS] {
+                self.store
+                    .discard_pending_vectors(name)
+                    .map_err(|e| WorkError::bricks(&e))?;
+            }
+            let o = pipeline::classify_scribbles_memo(
+                &req,
+                scr.clone(),
+                memo,
+                &executor(ctl),
+                &mut task_progress(ctl),
+            )
+            .map_err(|e| match e {
+                // The "file" of in-memory scribbles is the caller's argument.
+                neuvolex_classify::ClassifyError::File { ref path, .. }
+                    if *path == req.scribbles =>
+                {
+                    WorkError::value(e)
+                }
+                e => WorkError::classify(&e),
+            })?;
+            if !o.dead.is_empty() || o.labels.is_empty() {
+                return Err(WorkError::Other(if ctl.cancelled() {
+                    "classification cancelled".into()
+                } else {
+                    format!("classification failed: {:?}", o.dead)
+                }));
+            }
+            // The store as the run left it: this handle serves the next calls.
+            let store = BrickStore::open(&req.store).map_err(|e| WorkError::bricks(&e))?;
+            let proba = if probabilities {
+                Some(probabilities_last(&store)?)
+            } else {
+                None
+            };
+            Ok((o, proba, store, key, scr))
+        })?;
+        self.store = Arc::new(store);
+        let report = serde_json::to_string(&o.report)
+            .map_err(|e| run::raise(py, "NeuvolexRuntimeError", e.to_string()))?;
+        Ok(Outcome {
+            shown: Shown {
+                key,
+                scribbles: scr,
+                labels: o.labels.clone(),
+                verdicts: o.verdicts.clone(),
+            },
+            classes: o.report.labels.clone(),
+            labels: o.labels,
+            proba,
+            report,
+        })
+    }
+
+    /// The forest's labels on one slice (see [`Store::preview_slice`]), its features through
+    /// `memo` when given.
+    #[allow(clippy::too_many_arguments)]
+    fn run_preview<'py>(
+        &self,
+        py: Python<'py>,
+        scribbles: &Bound<'py, PyAny>,
+        axis: &str,
+        index: usize,
+        features: &str,
+        config: ClassifyConfig,
+        memo: Option<&Arc<Memo>>,
+    ) -> PyResult<(Bound<'py, numpy::PyArray1<u16>>, [usize; 2])> {
+        let a = axis_index(axis)?;
+        let dims = self.store.info().dims;
+        if index >= dims[a] {
+            return Err(bad_argument(format!(
+                "index {index}: the volume has {} slices along {axis}",
+                dims[a]
+            )));
+        }
+        let set = feature_set(features)?;
+        let scr = ScribbleArray::extract(scribbles, "scribbles", dims)?;
+        let plane = detached(py, None, |ctl| {
+            let src = self.features_of(&set)?;
+            let mut fx = src.features().map_err(|e| WorkError::classify(&e))?;
+            if let Some(m) = memo {
+                fx.set_memo(Some(m.for_key(format!("{set}|{}", self.model_key(&set)?))));
+            }
+            let scr = scr.scribbles();
+            let cancel = ctl.cancel.clone();
+            neuvolex_classify::preview::preview_plane(&fx, &scr, &config, a, index, &move || {
+                cancel.load(std::sync::atomic::Ordering::SeqCst)
+            })
+            .map_err(|e| match e {
+                neuvolex_classify::ClassifyError::Volume(e) => WorkError::bricks(&e),
+                e => WorkError::value(format!("scribbles: {e}")),
+            })
+        })?;
+        Ok((plane.labels.into_pyarray(py), plane.size))
+    }
+}
+
+/// A series of interactive rounds on one store: each `classify` holds to the labels the
+/// session showed last with the stability rule of [`neuvolex_classify::stable`] (through the
+/// pipeline's `hold`), and the feature bricks it computed are kept for the next rounds.
+#[pyclass(module = "neuvolex._native")]
+struct Session {
+    store: Py<Store>,
+    memo: Arc<Memo>,
+    shown: Option<Shown>,
+    rule: neuvolex_classify::StableConfig,
+}
+
+#[pymethods]
+impl Session {
+    /// A session on `store`: the rule's `delta` (`None`: the rule's default), and at most
+    /// `cache_bytes` of features kept.
+    #[new]
+    #[pyo3(signature = (store, delta=None, cache_bytes=1 << 30))]
+    fn new(store: Py<Store>, delta: Option<f32>, cache_bytes: usize) -> PyResult<Session> {
+        let mut rule = neuvolex_classify::StableConfig::default();
+        if let Some(d) = delta {
+            if !(0.0..=1.0).contains(&d) {
+                return Err(bad_argument(format!("delta {d}: must be between 0 and 1")));
+            }
+            rule.delta = d;
+        }
+        Ok(Session {
+            store,
+            memo: Arc::new(Memo::new(cache_bytes)),
+            shown: None,
+            rule,
+        })
+    }
+
+    /// The store.
+    #[getter]
+    fn store(&self, py: Python<'_>) -> Py<Store> {
+        self.store.clone_ref(py)
+    }
+
+    /// The stability rule's `delta`.
+    #[getter]
+    fn delta(&self) -> f32 {
+        self.rule.delta
+    }
+
+    /// Bytes of feature bricks kept.
+    #[getter]
+    fn cached_bytes(&self) -> usize {
+        self.memo.used()
+    }
+
+    /// One round: [`Store::classify`], holding to the labels of the session's last round
+    /// when the scribbles extend its scribbles and the settings and model are the same.
+    #[pyo3(signature = (scribbles, features, prior, trees, seed, tau, min_split, class_weight,
+        background, prior_mass, prior_grow, probabilities, progress=None))]
+    #[allow(clippy::too_many_arguments)]
+    fn classify<'py>(
+        &mut self,
+        py: Python<'py>,
+        scribbles: &Bound<'py, PyAny>,
+        features: &str,
+        prior: bool,
+        trees: usize,
+        seed: u64,
+        tau: f32,
+        min_split: usize,
+        class_weight: &str,
+        background: u32,
+        prior_mass: Option<f64>,
+        prior_grow: Option<u32>,
+        probabilities: bool,
+        progress: Option<&Bound<'py, PyAny>>,
+    ) -> PyResult<Classified<'py>> {
+        let s = Settings::new(
+            features,
+            prior,
+            trees,
+            seed,
+            tau,
+            min_split,
+            class_weight,
+            background,
+            prior_mass,
+            prior_grow,
+        )?;
+        let mut store = self.store.bind(py).try_borrow_mut()?;
+        let scr = ScribbleArray::extract(scribbles, "scribbles", store.store.info().dims)?;
+        let hold = self.shown.as_ref().map(|sh| (sh, self.rule));
+        let o = store.run_classify(py, scr, &s, probabilities, hold, Some(&self.memo), progress)?;
+        drop(store);
+        let Outcome {
+            labels,
+            proba,
+            classes,
+            report,
+            shown,
+        } = o;
+        self.shown = Some(shown);
+        Ok(Outcome::py_values(py, labels, proba, classes, report))
+    }
+
+    /// [`Store::preview_slice`] through the session's kept features.
+    #[pyo3(signature = (scribbles, axis, index, features, trees, seed, tau, min_split,
+        class_weight, background))]
+    #[allow(clippy::too_many_arguments)]
+    fn preview_slice<'py>(
+        &self,
+        py: Python<'py>,
+        scribbles: &Bound<'py, PyAny>,
+        axis: &str,
+        index: usize,
+        features: &str,
+        trees: usize,
+        seed: u64,
+        tau: f32,
+        min_split: usize,
+        class_weight: &str,
+        background: u32,
+    ) -> PyResult<(Bound<'py, numpy::PyArray1<u16>>, [usize; 2])> {
+        let config = classify_config(trees, min_split, seed, class_weight, tau, background)?;
+        let store = self.store.bind(py).try_borrow()?;
+        store.run_preview(
+            py,
+            scribbles,
+            axis,
+            index,
+            features,
+            config,
+            Some(&self.memo),
+        )
+    }
+
+    /// The last round (what the next one holds to): its settings key, its scribbles as
+    /// voxel indices (x fastest) and labels, its label image, and its own decisions (the
+    /// forest's labels and the labels after the prior, or `None`), all flat, x fastest;
+    /// `None` before any round.
+    #[allow(clippy::type_complexity)]
+    fn history<'py>(
+        &self,
+        py: Python<'py>,
+    ) -> Option<(
+        String,
+        Bound<'py, numpy::PyArray1<u64>>,
+        Bound<'py, numpy::PyArray1<u32>>,
+        Bound<'py, numpy::PyArray1<u16>>,
+        Option<(
+            Bound<'py, numpy::PyArray1<u16>>,
+            Bound<'py, numpy::PyArray1<u16>>,
+        )>,
+    )> {
+        self.shown.as_ref().map(|s| {
+            let (i, l): (Vec<u64>, Vec<u32>) = s.scribbles.voxels.iter().copied().unzip();
+            (
+                s.key.clone(),
+                i.into_pyarray(py),
+                l.into_pyarray(py),
+                s.labels.clone().into_pyarray(py),
+                s.verdicts.as_ref().map(|v| {
+                    (
+                        v.forest.clone().into_pyarray(py),
+                        v.verdict.clone().into_pyarray(py),
+                    )
+                }),
+            )
+        })
+    }
+
+    /// Restores a round [`Session::history`] gave (a saved session), checked against the
+    /// store's grid.
+    #[pyo3(signature = (key, index, scribbles, labels, verdicts=None))]
+    fn restore(
+        &mut self,
+        py: Python<'_>,
+        key: String,
+        index: Vec<u64>,
+        scribbles: Vec<u32>,
+        labels: Vec<u16>,
+        verdicts: Option<(Vec<u16>, Vec<u16>)>,
+    ) -> PyResult<()> {
+        let dims = self.store.bind(py).try_borrow()?.store.info().dims;
+        let n: usize = dims.iter().product();
+        if labels.len() != n {
+            return Err(run::raise(
+                py,
+                "FileError",
+                format!("labels: {} voxels, the store has {n}", labels.len()),
+            ));
+        }
+        if index.len() != scribbles.len() || index.iter().any(|&i| i as usize >= n) {
+            return Err(run::raise(
+                py,
+                "FileError",
+                "scribbles: indices and labels differ in length or lie outside the volume".into(),
+            ));
+        }
+        if verdicts
+            .as_ref()
+            .is_some_and(|(f, v)| f.len() != n || v.len() != n)
+        {
+            return Err(run::raise(
+                py,
+                "FileError",
+                format!("verdicts: not {n} voxels each"),
+            ));
+        }
+        let voxels: Vec<(u64, u32)> = index.into_iter().zip(scribbles).collect();
+        self.shown = Some(Shown {
+            key,
+            scribbles: ScribbleArray::from_parts(dims, voxels).scribbles(),
+            labels,
+            verdicts: verdicts.map(
+                |(forest, verdict)| neuvolex_classify::stable::RoundVerdicts { forest, verdict },
+            ),
+        });
+        Ok(())
+    }
+
+    /// Forgets the last round: the next holds to nothing.
+    fn reset(&mut self) {
+        self.shown = None;
+    }
+}
+
+/// The classification defaults of the CLI, the service and the package, from the library's
+/// own `Default`s: `features`, `trees`, `min_split`, `seed`, `class_weight`, `tau`,
+/// `background`, `prior_mass`, `prior_grow`, and the stability rule's `delta` and `margin`.
+#[pyfunction]
+fn defaults(py: Python<'_>) -> PyResult<Bound<'_, pyo3::types::PyDict>> {
+    let c = ClassifyConfig::default();
+    let p = PriorConfig::default();
+    let r = neuvolex_classify::StableConfig::default();
+    let d = pyo3::types::PyDict::new(py);
+    d.set_item("features", neuvolex_classify::DEFAULT_FEATURES)?;
+    d.set_item("prior", true)?;
+    d.set_item("trees", c.forest.trees)?;
+    d.set_item("min_split", c.forest.min_samples_split)?;
+    d.set_item("seed", c.forest.seed)?;
+    d.set_item(
+        "class_weight",
+        match c.forest.class_weight {
+            ClassWeight::Balanced => "balanced",
+            ClassWeight::None => "none",
+        },
+    )?;
+    d.set_item("tau", c.tau)?;
+    d.set_item("background", c.background)?;
+    d.set_item("prior_mass", p.relative_mass)?;
+    d.set_item("prior_grow", p.grow)?;
+    d.set_item("delta", r.delta)?;
+    d.set_item("margin", r.margin)?;
+    Ok(d)
+}
+
 /// The native module.
 #[pymodule]
 fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<Store>()?;
+    m.add_class::<Session>()?;
+    m.add_function(wrap_pyfunction!(defaults, m)?)?;
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
     Ok(())
 }

@@ -2,7 +2,6 @@
 //! the GIL, relays progress to a Python callback and watches for Ctrl-C, which cancels the
 //! work at its next brick (or training step).
 
-use pyo3::exceptions::{PyKeyboardInterrupt, PyRuntimeError, PyValueError};
 use pyo3::prelude::*;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::mpsc::{channel, RecvTimeoutError, Sender};
@@ -31,26 +30,86 @@ impl Ctl {
     }
 }
 
-/// Why work failed, with the library's message: the caller's input (`ValueError`) or
-/// anything else (`RuntimeError`).
+/// Why work failed, with the library's message; each kind is raised as one class of
+/// `neuvolex.errors` (see [`raise`]).
 #[derive(Debug)]
 pub enum WorkError {
-    /// The arguments or data given were refused.
+    /// The arguments or data given were refused (`ArgumentError`, a `ValueError`).
     Value(String),
-    /// Reading, writing or computing failed.
+    /// A file or store that cannot be read or used (`FileError`, a `ValueError`).
+    File(String),
+    /// Another process holds the store's writer lock (`LockError`, a `RuntimeError`).
+    Locked(String),
+    /// Reading, writing or computing failed (`NeuvolexRuntimeError`, a `RuntimeError`).
     Other(String),
 }
 
 impl WorkError {
-    /// Any library error, as `RuntimeError`.
+    /// Any library error, as `NeuvolexRuntimeError`.
     pub fn other(e: impl std::fmt::Display) -> Self {
         WorkError::Other(e.to_string())
     }
 
-    /// Any library error about the caller's input, as `ValueError`.
+    /// Any library error about the caller's input, as `ArgumentError`.
     pub fn value(e: impl std::fmt::Display) -> Self {
         WorkError::Value(e.to_string())
     }
+
+    /// A store error, by its kind: a held lock, a file that cannot be used, a bad argument,
+    /// or anything else.
+    pub fn bricks(e: &neuvolex_bricks::BrickError) -> Self {
+        use neuvolex_bricks::BrickError as B;
+        let m = e.to_string();
+        match e {
+            B::Locked { .. } => WorkError::Locked(m),
+            B::InvalidArgument(_) | B::Exists { .. } => WorkError::Value(m),
+            B::Format(_)
+            | B::CorruptStore { .. }
+            | B::MissingChunk { .. }
+            | B::Incomplete { .. }
+            | B::Zarr { .. }
+            | B::StageMismatch { .. } => WorkError::File(m),
+            _ => WorkError::Other(m),
+        }
+    }
+
+    /// An ingest error: a held lock or a refused argument as [`WorkError::bricks`] says,
+    /// anything else about the volume read (`FileError`).
+    pub fn ingest(e: &neuvolex_bricks::BrickError) -> Self {
+        match WorkError::bricks(e) {
+            WorkError::Other(m) => WorkError::File(m),
+            w => w,
+        }
+    }
+
+    /// A classification error, by its kind (see [`WorkError::bricks`]).
+    pub fn classify(e: &neuvolex_classify::ClassifyError) -> Self {
+        use neuvolex_classify::ClassifyError as C;
+        match e {
+            C::Volume(b) => WorkError::bricks(b),
+            C::File { .. } => WorkError::File(e.to_string()),
+            C::Input(_) | C::Scribble(_) | C::Forest(_) => WorkError::Value(e.to_string()),
+            _ => WorkError::Other(e.to_string()),
+        }
+    }
+}
+
+/// The exception of class `name` (in `neuvolex.errors`) with `message`; a plain
+/// `RuntimeError` if that module cannot be imported.
+pub fn raise(py: Python<'_>, name: &str, message: String) -> PyErr {
+    let made = py
+        .import("neuvolex.errors")
+        .and_then(|m| m.getattr(name))
+        .and_then(|c| c.call1((message.clone(),)));
+    match made {
+        Ok(e) => PyErr::from_value(e),
+        Err(_) => pyo3::exceptions::PyRuntimeError::new_err(message),
+    }
+}
+
+/// An argument refused before any work: `ArgumentError` (a `ValueError`).
+pub fn bad_argument(message: impl Into<String>) -> PyErr {
+    Python::attach(|py| raise(py, "ArgumentError", message.into()))
 }
 
 /// Runs `work` on a worker thread without the GIL. Progress goes to `callback(done, total,
@@ -102,17 +161,28 @@ pub fn detached<T: Send>(
         }
         let r = py.detach(|| h.join());
         if let Some(e) = raised {
+            // Ctrl-C: the package's `Cancelled` (a `KeyboardInterrupt`).
+            if e.is_instance_of::<pyo3::exceptions::PyKeyboardInterrupt>(py) {
+                return Err(raise(py, "Cancelled", "cancelled (Ctrl-C)".into()));
+            }
             return Err(e);
         }
         match r {
             Ok(Ok(v)) => Ok(v),
-            Ok(Err(WorkError::Value(m) | WorkError::Other(m))) if cancel.load(Ordering::SeqCst) => {
-                Err(PyKeyboardInterrupt::new_err(m))
-            }
-            Ok(Err(WorkError::Value(m))) => Err(PyValueError::new_err(m)),
-            Ok(Err(WorkError::Other(m))) => Err(PyRuntimeError::new_err(m)),
-            Err(_) => Err(PyRuntimeError::new_err(
-                "neuvolex: the worker thread panicked",
+            Ok(Err(
+                WorkError::Value(m)
+                | WorkError::File(m)
+                | WorkError::Locked(m)
+                | WorkError::Other(m),
+            )) if cancel.load(Ordering::SeqCst) => Err(raise(py, "Cancelled", m)),
+            Ok(Err(WorkError::Value(m))) => Err(raise(py, "ArgumentError", m)),
+            Ok(Err(WorkError::File(m))) => Err(raise(py, "FileError", m)),
+            Ok(Err(WorkError::Locked(m))) => Err(raise(py, "LockError", m)),
+            Ok(Err(WorkError::Other(m))) => Err(raise(py, "NeuvolexRuntimeError", m)),
+            Err(_) => Err(raise(
+                py,
+                "NeuvolexRuntimeError",
+                "neuvolex: the worker thread panicked".into(),
             )),
         }
     })

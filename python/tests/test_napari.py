@@ -173,35 +173,226 @@ def _idle(widget) -> bool:
     return not widget.busy
 
 
-def test_the_status_line_counts_the_labels_the_stability_rule_kept():
-    from types import SimpleNamespace
+def _nifti(path, data_xyz, affine):
+    nib = pytest.importorskip("nibabel")
+    nib.save(nib.Nifti1Image(data_xyz, affine), path)
+    return nib
 
-    from neuvolex.napari._widget import _held_note
 
-    assert "12 voxels far from the new strokes kept their label" in _held_note(
-        SimpleNamespace(last_report={"voxels_held": 12})
+# An oblique scanner geometry: rotated about two axes, anisotropic voxels, off-centre.
+_c, _s = np.cos(0.4), np.sin(0.4)
+OBLIQUE = np.array(
+    [[0.9 * _c, -1.1 * _s, 0.0, -40.0], [0.9 * _s, 1.1 * _c, 0.3, 25.0], [0.0, -0.2, 2.5, 60.0], [0, 0, 0, 1]]
+)
+
+
+def _world_of(layer, voxel_xyz):
+    """napari's world point of voxel (x, y, z) of `layer`, back in nibabel's (x, y, z) order."""
+    return np.asarray(layer.data_to_world(np.asarray(voxel_xyz, float)[::-1]))[::-1]
+
+
+def _assert_world_is_nibabels(layer, affine, shape_xyz):
+    for v in ([0, 0, 0], [shape_xyz[0] - 1, 0, 0], [3, shape_xyz[1] - 2, shape_xyz[2] - 1], [5, 7, 11]):
+        np.testing.assert_allclose(_world_of(layer, v), (affine @ [*v, 1])[:3], atol=1e-4)
+
+
+def test_dropping_nifti_files_gives_layers_on_nibabels_world(make_napari_viewer, tmp_path, volume, qtbot):
+    """The reader contribution: viewer.open of an oblique NIfTI (and of its labels) gives
+    layers whose world coordinates are nibabel's affine; the widget's export of the layer
+    lies on its source, with nibabel's affine."""
+    viewer = make_napari_viewer(show=True)
+    src = tmp_path / "oblique.nii.gz"
+    nib = _nifti(src, volume.T.copy(), OBLIQUE)
+    labels_src = tmp_path / "oblique_labels.nii.gz"
+    truth = np.zeros(volume.shape, np.uint8)
+    for value, centre in CENTRES.items():
+        truth[_ball(centre, RADIUS)] = value
+    _nifti(labels_src, truth.T.copy(), OBLIQUE)
+    (image,) = viewer.open(str(src), plugin="neuvolex")
+    (labels,) = viewer.open(str(labels_src), plugin="neuvolex")
+    assert type(image).__name__ == "Image" and type(labels).__name__ == "Labels"
+    np.testing.assert_allclose(np.asarray(image.data), volume, rtol=1e-6)
+    np.testing.assert_array_equal(np.asarray(labels.data), truth)
+    for layer in (image, labels):
+        _assert_world_is_nibabels(layer, nib.load(src).affine, volume.T.shape)
+    # The widget on the opened layer: paint, classify, export; the file lies on the source.
+    widget = NeuvolexWidget(viewer)
+    viewer.window.add_dock_widget(widget, area="right")
+    widget.image_combo.setCurrentIndex([widget.image_combo.itemText(i) for i in range(widget.image_combo.count())].index(image.name))
+    widget.live_check.setChecked(False)
+    scribbles = widget.ensure_scribbles()
+    np.testing.assert_allclose(neuvolex.napari._widget.world_affine(scribbles), neuvolex.napari._widget.world_affine(image))
+    _paint_spheres(scribbles)
+    assert widget.classify_now()
+    qtbot.waitUntil(lambda: widget.session.classified and _idle(widget), timeout=TIMEOUT_MS)
+    assert widget.session.store is image.metadata["neuvolex_store"], "the reader's store serves"
+    out = tmp_path / "classes.nii.gz"
+    assert widget.export(str(out)), widget.status.text()
+    written = nib.load(out)
+    np.testing.assert_allclose(written.affine, nib.load(src).affine, atol=1e-4)
+    np.testing.assert_array_equal(np.asarray(written.dataobj).T, np.asarray(widget.classes_layer.data))
+    dice = 2 * np.sum((truth == 1) & (np.asarray(widget.classes_layer.data) == 1)) / (np.sum(truth == 1) + np.sum(np.asarray(widget.classes_layer.data) == 1))
+    assert dice > 0.8, dice
+    # Dropped back onto napari, the export overlays its source: the same world transform.
+    (back,) = viewer.open(str(out), plugin="neuvolex", layer_type="labels", name="exported classes")
+    np.testing.assert_allclose(back.affine.affine_matrix, image.affine.affine_matrix, atol=1e-4)
+    viewer.dims.set_current_step(0, CENTRES[1][0])
+    qtbot.wait(200)
+    _save_screenshot(viewer, SCREENSHOT.with_name("napari-oblique.png"))
+    widget.wait(TIMEOUT_MS)
+
+
+def test_dropping_the_abdomen_ct_gives_its_world_and_an_export_on_it(make_napari_viewer, tmp_path, qtbot):
+    """The abdomen CT through the reader: world coordinates are nibabel's affine; scribbles
+    from its ground truth, one round in the widget, and the export lies on the CT."""
+    nib = pytest.importorskip("nibabel")
+    from conftest import need
+
+    data = ROOT.parent / "shared" / "data" / "abdomen_ct"
+    need(str(data / "ct.nii.gz"), (data / "ct.nii.gz").exists())
+    ct = nib.load(data / "ct.nii.gz")
+    truth = np.asarray(nib.load(data / "labels.nii.gz").dataobj).T.astype(np.uint8)  # [z, y, x]
+    viewer = make_napari_viewer(show=False)
+    (image,) = viewer.open(str(data / "ct.nii.gz"), plugin="neuvolex")
+    assert image.data.shape == ct.shape[::-1]
+    _assert_world_is_nibabels(image, ct.affine, ct.shape)
+    widget = NeuvolexWidget(viewer)
+    widget.live_check.setChecked(False)
+    widget.trees_spin.setValue(20)
+    scribbles = widget.ensure_scribbles()
+    z = truth.shape[0] // 2
+    for value in np.unique(truth[z]):
+        ys, xs = np.nonzero(truth[z] == value)
+        pick = np.linspace(0, len(ys) - 1, min(40, len(ys))).astype(int)
+        where = (np.full(len(pick), z), ys[pick], xs[pick])
+        scribbles.data_setitem(where, BACKGROUND if value == 0 else int(value))
+    assert widget.classify_now()
+    qtbot.waitUntil(lambda: widget.session.classified and _idle(widget), timeout=TIMEOUT_MS * 3)
+    out = tmp_path / "ct-classes.nii.gz"
+    assert widget.export(str(out)), widget.status.text()
+    written = nib.load(out)
+    np.testing.assert_allclose(written.affine, ct.affine, atol=1e-4)
+    assert written.shape == ct.shape
+    widget.wait(TIMEOUT_MS)
+
+
+def test_the_widget_keeps_a_rotated_and_sheared_layers_full_geometry(make_napari_viewer, tmp_path, volume, qtbot):
+    """A layer placed with rotate, shear and affine (not from a file): the store and the
+    export take the whole transform, so the export overlays the layer in world space."""
+    nib = pytest.importorskip("nibabel")
+    viewer = make_napari_viewer(show=True)
+    image = viewer.add_image(
+        volume, name="tilted", scale=(2.0, 1.0, 0.8), translate=(5.0, -3.0, 2.0), rotate=(20.0, 10.0, -15.0),
+        shear=(0.1, 0.0, 0.05), affine=np.array([[1, 0, 0, 4.0], [0, 0.9, 0.1, 0], [0, 0, 1.1, -2.0], [0, 0, 0, 1]]),
     )
-    for store in (
-        SimpleNamespace(last_report={"voxels_held": 0}),
-        SimpleNamespace(last_report={"voxels_held": None}),
-        SimpleNamespace(last_report={}),
-        SimpleNamespace(),
-        None,
-    ):
-        assert _held_note(store) == ""
+    widget = NeuvolexWidget(viewer)
+    viewer.window.add_dock_widget(widget, area="right")
+    widget.live_check.setChecked(False)
+    _paint_spheres(widget.ensure_scribbles())
+    assert widget.classify_now()
+    qtbot.waitUntil(lambda: widget.session.classified and _idle(widget), timeout=TIMEOUT_MS)
+    store = widget.session.store
+    np.testing.assert_allclose(store.napari_affine, image._data_to_world.affine_matrix, atol=1e-6)
+    out = tmp_path / "tilted.nii.gz"
+    assert widget.export(str(out))
+    written = nib.load(out)
+    # Voxel (x, y, z) of the export lands where napari draws voxel (z, y, x) of the layer.
+    shape = written.shape
+    for v in ([0, 0, 0], [shape[0] - 1, 2, 3], [10, shape[1] - 1, shape[2] - 1]):
+        np.testing.assert_allclose((written.affine @ [*v, 1])[:3][::-1], image.data_to_world(v[::-1]), atol=1e-4)
+    widget.wait(TIMEOUT_MS)
 
 
-def test_manifest_names_the_widget():
-    npe2 = pytest.importorskip("npe2")
-    manifest = npe2.PluginManifest.from_file(
-        Path(neuvolex.napari.__file__).resolve().parent.parent / "napari.yaml"
-    )
-    assert manifest.name == "neuvolex"
-    (widget,) = manifest.contributions.widgets
-    assert widget.display_name == "neuvolex: scribble classifier"
-    (command,) = [c for c in manifest.contributions.commands if c.id == widget.command]
-    module, _, name = command.python_name.partition(":")
-    assert getattr(__import__(module, fromlist=[name]), name) is NeuvolexWidget
+class _SlabOnly:
+    """A lazy volume that hands out slabs and refuses to be read whole (as a dask or zarr
+    array too large for memory would be)."""
+
+    def __init__(self, data):
+        self._data = data
+        self.shape, self.dtype, self.ndim = data.shape, data.dtype, data.ndim
+        self.reads: list[int] = []
+
+    def __getitem__(self, key):
+        out = self._data[key]
+        self.reads.append(out.size)
+        if out.size > self._data.size // 2:
+            raise MemoryError(f"read {out.shape} of {self.shape}: more than half the volume at once")
+        return out
+
+    def __array__(self, dtype=None, copy=None):
+        raise MemoryError("the whole volume was asked for")
+
+    def __len__(self):
+        return self.shape[0]
+
+
+def test_a_lazy_layer_is_classified_without_reading_it_whole(make_napari_viewer, volume, qtbot):
+    viewer = make_napari_viewer(show=False)
+    lazy = _SlabOnly(volume)
+    da = pytest.importorskip("dask.array")
+    viewer.add_image(da.from_array(lazy, chunks=(8, N, N), asarray=False), name="lazy", contrast_limits=(0, 1))
+    widget = NeuvolexWidget(viewer)
+    widget.live_check.setChecked(False)
+    widget.brick = 16  # slabs of 16 slices: a third of the volume each
+    _paint_spheres(widget.ensure_scribbles())
+    lazy.reads.clear()
+    assert widget.classify_now()
+    qtbot.waitUntil(lambda: widget.session.classified and _idle(widget), timeout=TIMEOUT_MS)
+    assert "failed" not in widget.status.text(), widget.status.text()
+    assert lazy.reads and max(lazy.reads) <= volume.size // 2, lazy.reads
+    labels = np.asarray(widget.classes_layer.data)
+    assert np.mean(labels[_ball(CENTRES[1], RADIUS - 2)] == 1) > 0.9
+    widget.wait(TIMEOUT_MS)
+
+
+def test_sample_data_is_the_phantom_with_its_labels(make_napari_viewer):
+    viewer = make_napari_viewer(show=False)
+    layers = viewer.open_sample("neuvolex", "phantom")
+    image, truth = layers
+    assert type(image).__name__ == "Image" and type(truth).__name__ == "Labels"
+    assert image.data.shape == truth.data.shape and image.data.dtype == np.int16
+    assert set(np.unique(truth.data)) >= {0, 1, 2, 3}
+    np.testing.assert_allclose(image.affine.affine_matrix, truth.affine.affine_matrix)
+    store = image.metadata["neuvolex_store"]
+    np.testing.assert_allclose(store.napari_affine, image.affine.affine_matrix)
+
+
+def test_dropping_an_ome_zarr_store_gives_its_image_and_label_images(make_napari_viewer, tmp_path):
+    """A neuvolex store (OME-Zarr with a label image) through the reader: the image and its
+    ground truth as a Labels layer, both on the store's world transform."""
+    store, truth = neuvolex.sample_phantom(48, store=tmp_path / "phantom.zarr")
+    viewer = make_napari_viewer(show=False)
+    layers = viewer.open(str(tmp_path / "phantom.zarr"), plugin="neuvolex")
+    assert [type(layer).__name__ for layer in layers] == ["Image", "Labels"]
+    image, labels = layers
+    np.testing.assert_array_equal(np.asarray(labels.data), truth)
+    np.testing.assert_array_equal(np.asarray(image.data), store.read().astype(np.int16))
+    for layer in layers:
+        np.testing.assert_allclose(layer.affine.affine_matrix, store.napari_affine)
+
+
+def test_the_status_line_counts_the_labels_the_stability_rule_kept(setup, qtbot):
+    """Two rounds through the widget's session: the second holds to the first beyond the
+    margin of its new strokes, and the status line says how many voxels it kept."""
+    viewer, image, widget = setup
+    widget.live_check.setChecked(False)
+    widget.trees_spin.setValue(10)
+    scribbles = widget.scribbles_layer
+    _paint_spheres(scribbles)
+    assert widget.classify_now()
+    qtbot.waitUntil(lambda: widget.session.classified and _idle(widget), timeout=TIMEOUT_MS)
+    rounds = widget.session.rounds
+    assert isinstance(rounds, neuvolex.Session)
+    assert rounds.last_report["voxels_held"] is None
+    assert rounds.cached_bytes > 0
+    more = np.zeros((N, N, N), bool)
+    more[40, 2:6, 40:46] = True
+    _paint(scribbles, more, BACKGROUND)
+    assert widget.classify_now()
+    qtbot.waitUntil(lambda: widget.run_count == 2 and _idle(widget), timeout=TIMEOUT_MS)
+    held = rounds.last_report["voxels_held"]
+    assert held is not None
+    assert (f"{held} voxels far from the new strokes kept their label" in widget.status.text()) == (held > 0)
 
 
 def test_installed_plugin_is_discovered():
@@ -217,6 +408,9 @@ def test_installed_plugin_is_discovered():
     assert [w.display_name for w in manifest.contributions.widgets] == [
         "neuvolex: scribble classifier"
     ]
+    (reader,) = manifest.contributions.readers
+    assert "*.nii.gz" in reader.filename_patterns and "*.nrrd" in reader.filename_patterns
+    assert [d.key for d in manifest.contributions.sample_data] == ["phantom"]
 
 
 def test_paint_and_classify_live(setup, qtbot, tmp_path):
@@ -267,7 +461,7 @@ def test_paint_and_classify_live(setup, qtbot, tmp_path):
     widget.probs_check.setChecked(True)
     qtbot.waitUntil(lambda: widget.run_count == 2 and _idle(widget), timeout=TIMEOUT_MS)
     _, probs, classes_list, _ = widget.last_result
-    assert probs.shape == (len(classes_list), N, N, N)
+    assert probs.shape == (N, N, N, len(classes_list))  # channels last
     prob_layers = [layer for layer in viewer.layers if layer.name.startswith("neuvolex p(")]
     assert len(prob_layers) == len(classes_list)
     assert widget.image_combo.count() == 1  # our own layers are not offered as images
@@ -285,8 +479,10 @@ def test_paint_and_classify_live(setup, qtbot, tmp_path):
     assert widget.export(str(out)), widget.status.text()
     assert out.exists()
     nib = pytest.importorskip("nibabel")
-    written = np.asarray(nib.load(out).dataobj)
-    assert written.size == labels.size
+    written = nib.load(out)
+    np.testing.assert_array_equal(np.asarray(written.dataobj).T, np.asarray(classes.data))
+    # The file lies where the layer does: nibabel's affine is the layer's, axes reversed.
+    _assert_world_is_nibabels(classes, written.affine, written.shape)
 
 
 def test_preview_of_the_shown_slice_comes_first(setup, qtbot, volume):
@@ -321,7 +517,7 @@ def test_preview_of_the_shown_slice_comes_first(setup, qtbot, volume):
         def __getattr__(self, name):
             return getattr(real, name)
 
-    widget.session.store = Gated()
+    widget.session.rounds = Gated()
     try:
         gate.clear()  # the whole volume waits: only the preview can land
         assert widget.classify_now()
@@ -331,7 +527,7 @@ def test_preview_of_the_shown_slice_comes_first(setup, qtbot, volume):
         assert not widget.session.classified and not widget.export_button.isEnabled()
         (kwargs, preview), = previews
         assert kwargs["axis"] == 0 and kwargs["index"] == z
-        for key in ("features", "trees", "seed"):  # the settings of the whole run
+        for key in ("features", "trees"):  # the settings of the whole run (seed: the default)
             assert kwargs[key] == full_runs[0][key], key
         assert kwargs["trees"] == 30
         classes = widget.classes_layer
@@ -400,7 +596,7 @@ def test_preview_of_the_shown_slice_comes_first(setup, qtbot, volume):
         def preview_slice(self, scribbles, **kwargs):
             raise ValueError("the scribbles name one class only")
 
-    widget.session.store = Refusing()
+    widget.session.rounds = Refusing()
     runs = len(full_runs)
     assert widget.classify_now()
     qtbot.waitUntil(lambda: _idle(widget), timeout=TIMEOUT_MS)
@@ -422,7 +618,7 @@ def test_debounce_coalesces_and_reruns_with_newest(setup, qtbot):
 
     # A run that is going holds back the next: newer strokes make exactly one more run.
     gate = threading.Event()
-    real = widget.session.store
+    real = widget.session.rounds
     seen = []
 
     class Gated:
@@ -436,7 +632,7 @@ def test_debounce_coalesces_and_reruns_with_newest(setup, qtbot):
         def __getattr__(self, name):
             return getattr(real, name)
 
-    widget.session.store = Gated()
+    widget.session.rounds = Gated()
     assert widget.classify_now()
     qtbot.waitUntil(lambda: len(seen) == 1, timeout=TIMEOUT_MS)
     _paint(scribbles, _ball(CENTRES[2], 2), 2)
@@ -469,7 +665,7 @@ def test_problems_show_in_the_status_line(setup, qtbot):
         def classify(self, scribbles, **kwargs):
             raise RuntimeError("disk full")
 
-    widget.session.store = Broken()
+    widget.session.rounds = Broken()
     widget.live_check.setChecked(False)
     assert widget.classify_now()
     qtbot.waitUntil(lambda: _idle(widget), timeout=TIMEOUT_MS)

@@ -1,14 +1,21 @@
 """The neuvolex dock widget: scribble a Labels layer, get a live classification.
 
 The user picks an Image layer; the widget makes a "neuvolex scribbles" Labels layer over it
-(same shape and geometry) with napari's paint tool ready. Every paint stroke restarts a
-single-shot QTimer (the debounce); when it fires, a copy of the scribbles goes to
-a napari thread worker. In a 2-D view the worker first predicts the slice on screen
-(``Store.preview_slice``: the same forest, one slice, no spatial prior), which goes into that
-slice of the "neuvolex classes" Labels layer at once; then ``Store.classify`` labels the
+(same shape and world transform) with napari's paint tool ready. Every paint stroke restarts a
+single-shot QTimer (the debounce); when it fires, a copy of the scribbles goes to a napari
+thread worker. Each image gets one ``neuvolex.Session`` (``store.session()``): its rounds hold
+to the labels the previous round showed (the stability rule) and reuse the features computed
+before. In a 2-D view the worker first predicts the slice on screen
+(``Session.preview_slice``: the same forest, one slice, no spatial prior), which goes into that
+slice of the "neuvolex classes" Labels layer at once; then ``Session.classify`` labels the
 whole volume, and its result replaces the data of the classes layer (and, optionally, one
-"neuvolex p(...)" Image layer per class). At most one classification runs at a time: scribbles that change during a run
-mark it stale, and one more run follows with the newest scribbles when it ends.
+"neuvolex p(...)" Image layer per class). At most one classification runs at a time:
+scribbles that change during a run mark it stale, and one more run follows with the newest
+scribbles when it ends.
+
+The store is made from the layer's full world transform (its ``affine`` composed with scale,
+translate, rotate and shear), or is the reader's own store while the layer lies where that
+store says; a dask- or zarr-backed layer is ingested a slab at a time, never read whole.
 
 Nothing here blocks the GUI thread on neuvolex work (store ingestion, classification,
 training, export all run in workers); errors end up in the status line and in napari's
@@ -75,6 +82,7 @@ class _Session:
     classes: Labels | None = None
     probs: dict[int, Image] = field(default_factory=dict)
     store: Any = None
+    rounds: Any = None  # the neuvolex.Session of this image's interactive rounds
     classified: bool = False
     trained: bool = False
     visited: list[int] = field(default_factory=list)
@@ -92,14 +100,26 @@ def _geometry(layer) -> dict[str, Any]:
     }
 
 
+def world_affine(layer) -> np.ndarray:
+    """The layer's full data-to-world map, 4x4 on napari's (z, y, x): its ``affine`` composed
+    with its scale, translate, rotate and shear (what napari draws it with)."""
+    from napari.utils.transforms import CompositeAffine
+
+    ndim = layer.ndim
+    inner = CompositeAffine(
+        scale=layer.scale, translate=layer.translate, rotate=layer.rotate, shear=layer.shear, ndim=ndim
+    )
+    return np.asarray(layer.affine.affine_matrix, dtype=float) @ np.asarray(inner.affine_matrix, dtype=float)
+
+
 def _class_name(value: int) -> str:
     return "background" if value in (0, BACKGROUND) else f"class {value}"
 
 
-def _held_note(store) -> str:
-    """What the stability rule kept in the store's last classification ('' when nothing):
-    voxels far from the new strokes that kept the label the previous run showed."""
-    report = getattr(store, "last_report", None)
+def _held_note(rounds) -> str:
+    """What the stability rule kept in the session's last round ('' when nothing): voxels
+    far from the new strokes that kept the label the previous round showed."""
+    report = getattr(rounds, "last_report", None)
     held = report.get("voxels_held") if isinstance(report, dict) else None
     return f"; {held} voxels far from the new strokes kept their label" if held else ""
 
@@ -125,6 +145,9 @@ class NeuvolexWidget(QWidget):
         self._cancel_training = False
         #: classification runs started (a test hook: the debounce should coalesce paints)
         self.run_count = 0
+        #: the brick edge of the stores this widget makes (and the depth of the slabs it reads
+        #: of a dask- or zarr-backed layer at a time)
+        self.brick = 64
         #: (labels, probabilities or None, classes, seconds) of the last classification shown
         self.last_result: tuple[np.ndarray, np.ndarray | None, list[int], float] | None = None
 
@@ -161,7 +184,10 @@ class NeuvolexWidget(QWidget):
         self.trees_spin = QSpinBox()
         self.trees_spin.setRange(1, 2000)
         self.trees_spin.setValue(100)
-        self.trees_spin.setToolTip("Trees in the random forest.")
+        self.trees_spin.setToolTip(
+            "Trees in the random forest (100 for live rounds; the CLI's default is "
+            f"{_backend().DEFAULTS['trees']})."
+        )
         self.trees_spin.valueChanged.connect(self._on_settings_changed)
 
         self.prior_check = QCheckBox("spatial prior")
@@ -277,7 +303,7 @@ class NeuvolexWidget(QWidget):
     def _forget_layer(self, layer) -> None:
         session = self._sessions.pop(id(layer), None)
         if session is not None:  # the image went: its store goes with it
-            session.store = None
+            session.store = session.rounds = None
             return
         for session in self._sessions.values():
             if session.scribbles is layer:
@@ -520,25 +546,34 @@ class NeuvolexWidget(QWidget):
         return self._worker is not None or self._debounce.isActive() or self._pending
 
     def _store_source(self, session: _Session) -> Callable[[], Any]:
-        """A callable (run in a worker) giving the session's Store, made once."""
-        if session.store is None:
-            meta = session.image.metadata.get("neuvolex_store")
-            neuvolex = _backend()
-            if isinstance(meta, getattr(neuvolex, "Store", ())):
-                session.store = meta
-        if session.store is not None:
-            store = session.store
-            return lambda: store
+        """A callable (run in a worker) giving the session's neuvolex Session (its rounds on
+        the image's store), made once. The store takes the layer's full world transform
+        (affine, scale, translate, rotate, shear); a dask- or zarr-backed layer is ingested a
+        slab at a time, never read whole."""
         image = session.image
-        data, spacing, origin = image.data, tuple(image.scale), tuple(image.translate)
+        affine = world_affine(image)
+        neuvolex = _backend()
+        if session.store is None:
+            meta = image.metadata.get("neuvolex_store")
+            # A reader's store serves while the layer still lies where the store says.
+            if (
+                isinstance(meta, getattr(neuvolex, "Store", ()))
+                and tuple(meta.shape) == tuple(image.data.shape)
+                and np.allclose(meta.napari_affine, affine, atol=1e-6)
+            ):
+                session.store = meta
+        data = image.data
+        brick = int(self.brick)
 
         def make():
             if session.store is None:
-                array = np.asarray(data)
-                if array.dtype.name not in _STORE_DTYPES:
-                    array = array.astype(np.float32)
-                session.store = _backend().from_array(array, spacing=spacing, origin=origin)
-            return session.store
+                array = data if hasattr(data, "__getitem__") and hasattr(data, "dtype") else np.asarray(data)
+                if np.dtype(array.dtype).name not in _STORE_DTYPES + ("bool",):
+                    array = array.astype(np.float32) if hasattr(array, "astype") else np.asarray(array, np.float32)
+                session.store = neuvolex.from_array(array, affine=affine, brick=brick)
+            if session.rounds is None:
+                session.rounds = session.store.session()
+            return session.rounds
 
         return make
 
@@ -602,7 +637,7 @@ class NeuvolexWidget(QWidget):
         )
         self._set_status(
             f"{len(classes)} classes {list(classes)} in {seconds:.1f} s — {summary}"
-            f"{_held_note(session.store)}"
+            f"{_held_note(session.rounds)}"
         )
         self._update_buttons()
 
@@ -642,10 +677,10 @@ class NeuvolexWidget(QWidget):
             value = int(value)
             layer = session.probs.get(value)
             if layer is not None and layer in self.viewer.layers:
-                layer.data = probs[k]
+                layer.data = probs[..., k]
                 continue
             layer = Image(
-                probs[k],
+                probs[..., k],
                 name=f"neuvolex p({_class_name(value)})",
                 colormap=colormaps[k % len(colormaps)],
                 blending="additive",
@@ -714,7 +749,7 @@ class NeuvolexWidget(QWidget):
 
         def run():
             try:
-                return source().train(progress=callback, **kwargs)
+                return source().store.train(progress=callback, **kwargs)
             except KeyboardInterrupt as exc:  # not out of a worker thread: Qt would abort
                 raise _Cancelled(str(exc)) from None
 
@@ -865,14 +900,13 @@ def _classify(
 
     (A plain function, not a generator worker: napari's generator workers take a
     RuntimeError for a deleted worker and drop it without an ``errored`` signal.)"""
-    store = source()
+    rounds = source()
     if preview is not None and preview_cb is not None:
         axis, index = preview
         start = time.perf_counter()
         try:
-            labels = store.preview_slice(
-                scribbles, axis=axis, index=index, features=settings["features"],
-                trees=settings["trees"], seed=0,
+            labels = rounds.preview_slice(
+                scribbles, axis=axis, index=index, features=settings["features"], trees=settings["trees"]
             )
         except KeyboardInterrupt as exc:
             raise _Cancelled(str(exc) or "cancelled") from None
@@ -884,9 +918,9 @@ def _classify(
             preview_cb(axis, index, np.asarray(labels), time.perf_counter() - start)
     start = time.perf_counter()
     try:
-        labels, probs = store.classify(scribbles, seed=0, progress=progress_cb, **settings)
+        labels, probs = rounds.classify(scribbles, progress=progress_cb, **settings)
     except KeyboardInterrupt as exc:
         raise _Cancelled(str(exc) or "cancelled") from None
     seconds = time.perf_counter() - start
     probs = None if probs is None else np.asarray(probs)
-    return np.asarray(labels), probs, [int(c) for c in store.classes], seconds
+    return np.asarray(labels), probs, [int(c) for c in rounds.classes], seconds

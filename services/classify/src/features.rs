@@ -192,7 +192,21 @@ pub struct BrickFeatures<'s> {
     stored: Vec<Option<VectorArray>>,
     widths: Vec<usize>,
     quantise: Quantise,
+    memo: Option<FeatureMemo>,
 }
+
+/// The feature set `neuvolex classify`, the service and the Python package use unless told
+/// otherwise: the filter bank and the voxel's position.
+pub const DEFAULT_FEATURES: &str = "filters+xyz";
+
+/// Keeps computed feature bricks for a later call (the Python package's session): given a
+/// brick and the computation of its features, returns them from where it keeps them, or
+/// computes them (and may keep them). It must return what the computation gives.
+pub type FeatureMemo = Arc<
+    dyn Fn(&Brick, &dyn Fn() -> Result<Vec<f32>, ClassifyError>) -> Result<Vec<f32>, ClassifyError>
+        + Send
+        + Sync,
+>;
 
 impl<'s> BrickFeatures<'s> {
     /// Prepares `set` over `store`; `model` is required when the set has INR parts.
@@ -255,7 +269,13 @@ impl<'s> BrickFeatures<'s> {
             stored,
             widths,
             quantise: Quantise::F32,
+            memo: None,
         })
+    }
+
+    /// Serves [`Self::brick`] through `memo` (`None`: computes every brick).
+    pub fn set_memo(&mut self, memo: Option<FeatureMemo>) {
+        self.memo = memo;
     }
 
     /// Sets the precision in which features are returned.
@@ -280,6 +300,14 @@ impl<'s> BrickFeatures<'s> {
 
     /// Features of brick `b`: `voxels x channels`, voxel-major, voxels x fastest.
     pub fn brick(&self, b: &Brick) -> Result<Vec<f32>, ClassifyError> {
+        match &self.memo {
+            Some(m) => m(b, &|| self.compute(b)),
+            None => self.compute(b),
+        }
+    }
+
+    /// [`Self::brick`], computed.
+    fn compute(&self, b: &Brick) -> Result<Vec<f32>, ClassifyError> {
         let n = b.voxels();
         let ch = self.channels();
         let dims = self.store.info().dims;

@@ -877,10 +877,20 @@ mod tests {
             b.counts(&idx, &mut total);
             let (mut buf, mut tmp, mut left) = (Vec::new(), Vec::new(), vec![0.0f64; classes]);
             for f in 0..d {
-                let got = b
-                    .best_on(&idx, f, &total, &mut buf, &mut tmp, &mut left)
-                    .ok()
-                    .flatten();
+                // `Constant` only for a feature that does not vary in the node.
+                let got = match b.best_on(&idx, f, &total, &mut buf, &mut tmp, &mut left) {
+                    Ok(cut) => cut,
+                    Err(Constant) => {
+                        let v = idx.iter().map(|&i| b.cols[f * n + i as usize]);
+                        let lo = v.clone().fold(f32::INFINITY, f32::min);
+                        let hi = v.fold(f32::NEG_INFINITY, f32::max);
+                        assert!(
+                            hi <= lo + FEATURE_EPS,
+                            "trial {trial} feature {f}: Constant over {lo}..{hi}"
+                        );
+                        None
+                    }
+                };
                 let want = every_cut(&b, &idx, f, &total);
                 assert_eq!(
                     got.map(|(p, t)| (p.to_bits(), t.to_bits())),

@@ -22,7 +22,7 @@ pub mod stable;
 pub mod suggest;
 
 pub use components::{Partial, PriorConfig};
-pub use features::{BrickFeatures, Component, FeatureSet, Quantise};
+pub use features::{BrickFeatures, Component, FeatureMemo, FeatureSet, Quantise, DEFAULT_FEATURES};
 pub use forest::{ClassWeight, Dataset, Forest, ForestConfig, ForestError, MaxFeatures};
 pub use scribble::{
     load_scribbles, rasterise, simulate, thicken, Level, ScribbleError, ScribbleSource, Scribbles,

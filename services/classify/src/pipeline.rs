@@ -215,9 +215,17 @@ pub struct PredictStage {
     /// The pending generations the pipeline started; a brick is done once both mark it.
     proba: VectorArray,
     labels: VectorArray,
+    /// Where this process keeps feature bricks between runs (never sent to workers).
+    memo: Option<crate::FeatureMemo>,
 }
 
 impl PredictStage {
+    /// Serves the features of the bricks this process predicts through `memo`.
+    pub fn with_memo(mut self, memo: Option<crate::FeatureMemo>) -> Self {
+        self.memo = memo;
+        self
+    }
+
     /// The stage over opened features; the probability and label arrays and the done markers
     /// must exist (the pipeline creates them).
     pub fn new(
@@ -244,6 +252,7 @@ impl PredictStage {
             cfg,
             src,
             params,
+            memo: None,
         })
     }
 
@@ -280,7 +289,8 @@ impl Stage for PredictStage {
     }
 
     fn run(&self, task: &Task, ctx: &TaskCtx<'_>) -> neuvolex_tasks::Result<PredictOutput> {
-        let fx = self.src.features().map_err(TaskError::failed)?;
+        let mut fx = self.src.features().map_err(TaskError::failed)?;
+        fx.set_memo(self.memo.clone());
         let mut out = PredictOutput::default();
         for &bi in &task.bricks {
             ctx.check()?;
@@ -423,6 +433,10 @@ pub struct ClassifyOutcome {
     /// The label image as written (after the prior; x fastest), empty when tasks died or
     /// the run was cancelled.
     pub labels: Vec<u16>,
+    /// The run's own decisions (the forest's labels, and the labels after the prior before
+    /// the rule), for a later run to hold ([`crate::stable::Hold::verdicts`]); `None` when no
+    /// labels were made.
+    pub verdicts: Option<crate::stable::RoundVerdicts>,
 }
 
 /// Loads the store's trained model (`None` when untrained).
@@ -488,6 +502,19 @@ pub fn classify_scribbles<E: Executor + ?Sized>(
     exec: &E,
     progress: &mut dyn FnMut(RunEvent),
 ) -> Result<ClassifyOutcome, ClassifyError> {
+    classify_scribbles_memo(req, scr, None, exec, progress)
+}
+
+/// [`classify_scribbles`] with the features of every brick served through `memo` (the Python
+/// package's session keeps them between rounds): the same outputs, since a memo returns what
+/// the computation gives.
+pub fn classify_scribbles_memo<E: Executor + ?Sized>(
+    req: &ClassifyRequest,
+    scr: Scribbles,
+    memo: Option<crate::FeatureMemo>,
+    exec: &E,
+    progress: &mut dyn FnMut(RunEvent),
+) -> Result<ClassifyOutcome, ClassifyError> {
     let cfg = &req.config;
     check_out(req)?;
     let mut store = BrickStore::open(&req.store)?;
@@ -530,7 +557,8 @@ pub fn classify_scribbles<E: Executor + ?Sized>(
     };
     let spec = FeatureSpec::new(&req.store, &set, req.stored_features, model.as_deref());
     let (ts, t_feat, forest, t_fit) = {
-        let fx = BrickFeatures::new(&store, set.clone(), model.clone(), req.stored_features)?;
+        let mut fx = BrickFeatures::new(&store, set.clone(), model.clone(), req.stored_features)?;
+        fx.set_memo(memo.clone());
         let t = Instant::now();
         let ts = training_set(&fx, &scr, cfg.background).map_err(|e| ClassifyError::File {
             path: req.scribbles.clone(),
@@ -636,7 +664,7 @@ pub fn classify_scribbles<E: Executor + ?Sized>(
         spec,
         model_bytes: None,
     };
-    let stage = PredictStage::new(params, src, forest_bytes)?;
+    let stage = PredictStage::new(params, src, forest_bytes)?.with_memo(memo);
     let tasks = neuvolex_tasks::plan(&pending, req.bricks_per_task, 0);
     let t = Instant::now();
     let (outs, run) = execute_ordered(exec, &stage, &tasks, progress)
@@ -666,8 +694,10 @@ pub fn classify_scribbles<E: Executor + ?Sized>(
     let mut prior_report = None;
     let mut voxels_held = None;
     let mut out_labels = Vec::new();
+    let mut verdicts = None;
     if dead.is_empty() && !run.cancelled {
         let mut labels = assemble_labels(&store_arc, &stage.labels)?;
+        let forest_labels = labels.clone();
         if let Some(pc) = &req.prior {
             let t = Instant::now();
             let (conf, best) = assemble_confidence(&store_arc, &stage.proba, &stage.out_labels)?;
@@ -696,9 +726,14 @@ pub fn classify_scribbles<E: Executor + ?Sized>(
                 seconds: t.elapsed().as_secs_f64(),
             });
         }
+        let v = crate::stable::RoundVerdicts {
+            forest: forest_labels,
+            verdict: labels.clone(),
+        };
         if let Some(h) = &req.hold {
-            voxels_held = hold_to(&store_arc, &stage, &scr, h, &mut labels)?;
+            voxels_held = hold_to(&store_arc, &stage, &scr, h, &v, &mut labels)?;
         }
+        verdicts = Some(v);
         labels
             .iter()
             .for_each(|&l| *counts.entry(l).or_default() += 1);
@@ -757,28 +792,35 @@ pub fn classify_scribbles<E: Executor + ?Sized>(
         scribbled_voxels: scr.voxels.len(),
         dead,
         labels: out_labels,
+        verdicts,
     })
 }
 
 /// Applies the stability rule of `hold` to the run's label image `labels`, with the run's
-/// probabilities rounded to u8 as the service holds them; the voxels held, or `None` when the
-/// scribbles do not extend the held result's (or its grid differs).
+/// probabilities rounded to u8 as the service holds them and the run's own decisions `now`
+/// against the held result's; the voxels held, or `None` when the scribbles do not extend the
+/// held result's (or its grid differs).
 fn hold_to(
     store: &BrickStore,
     stage: &PredictStage,
     scr: &Scribbles,
     h: &crate::stable::Hold,
+    now: &crate::stable::RoundVerdicts,
     labels: &mut [u16],
 ) -> Result<Option<u64>, ClassifyError> {
-    use crate::stable::{added, delta_u8, near_scribbles, stick, to_u8};
+    use crate::stable::{added, to_u8, Evidence, Verdicts};
+    let before = h.verdicts.as_ref().filter(|v| {
+        v.forest.len() == labels.len()
+            && v.verdict.len() == labels.len()
+            && now.forest.len() == labels.len()
+    });
     let Some(new) = added(&h.scribbles, scr).filter(|_| h.labels.len() == labels.len()) else {
         return Ok(None);
     };
     let dims = store.info().dims;
     let c = stage.out_labels.len().max(1);
-    let close = near_scribbles(&new, h.config.margin);
+    let level = h.config.levels(&new);
     let bg = stage.out_labels.iter().position(|&o| o == 0);
-    let delta = delta_u8(h.config.delta);
     // Brick by brick, a row at a time: a row of the brick is a span of the volume.
     let mut held = 0;
     for b in store.bricks() {
@@ -791,14 +833,22 @@ fn hold_to(
         let w = b.size[0];
         for (row, pr) in b.rows(dims).zip(p.chunks_exact(w * c)) {
             let r = row..row + w;
-            held += stick(
+            let ev = Evidence {
+                probs: pr,
+                out_labels: &stage.out_labels,
+                bg,
+            };
+            let v = before.map(|b| Verdicts {
+                forest: &now.forest[r.clone()],
+                forest_before: &b.forest[r.clone()],
+                verdict_before: &b.verdict[r.clone()],
+            });
+            held += h.config.hold(
                 &mut labels[r.clone()],
                 &h.labels[r.clone()],
-                pr,
-                &stage.out_labels,
-                bg,
-                &close[r],
-                delta,
+                &ev,
+                &level[r],
+                v.as_ref(),
             );
         }
     }

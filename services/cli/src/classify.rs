@@ -13,25 +13,25 @@ use std::sync::Arc;
 #[derive(clap::Args, Clone, Debug)]
 pub struct ForestArgs {
     /// Trees in the forest.
-    #[arg(long, default_value_t = 1000)]
+    #[arg(long, default_value_t = ClassifyConfig::default().forest.trees)]
     pub trees: usize,
     /// A node with fewer samples becomes a leaf.
-    #[arg(long, default_value_t = 8)]
+    #[arg(long, default_value_t = ClassifyConfig::default().forest.min_samples_split)]
     pub min_split: usize,
     /// Class weighting: balanced (each scribbled class weighs the same) or none (the paper).
     #[arg(long, default_value = "balanced")]
     pub class_weight: String,
     /// Minimum probability for a voxel to take its most probable class.
-    #[arg(long, default_value_t = 0.5)]
+    #[arg(long, default_value_t = ClassifyConfig::default().tau)]
     pub tau: f32,
     /// The scribble label meaning background/other.
-    #[arg(long, default_value_t = 255)]
+    #[arg(long, default_value_t = ClassifyConfig::default().background)]
     pub background: u32,
     /// Predict empty bricks too (by default they are background when background is scribbled).
     #[arg(long)]
     pub all_bricks: bool,
     /// Forest seed.
-    #[arg(long, default_value_t = 0)]
+    #[arg(long, default_value_t = ClassifyConfig::default().forest.seed)]
     pub forest_seed: u64,
 }
 
@@ -110,7 +110,7 @@ pub struct ClassifyArgs {
     /// Feature set: filters+xyz (default: the filter bank and position), inr (learned + local),
     /// paper (the last hidden layer), intensity, local, filters, or a '+' list of intensity,
     /// local, filters, xyz, ctxp, hidden, pos, mod, concat.
-    #[arg(long, default_value = "filters+xyz")]
+    #[arg(long, default_value = neuvolex_classify::DEFAULT_FEATURES)]
     pub features: String,
     /// Turn the spatial prior off: the label image is the forest's labels as they are. By
     /// default each class keeps only the connected parts a scribble of it touches, and

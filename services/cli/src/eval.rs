@@ -4,7 +4,7 @@ use crate::classify::{bar, styled_bar, ForestArgs};
 use anyhow::{Context, Result};
 use indicatif::ProgressBar;
 use neuvolex_eval::oneshot::OneShotConfig;
-use neuvolex_eval::report::{oneshot_tables, robot_table};
+use neuvolex_eval::report::{far_table, oneshot_tables, robot_table};
 use neuvolex_eval::robot::{summarise, Placement, RobotConfig};
 use neuvolex_eval::{EvalConfig, EvalEvent, InrVariant, Method};
 use std::path::PathBuf;
@@ -13,9 +13,11 @@ use std::sync::Mutex;
 /// Arguments of `neuvolex eval`.
 #[derive(clap::Args, Clone, Debug)]
 pub struct EvalArgs {
-    /// Datasets: names under --data (abdomen_ct, brain_mri) or NAME=IMAGE,LABELS.
-    #[arg(long, value_delimiter = ';', default_value = "abdomen_ct;brain_mri")]
-    pub datasets: Vec<String>,
+    /// Datasets: names under --data (abdomen_ct, brain_mri) or NAME=IMAGE,LABELS, each
+    /// optionally regrouped (`brain_mri:brain`, `abdomen_ct:aorta`, or `:1+2,4`). Default:
+    /// abdomen_ct;brain_mri, and with --interactive also abdomen_ct:aorta;brain_mri:brain.
+    #[arg(long, value_delimiter = ';')]
+    pub datasets: Option<Vec<String>>,
     /// Where the named datasets live.
     #[arg(long, default_value = "../shared/data")]
     pub data: PathBuf,
@@ -71,6 +73,19 @@ pub struct EvalArgs {
     /// round's labels as they are.
     #[arg(long, default_value_t = neuvolex_classify::StableConfig::default().delta.to_string())]
     pub stable: String,
+    /// Robot rounds: steps of the rule's ramp inside the margin (the preference a change needs
+    /// rises from 0 at the new strokes to the rule's delta at the margin; 0: new labels stand
+    /// anywhere within the margin).
+    #[arg(long, default_value_t = neuvolex_classify::StableConfig::default().ramp)]
+    pub stable_ramp: u8,
+    /// Robot rounds: whether the rule also holds the spatial prior's and growth's decisions
+    /// beyond the margin (a voxel whose forest label did not change keeps its label).
+    #[arg(long, default_value_t = true, action = clap::ArgAction::Set)]
+    pub stable_prior: bool,
+    /// Robot rounds: whether a change beyond the margin must be confirmed by two forests in a
+    /// row (the previous round's forest already gave the new label).
+    #[arg(long, default_value_t = neuvolex_classify::stable::DEFAULT_CONFIRM, action = clap::ArgAction::Set)]
+    pub stable_confirm: bool,
     /// The prior keeps an unscribbled component whose probability mass is at least this
     /// fraction of its class's largest scribbled component.
     #[arg(long, default_value_t = neuvolex_classify::PriorConfig::default().relative_mass)]
@@ -136,7 +151,14 @@ impl EvalArgs {
         }
         let prior = crate::classify::prior_config(self.prior_mass, self.prior_grow)?;
         Ok(EvalConfig {
-            datasets: self.datasets.clone(),
+            datasets: match &self.datasets {
+                Some(d) => d.clone(),
+                None if self.interactive => neuvolex_eval::data::INTERACTIVE_DATASETS
+                    .iter()
+                    .map(|d| d.to_string())
+                    .collect(),
+                None => vec!["abdomen_ct".into(), "brain_mri".into()],
+            },
             data: self.data.clone(),
             work: self
                 .work
@@ -311,9 +333,13 @@ pub fn run_eval(a: &EvalArgs, quiet: bool) -> Result<()> {
                         })?,
                 ),
             },
+            stable_ramp: a.stable_ramp,
+            stable_prior: a.stable_prior,
+            stable_confirm: a.stable_confirm,
         };
         let rows = neuvolex_eval::robot::run(&cfg, &rc, &events)?;
         println!("\n{}", robot_table(&rows, &rc.targets));
+        println!("{}", far_table(&rows, &rc.targets));
         serde_json::json!({
             "config": {"eval": cfg, "robot": rc},
             "summary": summarise(&rows, &rc.targets),

@@ -182,3 +182,67 @@ pub fn robot_table(rows: &[RoundRow], targets: &[f64]) -> String {
     }
     s
 }
+
+/// What changed the labels beyond the margin of each round's strokes
+/// ([`crate::robot::attribute`]), per dataset, method and placement: each cause's share of the
+/// far changed voxels, the mean F1 change it made beyond the margin per round, and the rounds
+/// dropping more than [`BIG_DROP`] whose largest far loss it made; then the runs whose last
+/// round ended below their first.
+pub fn far_table(rows: &[RoundRow], targets: &[f64]) -> String {
+    let sums = summarise(rows, targets);
+    let mut s = String::new();
+    let _ = writeln!(
+        s,
+        "| dataset | method | robot | far voxels changed | forest | prior | growth | release | mean far F1 change per round: forest / prior / growth / release | drops > {BIG_DROP} by cause (forest prior growth release) | runs ending below r0 |"
+    );
+    let _ = writeln!(s, "|---|---|---|---|---|---|---|---|---|---|---|");
+    for m in &sums {
+        let f = &m.far;
+        let total = f.forest + f.prior + f.growth + f.release;
+        let share = |k: u64| format!("{:.0} %", 100.0 * k as f64 / total.max(1) as f64);
+        let n = rows
+            .iter()
+            .filter(|r| {
+                r.far.is_some()
+                    && r.dataset == m.dataset
+                    && r.method == m.method
+                    && r.inr == m.inr
+                    && r.placement == m.placement
+            })
+            .count()
+            .max(1) as f64;
+        let seeds = {
+            let mut v: Vec<u64> = rows
+                .iter()
+                .filter(|r| r.dataset == m.dataset && r.method == m.method)
+                .map(|r| r.seed)
+                .collect();
+            v.sort_unstable();
+            v.dedup();
+            v.len()
+        };
+        let _ = writeln!(
+            s,
+            "| {} | {} | {} | {} | {} | {} | {} | {} | {:+.4} / {:+.4} / {:+.4} / {:+.4} | {} {} {} {} | {} of {} |",
+            m.dataset,
+            m.method,
+            m.placement,
+            total,
+            share(f.forest),
+            share(f.prior),
+            share(f.growth),
+            share(f.release),
+            f.d_forest / n,
+            f.d_prior / n,
+            f.d_growth / n,
+            f.d_release / n,
+            m.drops_by_cause[0],
+            m.drops_by_cause[1],
+            m.drops_by_cause[2],
+            m.drops_by_cause[3],
+            m.ended_below,
+            seeds,
+        );
+    }
+    s
+}

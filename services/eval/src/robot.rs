@@ -22,16 +22,18 @@
 
 use crate::data::{Dataset, DatasetSpec, TrainedInr};
 use crate::oneshot::{check, feature_sets, models_for};
-use crate::predict::{predict, score, train, with_prior, Features};
+use crate::predict::{predict, score, seeds, train, Features, Prediction};
 use crate::{EvalConfig, EvalError, EvalEvent, Events, Method, Prior, Result};
 use neuvolex_bricks::rng::Rng;
 use neuvolex_classify::cache::FeatureCache;
-use neuvolex_classify::components::{label_brick, Partial};
+use neuvolex_classify::components::{
+    apply_in_memory, grow_in_memory, label_brick, Partial, PriorConfig,
+};
 use neuvolex_classify::scribble::{erode, longest_stroke, stroke_length, Axis};
-use neuvolex_classify::stable::{delta_u8, near_scribbles, stick};
+use neuvolex_classify::stable::{near_scribbles, Evidence, StableConfig, Verdicts};
 use neuvolex_classify::{
-    rasterise, simulate, thicken, BrickFeatures, FeatureSet, Level, SimConfig, SliceMass, Stroke,
-    F1,
+    rasterise, simulate, thicken, BrickFeatures, FeatureSet, Level, Scribbles, SimConfig,
+    SliceMass, Stroke, F1,
 };
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
@@ -91,6 +93,30 @@ pub struct RobotConfig {
     /// (`None`: every round shows the new labels as they are).
     #[serde(default)]
     pub stable_delta: Option<f32>,
+    /// Steps of the rule's ramp inside the margin ([`neuvolex_classify::stable::needed`]; 0:
+    /// new labels stand anywhere within the margin).
+    #[serde(default = "default_ramp")]
+    pub stable_ramp: u8,
+    /// Whether the rule also holds the prior's and growth's decisions beyond the margin
+    /// ([`neuvolex_classify::StableConfig::prior`]).
+    #[serde(default = "default_true")]
+    pub stable_prior: bool,
+    /// Whether a far change must be confirmed by two forests in a row
+    /// ([`neuvolex_classify::StableConfig::confirm`]).
+    #[serde(default = "default_confirm")]
+    pub stable_confirm: bool,
+}
+
+fn default_confirm() -> bool {
+    neuvolex_classify::stable::DEFAULT_CONFIRM
+}
+
+fn default_true() -> bool {
+    true
+}
+
+fn default_ramp() -> u8 {
+    neuvolex_classify::stable::DEFAULT_RAMP
 }
 
 /// The default margin around a new stroke: the filter bank's halo, the image a scribbled
@@ -107,6 +133,9 @@ impl Default for RobotConfig {
             targets: vec![0.7, 0.8],
             margin: default_margin(),
             stable_delta: Some(neuvolex_classify::stable::DEFAULT_DELTA),
+            stable_ramp: default_ramp(),
+            stable_prior: true,
+            stable_confirm: default_confirm(),
         }
     }
 }
@@ -145,6 +174,9 @@ pub struct RoundRow {
     /// Of which farther than the margin from this round's strokes.
     #[serde(default)]
     pub changed_outside: u64,
+    /// What changed the labels beyond the margin ([`attribute`]; `None` at round 0).
+    #[serde(default)]
+    pub far: Option<FarChanges>,
     /// Scribbled voxels.
     pub scribbled: usize,
     /// The slice the product suggests next (axial).
@@ -155,6 +187,153 @@ pub struct RoundRow {
     pub seconds_fit: f64,
     /// Of which predicting the volume.
     pub seconds_predict: f64,
+}
+
+/// A round's labels after each stage of the pipeline, before the stability rule.
+#[derive(Debug, Clone)]
+pub struct Stages {
+    /// The forest's labels (its best class where confident, else 0).
+    pub raw: Vec<u16>,
+    /// After the component prior cleared the components it rejects.
+    pub filtered: Vec<u16>,
+    /// After the kept labels grew into doubtful voxels: the labels the rule then holds.
+    pub grown: Vec<u16>,
+}
+
+impl Stages {
+    /// The stages of a prediction: the forest's labels, then (with a prior) the component
+    /// filter and growth, the steps of [`apply_in_memory`] kept apart.
+    pub fn of(
+        p: &Prediction,
+        dims: [usize; 3],
+        brick: usize,
+        scr: &Scribbles,
+        background: u32,
+        prior: Option<&PriorConfig>,
+    ) -> Stages {
+        let raw = p.labels.clone();
+        let Some(cfg) = prior else {
+            return Stages {
+                filtered: raw.clone(),
+                grown: raw.clone(),
+                raw,
+            };
+        };
+        let mut filtered = raw.clone();
+        apply_in_memory(
+            &mut filtered,
+            dims,
+            brick,
+            Some(&p.confidence),
+            None,
+            &seeds(scr, background),
+            &PriorConfig { grow: 0, ..*cfg },
+        );
+        let mut grown = filtered.clone();
+        if cfg.grow > 0 {
+            let doubtful: Vec<u16> = raw
+                .par_iter()
+                .zip(&p.best)
+                .map(|(&l, &b)| if l == 0 { b } else { 0 })
+                .collect();
+            grow_in_memory(&mut grown, &doubtful, dims, cfg.grow);
+        }
+        Stages {
+            raw,
+            filtered,
+            grown,
+        }
+    }
+}
+
+/// What changed the shown labels beyond the margin of a round's strokes, voxel by voxel: the
+/// first stage whose output moved between the two rounds.
+///
+/// - `forest`: the forest's own label changed (its probabilities moved past the rule);
+/// - `prior`: the forest's label stayed, the component filter's verdict flipped (a component
+///   kept or dropped because its connectivity or its rivals' mass changed);
+/// - `growth`: both stayed, growth into doubtful voxels changed;
+/// - `release`: no stage changed, a label the rule held earlier was let go.
+///
+/// Each cause's `d_*` is the mean F1 change beyond the margin had only its voxels changed.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
+pub struct FarChanges {
+    /// Voxels changed by the forest.
+    pub forest: u64,
+    /// Voxels changed by the component prior's verdict.
+    pub prior: u64,
+    /// Voxels changed by growth.
+    pub growth: u64,
+    /// Held labels released.
+    pub release: u64,
+    /// Mean F1 change beyond the margin from the forest's changes alone.
+    pub d_forest: f64,
+    /// From the prior's alone.
+    pub d_prior: f64,
+    /// From growth's alone.
+    pub d_growth: f64,
+    /// From the releases alone.
+    pub d_release: f64,
+}
+
+/// Attributes the changes beyond the margin (`!close`) from the shown labels `prev` to `now`
+/// to the stage that made them ([`FarChanges`]), from the two rounds' [`Stages`].
+pub fn attribute(
+    before: &Stages,
+    after: &Stages,
+    prev: &[u16],
+    now: &[u16],
+    close: &[bool],
+    truth: &[u32],
+    classes: &[u32],
+) -> FarChanges {
+    // 0 forest, 1 prior, 2 growth, 3 release; 4 unchanged or near.
+    let cause: Vec<u8> = (0..now.len())
+        .into_par_iter()
+        .map(|v| {
+            if close[v] || prev[v] == now[v] {
+                4
+            } else if before.raw[v] != after.raw[v] {
+                0
+            } else if before.filtered[v] != after.filtered[v] {
+                1
+            } else if before.grown[v] != after.grown[v] {
+                2
+            } else {
+                3
+            }
+        })
+        .collect();
+    let base = mean_f1_outside(prev, truth, close, classes);
+    let mut count = [0u64; 4];
+    cause
+        .iter()
+        .filter(|&&c| c < 4)
+        .for_each(|&c| count[c as usize] += 1);
+    let d: Vec<f64> = (0..4u8)
+        .map(|k| {
+            if count[k as usize] == 0 {
+                return 0.0;
+            }
+            let only: Vec<u16> = prev
+                .iter()
+                .zip(now)
+                .zip(&cause)
+                .map(|((&p, &n), &c)| if c == k { n } else { p })
+                .collect();
+            mean_f1_outside(&only, truth, close, classes) - base
+        })
+        .collect();
+    FarChanges {
+        forest: count[0],
+        prior: count[1],
+        growth: count[2],
+        release: count[3],
+        d_forest: d[0],
+        d_prior: d[1],
+        d_growth: d[2],
+        d_release: d[3],
+    }
 }
 
 /// Error label per voxel: `truth + 1` where the prediction differs from the truth, else 0.
@@ -535,46 +714,51 @@ pub fn run(cfg: &EvalConfig, rc: &RobotConfig, events: Events) -> Result<Vec<Rou
                             let mut rng = Rng::new(seed ^ 0x0B07_u64);
                             let mut added: Vec<Stroke> = Vec::new();
                             let mut prev: Option<(Vec<u16>, f64)> = None;
+                            let mut prev_stages: Option<Stages> = None;
                             for round in 0..=rc.rounds {
                                 let scr = rasterise(&thicken(&strokes, cfg.thicken, dims), dims)?;
                                 let t0 = Instant::now();
                                 let t = train(&f, &scr, &cfg.classify)?;
                                 let p = predict(&f, &t.forest, &t.ts, &cfg.classify, events)?;
-                                let mut labels = match prior {
-                                    Prior::None => p.labels.clone(),
-                                    Prior::Components => {
-                                        with_prior(
-                                            &p,
-                                            dims,
-                                            brick,
-                                            &scr,
-                                            cfg.classify.background,
-                                            &cfg.prior,
-                                        )
-                                        .0
+                                let st = Stages::of(
+                                    &p,
+                                    dims,
+                                    brick,
+                                    &scr,
+                                    cfg.classify.background,
+                                    (prior == Prior::Components).then_some(&cfg.prior),
+                                );
+                                let mut labels = st.grown.clone();
+                                // Near this round's new strokes (none at round 0).
+                                let added_scr = match &prev {
+                                    None => None,
+                                    Some(_) => {
+                                        Some(rasterise(&thicken(&added, cfg.thicken, dims), dims)?)
                                     }
                                 };
-                                // Near this round's new strokes (none at round 0).
-                                let close = match &prev {
-                                    None => None,
-                                    Some(_) => Some(near_scribbles(
-                                        &rasterise(&thicken(&added, cfg.thicken, dims), dims)?,
-                                        rc.margin,
-                                    )),
-                                };
-                                if let (Some(d), Some((pl, _)), Some(close)) =
-                                    (rc.stable_delta, &prev, &close)
+                                let close =
+                                    added_scr.as_ref().map(|a| near_scribbles(a, rc.margin));
+                                if let (Some(d), Some((pl, _)), Some(a), Some(ps)) =
+                                    (rc.stable_delta, &prev, &added_scr, &prev_stages)
                                 {
-                                    let bg = p.out_labels.iter().position(|&o| o == 0);
-                                    stick(
-                                        &mut labels,
-                                        pl,
-                                        &p.probs,
-                                        &p.out_labels,
-                                        bg,
-                                        close,
-                                        delta_u8(d),
-                                    );
+                                    let rule = StableConfig {
+                                        margin: rc.margin,
+                                        delta: d,
+                                        ramp: rc.stable_ramp,
+                                        prior: rc.stable_prior,
+                                        confirm: rc.stable_confirm,
+                                    };
+                                    let ev = Evidence {
+                                        probs: &p.probs,
+                                        out_labels: &p.out_labels,
+                                        bg: p.out_labels.iter().position(|&o| o == 0),
+                                    };
+                                    let v = Verdicts {
+                                        forest: &st.raw,
+                                        forest_before: &ps.raw,
+                                        verdict_before: &ps.grown,
+                                    };
+                                    rule.hold(&mut labels, pl, &ev, &rule.levels(a), Some(&v));
                                 }
                                 let seconds = t0.elapsed().as_secs_f64();
                                 let visited: Vec<usize> = strokes
@@ -597,6 +781,18 @@ pub fn run(cfg: &EvalConfig, rc: &RobotConfig, events: Events) -> Result<Vec<Rou
                                         }
                                         _ => (None, None, 0, 0),
                                     };
+                                let far = match (&prev, &prev_stages, &close) {
+                                    (Some((pl, _)), Some(ps), Some(close)) => Some(attribute(
+                                        ps,
+                                        &st,
+                                        pl,
+                                        &labels,
+                                        close,
+                                        &ds.truth,
+                                        &ds.classes,
+                                    )),
+                                    _ => None,
+                                };
                                 let row = RoundRow {
                                     dataset: ds.spec.name.clone(),
                                     method: method.clone(),
@@ -611,6 +807,7 @@ pub fn run(cfg: &EvalConfig, rc: &RobotConfig, events: Events) -> Result<Vec<Rou
                                     delta_outside,
                                     changed,
                                     changed_outside,
+                                    far,
                                     scribbled: scr.voxels.len(),
                                     suggested_slice: p.slices.suggest(2, &visited).map(|s| s.slice),
                                     seconds,
@@ -620,6 +817,7 @@ pub fn run(cfg: &EvalConfig, rc: &RobotConfig, events: Events) -> Result<Vec<Rou
                                 events(EvalEvent::Round(row.clone()));
                                 rows.push(row);
                                 prev = Some((labels.clone(), mean_f1));
+                                prev_stages = Some(st);
                                 if round == rc.rounds {
                                     break;
                                 }
@@ -678,6 +876,17 @@ pub struct Summary {
     pub worst_drop_outside: f64,
     /// Share of the changed voxels that lay beyond the margin, over all rounds.
     pub changed_outside: f64,
+    /// The far changes of every round added up ([`FarChanges`]; the `d_*` are sums over
+    /// rounds).
+    #[serde(default)]
+    pub far: FarChanges,
+    /// Per cause (forest, prior, growth, release): the rounds that dropped the mean F1 by more
+    /// than [`BIG_DROP`] whose largest far loss came from that cause.
+    #[serde(default)]
+    pub drops_by_cause: [usize; 4],
+    /// Runs (seeds) whose last round ended below their first (r10 < r0).
+    #[serde(default)]
+    pub ended_below: usize,
     /// Mean seconds per round (all rounds, all seeds).
     pub seconds: f64,
     /// Mean seconds per round predicting.
@@ -742,7 +951,29 @@ pub fn summarise(rows: &[RoundRow], targets: &[f64]) -> Vec<Summary> {
             let (changed, far) = sel.iter().fold((0u64, 0u64), |(a, b), r| {
                 (a + r.changed, b + r.changed_outside)
             });
+            let mut sum = FarChanges::default();
+            let mut drops_by_cause = [0usize; 4];
+            for r in &sel {
+                let Some(f) = r.far else { continue };
+                sum.forest += f.forest;
+                sum.prior += f.prior;
+                sum.growth += f.growth;
+                sum.release += f.release;
+                sum.d_forest += f.d_forest;
+                sum.d_prior += f.d_prior;
+                sum.d_growth += f.d_growth;
+                sum.d_release += f.d_release;
+                if r.delta.is_some_and(|d| d < -BIG_DROP) {
+                    let d = [f.d_forest, f.d_prior, f.d_growth, f.d_release];
+                    let k = (0..4).min_by(|&a, &b| d[a].total_cmp(&d[b])).unwrap_or(0);
+                    drops_by_cause[k] += 1;
+                }
+            }
+            let ended_below = seeds.iter().filter(|&&s| at(s, rounds) < at(s, 0)).count();
             Summary {
+                far: sum,
+                drops_by_cause,
+                ended_below,
                 worse: share(deltas.iter().filter(|&&d| d < 0.0).count()),
                 big_drops: share(deltas.iter().filter(|&&d| d < -BIG_DROP).count()),
                 worst_drop: -deltas.iter().copied().fold(0.0, f64::min),
@@ -817,6 +1048,36 @@ mod tests {
     }
 
     #[test]
+    fn far_changes_are_attributed_to_the_stage_that_made_them() {
+        // Six voxels in a row, all far from the strokes but the last; class 1 truth on 0..3.
+        let truth = [1u32, 1, 1, 0, 0, 0];
+        let before = Stages {
+            raw: vec![1, 0, 1, 0, 0, 0],
+            filtered: vec![1, 0, 0, 0, 0, 0],
+            grown: vec![1, 0, 0, 1, 0, 0],
+        };
+        let after = Stages {
+            // 0: the forest's label changed (1 -> 0); 2: the prior's verdict flipped (kept
+            // now); 3: growth stopped; 4: nothing changed, a held label let go; 5: near.
+            raw: vec![0, 0, 1, 0, 0, 1],
+            filtered: vec![0, 0, 1, 0, 0, 1],
+            grown: vec![0, 0, 1, 0, 0, 1],
+        };
+        let prev = [1u16, 0, 0, 1, 1, 0];
+        let now = [0u16, 0, 1, 0, 0, 1];
+        let close = [false, false, false, false, false, true];
+        let f = attribute(&before, &after, &prev, &now, &close, &truth, &[1]);
+        assert_eq!((f.forest, f.prior, f.growth, f.release), (1, 1, 1, 1));
+        // The forest lost a true voxel, the prior found one, growth and the release removed
+        // false ones: each cause's F1 change has its sign.
+        assert!(f.d_forest < 0.0 && f.d_prior > 0.0, "{f:?}");
+        assert!(f.d_growth > 0.0 && f.d_release > 0.0, "{f:?}");
+        // Nothing changed: nothing attributed.
+        let none = attribute(&after, &after, &now, &now, &close, &truth, &[1]);
+        assert_eq!(none, FarChanges::default());
+    }
+
+    #[test]
     fn summaries_count_worse_rounds_and_drops() {
         let row = |seed: u64, round: usize, f: f64, d: Option<f64>, o: Option<f64>| RoundRow {
             dataset: "d".into(),
@@ -832,6 +1093,7 @@ mod tests {
             delta_outside: o,
             changed: 10,
             changed_outside: 5 * u64::from(round > 0),
+            far: None,
             scribbled: 0,
             suggested_slice: None,
             seconds: 1.0,

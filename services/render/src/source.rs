@@ -401,6 +401,13 @@ pub enum ProbSource {
         /// Ids drawn, one channel each.
         ids: Vec<u32>,
     },
+    /// One-hot probabilities from labels in memory (x fastest), not saved in the store.
+    Memory {
+        /// The label of every voxel.
+        labels: Arc<Vec<u32>>,
+        /// Ids drawn, one channel each.
+        ids: Vec<u32>,
+    },
 }
 
 /// A [`BrickStore`] as a render source.
@@ -522,6 +529,37 @@ impl StoreSource {
         Ok(self)
     }
 
+    /// With one-hot probabilities from `labels` (one per voxel, x fastest; 0 is unlabelled),
+    /// held in memory: nothing is written into the store.
+    pub fn with_label_array(mut self, labels: Arc<Vec<u32>>) -> Result<Self> {
+        let dims = self.store.info().dims;
+        if labels.len() != dims.iter().product::<usize>() {
+            return Err(RenderError::Input(format!(
+                "labels: {} voxels, the store has {dims:?} (x, y, z)",
+                labels.len()
+            )));
+        }
+        let ids: std::collections::BTreeSet<u32> =
+            labels.iter().copied().filter(|&v| v != 0).collect();
+        if ids.len() > 255 {
+            return Err(RenderError::Input(format!(
+                "labels: {} distinct values; too many classes to draw",
+                ids.len()
+            )));
+        }
+        if ids.is_empty() {
+            return Err(RenderError::Input(
+                "labels: no labelled voxel to draw".into(),
+            ));
+        }
+        self.probs = Some(ProbSource::Memory {
+            labels,
+            ids: ids.into_iter().collect(),
+        });
+        self.cores.clear();
+        Ok(self)
+    }
+
     /// The store.
     pub fn store(&self) -> &BrickStore {
         &self.store
@@ -547,8 +585,21 @@ impl StoreSource {
                     Err(BrickError::MissingChunk { .. }) => None,
                     Err(e) => return Err(e.into()),
                 },
-                ProbSource::Labels { name, ids } => {
-                    let l = self.store.read_labels_box(name, b.origin, b.size)?;
+                ProbSource::Labels { .. } | ProbSource::Memory { .. } => {
+                    let (l, ids) = match ps {
+                        ProbSource::Labels { name, ids } => {
+                            (self.store.read_labels_box(name, b.origin, b.size)?, ids)
+                        }
+                        ProbSource::Memory { labels, ids } => {
+                            let dims = self.store.info().dims;
+                            let mut l = Vec::with_capacity(b.voxels());
+                            for row in b.rows(dims) {
+                                l.extend_from_slice(&labels[row..row + b.size[0]]);
+                            }
+                            (l, ids)
+                        }
+                        ProbSource::Vectors { .. } => unreachable!("matched above"),
+                    };
                     let mut v = vec![0u8; l.len() * ids.len()];
                     for (i, &x) in l.iter().enumerate() {
                         if let Some(c) = ids.iter().position(|&id| id == x) {
@@ -588,7 +639,9 @@ impl BrickSource for StoreSource {
             Some(ProbSource::Vectors {
                 ids, background, ..
             }) => (ids.clone(), *background),
-            Some(ProbSource::Labels { ids, .. }) => (ids.clone(), None),
+            Some(ProbSource::Labels { ids, .. } | ProbSource::Memory { ids, .. }) => {
+                (ids.clone(), None)
+            }
         };
         ids.iter()
             .map(|&id| {
@@ -625,7 +678,9 @@ impl BrickSource for StoreSource {
         let (ch, p) = match (&self.probs, probs) {
             (Some(ps), true) => {
                 let ch = match ps {
-                    ProbSource::Vectors { ids, .. } | ProbSource::Labels { ids, .. } => ids.len(),
+                    ProbSource::Vectors { ids, .. }
+                    | ProbSource::Labels { ids, .. }
+                    | ProbSource::Memory { ids, .. } => ids.len(),
                 };
                 let geom = self.geom();
                 (ch, assemble(&geom, index, ch, |n| self.prob_core(n))?)

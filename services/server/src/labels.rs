@@ -285,6 +285,19 @@ pub struct Round {
     /// The labels shown per brick (after the prior, growth and the stability rule), bricks
     /// equal to an earlier round's shared with it.
     pub labels: HashMap<[usize; 3], Arc<LabelBrick>>,
+    /// The round's own decisions per brick, for the next round's rule to hold
+    /// ([`neuvolex_classify::stable::Verdicts`]): the forest's labels and the labels after the
+    /// prior and growth. Empty for rounds saved before they were kept.
+    pub verdicts: HashMap<[usize; 3], BrickVerdicts>,
+}
+
+/// One brick's [`Round::verdicts`].
+#[derive(Debug, Clone)]
+pub struct BrickVerdicts {
+    /// The forest's labels (its best class where confident, before the prior).
+    pub forest: Arc<LabelBrick>,
+    /// The labels after the prior and growth, before the rule.
+    pub verdict: Arc<LabelBrick>,
 }
 
 /// The labels every complete round of a session showed, the one shown now among them, and a
@@ -366,7 +379,11 @@ impl LabelHistory {
         let mut seen = std::collections::HashSet::new();
         self.rounds
             .iter()
-            .flat_map(|r| r.labels.values())
+            .flat_map(|r| {
+                r.labels
+                    .values()
+                    .chain(r.verdicts.values().flat_map(|v| [&v.forest, &v.verdict]))
+            })
             .filter(|b| seen.insert(Arc::as_ptr(b)))
             .map(|b| b.zst.len())
             .sum()
@@ -412,30 +429,38 @@ pub fn save_bricks(
     line: &[Stroke],
 ) -> ApiResult<Vec<neuvolex_session::RoundRef>> {
     let dir = bricks_dir(work);
+    let save = |b: &LabelBrick| -> ApiResult<String> {
+        let p = dir.join(format!("{}.zst", b.name));
+        if !known_good(&p, &b.zst) {
+            neuvolex_bricks::atomic::replace_file(&p, &b.zst)
+                .map_err(|e| ApiError::write_failed(format!("label brick {}: {e}", p.display())))?;
+            let mut w = written().lock().unwrap_or_else(|p| p.into_inner());
+            // Bounded: past a million names the files are read and compared again.
+            if w.len() > 1 << 20 {
+                w.clear();
+            }
+            w.insert(p);
+        }
+        Ok(b.name.clone())
+    };
     let mut out = Vec::with_capacity(rounds.len());
     for r in rounds {
         let mut bricks: Vec<([usize; 3], String)> = Vec::with_capacity(r.labels.len());
         for (idx, b) in &r.labels {
-            let p = dir.join(format!("{}.zst", b.name));
-            if !known_good(&p, &b.zst) {
-                neuvolex_bricks::atomic::replace_file(&p, &b.zst).map_err(|e| {
-                    ApiError::write_failed(format!("label brick {}: {e}", p.display()))
-                })?;
-                let mut w = written().lock().unwrap_or_else(|p| p.into_inner());
-                // Bounded: past a million names the files are read and compared again.
-                if w.len() > 1 << 20 {
-                    w.clear();
-                }
-                w.insert(p);
-            }
-            bricks.push((*idx, b.name.clone()));
+            bricks.push((*idx, save(b)?));
         }
         bricks.sort();
+        let mut verdicts: Vec<([usize; 3], String, String)> = Vec::with_capacity(r.verdicts.len());
+        for (idx, v) in &r.verdicts {
+            verdicts.push((*idx, save(&v.forest)?, save(&v.verdict)?));
+        }
+        verdicts.sort();
         debug_assert!(line.starts_with(&r.strokes));
         out.push(neuvolex_session::RoundRef {
             strokes: r.strokes.len(),
             features: r.features.clone(),
             bricks,
+            verdicts,
         });
     }
     Ok(out)
@@ -495,9 +520,8 @@ pub fn load_rounds(
                 r.bricks.len()
             )));
         }
-        let mut labels = HashMap::with_capacity(r.bricks.len());
-        for (idx, name) in &r.bricks {
-            let b = store.brick(*idx).map_err(|_| {
+        let mut load = |idx: [usize; 3], name: &String| -> ApiResult<Arc<LabelBrick>> {
+            let b = store.brick(idx).map_err(|_| {
                 ApiError::BadRequest(format!("a saved label brick {idx:?} lies off the grid"))
             })?;
             let brick = match read.get(name) {
@@ -516,12 +540,25 @@ pub fn load_rounds(
                     b.voxels()
                 )));
             }
-            labels.insert(*idx, brick);
+            Ok(brick)
+        };
+        let mut labels = HashMap::with_capacity(r.bricks.len());
+        for (idx, name) in &r.bricks {
+            labels.insert(*idx, load(*idx, name)?);
+        }
+        let mut verdicts = HashMap::with_capacity(r.verdicts.len());
+        for (idx, forest, verdict) in &r.verdicts {
+            let v = BrickVerdicts {
+                forest: load(*idx, forest)?,
+                verdict: load(*idx, verdict)?,
+            };
+            verdicts.insert(*idx, v);
         }
         out.push(Round {
             strokes: Arc::new(line[..r.strokes].to_vec()),
             features: r.features.clone(),
             labels,
+            verdicts,
         });
     }
     Ok(out)
@@ -544,7 +581,10 @@ pub fn collect_garbage(work: &Path) -> usize {
                 return 0;
             };
             match neuvolex_session::SessionFile::parse(&text, &p.display().to_string()) {
-                Ok(s) => used.extend(s.rounds.into_iter().flat_map(|r| r.bricks).map(|b| b.1)),
+                Ok(s) => used.extend(s.rounds.into_iter().flat_map(|r| {
+                    let v = r.verdicts.into_iter().flat_map(|(_, f, v)| [f, v]);
+                    r.bricks.into_iter().map(|b| b.1).chain(v)
+                })),
                 Err(_) => return 0,
             }
         }
@@ -694,7 +734,7 @@ fn settle(
     history: &Mutex<LabelHistory>,
     filtered: &mut HashMap<[usize; 3], (Vec<u16>, Vec<u16>)>,
 ) -> ApiResult<(u64, bool)> {
-    use neuvolex_classify::stable::{delta_u8, near_scribbles, stick, StableConfig};
+    use neuvolex_classify::stable::{Evidence, StableConfig, Verdicts};
     let (strokes, features) = (&probs.strokes, probs.features.as_str());
     // The history is held only to look up and to record, not while labels are computed.
     let (exact, base) = {
@@ -718,19 +758,29 @@ fn settle(
         return Ok((held, true));
     }
     let cfg = StableConfig::default();
+    // This round's own decisions, before the rule: kept for the next round.
+    let verdicts: HashMap<[usize; 3], (Vec<u16>, Vec<u16>)> = filtered
+        .iter()
+        .map(|(k, (raw, l))| (*k, (raw.clone(), l.clone())))
+        .collect();
     let mut held = 0;
     if let Some(prev) = &base {
         let d = store.info().dims;
         let new = rasterise(&strokes[prev.strokes.len()..], d)
             .map_err(|e| ApiError::BadRequest(e.to_string()))?;
-        let close = near_scribbles(&new, cfg.margin);
+        let level = cfg.levels(&new);
         let out = neuvolex_classify::output_labels(&probs.ids, BACKGROUND);
         let bg = probs.ids.iter().position(|&i| i == BACKGROUND);
-        let delta = delta_u8(cfg.delta);
         let before: HashMap<[usize; 3], Vec<u16>> = prev
             .labels
             .par_iter()
             .map(|(k, b)| b.unpack().map(|l| (*k, l)))
+            .collect::<ApiResult<_>>()?;
+        type Pair = (Vec<u16>, Vec<u16>);
+        let decided: HashMap<[usize; 3], Pair> = prev
+            .verdicts
+            .par_iter()
+            .map(|(k, v)| Ok((*k, (v.forest.unpack()?, v.verdict.unpack()?))))
             .collect::<ApiResult<_>>()?;
         for (idx, (_, l)) in filtered.iter_mut() {
             let (Some(before), Some(px)) = (before.get(idx), probs.bricks.get(idx)) else {
@@ -738,17 +788,26 @@ fn settle(
             };
             let b = store.brick(*idx)?;
             let (w, c) = (b.size[0], out.len().max(1));
-            // A row of the brick is a span of the volume's near-the-strokes mask.
+            let pair = decided.get(idx).zip(verdicts.get(idx));
+            // A row of the brick is a span of the volume's proximity map.
             for (k, row) in b.rows(d).enumerate() {
                 let r = k * w..(k + 1) * w;
-                held += stick(
+                let ev = Evidence {
+                    probs: &px[r.start * c..r.end * c],
+                    out_labels: &out,
+                    bg,
+                };
+                let v = pair.map(|((fb, vb), (fnow, _))| Verdicts {
+                    forest: &fnow[r.clone()],
+                    forest_before: &fb[r.clone()],
+                    verdict_before: &vb[r.clone()],
+                });
+                held += cfg.hold(
                     &mut l[r.clone()],
                     &before[r.clone()],
-                    &px[r.start * c..r.end * c],
-                    &out,
-                    bg,
-                    &close[row..row + w],
-                    delta,
+                    &ev,
+                    &level[row..row + w],
+                    v.as_ref(),
                 );
             }
         }
@@ -766,6 +825,24 @@ fn settle(
             Ok((*k, shared.unwrap_or_else(|| Arc::new(p))))
         })
         .collect::<ApiResult<_>>()?;
+    let shared = |b: LabelBrick, old: Option<&Arc<LabelBrick>>| {
+        old.filter(|o| o.name == b.name)
+            .cloned()
+            .unwrap_or_else(|| Arc::new(b))
+    };
+    let decisions: HashMap<[usize; 3], BrickVerdicts> = verdicts
+        .par_iter()
+        .map(|(k, (f, v))| -> ApiResult<_> {
+            let old = base.as_ref().and_then(|b| b.verdicts.get(k));
+            Ok((
+                *k,
+                BrickVerdicts {
+                    forest: shared(LabelBrick::pack(f)?, old.map(|o| &o.forest)),
+                    verdict: shared(LabelBrick::pack(v)?, old.map(|o| &o.verdict)),
+                },
+            ))
+        })
+        .collect::<ApiResult<_>>()?;
     history
         .lock()
         .unwrap_or_else(|p| p.into_inner())
@@ -773,6 +850,7 @@ fn settle(
             strokes: strokes.clone(),
             features: features.to_string(),
             labels: packed.into_iter().collect(),
+            verdicts: decisions,
         });
     Ok((held, false))
 }
@@ -870,6 +948,7 @@ mod tests {
             strokes: Arc::new(strokes.to_vec()),
             features: features.into(),
             labels: HashMap::from([([0, 0, 0], b)]),
+            verdicts: HashMap::new(),
         }
     }
 

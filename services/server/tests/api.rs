@@ -1509,7 +1509,8 @@ async fn a_new_stroke_changes_far_labels_only_on_clear_evidence() {
     let s = open();
     let g = s.set_strokes(first.clone()).unwrap();
     s.classify(g, trees, &|_, _, _| {}).unwrap();
-    let (before, _, _) = shown_and_probs(&s);
+    let (before, probs_before, _) = shown_and_probs(&s);
+    let ids = s.probs.read().unwrap().ids.clone();
     let (g, _) = s.add_strokes(more.clone()).unwrap();
     s.classify(g, trees, &|_, _, _| {}).unwrap();
     let (after, probs, out) = shown_and_probs(&s);
@@ -1553,17 +1554,40 @@ async fn a_new_stroke_changes_far_labels_only_on_clear_evidence() {
     for v in neuvolex_classify::rasterise(&more, dims).unwrap().voxels {
         marked[v.0 as usize] = true;
     }
-    let close = near(&marked, dims, cfg.margin);
+    // The rule rebuilt: the preference a change needs rises from 0 at the new strokes to
+    // delta at the margin, in `ramp` bands of radius margin * j / ramp; delta beyond.
+    let ramp = cfg.ramp as usize;
+    assert!(ramp > 0, "the default rule ramps");
+    let bands: Vec<Vec<bool>> = (0..=ramp)
+        .map(|j| near(&marked, dims, cfg.margin * j / ramp))
+        .collect();
+    let delta = delta_u8(cfg.delta) as i32;
     let c = out.len();
     let bg = out.iter().position(|&o| o == 0);
     let mut expected_held = 0;
+    let (mut ramped, mut decided) = (0, 0);
+    let forest =
+        |p: &[u8], v: usize| neuvolex_server::labels::label_of(&ids, &p[v * c..(v + 1) * c]);
     for v in 0..after.len() {
         let px = &probs[v * c..(v + 1) * c];
         let (new, old) = (fresh[v] as u16, before[v] as u16);
-        let want = if close[v]
-            || new == old
-            || score(px, &out, bg, new) as i32
-                >= score(px, &out, bg, old) as i32 + delta_u8(cfg.delta) as i32
+        let band = bands.iter().position(|b| b[v]);
+        let need = match band {
+            Some(j) => delta * j as i32 / ramp as i32,
+            None => delta,
+        };
+        ramped += u64::from(new != old && need > 0 && need < delta);
+        // Beyond the margin, the prior's and growth's decisions hold too: a voxel whose
+        // forest label did not change keeps its label (the first round held nothing, so
+        // what it showed was its own verdict).
+        let same_forest = band.is_none() && forest(&probs, v) == forest(&probs_before, v);
+        decided += u64::from(new != old && same_forest);
+        // And with confirmation, a far change must be one the first round's forest gave too.
+        let unconfirmed = cfg.confirm && band.is_none() && forest(&probs_before, v) != new as u32;
+        let want = if new == old
+            || (!same_forest
+                && !unconfirmed
+                && score(px, &out, bg, new) as i32 >= score(px, &out, bg, old) as i32 + need)
         {
             new
         } else {
@@ -1574,6 +1598,14 @@ async fn a_new_stroke_changes_far_labels_only_on_clear_evidence() {
     }
     assert_eq!(held, expected_held);
     assert!(held > 0, "nothing far away wobbled: the test shows nothing");
+    assert!(
+        ramped > 0,
+        "no change inside the margin met the ramp: the test shows nothing"
+    );
+    assert!(
+        decided > 0,
+        "no prior or growth decision was held: the test shows nothing"
+    );
     // Replaced strokes (not an extension of the last ones) start afresh.
     let g = s.set_strokes(all[1..].to_vec()).unwrap();
     s.classify(g, trees, &|_, _, _| {}).unwrap();

@@ -113,7 +113,7 @@ async fn undo_redo_reload_restart_and_load_show_the_labels_last_shown() {
     let all: Vec<Stroke> = first.iter().chain(&more).cloned().collect();
     let all3: Vec<Stroke> = all.iter().chain([&extra]).cloned().collect();
     let redo: Vec<Stroke> = more.iter().rev().cloned().collect();
-    let (id, l1, l2) = {
+    let (id, l1, l2, l3) = {
         let app = app!(cfg);
         let (code, v) = call(&app, open_req(json!({"volume": "ph.zarr"}))).await;
         assert_eq!(code, 201, "{v}");
@@ -209,7 +209,7 @@ async fn undo_redo_reload_restart_and_load_show_the_labels_last_shown() {
             std::fs::read_to_string(&theirs).unwrap(),
         );
         assert!(a.contains(&id) && b.contains(&fresh) && a != b);
-        (id, l1, l2)
+        (id, l1, l2, l3)
     };
     // A restart: a new server on the same work folder. The session is listed as saved, and
     // resuming it shows the labels last shown, not a fresh classification of its strokes.
@@ -271,6 +271,21 @@ async fn undo_redo_reload_restart_and_load_show_the_labels_last_shown() {
     assert_eq!(code, 200, "{v}");
     wait_done(&app, &other, v["generation"].as_u64().unwrap()).await;
     assert_eq!(differing(&labels(&app, &other).await, &l2), 0, "load");
+    // The saved rounds keep their own decisions (the forest's labels and the prior's verdict
+    // per brick) for the next round's rule.
+    for r in state["rounds"].as_array().unwrap() {
+        assert_eq!(
+            r["verdicts"].as_array().map(|v| v.len()),
+            r["bricks"].as_array().map(|b| b.len()),
+            "{r}"
+        );
+    }
+    // A new round after the restart (the third, undone before the close, so not saved) is
+    // held against the saved second round as the live session held it: the saved round's
+    // own decisions (forest labels, prior verdict) came back with it.
+    let (r3, p3) = round(&app, &id, &all3, &[]).await;
+    assert_eq!(p3["restored"], false, "{p3}");
+    assert_eq!(differing(&r3, &l3), 0, "a new round after a restart");
 }
 
 #[actix_web::test]

@@ -130,6 +130,11 @@ pub struct RoundRef {
     pub features: String,
     /// Each brick's grid index and the name of its saved label file.
     pub bricks: Vec<([usize; 3], String)>,
+    /// Each brick's grid index and the names of its saved files of the round's own decisions:
+    /// the forest's labels, then the labels after the prior and growth (absent in files
+    /// saved before they were kept).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub verdicts: Vec<([usize; 3], String, String)>,
 }
 
 impl SessionFile {
@@ -335,7 +340,12 @@ impl SessionFile {
                     format!("rounds[{i}]: features must be SET/VERSION"),
                 ));
             }
-            for (idx, name) in &r.bricks {
+            let named = r
+                .bricks
+                .iter()
+                .map(|(i, n)| (i, n))
+                .chain(r.verdicts.iter().flat_map(|(i, f, v)| [(i, f), (i, v)]));
+            for (idx, name) in named {
                 if idx.iter().any(|&v| v > 1 << 20) || !label_file_name(name) {
                     return Err(err(
                         source,
