@@ -758,11 +758,27 @@ fn settle(
         return Ok((held, true));
     }
     let cfg = StableConfig::default();
-    // This round's own decisions, before the rule: kept for the next round.
-    let verdicts: HashMap<[usize; 3], (Vec<u16>, Vec<u16>)> = filtered
-        .iter()
-        .map(|(k, (raw, l))| (*k, (raw.clone(), l.clone())))
-        .collect();
+    // A packed brick, shared with the base's where their contents are equal.
+    let shared = |b: LabelBrick, old: Option<&Arc<LabelBrick>>| {
+        old.filter(|o| o.name == b.name)
+            .cloned()
+            .unwrap_or_else(|| Arc::new(b))
+    };
+    // This round's own decisions (the forest's labels, and the verdict before the rule),
+    // packed for the next round before the rule changes the verdict in place.
+    let decisions: HashMap<[usize; 3], BrickVerdicts> = filtered
+        .par_iter()
+        .map(|(k, (f, v))| -> ApiResult<_> {
+            let old = base.as_ref().and_then(|b| b.verdicts.get(k));
+            Ok((
+                *k,
+                BrickVerdicts {
+                    forest: shared(LabelBrick::pack(f)?, old.map(|o| &o.forest)),
+                    verdict: shared(LabelBrick::pack(v)?, old.map(|o| &o.verdict)),
+                },
+            ))
+        })
+        .collect::<ApiResult<_>>()?;
     let mut held = 0;
     if let Some(prev) = &base {
         let d = store.info().dims;
@@ -782,13 +798,13 @@ fn settle(
             .par_iter()
             .map(|(k, v)| Ok((*k, (v.forest.unpack()?, v.verdict.unpack()?))))
             .collect::<ApiResult<_>>()?;
-        for (idx, (_, l)) in filtered.iter_mut() {
+        for (idx, (raw, l)) in filtered.iter_mut() {
             let (Some(before), Some(px)) = (before.get(idx), probs.bricks.get(idx)) else {
                 continue;
             };
             let b = store.brick(*idx)?;
             let (w, c) = (b.size[0], out.len().max(1));
-            let pair = decided.get(idx).zip(verdicts.get(idx));
+            let pair = decided.get(idx);
             // A row of the brick is a span of the volume's proximity map.
             for (k, row) in b.rows(d).enumerate() {
                 let r = k * w..(k + 1) * w;
@@ -797,8 +813,8 @@ fn settle(
                     out_labels: &out,
                     bg,
                 };
-                let v = pair.map(|((fb, vb), (fnow, _))| Verdicts {
-                    forest: &fnow[r.clone()],
+                let v = pair.map(|(fb, vb)| Verdicts {
+                    forest: &raw[r.clone()],
                     forest_before: &fb[r.clone()],
                     verdict_before: &vb[r.clone()],
                 });
@@ -816,31 +832,8 @@ fn settle(
     let packed: Vec<([usize; 3], Arc<LabelBrick>)> = filtered
         .par_iter()
         .map(|(k, (_, l))| -> ApiResult<_> {
-            let p = LabelBrick::pack(l)?;
-            let shared = base
-                .as_ref()
-                .and_then(|b| b.labels.get(k))
-                .filter(|b| b.name == p.name)
-                .cloned();
-            Ok((*k, shared.unwrap_or_else(|| Arc::new(p))))
-        })
-        .collect::<ApiResult<_>>()?;
-    let shared = |b: LabelBrick, old: Option<&Arc<LabelBrick>>| {
-        old.filter(|o| o.name == b.name)
-            .cloned()
-            .unwrap_or_else(|| Arc::new(b))
-    };
-    let decisions: HashMap<[usize; 3], BrickVerdicts> = verdicts
-        .par_iter()
-        .map(|(k, (f, v))| -> ApiResult<_> {
-            let old = base.as_ref().and_then(|b| b.verdicts.get(k));
-            Ok((
-                *k,
-                BrickVerdicts {
-                    forest: shared(LabelBrick::pack(f)?, old.map(|o| &o.forest)),
-                    verdict: shared(LabelBrick::pack(v)?, old.map(|o| &o.verdict)),
-                },
-            ))
+            let old = base.as_ref().and_then(|b| b.labels.get(k));
+            Ok((*k, shared(LabelBrick::pack(l)?, old)))
         })
         .collect::<ApiResult<_>>()?;
     history
