@@ -15,7 +15,9 @@
 //! Workers are this binary re-executed with `--worker`, one process each. Results also go to
 //! `benches/results/cluster.json`. `NEUVOLEX_BENCH_WORKERS=1,2` picks the worker counts
 //! (default 1,2,4) and `NEUVOLEX_BENCH_WORKER_THREADS` each worker's threads (default: the two
-//! cores shared); `NEUVOLEX_BENCH_OUT` moves the JSON report. `NEUVOLEX_BENCH_S3=1` puts the stores on an S3 server (s3s-fs from
+//! cores shared); `NEUVOLEX_BENCH_OUT` moves the JSON report. `NEUVOLEX_BENCH_STAGES=classify`
+//! (a comma list of `queue`, `ingest`, `classify`, `features`, `kmeans`; default all) runs only
+//! the stages named. `NEUVOLEX_BENCH_S3=1` puts the stores on an S3 server (s3s-fs from
 //! `deploy/s3.sh install`, on loopback) instead of the local file system.
 
 use neuvolex_bricks::BrickStore;
@@ -79,6 +81,9 @@ struct Row {
     store_read: u64,
     /// Bytes the stage's tasks wrote to the store.
     store_written: u64,
+    /// Seconds on the coordinator alone after the tasks (classification: assembling and
+    /// publishing the label image; 0 where the stage does not report it).
+    after_tasks_s: f64,
 }
 
 fn row(volume: &str, stage: &str, workers: usize, r: &RunReport, wall: f64) -> Row {
@@ -97,6 +102,7 @@ fn row(volume: &str, stage: &str, workers: usize, r: &RunReport, wall: f64) -> R
         queue_bytes: r.queue_bytes,
         store_read: r.store_read_bytes,
         store_written: r.store_written_bytes,
+        after_tasks_s: 0.0,
     };
     println!(
         "| {} | {} | {} | {} | {:.2} | {:.1} | {:.2} ({:.1}%) | {:.2} | {:.1} | {:.1} |",
@@ -160,6 +166,9 @@ fn stages<E: Executor>(
     big: bool,
     rows: &mut Vec<Row>,
 ) {
+    if !wanted("classify") {
+        return kmeans_and_features(exec, workers, volume, store, features, rows);
+    }
     // Every run computes every brick: drop pending generations an interrupted run left.
     if let Ok(s) = BrickStore::open(store) {
         for name in ["classes_proba", "classes_labels", "inr_hidden"] {
@@ -192,9 +201,35 @@ fn stages<E: Executor>(
     let o = classify(&req, exec, &mut |_| {}).expect("classify");
     let wall =
         t.elapsed().as_secs_f64() - o.report.seconds_training_features - o.report.seconds_fit;
-    rows.push(row(volume, "classify", workers, &o.report.run, wall));
+    let mut r = row(volume, "classify", workers, &o.report.run, wall);
+    r.after_tasks_s = o.report.seconds_assemble + o.report.seconds_publish;
+    println!(
+        "  classify after the tasks: labels assembled in {:.2} s, published in {:.2} s; prediction {:.2} s",
+        o.report.seconds_assemble, o.report.seconds_publish, o.report.seconds_classify
+    );
+    rows.push(r);
+    kmeans_and_features(exec, workers, volume, store, features, rows);
+}
+
+/// Whether stage `name` runs (`NEUVOLEX_BENCH_STAGES`, default every stage).
+fn wanted(name: &str) -> bool {
+    std::env::var("NEUVOLEX_BENCH_STAGES")
+        .map(|v| v.split(',').any(|s| s.trim() == name))
+        .unwrap_or(true)
+}
+
+/// The stages after classification: feature extraction (where `features`) and k-means with
+/// view partials.
+fn kmeans_and_features<E: Executor>(
+    exec: &E,
+    workers: usize,
+    volume: &str,
+    store: &Path,
+    features: bool,
+    rows: &mut Vec<Row>,
+) {
     // Feature extraction (the INR's 64-D hidden layer).
-    if features {
+    if features && wanted("features") {
         let s = BrickStore::open(store).expect("store");
         let model = neuvolex_classify::pipeline::load_model(&s)
             .expect("model")
@@ -213,6 +248,9 @@ fn stages<E: Executor>(
         .expect("features");
         let wall = t.elapsed().as_secs_f64();
         rows.push(row(volume, "features", workers, &r, wall));
+    }
+    if !wanted("kmeans") {
+        return;
     }
     // Lloyd k-means (k = 16, 10 iterations) and the view partials, on local features (both
     // volumes: on the large one the adaptive batching is not capped by the brick count).
@@ -410,16 +448,22 @@ fn main() {
     for &w in &counts {
         let _ws = start_workers(&url, w);
         let ex = ClusterExecutor::connect(EngineConfig::new(&url)).expect("connect");
-        queue_rows(&ex, w, queue_tasks, &mut rows);
+        if wanted("queue") {
+            queue_rows(&ex, w, queue_tasks, &mut rows);
+        }
     }
     for (name, store, scr, features, big, source) in &vols {
         let local = LocalExecutor::new();
-        ingest_stage(&local, 0, name, source, store, &mut rows);
+        if wanted("ingest") {
+            ingest_stage(&local, 0, name, source, store, &mut rows);
+        }
         stages(&local, 0, name, store, scr, *features, *big, &mut rows);
         for &w in &counts {
             let _ws = start_workers(&url, w);
             let ex = ClusterExecutor::connect(EngineConfig::new(&url)).expect("connect");
-            ingest_stage(&ex, w, name, source, store, &mut rows);
+            if wanted("ingest") {
+                ingest_stage(&ex, w, name, source, store, &mut rows);
+            }
             stages(&ex, w, name, store, scr, *features, *big, &mut rows);
         }
     }

@@ -1,8 +1,9 @@
 #!/usr/bin/env bash
-# Packages the GPU benchmark for a machine with an NVIDIA GPU but no Rust toolchain and no
-# network (the device machine of /work/.library/device/README.md): the `inr_gpu` bench binary
-# (built here, with the wgpu renderer), benches/inr_torch.py, the volumes it reads, and the
-# Vulkan loader .deb packages. Everything goes into two git-ignored folders of the repository
+# Packages the GPU benchmarks for a machine with an NVIDIA GPU but no Rust toolchain and no
+# network (the device machine of /work/.library/device/README.md): the `inr_gpu`,
+# `classify_gpu` and `cluster` bench binaries (built here, stripped, xz-compressed), nats-server,
+# benches/inr_torch.py, the volumes they read, and the Vulkan loader .deb packages; the device
+# side is benches/gpu_device_run.sh. Everything goes into two git-ignored folders of the repository
 # root, `.gpubench/` and `.gl/`, which the device call carries; nothing here is committed.
 #
 #   benches/gpu_device.sh            # build and package (prints the device command)
@@ -14,18 +15,24 @@
 # machines, driver, PyTorch, CUDA and numpy versions) under $OUT. The comparison with PyTorch (inr_gpu.rs's
 # `vs_torch_gpu`) uses the device's python3 (which holds torch), .gpubench/inr_torch.py, and
 # one persistent PyTorch process: compile and CUDA-graph capture of every variant, a screening
-# round, then 3 interleaved rounds of 400 steps x 16384 samples each side (about 3 minutes).
+# round, then 3 interleaved rounds of 400 steps x 16384 samples each side (about 3 minutes),
+# both sides from neuvolex's initial parameters (init.f32, checked by inr_torch.py against
+# neuvolex's heads on the first samples). neuvolex runs one side per fused block size
+# (`--paths fused,fused32,fused16`: 64, 32 and 16 samples per workgroup; the ratios are of the
+# first, the default); the launch-path x batch sweep runs layered and the three fused blocks
+# (`--sweep-paths`), the extraction sweep the three blocks at inference micro-batches of 32768,
+# 65536 and 262144, and the per-kernel profile uses GPU timestamps where the adapter has them.
+# The report is rewritten after every stage, so a run cut short keeps what it measured.
 # `--only torch` runs that comparison alone (a shorter device call).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 root=$(pwd)
 
 device_command() {
-  # nvidia-smi samples utilisation and memory every second beside the bench (smi.csv); the
-  # bench is capped so the whole command ends inside one 10-minute device call.
-  cat <<'EOF'
-cat .gpubench/provenance.txt | tee $OUT/provenance.txt; echo "device: $(grep -m1 'model name' /proc/cpuinfo | cut -d: -f2 | xargs), $(nproc) threads, $(awk '/MemTotal/ {printf "%.0f GiB", $2 / 1048576}' /proc/meminfo), $(nvidia-smi --query-gpu=name,driver_version --format=csv,noheader | head -1)" | tee -a $OUT/provenance.txt; python3 -c 'import torch, numpy; print(f"device references: torch {torch.__version__} (CUDA {torch.version.cuda}, cuDNN {torch.backends.cudnn.version()}), numpy {numpy.__version__}")' | tee -a $OUT/provenance.txt; for f in .gl/*.deb; do dpkg -x $f /; done; ldconfig; export VK_DRIVER_FILES=/usr/local/nvidia/share/vulkan/icd.d/nvidia_icd.json; export NEUVOLEX_DATA=$PWD/.gpubench/data NEUVOLEX_TORCH_SCRIPT=$PWD/.gpubench/inr_torch.py NEUVOLEX_TORCH_PYTHON=python3 BENCH_DATE=$(date -u +%F); nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv | tee $OUT/gpu.txt; nvidia-smi --query-gpu=timestamp,utilization.gpu,memory.used --format=csv,noheader -l 1 >$OUT/smi.csv 2>&1 & set -o pipefail; timeout 540 .gpubench/inr_gpu --cap-s 60 --sweep-s 8 --torch-steps 400 --rounds 3 --cpu-s 5 --out $OUT/inr_gpu.json 2>&1 | tee $OUT/inr_gpu.log; kill %1 2>/dev/null; awk -F', ' '{u=$2+0; s+=u; n++; if(u>0){b++}} END {if(n) printf "nvidia-smi: %d samples, mean utilisation %.0f %%, busy in %d\n", n, s/n, b}' $OUT/smi.csv
-EOF
+  # The device side is benches/gpu_device_run.sh (it travels with the working tree): the
+  # classify part (about 1 minute) and the inr part (capped at 7 minutes) fit one 10-minute
+  # device call; the cluster part goes in a second call on the warm machine.
+  echo 'bash benches/gpu_device_run.sh classify inr'
 }
 
 if [ "${1:-}" = "--command" ]; then
@@ -37,20 +44,32 @@ for d in /.gpubench/ /.gl/; do
   grep -qxF "$d" .git/info/exclude 2>/dev/null || echo "$d" >>"$(git rev-parse --git-path info/exclude)"
 done
 
-echo "building the inr_gpu bench binary (release, --features gpu)"
-exe=$(cargo bench -p neuvolex-benches --bench inr_gpu --features gpu --no-run --message-format=json 2>/dev/null |
-  python3 -c 'import json,sys
+# Each bench binary, built in release with the GPU features, stripped of debug information and
+# xz-compressed (the device call carries at most 64 MiB; gpu_device_run.sh unpacks them).
+bench_exe() {
+  cargo bench -p neuvolex-benches --bench "$1" --features gpu --no-run --message-format=json 2>/dev/null |
+    python3 -c 'import json,sys
 for l in sys.stdin:
     m = json.loads(l)
-    if m.get("reason") == "compiler-artifact" and m["target"]["name"] == "inr_gpu" and m.get("executable"):
-        print(m["executable"])' | tail -1)
-[ -x "$exe" ] || { echo "no inr_gpu executable was built" >&2; exit 1; }
-
+    if m.get("reason") == "compiler-artifact" and m["target"]["name"] == sys.argv[1] and m.get("executable"):
+        print(m["executable"])' "$1" | tail -1
+}
 rm -rf .gpubench
 mkdir -p .gpubench/data
-cp "$exe" .gpubench/inr_gpu
-# Without debug information: the device call carries at most 64 MiB.
-strip .gpubench/inr_gpu
+for bench in inr_gpu classify_gpu cluster; do
+  echo "building the $bench bench binary (release, --features gpu)"
+  exe=$(bench_exe "$bench")
+  [ -x "$exe" ] || { echo "no $bench executable was built" >&2; exit 1; }
+  cp "$exe" ".gpubench/$bench"
+  strip ".gpubench/$bench"
+done
+# The cluster part needs nats-server (deploy/cluster.sh installs it here).
+nats=$(command -v nats-server || true)
+if [ -n "$nats" ]; then
+  cp "$nats" .gpubench/nats-server
+else
+  echo "note: no nats-server here (deploy/cluster.sh install); the cluster part will not run" >&2
+fi
 cp benches/inr_torch.py .gpubench/
 # Where the figures come from: the device copy has no git history, so the commit, the dirty
 # flag and the build machine are recorded here and printed by the device command (with the
@@ -59,7 +78,9 @@ dirty=$(git status --porcelain --untracked-files=no | wc -l)
 {
   echo "commit: $(git rev-parse HEAD) ($(git log -1 --format=%cs)), $([ "$dirty" -eq 0 ] && echo clean || echo "dirty ($dirty tracked files modified)")"
   echo "built: $(date -u '+%F %H:%M') UTC on $(grep -m1 'model name' /proc/cpuinfo | cut -d: -f2 | xargs), $(rustc --version)"
-  echo "inr_gpu sha256: $(sha256sum .gpubench/inr_gpu | cut -c1-16)"
+  for bench in inr_gpu classify_gpu cluster; do
+    echo "$bench sha256: $(sha256sum ".gpubench/$bench" | cut -c1-16)"
+  done
 } >.gpubench/provenance.txt
 cat .gpubench/provenance.txt
 data="${NEUVOLEX_DATA:-$root/../shared/data}"
@@ -82,7 +103,10 @@ if ! ls .gl/libvulkan1_*.deb >/dev/null 2>&1; then
   (cd .gl && apt-get $o download libvulkan1 libegl1 libglvnd0 libopengl0 libgl1 libglx0 libgles2)
 fi
 
+xz -T0 -6 -f .gpubench/inr_gpu .gpubench/classify_gpu .gpubench/cluster
+[ -f .gpubench/nats-server ] && xz -T0 -6 -f .gpubench/nats-server
 du -sh .gpubench .gl
 echo
-echo "device run: carry [\".gpubench\", \".gl\"], timeout_s 600, command:"
+echo "device run: carry [\".gpubench\", \".gl\"], timeout_s 600, command (then, on the warm"
+echo "machine, 'bash benches/gpu_device_run.sh cluster' with the time left):"
 device_command

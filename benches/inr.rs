@@ -40,8 +40,10 @@
 //! - Warm-up: PyTorch compiles and runs every variant (3 training steps and 2 no_grad
 //!   extraction chunks, in the mode it is timed in) before the first round and then resets
 //!   parameters and optimiser state; neuvolex runs one untimed 2-step round first. Every round
-//!   starts from the same initial parameters (neuvolex's seed-0 init for neuvolex; one
-//!   `torch.manual_seed(0)` init shared by every PyTorch variant).
+//!   starts from the same initial parameters on both sides: neuvolex's seed-0 init, which
+//!   `vs_torch::Bank::export` writes to init.f32 and inr_torch.py loads into every variant
+//!   (its "ready" line says so, with its heads' difference from neuvolex's on the first
+//!   samples; before issue 46 PyTorch started from its own `torch.manual_seed(0)` init).
 //! - Threads: `--threads` on both sides (a rayon pool; `torch.set_num_threads` and
 //!   `set_num_interop_threads`); the two never run at once.
 //! - Interleaved: a screening round runs every PyTorch variant once (all in the JSON and the

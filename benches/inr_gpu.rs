@@ -5,9 +5,10 @@
 //!    the same volume in the same run for the ratio;
 //! 2. on CT-Tooth, neuvolex's GPU engine against the same model in PyTorch on the same device
 //!    (`benches/inr_torch.py --device cuda`), like for like (below);
-//! 3. per-kernel times of one step on both launch paths (each dispatch waited for: where the
-//!    time goes, not speed), and a sweep of launch path x batch size on CT-Tooth (samples/s
-//!    and PSNR after the same seconds of training);
+//! 3. per-kernel times of one step on every launch path (layered; fused with blocks of 64, 32
+//!    and 16 samples per workgroup): GPU timestamps per dispatch in one submission where the
+//!    adapter has timestamp queries, else each dispatch waited for; and a sweep of launch path
+//!    x batch size on CT-Tooth (samples/s and PSNR after the same seconds of training);
 //! 4. with `--features gpu`, the wgpu renderer against the CPU renderer (bonsai, abdomen;
 //!    512^2 and 1024^2).
 //!
@@ -22,7 +23,16 @@
 //! (default on CUDA fused,sparse,compile+fused,ro+fused,ro+cstep; ma+cstep (max-autotune) and
 //! eager exist too), `--screen 0` (every variant in every round), `--cpu-s S` (the CPU engine
 //! per volume), `--only agree` (only the fused-against-layered check), `--only torch` (only the
-//! comparison with PyTorch), `--out FILE` (JSON of everything; also written after CT-Tooth).
+//! comparison with PyTorch), `--only stages` (only the path checks, profile, sweep and
+//! extraction sweep), `--volume FILE` (with `--only torch` or `--only stages`: that volume
+//! instead of CT-Tooth, e.g. a small one for a smoke test on lavapipe), `--sweep-paths P,P,..` (default layered,fused,fused32,fused16),
+//! `--paths P,P,..` (neuvolex's sides in the comparison with PyTorch, default
+//! fused,fused32,fused16; the ratios are of the first), `--mlp P` (the per-volume runs'
+//! path, default fused), `--extract-batches B,B,..` (inference micro-batches of the
+//! extraction sweep on the `--paths` paths, default 32768,65536,262144; 32768 is the engine's
+//! default), `--out FILE` (JSON of everything; written after each stage).
+//! `NEUVOLEX_TORCH_DATA` keeps PyTorch's inputs (meta.json, volume, targets, order, init.f32)
+//! in that folder.
 //! `NEUVOLEX_DATA` names the data folder (default ../shared/data), `NEUVOLEX_TORCH_PYTHON` the
 //! Python with torch, `NEUVOLEX_TORCH_SCRIPT` the script. On a software adapter (lavapipe)
 //! every figure is correctness evidence, not speed, and the bench says so; there PyTorch runs
@@ -30,7 +40,8 @@
 //!
 //! The comparison with PyTorch (inr.rs's module `vs_torch`, included here; the CPU bench's
 //! documentation lists every condition) on the GPU:
-//! - Inputs: CT-Tooth's tiles (every brick) and the same `steps x 16384` samples in the same
+//! - Inputs: CT-Tooth's tiles (every brick), the same initial parameters (neuvolex's, written to
+//!   init.f32 and loaded by inr_torch.py) and the same `steps x 16384` samples in the same
 //!   order on both sides; neuvolex holds every tile in its engine's ring and the whole sample
 //!   order on the device, PyTorch the padded volume, the targets and the order on the device.
 //! - Timed training, between device synchronisations: neuvolex `GpuInr::step` x steps from the
@@ -57,8 +68,8 @@ use neuvolex_features::tile::Tile;
 use neuvolex_features::train::training_bricks;
 use neuvolex_features::{train, Budget, FeatureKind, InrConfig, InrModel, TrainConfig, TrainEvent};
 use neuvolex_features_gpu::{
-    train_gpu, train_gpu_tuned, write_features_gpu, AdapterKind, EngineOptions, GpuContext, GpuInr,
-    GpuTune, MlpPath,
+    train_gpu_tuned, write_features_gpu, AdapterKind, EngineOptions, GpuContext, GpuInr, GpuTune,
+    MlpPath,
 };
 use neuvolex_ingest::{ingest, IngestOptions};
 use serde_json::{json, Value};
@@ -135,6 +146,7 @@ fn gpu_volume(
     epochs: f64,
     cap_s: Option<f64>,
     cpu_s: f64,
+    mlp: MlpPath,
 ) -> Value {
     let voxels: u64 = training_bricks(store, false)
         .iter()
@@ -142,7 +154,7 @@ fn gpu_volume(
         .sum();
     let mut ev = Vec::new();
     let t = Instant::now();
-    let g = train_gpu(
+    let g = train_gpu_tuned(
         ctx,
         store,
         &InrConfig::default(),
@@ -151,6 +163,10 @@ fn gpu_volume(
         None,
         &AtomicBool::new(false),
         &mut |e| ev.push(e),
+        GpuTune {
+            mlp,
+            micro_batch: None,
+        },
     )
     .expect("GPU training");
     let train_s = t.elapsed().as_secs_f64();
@@ -182,7 +198,10 @@ fn gpu_volume(
         ctx,
         model,
         None,
-        EngineOptions::inference(store.info().brick),
+        EngineOptions {
+            mlp,
+            ..EngineOptions::inference(store.info().brick)
+        },
     )
     .expect("engine");
     let staging = eng
@@ -224,7 +243,7 @@ fn gpu_volume(
         mem.reserved_peak_bytes.map_or("-".into(), |b| format!("{:.0}", b as f64 / 1048576.0)),
     );
     json!({
-        "volume": name, "dims": store.info().dims, "voxels_per_epoch": voxels,
+        "volume": name, "dims": store.info().dims, "voxels_per_epoch": voxels, "path": mlp.name(),
         "train_samples_per_s": sps, "cpu_train_samples_per_s": cpu_sps, "ratio_cpu": sps / cpu_sps,
         "epochs": epochs_done, "train_s": train_s, "psnr": g.trained.psnr,
         "seconds_per_100_epochs": per100, "psnr_at": psnr_at(&c, &marks),
@@ -253,22 +272,41 @@ fn vs_torch_gpu(
     rounds: usize,
     variants: &str,
     screen: bool,
+    paths: &[MlpPath],
 ) -> Value {
-    use vs_torch::{compare, evaluate, Bank, Round, Side, Torch};
+    use vs_torch::{compare, Bank, Round, Side, Torch};
     let inr = InrConfig::default();
     let tc = TrainConfig::default();
     let b = tc.batch;
     let bank = Bank::load(store, &inr);
     let order = bank.order(steps, b, tc.seed);
     let init = InrModel::new(&inr, bank.dims, tc.seed);
-    let data = tempfile::tempdir().expect("tmp");
+    // `NEUVOLEX_TORCH_DATA` keeps the export in that folder (to inspect or rerun PyTorch alone).
+    let tmp = tempfile::tempdir().expect("tmp");
+    let data_dir = match std::env::var_os("NEUVOLEX_TORCH_DATA") {
+        Some(d) => {
+            let d = PathBuf::from(d);
+            std::fs::create_dir_all(&d).expect("NEUVOLEX_TORCH_DATA");
+            d
+        }
+        None => tmp.path().to_path_buf(),
+    };
     let eb = if device == "cuda" {
         vs_torch::EXTRACT_BATCH_CUDA
     } else {
         vs_torch::EXTRACT_BATCH_CPU
     };
-    bank.export(data.path(), &order, steps, &tc, &init, eb)
+    bank.export(&data_dir, &order, steps, &tc, &init, eb)
         .expect("export for PyTorch");
+    let init_note = match vs_torch::torch_init(&init) {
+        Ok(t) => format!(
+            "both sides start from neuvolex's initial parameters (seed {}; {} tensors exported to init.f32, loaded by inr_torch.py)",
+            tc.seed,
+            t.len()
+        ),
+        Err(e) => format!("initial parameters NOT shared ({e}): PyTorch starts from its own seed"),
+    };
+    println!("{init_note}");
     println!(
         "\nINR on the GPU against PyTorch on {device}, like for like: CT-Tooth {:?} ({} voxels, {} in training bricks); per round and side {steps} steps x {b} = {} samples ({:.2} epochs), the same samples in the same order; {rounds} rounds alternating after a screening round of every PyTorch variant.",
         bank.dims,
@@ -278,12 +316,91 @@ fn vs_torch_gpu(
         (steps * b) as f64 / bank.train_voxels().max(1) as f64
     );
     println!("timed, between device synchronisations: training = the {steps} steps on the resident volume (neuvolex: GpuInr::step over every brick's tile resident in the ring and the whole sample order uploaded; PyTorch: gathers on the resident volume; both forward, loss, backward, Adam); extraction = the 64-D hidden feature of all {} voxels (neuvolex: record_tile per resident tile, which copies the features into a host-mappable buffer; PyTorch: no_grad forward in chunks of {eb} into a device tensor). Not timed: uploads, PyTorch's compilation, CUDA-graph capture and warm-up, a 2-step warm-up round of neuvolex, the loss/PSNR evaluation (neuvolex's on the CPU from the downloaded model).", bank.voxels());
-    let brick = store.info().brick;
+    let rates = neuvolex_features_gpu::StepRates {
+        lr: tc.lr,
+        lr_table: tc.lr_table,
+        mode: tc.table_adam,
+    };
+    let mut runs = Vec::new();
+    let mut skipped = Vec::new();
+    for &mlp in paths {
+        let warm = gpu_side(ctx, store.info().brick, &bank, &init, &order, b, rates, mlp)
+            .and_then(|mut r| r(2).map(|_| r).map_err(|e| e.to_string()));
+        match warm {
+            Ok(r) => runs.push((mlp, r)),
+            Err(e) => {
+                println!("neuvolex path {} left out of the comparison: its engines could not be set up or warmed up ({e})", mlp.name());
+                skipped.push(json!({"path": mlp.name(), "error": e}));
+            }
+        }
+    }
+    if runs.is_empty() {
+        println!("SKIP the comparison with PyTorch: no GPU engine could be set up");
+        return json!({"error": "no GPU engine could be set up", "skipped_paths": skipped});
+    }
+    let threads = std::thread::available_parallelism().map_or(2, |n| n.get());
+    let mut torch = match Torch::start(&data_dir, device, threads, variants) {
+        Ok(t) => {
+            println!("{}", t.describe(device));
+            Some(t)
+        }
+        Err(e) => {
+            println!("PyTorch unavailable ({e}): neuvolex alone");
+            None
+        }
+    };
+    let mut sides: Vec<Side<'_>> = runs
+        .into_iter()
+        .map(|(mlp, mut run)| -> Side<'_> {
+            (
+                format!("neuvolex GPU {} ({})", mlp.name(), ctx.info().name),
+                Box::new(move || {
+                    run(steps).unwrap_or_else(|e| {
+                        eprintln!("neuvolex GPU round ({}) failed: {e}", mlp.name());
+                        Round {
+                            train_s: f64::NAN,
+                            extract_s: f64::NAN,
+                            volume_loss: f64::NAN,
+                            psnr: f64::NAN,
+                            ..Round::default()
+                        }
+                    })
+                }),
+            )
+        })
+        .collect();
+    let context = format!("GPU ({device}), CT-Tooth, {steps} x {b} samples");
+    let mut out = compare(rounds, &mut sides, torch.as_mut(), screen, &context);
+    out["init"] = json!(init_note);
+    out["skipped_paths"] = json!(skipped);
+    out
+}
+
+/// One round of a neuvolex side of the comparison: `n` steps, then extraction and evaluation.
+type GpuRun<'a> = Box<dyn FnMut(usize) -> neuvolex_features_gpu::Result<vs_torch::Round> + 'a>;
+
+/// A neuvolex side of the comparison on MLP path `mlp`: a training engine and an inference
+/// engine with every tile of `bank` resident and the whole sample order uploaded; each round
+/// starts from `init` and a zero Adam state, trains `n` steps of `b` samples (timed), copies
+/// the model into the inference engine and extracts the hidden features of every voxel
+/// (timed), then evaluates loss and PSNR on the CPU (untimed).
+#[allow(clippy::too_many_arguments)]
+fn gpu_side<'a>(
+    ctx: &'a Arc<GpuContext>,
+    brick: usize,
+    bank: &'a vs_torch::Bank,
+    init: &'a InrModel,
+    order: &[(u32, u32)],
+    b: usize,
+    rates: neuvolex_features_gpu::StepRates,
+    mlp: MlpPath,
+) -> Result<GpuRun<'a>, String> {
+    use vs_torch::{evaluate, Round};
     let slots = bank.tiles.len();
-    let setup = || -> neuvolex_features_gpu::Result<(GpuInr, GpuInr, neuvolex_features_gpu::context::Tracked)> {
+    let setup = || -> neuvolex_features_gpu::Result<_> {
         let eng = GpuInr::new(
             ctx,
-            &init,
+            init,
             None,
             EngineOptions {
                 batch: b,
@@ -291,16 +408,17 @@ fn vs_torch_gpu(
                 train: true,
                 slots,
                 brick,
-                order_pairs: (steps * b).div_ceil(2),
-                mlp: MlpPath::default(),
+                order_pairs: order.len().div_ceil(2),
+                mlp,
             },
         )?;
         let inf = GpuInr::new(
             ctx,
-            &init,
+            init,
             None,
             EngineOptions {
                 slots,
+                mlp,
                 ..EngineOptions::inference(brick)
             },
         )?;
@@ -315,94 +433,65 @@ fn vs_torch_gpu(
         ctx.wait()?;
         Ok((eng, inf, staging))
     };
-    let (mut eng, mut inf, staging) = match setup() {
-        Ok(x) => x,
-        Err(e) => {
-            println!("SKIP the comparison with PyTorch: the resident-volume GPU engine could not be set up ({e})");
-            return json!({"error": e.to_string()});
-        }
-    };
-    let rates = neuvolex_features_gpu::StepRates {
-        lr: tc.lr,
-        lr_table: tc.lr_table,
-        mode: tc.table_adam,
-    };
-    let mut gpu_round = |n: usize| -> neuvolex_features_gpu::Result<Round> {
-        eng.upload_model(&init);
-        eng.upload_adam(&neuvolex_features::adam::Adam::new(
-            init.dense.len(),
-            init.table.len(),
-        ))?;
-        ctx.wait()?;
-        let t = Instant::now();
-        for s in 0..n {
-            eng.step(s * b, b, rates, s + 1)?;
-        }
-        ctx.wait()?;
-        let train_s = t.elapsed().as_secs_f64();
-        let model = eng.download_model()?;
-        inf.upload_model(&model);
-        ctx.wait()?;
-        let t = Instant::now();
-        for (i, tile) in bank.tiles.iter().enumerate() {
-            inf.record_tile(i, tile.voxels(), FeatureKind::Hidden, &staging)?;
-        }
-        ctx.wait()?;
-        let extract_s = t.elapsed().as_secs_f64();
-        let (volume_loss, psnr) = evaluate(&model, &bank);
-        Ok(Round {
-            train_s,
-            samples: n * b,
-            last_loss: None,
-            extract_s,
-            extract_voxels: bank.voxels(),
-            volume_loss,
-            psnr,
-        })
-    };
-    if let Err(e) = gpu_round(2) {
-        println!("SKIP the comparison with PyTorch: the GPU engine's warm-up round failed ({e})");
-        return json!({"error": e.to_string()});
-    }
-    let threads = std::thread::available_parallelism().map_or(2, |n| n.get());
-    let mut torch = match Torch::start(data.path(), device, threads, variants) {
-        Ok(t) => {
-            println!("{}", t.describe(device));
-            Some(t)
-        }
-        Err(e) => {
-            println!("PyTorch unavailable ({e}): neuvolex alone");
-            None
-        }
-    };
-    let mut sides: Vec<Side<'_>> = vec![(
-        format!("neuvolex GPU ({})", ctx.info().name),
-        Box::new(move || {
-            gpu_round(steps).unwrap_or_else(|e| {
-                eprintln!("neuvolex GPU round failed: {e}");
-                Round {
-                    train_s: f64::NAN,
-                    extract_s: f64::NAN,
-                    volume_loss: f64::NAN,
-                    psnr: f64::NAN,
-                    ..Round::default()
-                }
+    let (mut eng, mut inf, staging) = setup().map_err(|e| e.to_string())?;
+    let steps_max = order.len() / b.max(1);
+    Ok(Box::new(
+        move |n: usize| -> neuvolex_features_gpu::Result<Round> {
+            if n > steps_max {
+                return Err(neuvolex_features_gpu::GpuError::Config(format!(
+                    "{n} steps need more than the {steps_max} steps of samples uploaded"
+                )));
+            }
+            eng.upload_model(init);
+            eng.upload_adam(&neuvolex_features::adam::Adam::new(
+                init.dense.len(),
+                init.table.len(),
+            ))?;
+            ctx.wait()?;
+            let t = Instant::now();
+            for s in 0..n {
+                eng.step(s * b, b, rates, s + 1)?;
+            }
+            ctx.wait()?;
+            let train_s = t.elapsed().as_secs_f64();
+            let model = eng.download_model()?;
+            inf.upload_model(&model);
+            ctx.wait()?;
+            let t = Instant::now();
+            for (i, tile) in bank.tiles.iter().enumerate() {
+                inf.record_tile(i, tile.voxels(), FeatureKind::Hidden, &staging)?;
+            }
+            ctx.wait()?;
+            let extract_s = t.elapsed().as_secs_f64();
+            let (volume_loss, psnr) = evaluate(&model, bank);
+            Ok(Round {
+                train_s,
+                samples: n * b,
+                last_loss: None,
+                extract_s,
+                extract_voxels: bank.voxels(),
+                volume_loss,
+                psnr,
             })
-        }),
-    )];
-    let context = format!("GPU ({device}), CT-Tooth, {steps} x {b} samples");
-    compare(rounds, &mut sides, torch.as_mut(), screen, &context)
+        },
+    ))
 }
 
 /// Launch path x batch size on `store`: each trains the paper's model for `seconds` from the
 /// same seed; samples/s (steady) and the PSNR reached, so speed and quality are read together.
-fn sweep(ctx: &Arc<GpuContext>, store: &BrickStore, seconds: f64, batches: &[usize]) -> Value {
+fn sweep(
+    ctx: &Arc<GpuContext>,
+    store: &BrickStore,
+    seconds: f64,
+    batches: &[usize],
+    paths: &[MlpPath],
+) -> Value {
     println!("\nlaunch path x batch ({seconds} s of training each, same seed):");
     println!("| path | batch | micro-batch | samples/s | steps | PSNR dB | peak GPU memory |");
     println!("|---|---|---|---|---|---|---|");
     let mut out = Vec::new();
     for &batch in batches {
-        for mlp in [MlpPath::Layered, MlpPath::Fused] {
+        for &mlp in paths {
             let mut ev = Vec::new();
             let c = TrainConfig {
                 batch,
@@ -449,6 +538,90 @@ fn sweep(ctx: &Arc<GpuContext>, store: &BrickStore, seconds: f64, batches: &[usi
     json!(out)
 }
 
+/// Extraction alone on `store` (every tile resident): the 64-D hidden feature of every voxel
+/// of the paper's model (initial weights: the time does not depend on them) per MLP path and
+/// inference micro-batch, into host-mappable memory (what the comparison with PyTorch times)
+/// and into a device buffer (no transfer); median of 5 passes after a warm-up pass.
+fn extract_sweep(
+    ctx: &Arc<GpuContext>,
+    store: &BrickStore,
+    paths: &[MlpPath],
+    batches: &[usize],
+) -> Value {
+    let inr = InrConfig::default();
+    let bank = vs_torch::Bank::load(store, &inr);
+    let model = InrModel::new(&inr, bank.dims, 0);
+    let brick = store.info().brick;
+    let voxels = bank.voxels();
+    println!(
+        "\nfeature extraction alone ({voxels} voxels, every tile resident, the 64-D hidden feature; median of 5 passes):"
+    );
+    println!(
+        "| path | micro-batch | into mapped memory, M voxels/s | into device memory, M voxels/s |"
+    );
+    println!("|---|---|---|---|");
+    let mut out = Vec::new();
+    for &mlp in paths {
+        for &mb in batches {
+            let run = || -> neuvolex_features_gpu::Result<(usize, f64, f64)> {
+                let mut inf = GpuInr::new(
+                    ctx,
+                    &model,
+                    None,
+                    EngineOptions {
+                        batch: mb,
+                        micro_batch: Some(mb),
+                        slots: bank.tiles.len(),
+                        mlp,
+                        ..EngineOptions::inference(brick)
+                    },
+                )?;
+                for (i, t) in bank.tiles.iter().enumerate() {
+                    inf.upload_tile(i, t)?;
+                }
+                let most = bank.tiles.iter().map(|t| t.voxels()).max().unwrap_or(1);
+                let mapped = inf.staging_for(most, FeatureKind::Hidden)?;
+                let device = inf.device_buffer_for(most, FeatureKind::Hidden)?;
+                ctx.wait()?;
+                let mut rate = |dst: &neuvolex_features_gpu::context::Tracked| -> neuvolex_features_gpu::Result<f64> {
+                    let mut secs = Vec::new();
+                    for _ in 0..6 {
+                        let t = Instant::now();
+                        for (i, tile) in bank.tiles.iter().enumerate() {
+                            inf.record_tile(i, tile.voxels(), FeatureKind::Hidden, dst)?;
+                        }
+                        ctx.wait()?;
+                        secs.push(t.elapsed().as_secs_f64());
+                    }
+                    Ok(voxels as f64 / vs_torch::spread(&secs[1..]).0)
+                };
+                let m = rate(&mapped)?;
+                let d = rate(&device)?;
+                Ok((inf.micro_batch(), m, d))
+            };
+            match run() {
+                Ok((got, m, d)) => {
+                    println!(
+                        "| {} | {got} | {:.1} | {:.1} |",
+                        mlp.name(),
+                        m / 1e6,
+                        d / 1e6
+                    );
+                    out.push(json!({"path": mlp.name(), "micro_batch": got,
+                        "mapped_voxels_per_s": m, "device_voxels_per_s": d, "voxels": voxels}));
+                }
+                Err(e) => {
+                    println!("| {} | {mb} | failed: {e} | |", mlp.name());
+                    out.push(
+                        json!({"path": mlp.name(), "micro_batch": mb, "error": e.to_string()}),
+                    );
+                }
+            }
+        }
+    }
+    json!(out)
+}
+
 /// The fused path against the layered one on this adapter: one step's loss and gradients of
 /// the paper's model on the same random samples (on lavapipe both are checked against the CPU
 /// engine by `tests/features_gpu.rs`; here the check is that the device runs the fused program
@@ -485,11 +658,16 @@ fn paths_agree(ctx: &Arc<GpuContext>, dims: [usize; 3]) -> Value {
                 order_pairs: 0,
                 mlp,
             },
-        )
-        .expect("engine");
-        e.gradients(&xs, &ps, &ts).expect("gradients")
+        )?;
+        e.gradients(&xs, &ps, &ts)
     };
-    let (a, b) = (grads(MlpPath::Layered), grads(MlpPath::Fused));
+    let a = match grads(MlpPath::Layered) {
+        Ok(a) => a,
+        Err(e) => {
+            println!("\nfused against layered: the layered path failed ({e})");
+            return json!({"error": e.to_string(), "pass": false});
+        }
+    };
     let rel = |x: &[f32], y: &[f32]| {
         let scale = y
             .iter()
@@ -501,29 +679,68 @@ fn paths_agree(ctx: &Arc<GpuContext>, dims: [usize; 3]) -> Value {
             .fold(0.0, f64::max)
             / scale
     };
-    let (dl, dd, dt) = (
-        (a.loss - b.loss).abs() / a.loss.abs().max(1e-30),
-        rel(&b.dense, &a.dense),
-        rel(&b.table, &a.table),
-    );
-    let ok = dl < 1e-6 && dd < 1e-5 && dt < 1e-5 && a.touched == b.touched;
-    println!(
-        "\nfused against layered on this adapter (paper model, {n} samples, micro-batches of 8192): loss {dl:.1e} relative, dense gradients {dd:.1e}, table gradients {dt:.1e} of the largest; touched entries {}: {}",
-        if a.touched == b.touched { "equal" } else { "DIFFER" },
-        if ok { "PASS (tolerances 1e-6, 1e-5, 1e-5)" } else { "FAIL" }
-    );
-    json!({"loss_rel": dl, "dense_rel": dd, "table_rel": dt, "touched_equal": a.touched == b.touched, "pass": ok})
+    let mut out = Vec::new();
+    for mlp in MlpPath::ALL.into_iter().filter(|p| p.block().is_some()) {
+        let b = match grads(mlp) {
+            Ok(b) => b,
+            Err(e) => {
+                println!("\n{} against layered: failed ({e})", mlp.name());
+                out.push(json!({"path": mlp.name(), "error": e.to_string(), "pass": false}));
+                continue;
+            }
+        };
+        let (dl, dd, dt) = (
+            (a.loss - b.loss).abs() / a.loss.abs().max(1e-30),
+            rel(&b.dense, &a.dense),
+            rel(&b.table, &a.table),
+        );
+        let ok = dl < 1e-6 && dd < 1e-5 && dt < 1e-5 && a.touched == b.touched;
+        println!(
+            "\n{} against layered on this adapter (paper model, {n} samples, micro-batches of 8192): loss {dl:.1e} relative, dense gradients {dd:.1e}, table gradients {dt:.1e} of the largest; touched entries {}: {}",
+            mlp.name(),
+            if a.touched == b.touched { "equal" } else { "DIFFER" },
+            if ok { "PASS (tolerances 1e-6, 1e-5, 1e-5)" } else { "FAIL" }
+        );
+        out.push(
+            json!({"path": mlp.name(), "loss_rel": dl, "dense_rel": dd, "table_rel": dt,
+            "touched_equal": a.touched == b.touched, "pass": ok}),
+        );
+    }
+    // The first entry's fields at the top level, as before (the default fused path).
+    let mut v = out.first().cloned().unwrap_or(json!({}));
+    v["pass"] = json!(out.iter().all(|o| o["pass"] == true));
+    v["paths"] = json!(out);
+    v
 }
 
 /// Seconds per kernel of one step of the paper's model on `store`'s first tiles, per path.
-fn profile(ctx: &Arc<GpuContext>, store: &BrickStore) -> Value {
-    json!([MlpPath::Layered, MlpPath::Fused]
-        .into_iter()
-        .map(|p| json!({"path": p.name(), "kernels": profile_path(ctx, store, p)}))
+fn profile(ctx: &Arc<GpuContext>, store: &BrickStore, paths: &[MlpPath]) -> Value {
+    json!(paths
+        .iter()
+        .map(|&p| {
+            let (timer, kernels) = match profile_path(ctx, store, p) {
+                Ok(x) => x,
+                Err(e) => {
+                    println!("\nper-kernel time, {} path: failed ({e})", p.name());
+                    return json!({"path": p.name(), "error": e.to_string()});
+                }
+            };
+            let total: f64 = kernels
+                .as_array()
+                .map_or(0.0, |k| k.iter().filter_map(|x| x["seconds"].as_f64()).sum());
+            json!({"path": p.name(), "timer": timer, "step_kernel_seconds": total, "kernels": kernels})
+        })
         .collect::<Vec<_>>())
 }
 
-fn profile_path(ctx: &Arc<GpuContext>, store: &BrickStore, mlp: MlpPath) -> Value {
+/// (timer, per-kernel JSON) of one profiled step; the timer is `gpu timestamps` where the
+/// adapter has them (each dispatch's own GPU time, one submission), else `host` (each
+/// dispatch submitted alone and waited for).
+fn profile_path(
+    ctx: &Arc<GpuContext>,
+    store: &BrickStore,
+    mlp: MlpPath,
+) -> neuvolex_features_gpu::Result<(String, Value)> {
     let m = neuvolex_features::InrModel::new(&InrConfig::default(), store.info().dims, 0);
     let brick = store.info().brick;
     let mut e = GpuInr::new(
@@ -539,29 +756,34 @@ fn profile_path(ctx: &Arc<GpuContext>, store: &BrickStore, mlp: MlpPath) -> Valu
             order_pairs: brick.pow(3),
             mlp,
         },
-    )
-    .expect("engine");
+    )?;
     let b = training_bricks(store, false)[0];
     let tile = Tile::load(store, &b, 5).expect("tile");
-    e.upload_tile(0, &tile).expect("tile");
+    e.upload_tile(0, &tile)?;
     let n = tile.voxels();
     let pairs: Vec<u32> = (0..16384u32).flat_map(|i| [0, i % n as u32]).collect();
-    e.upload_order(0, &pairs).expect("order");
+    e.upload_order(0, &pairs)?;
     let rates = neuvolex_features_gpu::StepRates {
         lr: 1e-3,
         lr_table: 1e-2,
         mode: neuvolex_features::TableAdam::Lazy,
     };
-    e.step(0, 16384, rates, 0).expect("warm-up");
-    ctx.wait().expect("wait");
+    e.step(0, 16384, rates, 0)?;
+    ctx.wait()?;
     e.set_profile(true);
-    e.step(0, 16384, rates, 1).expect("step");
+    e.step(0, 16384, rates, 1)?;
+    // A second profiled step: the first on a path may include the driver's first-use costs.
+    e.set_profile(true);
+    e.step(0, 16384, rates, 2)?;
     let p = e.profile();
+    let timer = e.profile_timer();
     let total: f64 = p.iter().map(|x| x.2).sum();
     println!(
-        "\nper-kernel time of one 16384-sample step, {} path (each dispatch waited for; total {:.2} ms):",
+        "\nper-kernel time of one 16384-sample step, {} path ({}; total {:.3} ms = {:.2} M samples/s if nothing else ran):",
         mlp.name(),
-        total * 1e3
+        if timer == "host" { "each dispatch submitted alone and waited for" } else { "GPU timestamps per dispatch, one submission" },
+        total * 1e3,
+        16384.0 / total / 1e6
     );
     println!("| kernel | dispatches | ms | share |\n|---|---|---|---|");
     for (k, n, s) in &p {
@@ -571,10 +793,13 @@ fn profile_path(ctx: &Arc<GpuContext>, store: &BrickStore, mlp: MlpPath) -> Valu
             100.0 * s / total
         );
     }
-    json!(p
-        .iter()
-        .map(|(k, n, s)| json!({"kernel": format!("{k:?}"), "dispatches": n, "seconds": s}))
-        .collect::<Vec<_>>())
+    Ok((
+        timer.to_string(),
+        json!(p
+            .iter()
+            .map(|(k, n, s)| json!({"kernel": format!("{k:?}"), "dispatches": n, "seconds": s}))
+            .collect::<Vec<_>>()),
+    ))
 }
 
 #[cfg(feature = "gpu")]
@@ -659,6 +884,34 @@ fn main() {
         .split(',')
         .filter_map(|v| v.trim().parse().ok())
         .collect();
+    // MLP launch paths (names of `MlpPath::name`): of the sweep, of the neuvolex sides of the
+    // comparison with PyTorch (the first is the one the ratios are of), and of the per-volume
+    // runs.
+    let paths_of = |flag: &str, default: &str| -> Vec<MlpPath> {
+        arg(&args, flag, default.to_string())
+            .split(',')
+            .filter(|v| !v.trim().is_empty())
+            .filter_map(|v| match MlpPath::from_name(v.trim()) {
+                Ok(p) => Some(p),
+                Err(e) => {
+                    eprintln!("{flag}: {e}; left out");
+                    None
+                }
+            })
+            .collect()
+    };
+    let sweep_paths = paths_of("--sweep-paths", "layered,fused,fused32,fused16");
+    // Inference micro-batches of the extraction sweep (on the paths of `--paths`).
+    let extract_batches: Vec<usize> =
+        arg(&args, "--extract-batches", "32768,65536,262144".to_string())
+            .split(',')
+            .filter_map(|v| v.trim().parse().ok())
+            .collect();
+    let torch_paths = paths_of("--paths", "fused,fused32,fused16");
+    let mlp = paths_of("--mlp", "fused")
+        .first()
+        .copied()
+        .unwrap_or_default();
     // The comparison with PyTorch: steps per round and side, rounds, variants, screening.
     let torch_steps: usize = arg(&args, "--torch-steps", if quick { 100 } else { 400 });
     let rounds: usize = arg(&args, "--rounds", 3);
@@ -697,7 +950,16 @@ fn main() {
         .to_string(),
     );
     let vs = |store: &BrickStore| {
-        vs_torch_gpu(&ctx, store, device, torch_steps, rounds, &variants, screen)
+        vs_torch_gpu(
+            &ctx,
+            store,
+            device,
+            torch_steps,
+            rounds,
+            &variants,
+            screen,
+            &torch_paths,
+        )
     };
     let write = |report: &Value| {
         if let Some(o) = &out {
@@ -708,9 +970,35 @@ fn main() {
     };
     // `--only torch`: just the comparison with PyTorch on CT-Tooth.
     if arg(&args, "--only", String::new()) == "torch" {
-        if let Some(p) = shared("tooth/tooth.nhdr") {
+        let vol = match arg(&args, "--volume", String::new()) {
+            v if v.is_empty() => shared("tooth/tooth.nhdr"),
+            v => Some(PathBuf::from(v)),
+        };
+        if let Some(p) = vol {
             let dir = tempfile::tempdir().expect("tmp");
             report["torch"] = vs(&store_for(&p, dir.path()));
+        }
+        write(&report);
+        return;
+    }
+    // `--only stages`: the path checks, per-kernel profile, sweep and extraction sweep alone,
+    // on `--volume FILE` (any readable volume; a small one makes a smoke test on lavapipe)
+    // or CT-Tooth.
+    if arg(&args, "--only", String::new()) == "stages" {
+        let vol = match arg(&args, "--volume", String::new()) {
+            v if v.is_empty() => shared("tooth/tooth.nhdr"),
+            v => Some(PathBuf::from(v)),
+        };
+        if let Some(p) = vol {
+            let dir = tempfile::tempdir().expect("tmp");
+            let store = store_for(&p, dir.path());
+            report["paths_agree"] = paths_agree(&ctx, store.info().dims);
+            write(&report);
+            report["profile"] = profile(&ctx, &store, &MlpPath::ALL);
+            write(&report);
+            report["sweep"] = sweep(&ctx, &store, sweep_s, &sweep_batches, &sweep_paths);
+            write(&report);
+            report["extract_sweep"] = extract_sweep(&ctx, &store, &torch_paths, &extract_batches);
         }
         write(&report);
         return;
@@ -744,19 +1032,26 @@ fn main() {
     for (name, src, epochs, cap) in &cases {
         let dir = tempfile::tempdir_in(work.path()).expect("tmp");
         let store = store_for(src, dir.path());
-        let v = gpu_volume(&ctx, name, &store, *epochs, *cap, cpu_s);
+        let v = gpu_volume(&ctx, name, &store, *epochs, *cap, cpu_s, mlp);
         if name == "CT-Tooth" {
             report["paths_agree"] = paths_agree(&ctx, store.info().dims);
-            report["profile"] = profile(&ctx, &store);
-            report["sweep"] = sweep(&ctx, &store, sweep_s, &sweep_batches);
+            report["profile"] = profile(&ctx, &store, &MlpPath::ALL);
+            write(&report);
+            report["sweep"] = sweep(&ctx, &store, sweep_s, &sweep_batches, &sweep_paths);
+            write(&report);
+            report["extract_sweep"] = extract_sweep(&ctx, &store, &torch_paths, &extract_batches);
+            write(&report);
             report["torch"] = vs(&store);
             // A partial report now, in case the device's time limit cuts the run short.
             write(&report);
             volume_table_header();
         }
         vols.push(v);
+        report["volumes"] = json!(vols);
+        write(&report);
     }
     report["renderer"] = json!(renderer());
+    write(&report);
     // The large phantom last: its extraction into the store is the longest part of the run,
     // so a run cut short still reports the rest.
     let raw = work.path().join("cta_512x512x452_int16.raw");
@@ -771,6 +1066,7 @@ fn main() {
         large_epochs,
         Some(cap_s),
         cpu_s,
+        mlp,
     ));
     report["volumes"] = json!(vols);
     write(&report);

@@ -5,8 +5,10 @@ Model: the same architecture and sizes as neuvolex-features (16 levels x 2 featu
 table, base 16, finest = the volume's largest dimension, dense indexing where the level fits
 the table, the spatial hash otherwise; structural encoder 125-32-32 -> FiLM; 4x64 MLP with a
 residual projection into the third layer; heads for intensity, gradient, mean, std; loss
-weights 1, 1 (over the 3 gradient components), 0.5, 0.5; PyTorch's default layer init, table
-uniform in +-1e-4; Adam betas 0.9/0.999, eps 1e-8, lr 1e-3 for the MLPs and 1e-2 for the
+weights 1, 1 (over the 3 gradient components), 0.5, 0.5; initial parameters: neuvolex's, from
+init.f32 (below), so both sides start from the same weights; where that file is absent or does
+not fit this model, PyTorch's default layer init and a table uniform in +-1e-4 from seed 0 (the
+"ready" line and every round say which: "init"); Adam betas 0.9/0.999, eps 1e-8, lr 1e-3 for the MLPs and 1e-2 for the
 table, as neuvolex's `TrainConfig::default()`).
 
 Inputs: the folder `--data` written by the Rust bench from the real volume (CT-Tooth):
@@ -17,6 +19,12 @@ Inputs: the folder `--data` written by the Rust bench from the real volume (CT-T
                 targets), for every voxel of the volume
   order.u32     the training samples, `steps x batch` linear voxel indices: the exact samples
                 neuvolex trains on, in the same order
+  init.f32      neuvolex's initial parameters (little-endian f32): the hash table, then the
+                dense parameters in neuvolex's layout; meta.json's "init" lists every tensor
+                as {"name": PyTorch's state_dict name, "offset": in f32 elements, "shape"}
+                (nn.Linear's [out, in] weights are neuvolex's row-major out x in), and
+                "floats", the file's length. Loaded only if the tensors are exactly this
+                model's parameters with these shapes and tile the file (`read_init`).
 Everything is loaded onto the device before any timing.
 
 Timed regions (the same on both sides):
@@ -159,6 +167,43 @@ class Inr(nn.Module):
 def loss_fn(y, t):
     return ((y[:, 0] - t[:, 0]) ** 2).mean() + 1.0 * ((y[:, 1:4] - t[:, 1:4]) ** 2).mean() + 0.5 * (
         ((y[:, 4] - t[:, 4]) ** 2).mean() + ((y[:, 5] - t[:, 5]) ** 2).mean())
+
+
+def read_init(folder, meta, params):
+    """neuvolex's initial parameters as {name: float32 numpy array}, checked against `params`
+    ({name: shape} of the model's parameters): every parameter once with its shape, the
+    tensors tiling init.f32 exactly. Raises ValueError (with the reason) otherwise; needs
+    numpy only."""
+    spec = meta.get("init") or {}
+    if "file" not in spec:
+        raise ValueError(f"no initial parameters exported ({spec.get('skipped', 'meta.json has no init')})")
+    flat = np.fromfile(os.path.join(folder, spec["file"]), dtype="<f4")
+    if flat.size != spec["floats"]:
+        raise ValueError(f"{spec['file']} holds {flat.size} floats, meta.json says {spec['floats']}")
+    names = [t["name"] for t in spec["tensors"]]
+    if sorted(names) != sorted(params):
+        missing = sorted(set(params) - set(names))
+        extra = sorted(set(names) - set(params))
+        raise ValueError(f"tensors differ from the model's parameters (missing {missing}, unknown {extra})")
+    out, spans = {}, []
+    for t in spec["tensors"]:
+        shape = tuple(int(d) for d in t["shape"])
+        if shape != tuple(params[t["name"]]):
+            raise ValueError(f"{t['name']}: neuvolex's shape {shape}, the model's {tuple(params[t['name']])}")
+        n = int(np.prod(shape))
+        o = int(t["offset"])
+        spans.append((o, n))
+        out[t["name"]] = flat[o:o + n].reshape(shape)
+    end = 0
+    for o, n in sorted(spans):
+        if o != end:
+            raise ValueError(f"the tensors leave a gap or overlap at element {end}")
+        end = o + n
+    if end != flat.size:
+        raise ValueError(f"the tensors cover {end} of {flat.size} floats")
+    if not all(np.isfinite(v).all() for v in out.values()):
+        raise ValueError("non-finite initial parameters")
+    return out
 
 
 class Data:
@@ -392,7 +437,7 @@ def run_round(v, d):
     mse_int = e2[:, 0].mean().item()
     vol_loss = (e2[:, 0].mean() + e2[:, 1:4].mean() + 0.5 * (e2[:, 4].mean() + e2[:, 5].mean())).item()
     samples = d.steps * d.batch
-    return {"variant": v.name, "torch": torch.__version__, "device": v.dev.type,
+    return {"variant": v.name, "torch": torch.__version__, "device": v.dev.type, "init": d.init_from,
             "threads": torch.get_num_threads(), "steps": d.steps, "batch": d.batch,
             "samples": samples, "train_s": train_s, "train_samples_per_s": samples / train_s,
             "last_batch_loss": last_loss, "extract_voxels": d.voxels, "extract_s": extract_s,
@@ -424,8 +469,39 @@ def main():
     if "levels" in d.meta and res != d.meta["levels"]:
         sys.exit(f"hash-grid resolutions {res} differ from neuvolex's {d.meta['levels']}")
     init = ref.state_dict()
+    # neuvolex's initial parameters where exported and matching; PyTorch's seed 0 otherwise.
+    try:
+        params = {n: tuple(p.shape) for n, p in ref.named_parameters()}
+        for n, v in read_init(a.data, d.meta, params).items():
+            init[n] = torch.from_numpy(v.copy())
+        init_from = f"neuvolex (init.f32, {len(params)} tensors)"
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        init_from = f"PyTorch seed 0 (neuvolex's initial parameters not loaded: {e})"
+    note(f"initial parameters: {init_from}")
+    init_check = None
+    chk = (d.meta.get("init") or {}).get("check")
+    if chk and init_from.startswith("neuvolex"):
+        # The same function, not only the same numbers: this model's heads on the first
+        # samples against neuvolex's, with the loaded parameters.
+        try:
+            ref.load_state_dict(init)
+            ref.to(dev)
+            with torch.no_grad():
+                idx = d.order[torch.tensor(chk["order_index"], dtype=torch.long, device=dev)]
+                coords, patches, _ = make_gather(d)(idx)
+                y = ref(coords, patches)[0].double().cpu()
+            want = torch.tensor(chk["outputs"], dtype=torch.float64)
+            diff = (y - want).abs().max().item()
+            init_check = {"samples": len(want), "max_abs_diff": diff,
+                          "max_abs": want.abs().max().item()}
+            note(f"initial parameters: heads on {len(want)} samples within {diff:.2e} of neuvolex's")
+        except Exception as e:  # reported, never fatal
+            init_check = {"error": f"{type(e).__name__}: {e}"}
+    d.init_check = init_check
+    d.init_from = init_from
     variants, ready = [], {"ready": True, "torch": torch.__version__, "device": a.device,
-                           "threads": torch.get_num_threads(), "variants": {}, "failed": {}}
+                           "threads": torch.get_num_threads(), "variants": {}, "failed": {},
+                           "init": init_from, "init_check": init_check}
     for name in [v for v in a.variants.split(",") if v]:
         try:
             v = Variant(name, d, init, dev)

@@ -100,8 +100,10 @@ impl Bank {
     }
 
     /// Writes PyTorch's inputs into `dir`: meta.json, volume.f32 (the tiles' normalised
-    /// intensities, padded by the patch radius), targets.f32 (every voxel's targets) and
-    /// order.u32 (`order` as linear voxel indices); see inr_torch.py.
+    /// intensities, padded by the patch radius), targets.f32 (every voxel's targets),
+    /// order.u32 (`order` as linear voxel indices) and init.f32 with meta.json's `init` (the
+    /// initial parameters of `init`, so PyTorch starts from the same weights; see
+    /// [`torch_init`]); see inr_torch.py.
     pub fn export(
         &self,
         dir: &Path,
@@ -146,6 +148,31 @@ impl Bank {
             .flat_map(|&(t, v)| (self.linear(t, v) as u32).to_le_bytes())
             .collect();
         std::fs::write(dir.join("order.u32"), ord)?;
+        let init_meta = match torch_init(init) {
+            Ok(tensors) => {
+                let mut flat = init.table.clone();
+                flat.extend_from_slice(&init.dense);
+                std::fs::write(dir.join("init.f32"), f32s(&flat))?;
+                // neuvolex's head outputs of the first samples with these parameters:
+                // inr_torch.py computes its own and reports the difference (the same function,
+                // not only the same numbers).
+                let k = order.len().min(8);
+                let mut wk = init.work();
+                init.load_with(&mut wk, k, |i, x, p, t| {
+                    let (ti, v) = order[i];
+                    self.tiles[ti as usize].sample(v as usize, self.patch, x, p, t)
+                });
+                init.forward(&mut wk);
+                let outs = init.layout.head.out;
+                let y = init.outputs(&wk);
+                let check: Vec<Vec<f32>> = (0..k)
+                    .map(|i| y[i * outs..(i + 1) * outs].to_vec())
+                    .collect();
+                json!({"file": "init.f32", "floats": flat.len(), "tensors": tensors,
+                    "check": {"order_index": (0..k).collect::<Vec<_>>(), "outputs": check}})
+            }
+            Err(why) => json!({"skipped": why}),
+        };
         let finest = init
             .cfg
             .finest_resolution
@@ -153,9 +180,83 @@ impl Bank {
         let levels: Vec<u32> = init.grid.levels.iter().map(|l| l.res).collect();
         let meta = json!({"dims": d, "radius": r, "batch": tc.batch, "steps": steps,
             "lr": tc.lr, "lr_table": tc.lr_table, "finest": finest, "levels": levels,
-            "extract_batch": extract_batch, "train_voxels": self.train_voxels(), "seed": tc.seed});
+            "extract_batch": extract_batch, "train_voxels": self.train_voxels(), "seed": tc.seed,
+            "init": init_meta});
         std::fs::write(dir.join("meta.json"), meta.to_string())
     }
+}
+
+/// Where each of inr_torch.py's parameters lies in init.f32, the concatenation of `init`'s
+/// hash table (level-major, `[levels x T][F]`: PyTorch's `grid.table.weight`) and its dense
+/// parameters in their layout (every weight `out x in` row-major, as `nn.Linear` holds it,
+/// then its bias): `{"name", "offset", "shape"}` per tensor, offsets in f32 elements. Every
+/// element of the file belongs to exactly one tensor. An error (the reason) where the model
+/// is not the architecture inr_torch.py builds (the full ablation, no context heads).
+pub fn torch_init(init: &InrModel) -> Result<Vec<Value>, String> {
+    let cfg = &init.cfg;
+    let lay = &init.layout;
+    if cfg.ablation != neuvolex_features::Ablation::Full || !cfg.context_sigmas.is_empty() {
+        return Err(format!(
+            "inr_torch.py builds the full model with the paper's heads; this one is {:?} with {} context heads",
+            cfg.ablation,
+            cfg.context_sigmas.len()
+        ));
+    }
+    let (Some(film), [s0, s1]) = (&lay.film, lay.structural.as_slice()) else {
+        return Err("the full model has a structural encoder of two layers and FiLM".into());
+    };
+    if lay.residual_at != 2 {
+        return Err(format!(
+            "inr_torch.py adds the residual projection into hidden layer 2, this model into {}",
+            lay.residual_at
+        ));
+    }
+    let t = init.table.len();
+    let mut out = vec![json!({"name": "grid.table.weight", "offset": 0,
+        "shape": [init.grid.levels.len() * init.grid.t, init.grid.f]})];
+    let mut layer = |name: &str, l: &neuvolex_features::model::LayerSpec| {
+        out.push(
+            json!({"name": format!("{name}.weight"), "offset": t + l.w, "shape": [l.out, l.inp]}),
+        );
+        if let Some(b) = l.b {
+            out.push(json!({"name": format!("{name}.bias"), "offset": t + b, "shape": [l.out]}));
+        }
+    };
+    layer("rest.struct.0", s0);
+    layer("rest.struct.2", s1);
+    layer("rest.film", film);
+    for (k, l) in lay.main.iter().enumerate() {
+        layer(&format!("rest.m.{k}"), l);
+    }
+    layer("rest.proj", &lay.proj);
+    layer("rest.head", &lay.head);
+    // Every float once: the tensors tile the file.
+    let mut spans: Vec<(usize, usize)> = out
+        .iter()
+        .map(|v| {
+            let n: u64 = v["shape"]
+                .as_array()
+                .map_or(0, |s| s.iter().filter_map(|d| d.as_u64()).product());
+            (v["offset"].as_u64().unwrap_or(0) as usize, n as usize)
+        })
+        .collect();
+    spans.sort_unstable();
+    let mut end = 0;
+    for (o, n) in spans {
+        if o != end {
+            return Err(format!(
+                "the layout leaves a gap or overlap at element {end}"
+            ));
+        }
+        end = o + n;
+    }
+    if end != t + init.dense.len() {
+        return Err(format!(
+            "the tensors cover {end} of {} parameters",
+            t + init.dense.len()
+        ));
+    }
+    Ok(out)
 }
 
 /// One side's figures of one round.
@@ -402,6 +503,20 @@ impl Torch {
                     .join(", "))
                 .unwrap_or_default()
         );
+        if let Some(i) = r["init"].as_str() {
+            s.push_str(&format!("\nPyTorch's initial parameters: {i}"));
+            let c = &r["init_check"];
+            if let (Some(d), Some(m)) = (c["max_abs_diff"].as_f64(), c["max_abs"].as_f64()) {
+                s.push_str(&format!(
+                    "; its heads on {} samples are within {d:.1e} of neuvolex's (largest |output| {m:.3})",
+                    c["samples"]
+                ));
+            } else if let Some(e) = c["error"].as_str() {
+                s.push_str(&format!(
+                    "; the check of its heads against neuvolex's failed: {e}"
+                ));
+            }
+        }
         if let Some(f) = r["failed"].as_object().filter(|f| !f.is_empty()) {
             for (k, v) in f {
                 s.push_str(&format!(
@@ -585,13 +700,15 @@ pub fn compare(
             .max_by(|&a, &b| spread(&col(a, f)).0.total_cmp(&spread(&col(b, f)).0))
             .unwrap_or(first_torch)
     };
-    let ratio = |k: usize, f: &dyn Fn(&Round) -> f64| -> Vec<f64> {
-        col(0, f)
+    // Per-round ratios of neuvolex side `ours` against PyTorch side `k`.
+    let ratio_of = |ours: usize, k: usize, f: &dyn Fn(&Round) -> f64| -> Vec<f64> {
+        col(ours, f)
             .iter()
             .zip(col(k, f))
             .map(|(a, b)| a / b)
             .collect()
     };
+    let ratio = |k: usize, f: &dyn Fn(&Round) -> f64| -> Vec<f64> { ratio_of(0, k, f) };
     let kt = fastest(&|x| x.train_sps());
     let ke = fastest(&|x| x.extract_vps());
     let rt = ratio(kt, &|x| x.train_sps());
@@ -634,6 +751,15 @@ pub fn compare(
         .as_str()
         .unwrap_or("?")
         .to_string();
+    // Only where PyTorch loaded neuvolex's initial parameters (inr_torch.py's "init").
+    let init = if out["torch_ready"]["init"]
+        .as_str()
+        .is_some_and(|i| i.starts_with("neuvolex"))
+    {
+        "the same initial values (neuvolex's)"
+    } else {
+        "each side's own initial values (PyTorch did not load neuvolex's)"
+    };
     let (e0, ek) = (
         spread(&col(0, &|x| x.extract_vps())).0,
         spread(&col(ke, &|x| x.extract_vps())).0,
@@ -643,7 +769,7 @@ pub fn compare(
         spread(&col(kt, &|x| x.train_sps())).0,
     );
     println!(
-        "summary: | INR training, {context}, against PyTorch {version} ({}) | the same samples in the same order from the same initial values; timed: the steps on the resident volume; compile and warm-up outside; {rounds} rounds | {:.0} k samples/s | {:.0} k samples/s | {} | volume PSNR {p0:.2} against {pt:.2} dB at the same samples |",
+        "summary: | INR training, {context}, against PyTorch {version} ({}) | the same samples in the same order from {init}; timed: the steps on the resident volume; compile and warm-up outside; {rounds} rounds | {:.0} k samples/s | {:.0} k samples/s | {} | volume PSNR {p0:.2} against {pt:.2} dB at the same samples |",
         names[kt],
         t0 / 1e3,
         tk / 1e3,
@@ -657,6 +783,36 @@ pub fn compare(
         ratio_text(&re),
         if me < 1.0 { " (neuvolex slower)" } else { "" }
     );
+    // Every neuvolex side against the same fastest PyTorch variants (with more than one side).
+    let mut by_side = Vec::new();
+    if first_torch > 1 {
+        println!("\nevery neuvolex side against the fastest PyTorch variants, median [min-max] of the per-round ratios:");
+        println!(
+            "| side | train samples/s | training / {} | extraction / {} | volume PSNR dB |",
+            names[kt], names[ke]
+        );
+        println!("|---|---|---|---|---|");
+    }
+    for (k, name) in names.iter().enumerate().take(first_torch) {
+        let (rtk, rek) = (
+            ratio_of(k, kt, &|x| x.train_sps()),
+            ratio_of(k, ke, &|x| x.extract_vps()),
+        );
+        let ps = spread(&col(k, &|x| x.psnr)).0;
+        if first_torch > 1 {
+            println!(
+                "| {name} | {:.0} k | {}x | {}x | {ps:.2} |",
+                spread(&col(k, &|x| x.train_sps())).0 / 1e3,
+                fmt_spread(&rtk, 1.0, 2),
+                fmt_spread(&rek, 1.0, 2)
+            );
+        }
+        by_side.push(
+            json!({"side": name, "train": spread(&rtk), "train_per_round": rtk,
+            "extract": spread(&rek), "extract_per_round": rek, "psnr": ps}),
+        );
+    }
+    out["ratio_by_side"] = json!(by_side);
     out["ratio"] = json!({"train_vs": names[kt], "train": spread(&rt), "train_per_round": rt,
         "extract_vs": names[ke], "extract": spread(&re), "extract_per_round": re,
         "torch_over_neuvolex_extract": spread(&inv), "psnr_neuvolex": p0, "psnr_torch": pt});

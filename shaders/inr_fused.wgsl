@@ -1,6 +1,6 @@
 // The fused path: the whole forward pass, the loss and the backward pass of a micro-batch in
 // one dispatch, as tiny-cuda-nn's fully fused MLP does it. Workgroup b owns the samples
-// [64 b, 64 b + 64) and runs every operation of the program on them in order, with a barrier
+// [FB b, FB b + FB) and runs every operation of the program on them in order, with a barrier
 // between operations instead of a dispatch: every operation reads only its own block's
 // columns (forward and backward data: columns are samples; weight gradients: the block is
 // the split whose partial it writes; FiLM and the loss: per sample), so no block waits for
@@ -10,7 +10,9 @@
 // to MAX_OPS records of 24 words, a Gemm or an Elem with the operation's kind in the last word.
 
 const MAX_OPS: u32 = 64u;
-const FB: u32 = 64u;
+// Samples per workgroup: the GEMM tile's columns, 64 by default; the host compiles variants
+// with 32 and 16 (more, smaller workgroups for the same batch; see context.rs `fused_source`).
+const FB: u32 = BN;
 
 // Gemm over the block's columns (forward, backward data).
 const OP_COLS: u32 = 0u;

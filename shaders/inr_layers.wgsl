@@ -41,11 +41,20 @@ const F_A_KCONTIG: u32 = 16u;
 const F_B_NCONTIG: u32 = 32u;
 
 const BM: u32 = 64u;
+// Columns of a tile. The fused module is compiled with BN = its block of samples (64, 32 or
+// 16; the host rewrites this line, see context.rs `fused_source`); the layered GEMM keeps 64.
 const BN: u32 = 64u;
 const BK: u32 = 32u;
-// Elements of a k-slice of A (BK x BM) or B (BK x BN), and per invocation.
+// Elements of a k-slice of A (BK x BM), and per invocation; B's slice is BK x BN (at most
+// SLICE), BN / 8 per invocation.
 const SLICE: u32 = 2048u;
 const PER: u32 = 8u;
+const PER_B: u32 = BN / 8u;
+// The 256 invocations as (BN / 4) column groups of 4 outputs by 1024 / BN row groups of TM
+// rows: 16 x 16 invocations of 4 x 4 outputs at BN = 64, 8 x 32 of 2 x 4 at 32, 4 x 64 of
+// 1 x 4 at 16.
+const CG: u32 = BN / 4u;
+const TM: u32 = BM * BN / 1024u;
 
 // The k-slices of A and B (16 KiB together, the WebGPU default workgroup storage); `As` is
 // also the scratch of `block_sum`.
@@ -60,9 +69,10 @@ var<workgroup> Bs: array<f32, SLICE>;
 //   weight grad    dW = dY X^T, db = sum dY     (A = dY, B = X^T plus a column of ones).
 // Weight gradients split the samples (K) into splits of `s.x`; split z writes its partial sum
 // at its own offset, and the partials are summed later in a fixed order (deterministic).
-// 256 invocations (16 x 16) compute the tile, 4 x 4 outputs each, through 32-deep slices of A
-// and B staged in workgroup memory; the k loop runs in index order for every output. Must be
-// called in uniform control flow by all 256 invocations of the workgroup.
+// 256 invocations compute the 64 x BN tile, TM x 4 outputs each (4 x 4 at BN = 64), through
+// 32-deep slices of A and B staged in workgroup memory; the k loop runs in index order for
+// every output, so an output's value does not depend on BN. Must be called in uniform control
+// flow by all 256 invocations of the workgroup.
 fn gemm_tile(g: Gemm, mt: u32, nt: u32, z: u32, li: u32) {
     let M = g.dims.x;
     let N = g.dims.y;
@@ -72,8 +82,8 @@ fn gemm_tile(g: Gemm, mt: u32, nt: u32, z: u32, li: u32) {
     let n0 = nt * BN;
     let kb = z * g.s.x;
     let ke = min(kb + g.s.x, K);
-    let tx = li % 16u;
-    let ty = li / 16u;
+    let tx = li % CG;
+    let ty = li / CG;
     let a_kc = (flags & F_A_KCONTIG) != 0u;
     let b_nc = (flags & F_B_NCONTIG) != 0u;
     // Four named accumulators rather than an array: an array indexed in a loop the driver does
@@ -102,7 +112,7 @@ fn gemm_tile(g: Gemm, mt: u32, nt: u32, z: u32, li: u32) {
             }
             As[kk * BM + mm] = v;
         }
-        for (var i = 0u; i < PER; i++) {
+        for (var i = 0u; i < PER_B; i++) {
             let e = li + i * 256u;
             var nn: u32;
             var kk: u32;
@@ -127,22 +137,30 @@ fn gemm_tile(g: Gemm, mt: u32, nt: u32, z: u32, li: u32) {
         }
         workgroupBarrier();
         for (var kk = 0u; kk < BK; kk++) {
-            let ao = kk * BM + ty * 4u;
+            let ao = kk * BM + ty * TM;
             let bo = kk * BN + tx * 4u;
             let b = vec4<f32>(Bs[bo], Bs[bo + 1u], Bs[bo + 2u], Bs[bo + 3u]);
             acc0 += As[ao] * b;
-            acc1 += As[ao + 1u] * b;
-            acc2 += As[ao + 2u] * b;
-            acc3 += As[ao + 3u] * b;
+            if (TM > 1u) {
+                acc1 += As[ao + 1u] * b;
+            }
+            if (TM > 2u) {
+                acc2 += As[ao + 2u] * b;
+                acc3 += As[ao + 3u] * b;
+            }
         }
         workgroupBarrier();
     }
-    let gm = m0 + ty * 4u;
+    let gm = m0 + ty * TM;
     let gn = n0 + tx * 4u;
     gemm_store(g, gm, gn, z, acc0);
-    gemm_store(g, gm + 1u, gn, z, acc1);
-    gemm_store(g, gm + 2u, gn, z, acc2);
-    gemm_store(g, gm + 3u, gn, z, acc3);
+    if (TM > 1u) {
+        gemm_store(g, gm + 1u, gn, z, acc1);
+    }
+    if (TM > 2u) {
+        gemm_store(g, gm + 2u, gn, z, acc2);
+        gemm_store(g, gm + 3u, gn, z, acc3);
+    }
 }
 
 // The epilogue of one row of an invocation's 4 x 4 outputs: row gm, columns gn0..gn0 + 3 of

@@ -116,9 +116,8 @@ fn one_step_loss_and_gradients_equal_the_cpu_engine_for_every_ablation() {
         (Ablation::Full, 72, 5, 4),
         (Ablation::Full, 16, 3, 20),
     ];
-    for (path, (ab, hidden, patch, layers)) in [MlpPath::Layered, MlpPath::Fused]
-        .into_iter()
-        .flat_map(|p| cases.map(|c| (p, c)))
+    for (path, (ab, hidden, patch, layers)) in
+        MlpPath::ALL.into_iter().flat_map(|p| cases.map(|c| (p, c)))
     {
         let m = deep_model(ab, 1, hidden, patch, layers);
         let n = 700;
@@ -180,6 +179,73 @@ fn one_step_loss_and_gradients_equal_the_cpu_engine_for_every_ablation() {
             .zip(&gg.touched)
             .all(|(v, t)| *t || *v == 0.0));
     }
+}
+
+/// The fused kernel's blocks of 64, 32 and 16 samples per workgroup compute every output
+/// with the same sums in the same order (only the tile's shape changes), so their forward
+/// outputs agree with each other and with the layered path to rounding (stated: 1e-6 of the
+/// largest output; the driver may contract multiply-adds differently per variant). The
+/// profile of one step names its timer (GPU timestamps where the adapter has them) and gives
+/// every dispatched kernel a positive time.
+#[test]
+fn fused_blocks_agree_and_the_profile_times_every_kernel() {
+    let Some(ctx) = gpu() else { return };
+    let m = deep_model(Ablation::Full, 2, 72, 5, 4);
+    let n = 700;
+    let (xs, ps, ts) = samples(&m, n);
+    let engine = |path| {
+        GpuInr::new(
+            &ctx,
+            &m,
+            None,
+            EngineOptions {
+                batch: n,
+                micro_batch: Some(512),
+                train: true,
+                slots: 1,
+                brick: 8,
+                order_pairs: 0,
+                mlp: path,
+            },
+        )
+        .unwrap()
+    };
+    let reference = engine(MlpPath::Layered).outputs(&xs, &ps).unwrap();
+    assert_eq!(reference.len(), n * TARGETS);
+    let scale = reference.iter().fold(0.0f32, |a, v| a.max(v.abs())) as f64;
+    assert!(scale > 0.0, "the model's outputs are all zero");
+    for path in MlpPath::ALL {
+        let mut e = engine(path);
+        let out = e.outputs(&xs, &ps).unwrap();
+        let d = rel(&out, &reference);
+        eprintln!(
+            "{}: outputs within {d:.2e} of the layered path's",
+            path.name()
+        );
+        assert!(d < 1e-6, "{}: outputs differ by {d:e}", path.name());
+        // One profiled training step on explicit samples.
+        e.set_profile(true);
+        let g = e.gradients(&xs, &ps, &ts).unwrap();
+        assert!(g.loss.is_finite() && g.loss > 0.0);
+        let prof = e.profile();
+        let timer = e.profile_timer();
+        eprintln!("{}: profile ({timer}): {prof:?}", path.name());
+        assert_eq!(
+            timer,
+            if ctx.has_timestamps() {
+                "gpu timestamps"
+            } else {
+                "host"
+            }
+        );
+        assert!(!prof.is_empty() && prof.iter().all(|(_, n, s)| *n > 0 && *s > 0.0));
+        let fused = prof
+            .iter()
+            .any(|(k, _, _)| *k == neuvolex_features_gpu::context::Kernel::Fused);
+        assert_eq!(fused, path.block().is_some(), "{}", path.name());
+    }
+    assert_eq!(MlpPath::from_name("fused16").unwrap(), MlpPath::Fused16);
+    assert!(MlpPath::from_name("fused8").is_err());
 }
 
 /// A small model for the runs through the store: lavapipe executes kernels on the CPU, so
@@ -323,7 +389,7 @@ fn training_steps_equal_the_cpu_engine() {
         let c = cfg(steps * BATCH, mode);
         let inr = small_inr(Ablation::Full);
         let (cm, ce) = cpu_run(&store, &inr, &c, None, None);
-        for path in [MlpPath::Layered, MlpPath::Fused] {
+        for path in MlpPath::ALL {
             let mode = format!("{mode:?} {}", path.name());
             let (gm, ge) = gpu_run_on(&ctx, &store, &inr, &c, None, None, path);
             let (cl, gl) = (losses(&ce), losses(&ge));

@@ -10,6 +10,7 @@ use crate::omezarr::{check_chunks_exist, read_bytes, write_slab_chunks, ZArray};
 use crate::store::{check_name, BrickStore};
 use neuvolex_formats::dtype::DType;
 use neuvolex_formats::meta::VolumeSource;
+use rayon::prelude::*;
 use serde_json::{json, Value};
 use std::path::Path;
 use zarrs::array::Array;
@@ -150,22 +151,41 @@ impl BrickStore {
         let max = dtype.range().1;
         while z0 < dims[2] {
             let depth = (b * self.info.shard.unwrap_or(1).max(1)).min(dims[2] - z0);
-            let raw = source.read_slab(z0, depth)?.to_f64();
+            // Every per-voxel pass runs in parallel over blocks of the slab: the label image of
+            // a CTA-scale volume is written after every classification round.
+            const BLOCK: usize = 1 << 16;
+            let slab = source.read_slab(z0, depth)?;
+            let mut raw = vec![0.0f64; slab.len()];
+            raw.par_chunks_mut(BLOCK)
+                .zip(slab.bytes.par_chunks(BLOCK * slab.dtype.size()))
+                .for_each(|(o, b)| neuvolex_formats::dtype::bytes_to_f64(b, slab.dtype, o));
             let meta = source.meta().clone();
-            let mut lab = Vec::with_capacity(raw.len());
-            for (i, &r) in raw.iter().enumerate() {
+            let bad = |r: f64| {
                 let v = meta.scale(r);
-                if !v.is_finite() || v < 0.0 || v.fract() != 0.0 || v > max {
-                    let s = meta.slice_len();
-                    return Err(neuvolex_formats::FormatError::header(lpath, format!("label value {v} at voxel (x={}, y={}, z={}) is not a non-negative integer", i % dims[0], (i / dims[0]) % dims[1], z0 + i / s)).into());
-                }
-                lab.push(v as u32);
-            }
-            let to_bytes = |l: &[u32]| {
-                neuvolex_formats::dtype::f64_to_bytes(
-                    &l.iter().map(|&v| v as f64).collect::<Vec<_>>(),
-                    dtype,
+                !v.is_finite() || v < 0.0 || v.fract() != 0.0 || v > max
+            };
+            if let Some(i) = raw.par_iter().position_first(|&r| bad(r)) {
+                let (v, s) = (meta.scale(raw[i]), meta.slice_len());
+                return Err(neuvolex_formats::FormatError::header(
+                    lpath,
+                    format!(
+                        "label value {v} at voxel (x={}, y={}, z={}) is not a non-negative integer",
+                        i % dims[0],
+                        (i / dims[0]) % dims[1],
+                        z0 + i / s
+                    ),
                 )
+                .into());
+            }
+            let lab: Vec<u32> = raw.par_iter().map(|&r| meta.scale(r) as u32).collect();
+            drop(raw);
+            let to_bytes = |l: &[u32]| -> Vec<u8> {
+                l.par_chunks(BLOCK)
+                    .flat_map_iter(|c| {
+                        let f: Vec<f64> = c.iter().map(|&v| v as f64).collect();
+                        neuvolex_formats::dtype::f64_to_bytes(&f, dtype)
+                    })
+                    .collect()
             };
             let esize = dtype.size();
             write_slab_chunks(

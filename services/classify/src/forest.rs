@@ -135,6 +135,36 @@ pub struct Forest {
 /// the f32 walk); equality and serialisation ignore it.
 type PackedCell = crate::packed::Derived<Option<Packed>>;
 
+/// [`FlatForest::feature`] of a leaf.
+pub const LEAF_FEATURE: u32 = u32::MAX;
+
+/// A forest in flat arrays, one entry per node of every tree one after the other
+/// ([`Forest::flat`]). A row walks each tree from its root: at a split, it goes to `next` when
+/// its value of `feature` is at most `threshold` (NaN included), else to `next + 1`; at a leaf
+/// (`feature == LEAF_FEATURE`), `next` is the offset of the leaf's `classes` fractions in
+/// `probs`. [`Forest::predict_proba`] is the sum of the leaves' fractions in tree order, times
+/// `1 / trees` (computed in f32).
+#[derive(Debug, Clone, PartialEq)]
+pub struct FlatForest {
+    /// Features per row.
+    pub features: usize,
+    /// Classes.
+    pub classes: usize,
+    /// Per node: the split's feature, or [`LEAF_FEATURE`].
+    pub feature: Vec<u32>,
+    /// Per node: the split's threshold (`+inf` at a leaf).
+    pub threshold: Vec<f32>,
+    /// Per node: the global index of the split's left child (the right child follows it), or
+    /// the offset of the leaf's class fractions in `probs`.
+    pub next: Vec<u32>,
+    /// Per tree: the global index of its root.
+    pub roots: Vec<u32>,
+    /// Leaf class fractions, `classes` per leaf, all trees.
+    pub probs: Vec<f32>,
+    /// The most splits on any root-to-leaf path (a walk ends within `depth` steps).
+    pub depth: u32,
+}
+
 /// Sorts `v` by the upper 32 bits of each item, keeping the input order of equal keys: a
 /// least-significant-digit radix sort in bytes (digits shared by every key are skipped), or an
 /// stable comparison sort for short slices. `tmp` is scratch.
@@ -603,6 +633,77 @@ impl Forest {
         self.packed().is_some()
     }
 
+    /// The forest in flat arrays for another walker (the GPU kernels of
+    /// `neuvolex-classify-gpu`), checked to be well formed: every split's feature is below
+    /// [`Forest::features`], its threshold a number and its children after it inside its tree,
+    /// every leaf's fractions inside its tree's. Walking it as [`FlatForest`] says gives
+    /// [`Forest::predict_proba`]'s leaves for every input; prediction here is unchanged.
+    ///
+    /// ```
+    /// # use neuvolex_classify::{Dataset, Forest, ForestConfig};
+    /// let x = [0.0f32, 1.0, 2.0, 3.0];
+    /// let data = Dataset { x: &x, y: &[0, 0, 1, 1], d: 1, classes: 2 };
+    /// let cfg = ForestConfig { trees: 2, min_samples_split: 2, ..Default::default() };
+    /// let flat = Forest::fit(data, &cfg).unwrap().flat().unwrap();
+    /// assert_eq!(flat.roots.len(), 2);
+    /// ```
+    pub fn flat(&self) -> Result<FlatForest, ForestError> {
+        let bad = |t: usize, what: String| ForestError::Input(format!("tree {t}: {what}"));
+        let c = self.classes;
+        let total: usize = self.trees.iter().map(|t| t.nodes.len()).sum();
+        if u32::try_from(total).is_err() || c == 0 {
+            return Err(ForestError::Input(format!(
+                "{total} nodes of {c} classes cannot be flattened"
+            )));
+        }
+        let mut out = FlatForest {
+            features: self.d,
+            classes: c,
+            feature: Vec::with_capacity(total),
+            threshold: Vec::with_capacity(total),
+            next: Vec::with_capacity(total),
+            roots: Vec::with_capacity(self.trees.len()),
+            probs: Vec::new(),
+            depth: 0,
+        };
+        for (ti, t) in self.trees.iter().enumerate() {
+            let n = t.nodes.len();
+            if n == 0 || t.leaf_of.len() != n || !t.probs.len().is_multiple_of(c) {
+                return Err(bad(ti, "its arrays do not fit together".into()));
+            }
+            let start = out.feature.len() as u32;
+            let leaf0 = out.probs.len();
+            let mut depth = vec![0u32; n];
+            for (i, (nd, &lf)) in t.nodes.iter().zip(&t.leaf_of).enumerate() {
+                if lf != LEAF {
+                    if (lf as usize + 1) * c > t.probs.len() {
+                        return Err(bad(ti, format!("leaf {lf} has no class fractions")));
+                    }
+                    out.feature.push(LEAF_FEATURE);
+                    out.threshold.push(f32::INFINITY);
+                    let at = leaf0 + lf as usize * c;
+                    out.next.push(u32::try_from(at).map_err(|_| {
+                        ForestError::Input(format!("{at} leaf fractions cannot be flattened"))
+                    })?);
+                } else {
+                    let (f, thr, left) = (nd.feature, nd.threshold, nd.left as usize);
+                    if f as usize >= self.d || thr.is_nan() || left <= i || left + 1 >= n {
+                        return Err(bad(ti, format!("node {i} is not a well-formed split")));
+                    }
+                    out.feature.push(f);
+                    out.threshold.push(thr);
+                    out.next.push(start + left as u32);
+                    depth[left] = depth[left].max(depth[i] + 1);
+                    depth[left + 1] = depth[left + 1].max(depth[i] + 1);
+                }
+            }
+            out.depth = out.depth.max(depth.iter().copied().max().unwrap_or(0));
+            out.probs.extend_from_slice(&t.probs);
+            out.roots.push(start);
+        }
+        Ok(out)
+    }
+
     /// Depth of each tree's deepest leaf, in tree order.
     pub fn depths(&self) -> Vec<u32> {
         self.trees.iter().map(|t| t.depth).collect()
@@ -1063,6 +1164,75 @@ mod tests {
         }
         // The first k trees of a forest are the forest trained with k trees.
         assert_eq!(f.truncated(5), Forest::fit(data, &cfg(5)).unwrap());
+    }
+
+    /// Walking the flat arrays as their docs say gives `predict_proba` bit for bit (on
+    /// thresholds, next to them, infinite and NaN inputs), and damaged forests are refused.
+    #[test]
+    fn flat_walk_equals_predict_proba_bit_for_bit() {
+        let (n, d, c) = (2000, 4, 3);
+        let x: Vec<f32> = (0..n * d)
+            .map(|i| ((i * 2654435761usize) % 991) as f32 / 41.0 - 11.0)
+            .collect();
+        let y: Vec<u16> = (0..n)
+            .map(|r| ((x[r * d] * x[r * d + 3]).abs() as u16 + (x[r * d + 1] > 0.0) as u16) % 3)
+            .collect();
+        let data = Dataset {
+            x: &x,
+            y: &y,
+            d,
+            classes: c,
+        };
+        let f = Forest::fit(data, &cfg(9)).unwrap();
+        let flat = f.flat().unwrap();
+        assert_eq!((flat.features, flat.classes, flat.roots.len()), (d, c, 9));
+        assert_eq!(flat.depth, *f.depths().iter().max().unwrap());
+        let mut probe = x.clone();
+        for (&fe, &t) in flat.feature.iter().zip(&flat.threshold).take(300) {
+            if fe != LEAF_FEATURE {
+                let mut row = x[..d].to_vec();
+                row[fe as usize] = t;
+                probe.extend(&row);
+                row[fe as usize] = t.next_up();
+                probe.extend(&row);
+            }
+        }
+        probe.extend([f32::NAN, f32::INFINITY, f32::NEG_INFINITY, -0.0]);
+        let want = f.predict_proba(&probe).unwrap();
+        let inv = 1.0 / 9.0f32;
+        for (r, row) in probe.chunks_exact(d).enumerate() {
+            let mut acc = vec![0.0f32; c];
+            for &root in &flat.roots {
+                let mut at = root as usize;
+                let mut steps = 0;
+                while flat.feature[at] != LEAF_FEATURE {
+                    let right = row[flat.feature[at] as usize] > flat.threshold[at];
+                    at = flat.next[at] as usize + right as usize;
+                    steps += 1;
+                }
+                assert!(steps <= flat.depth);
+                let p = flat.next[at] as usize;
+                acc.iter_mut()
+                    .zip(&flat.probs[p..p + c])
+                    .for_each(|(a, b)| *a += b);
+            }
+            for k in 0..c {
+                assert_eq!(
+                    (acc[k] * inv).to_bits(),
+                    want[r * c + k].to_bits(),
+                    "row {r} class {k}"
+                );
+            }
+        }
+        let mut bad = f.truncated(2);
+        bad.trees[1].nodes[0].feature = d as u32;
+        assert!(bad.flat().is_err());
+        let mut bad = f.truncated(2);
+        bad.trees[0].nodes[0].left = 0;
+        assert!(bad.flat().is_err());
+        let mut bad = f.truncated(2);
+        bad.trees[0].probs.pop();
+        assert!(bad.flat().is_err());
     }
 
     #[test]

@@ -23,7 +23,9 @@ pub mod suggest;
 
 pub use components::{Partial, PriorConfig};
 pub use features::{BrickFeatures, Component, FeatureMemo, FeatureSet, Quantise, DEFAULT_FEATURES};
-pub use forest::{ClassWeight, Dataset, Forest, ForestConfig, ForestError, MaxFeatures};
+pub use forest::{
+    ClassWeight, Dataset, FlatForest, Forest, ForestConfig, ForestError, MaxFeatures, LEAF_FEATURE,
+};
 pub use scribble::{
     load_scribbles, rasterise, simulate, thicken, Level, ScribbleError, ScribbleSource, Scribbles,
     SimConfig, Stroke,

@@ -20,6 +20,7 @@ use neuvolex_tasks::{
     codec, execute_ordered, fingerprint, Blob, Blobs, DeadTask, DynStage, Executor, RunEvent,
     RunReport, Stage, Task, TaskCtx, TaskError,
 };
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
@@ -408,6 +409,12 @@ pub struct ClassifyReport {
     pub seconds_classify: f64,
     /// Voxels per second of prediction.
     pub voxels_per_second: f64,
+    /// Seconds after prediction assembling the label image (the prior and the stability rule
+    /// included), on the coordinator alone.
+    pub seconds_assemble: f64,
+    /// Seconds after that publishing the probabilities, label vectors and OME label image
+    /// (and writing `--out`), on the coordinator alone.
+    pub seconds_publish: f64,
     /// Voxels per output label (after the prior).
     pub counts: Vec<(u16, u64)>,
     /// The spatial prior's effect (absent when it was off or the run did not finish).
@@ -452,10 +459,21 @@ pub fn load_model(store: &BrickStore) -> Result<Option<Arc<InrModel>>, ClassifyE
 
 /// The label volume as u8 (or u16) on the store's grid.
 fn label_volume(store: &BrickStore, labels: &[u16]) -> MemVolume {
-    let max = labels.iter().copied().max().unwrap_or(0);
-    let v: Vec<f64> = labels.iter().map(|&l| l as f64).collect();
+    let max = labels.par_iter().copied().max().unwrap_or(0);
     let dtype = if max <= 255 { DType::U8 } else { DType::U16 };
-    let mut m = MemVolume::from_f64(store.info().dims, dtype, &v);
+    let bytes: Vec<u8> = if max <= 255 {
+        labels.par_iter().map(|&l| l as u8).collect()
+    } else {
+        labels
+            .par_iter()
+            .flat_map_iter(|l| l.to_ne_bytes())
+            .collect()
+    };
+    let mut m = MemVolume {
+        meta: VolumeMeta::new(store.info().dims, dtype),
+        bytes,
+        name: PathBuf::new(),
+    };
     // The store's whole geometry (spacing, affine, NIfTI frames), in the labels' type.
     m.meta = VolumeMeta {
         dtype,
@@ -695,7 +713,9 @@ pub fn classify_scribbles_memo<E: Executor + ?Sized>(
     let mut voxels_held = None;
     let mut out_labels = Vec::new();
     let mut verdicts = None;
+    let (mut seconds_assemble, mut seconds_publish) = (0.0, 0.0);
     if dead.is_empty() && !run.cancelled {
+        let t_assemble = Instant::now();
         let mut labels = assemble_labels(&store_arc, &stage.labels)?;
         let forest_labels = labels.clone();
         if let Some(pc) = &req.prior {
@@ -734,9 +754,9 @@ pub fn classify_scribbles_memo<E: Executor + ?Sized>(
             voxels_held = hold_to(&store_arc, &stage, &scr, h, &v, &mut labels)?;
         }
         verdicts = Some(v);
-        labels
-            .iter()
-            .for_each(|&l| *counts.entry(l).or_default() += 1);
+        counts = label_counts(&labels);
+        seconds_assemble = t_assemble.elapsed().as_secs_f64();
+        let t_publish = Instant::now();
         proba_w.set_extra(serde_json::json!({
             "kind": "class_probabilities",
             "labels": ts.labels,
@@ -764,6 +784,7 @@ pub fn classify_scribbles_memo<E: Executor + ?Sized>(
         if let Some(o) = &req.out {
             neuvolex_formats::nifti::write_nifti(o, &mut lv, 64)?;
         }
+        seconds_publish = t_publish.elapsed().as_secs_f64();
         out_labels = labels;
     }
     Ok(ClassifyOutcome {
@@ -783,6 +804,8 @@ pub fn classify_scribbles_memo<E: Executor + ?Sized>(
             voxels_predicted: sum.voxels,
             seconds_classify: seconds,
             voxels_per_second: sum.voxels as f64 / seconds.max(1e-9),
+            seconds_assemble,
+            seconds_publish,
             counts: counts.into_iter().collect(),
             prior: prior_report,
             voxels_held,
@@ -862,16 +885,55 @@ pub use neuvolex_bricks::location::shared_path_string as store_path_string;
 fn assemble_labels(store: &BrickStore, va: &VectorArray) -> Result<Vec<u16>, ClassifyError> {
     let dims = store.info().dims;
     let mut out = vec![0u16; dims.iter().product()];
+    let bs = store.info().brick;
     let bricks: Vec<Brick> = store.bricks().collect();
-    for b in &bricks {
-        let lab = va.read_brick(b)?;
-        for (row, l) in b.rows(dims).zip(lab.chunks_exact(b.size[0])) {
-            for (o, &v) in out[row..row + b.size[0]].iter_mut().zip(l) {
-                *o = v.round() as u16;
+    // One slab of the volume per layer of bricks (disjoint, so layers fill in parallel), and
+    // within a layer the bricks are read and decoded in parallel before they are placed.
+    out.par_chunks_mut(bs * dims[0] * dims[1])
+        .enumerate()
+        .try_for_each(|(layer, slab)| -> Result<(), ClassifyError> {
+            let z0 = layer * bs;
+            let decoded: Vec<(&Brick, Vec<f32>)> = bricks
+                .par_iter()
+                .filter(|b| b.origin[2] == z0)
+                .map(|b| Ok((b, va.read_brick(b)?)))
+                .collect::<Result<_, ClassifyError>>()?;
+            for (b, lab) in decoded {
+                for (row, l) in b.rows(dims).zip(lab.chunks_exact(b.size[0])) {
+                    let row = row - z0 * dims[0] * dims[1];
+                    for (o, &v) in slab[row..row + b.size[0]].iter_mut().zip(l) {
+                        *o = v.round() as u16;
+                    }
+                }
             }
-        }
-    }
+            Ok(())
+        })?;
     Ok(out)
+}
+
+/// Voxels per label of a label image, counted in parallel.
+fn label_counts(labels: &[u16]) -> BTreeMap<u16, u64> {
+    let hist = labels
+        .par_chunks(1 << 20)
+        .map(|c| {
+            let mut h = vec![0u64; 1 << 16];
+            for &l in c {
+                h[l as usize] += 1;
+            }
+            h
+        })
+        .reduce(
+            || vec![0u64; 1 << 16],
+            |mut a, b| {
+                a.iter_mut().zip(&b).for_each(|(x, y)| *x += y);
+                a
+            },
+        );
+    hist.into_iter()
+        .enumerate()
+        .filter(|&(_, n)| n > 0)
+        .map(|(l, n)| (l as u16, n))
+        .collect()
 }
 
 /// Reads every probability brick into each voxel's largest class probability and the output

@@ -196,7 +196,8 @@ pub fn run_classify(a: &ClassifyArgs, quiet: bool) -> Result<()> {
     }
     println!(
         "classify: {} features ({} channels), {} scribbled voxels in {} classes; forest {} trees \
-         in {:.2} s; {} bricks predicted, {} empty skipped, {} resumed, {:.2} s ({:.0} k voxels/s) on {}",
+         in {:.2} s; {} bricks predicted, {} empty skipped, {} resumed, {:.2} s ({:.0} k voxels/s) on {}; \
+         labels assembled in {:.2} s, published in {:.2} s",
         r.features,
         r.channels,
         o.scribbled_voxels,
@@ -208,7 +209,9 @@ pub fn run_classify(a: &ClassifyArgs, quiet: bool) -> Result<()> {
         r.bricks_resumed,
         r.seconds_classify,
         r.voxels_per_second / 1e3,
-        r.run.executor
+        r.run.executor,
+        r.seconds_assemble,
+        r.seconds_publish
     );
     if r.run.per_worker.len() > 1 || a.cluster.cluster.is_some() {
         let w: Vec<String> = r

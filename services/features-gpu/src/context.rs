@@ -70,6 +70,26 @@ const KERNELS: [(Kernel, usize, &str); 12] = [
     (Kernel::Fused, 3, "fused"),
 ];
 
+/// Samples per workgroup of the fused kernel that every context compiles (`FB` in
+/// `shaders/inr_fused.wgsl`); [`FUSED_BLOCKS`] lists the others, compiled on first use.
+pub const DEFAULT_FUSED_BLOCK: usize = 64;
+/// The fused kernel's possible blocks of samples per workgroup: 64 (the default), 32 and 16.
+/// A smaller block launches more, smaller workgroups for the same micro-batch (4x as many at
+/// 16), each computing 64 x block GEMM tiles with fewer outputs per invocation.
+pub const FUSED_BLOCKS: [usize; 3] = [64, 32, 16];
+
+/// The fused module's WGSL for `block` samples per workgroup: the layer arithmetic with its
+/// tile width `BN` set to `block` (the fused kernel's `FB` is `BN`). `None` if `block` is not
+/// one of [`FUSED_BLOCKS`] (or the sources lost the line this rewrites).
+pub fn fused_source(block: usize) -> Option<String> {
+    const LINE: &str = "const BN: u32 = 64u;";
+    if !FUSED_BLOCKS.contains(&block) || LAYERS_WGSL.matches(LINE).count() != 1 {
+        return None;
+    }
+    let layers = LAYERS_WGSL.replace(LINE, &format!("const BN: u32 = {block}u;"));
+    Some(format!("{COMMON_WGSL}\n{layers}\n{FUSED_WGSL}"))
+}
+
 /// Bytes of one dispatch's arguments (every kernel's uniform struct fits).
 pub const ARGS_BYTES: u64 = 96;
 /// Operations in one fused dispatch (`shaders/inr_fused.wgsl` `MAX_OPS`).
@@ -127,6 +147,10 @@ pub struct GpuContext {
     pub(crate) limits: wgpu::Limits,
     pub(crate) layout: wgpu::BindGroupLayout,
     pipelines: Vec<wgpu::ComputePipeline>,
+    /// Fused kernels for blocks other than [`DEFAULT_FUSED_BLOCK`], compiled on first use.
+    fused_variants: Mutex<Vec<(usize, wgpu::ComputePipeline)>>,
+    pipeline_layout: wgpu::PipelineLayout,
+    timestamps: bool,
     mem: Arc<Mutex<Memory>>,
     error: Arc<Mutex<Option<String>>>,
 }
@@ -248,9 +272,12 @@ impl GpuContext {
             max_compute_workgroups_per_dimension: have.max_compute_workgroups_per_dimension,
             ..wgpu::Limits::downlevel_defaults()
         };
+        // Timestamp queries where the adapter has them: GpuInr's profile times kernels on the
+        // GPU with them.
+        let features = adapter.features() & wgpu::Features::TIMESTAMP_QUERY;
         let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
             label: Some("neuvolex-features-gpu"),
-            required_features: wgpu::Features::empty(),
+            required_features: features,
             required_limits: required.clone(),
             ..Default::default()
         }))
@@ -339,6 +366,9 @@ impl GpuContext {
             limits: required,
             layout,
             pipelines,
+            fused_variants: Mutex::default(),
+            pipeline_layout: pl,
+            timestamps: features.contains(wgpu::Features::TIMESTAMP_QUERY),
             mem: Arc::default(),
             error,
         }))
@@ -362,6 +392,12 @@ impl GpuContext {
         )
     }
 
+    /// Whether the device has GPU timestamp queries (`wgpu::Features::TIMESTAMP_QUERY`), which
+    /// [`crate::GpuInr::set_profile`] times kernels with.
+    pub fn has_timestamps(&self) -> bool {
+        self.timestamps
+    }
+
     /// The largest buffer one binding may hold.
     pub fn max_binding(&self) -> u64 {
         self.limits
@@ -372,6 +408,50 @@ impl GpuContext {
     pub(crate) fn pipeline(&self, k: Kernel) -> &wgpu::ComputePipeline {
         let i = KERNELS.iter().position(|&(kk, _, _)| kk == k).unwrap_or(0);
         &self.pipelines[i]
+    }
+
+    /// The fused kernel for `block` samples per workgroup (one of [`FUSED_BLOCKS`]): the
+    /// context's own for [`DEFAULT_FUSED_BLOCK`], else compiled on first use and kept.
+    pub fn fused_pipeline(&self, block: usize) -> Result<wgpu::ComputePipeline> {
+        if block == DEFAULT_FUSED_BLOCK {
+            return Ok(self.pipeline(Kernel::Fused).clone());
+        }
+        let mut v = self
+            .fused_variants
+            .lock()
+            .unwrap_or_else(|p| p.into_inner());
+        if let Some((_, p)) = v.iter().find(|(b, _)| *b == block) {
+            return Ok(p.clone());
+        }
+        let src = fused_source(block).ok_or_else(|| {
+            GpuError::Config(format!(
+                "the fused kernel has blocks of {FUSED_BLOCKS:?} samples, not {block}"
+            ))
+        })?;
+        let scope = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
+        let module = self
+            .device
+            .create_shader_module(wgpu::ShaderModuleDescriptor {
+                label: Some("inr_fused.wgsl"),
+                source: wgpu::ShaderSource::Wgsl(src.into()),
+            });
+        let p = self
+            .device
+            .create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+                label: Some("fused"),
+                layout: Some(&self.pipeline_layout),
+                module: &module,
+                entry_point: Some("fused"),
+                compilation_options: Default::default(),
+                cache: None,
+            });
+        if let Some(e) = pollster::block_on(scope.pop()) {
+            return Err(GpuError::Device(format!(
+                "compiling the fused kernel for blocks of {block}: {e}"
+            )));
+        }
+        v.push((block, p.clone()));
+        Ok(p)
     }
 
     /// A zeroed buffer, counted in the memory accounting.
@@ -476,6 +556,16 @@ impl GpuContext {
         size: u64,
         after: Option<wgpu::SubmissionIndex>,
     ) -> Result<Vec<f32>> {
+        self.map_with(staging, size, after, bytemuck::pod_collect_to_vec)
+    }
+
+    /// [`GpuContext::map_read_f32`] for u64 values (timestamps).
+    pub(crate) fn map_read_u64(
+        &self,
+        staging: &wgpu::Buffer,
+        size: u64,
+        after: Option<wgpu::SubmissionIndex>,
+    ) -> Result<Vec<u64>> {
         self.map_with(staging, size, after, bytemuck::pod_collect_to_vec)
     }
 

@@ -51,14 +51,63 @@ pub enum MlpPath {
     /// gradients and losses are summed over blocks of 64 instead of 256.
     #[default]
     Fused,
+    /// The fused path with blocks of 32 samples per workgroup: twice the workgroups of
+    /// [`MlpPath::Fused`] for the same micro-batch (512 at 16 384 samples), each computing
+    /// 64 x 32 GEMM tiles, 2 x 4 outputs per invocation. The same outputs per operation; the
+    /// weight gradients and losses are summed over blocks of 32.
+    Fused32,
+    /// The fused path with blocks of 16 samples: four times the workgroups of
+    /// [`MlpPath::Fused`] (1024 at 16 384 samples), 64 x 16 tiles, 1 x 4 outputs per
+    /// invocation; partials over blocks of 16.
+    Fused16,
 }
 
 impl MlpPath {
-    /// `layered` or `fused`.
+    /// Every path: the layered reference, then the fused path with blocks of 64 (the
+    /// default), 32 and 16.
+    pub const ALL: [MlpPath; 4] = [
+        MlpPath::Layered,
+        MlpPath::Fused,
+        MlpPath::Fused32,
+        MlpPath::Fused16,
+    ];
+
+    /// `layered`, `fused` (blocks of 64), `fused32` or `fused16`.
     pub fn name(self) -> &'static str {
         match self {
             MlpPath::Layered => "layered",
             MlpPath::Fused => "fused",
+            MlpPath::Fused32 => "fused32",
+            MlpPath::Fused16 => "fused16",
+        }
+    }
+
+    /// The path called `name` (see [`MlpPath::name`]).
+    ///
+    /// ```
+    /// use neuvolex_features_gpu::MlpPath;
+    /// assert_eq!(MlpPath::from_name("fused32").unwrap(), MlpPath::Fused32);
+    /// assert!(MlpPath::from_name("fused8").is_err());
+    /// ```
+    pub fn from_name(name: &str) -> Result<MlpPath> {
+        MlpPath::ALL
+            .into_iter()
+            .find(|p| p.name() == name)
+            .ok_or_else(|| {
+                GpuError::Config(format!(
+                    "unknown MLP path '{name}' (one of {})",
+                    MlpPath::ALL.map(|p| p.name()).join(", ")
+                ))
+            })
+    }
+
+    /// Samples per workgroup of a fused path (64, 32, 16); `None` for the layered path.
+    pub fn block(self) -> Option<usize> {
+        match self {
+            MlpPath::Layered => None,
+            MlpPath::Fused => Some(FUSED_BLOCK),
+            MlpPath::Fused32 => Some(32),
+            MlpPath::Fused16 => Some(16),
         }
     }
 }
@@ -142,6 +191,8 @@ struct Program {
     args: Vec<u8>,
     calls: Vec<(Kernel, u32, [u32; 3])>,
     stride: usize,
+    /// Samples per workgroup of the fused kernel.
+    block: usize,
     /// While fusing: the operations recorded since `begin_fuse`.
     fusing: Option<Vec<[u32; 24]>>,
 }
@@ -198,13 +249,25 @@ impl Program {
             for a in chunk {
                 w.extend_from_slice(a);
             }
-            self.push_words(Kernel::Fused, &w, [n.div_ceil(FUSED_BLOCK) as u32, 1, 1]);
+            self.push_words(Kernel::Fused, &w, [n.div_ceil(self.block) as u32, 1, 1]);
         }
     }
 }
 
 fn f(v: f32) -> u32 {
     v.to_bits()
+}
+
+/// The pipeline of kernel `k`: the engine's own fused kernel (its block) for `Fused`.
+fn pick<'a>(
+    ctx: &'a GpuContext,
+    fused: &'a Option<wgpu::ComputePipeline>,
+    k: Kernel,
+) -> &'a wgpu::ComputePipeline {
+    match (k, fused) {
+        (Kernel::Fused, Some(p)) => p,
+        _ => ctx.pipeline(k),
+    }
 }
 
 /// The INR on a GPU.
@@ -235,6 +298,10 @@ pub struct GpuInr {
     slot_words: usize,
     adam: Adam,
     profile: Option<Vec<(Kernel, u64, f64)>>,
+    /// How the last profiled submission was timed.
+    profile_timer: &'static str,
+    /// The fused kernel of this engine's block (on a fused path).
+    fused_pipe: Option<wgpu::ComputePipeline>,
 }
 
 fn bytes(v: &[f32]) -> &[u8] {
@@ -261,9 +328,15 @@ impl GpuInr {
             )));
         }
         let max = ctx.max_binding() as usize / 4;
-        // Both paths launch one workgroup per 64 samples along x (GEMM column tiles, fused
-        // blocks), so a micro-batch is at most 64 x the adapter's workgroups per dimension.
-        let most = TILE as usize * ctx.limits.max_compute_workgroups_per_dimension.max(1) as usize;
+        // Both paths launch one workgroup per 64 samples (GEMM column tiles) or per fused
+        // block along x, so a micro-batch is at most that x the adapter's workgroups per
+        // dimension.
+        let per_group = opts.mlp.block().unwrap_or(TILE as usize).min(TILE as usize);
+        let most = per_group * ctx.limits.max_compute_workgroups_per_dimension.max(1) as usize;
+        let fused_pipe = match opts.mlp.block() {
+            Some(b) => Some(ctx.fused_pipeline(b)?),
+            None => None,
+        };
         let mut mb = opts
             .micro_batch
             .unwrap_or(if opts.train { 16384 } else { 32768 })
@@ -271,13 +344,7 @@ impl GpuInr {
             .min(most)
             .max(1);
         let plan = loop {
-            let p = Plan::new(
-                model,
-                mb,
-                opts.batch,
-                opts.train,
-                opts.mlp == MlpPath::Fused,
-            );
+            let p = Plan::with_block(model, mb, opts.batch, opts.train, opts.mlp.block());
             if p.len <= max {
                 break p;
             }
@@ -371,6 +438,8 @@ impl GpuInr {
             slot_words,
             adam: Adam::new(0, 0),
             profile: None,
+            profile_timer: "host",
+            fused_pipe,
         };
         e.upload_model(model);
         if train {
@@ -422,7 +491,11 @@ impl GpuInr {
         self.plan.mb
     }
 
-    /// Times every dispatch from now on (each submitted alone and waited for), or stops.
+    /// Times every dispatch from now on, or stops. Where the adapter has timestamp queries
+    /// ([`GpuContext::has_timestamps`]) each dispatch runs in a compute pass of its own with
+    /// GPU timestamps at its start and end, the step in one submission (the kernels' own
+    /// times); elsewhere each dispatch is submitted alone and waited for (host time, which
+    /// includes the submission's overhead).
     pub fn set_profile(&mut self, on: bool) {
         self.profile = on.then(Vec::new);
     }
@@ -430,6 +503,16 @@ impl GpuInr {
     /// Per kernel: dispatches and seconds, since profiling began.
     pub fn profile(&self) -> Vec<(Kernel, u64, f64)> {
         self.profile.clone().unwrap_or_default()
+    }
+
+    /// How the last profiled submission was timed: `gpu timestamps` or `host`.
+    pub fn profile_timer(&self) -> &'static str {
+        self.profile_timer
+    }
+
+    /// The MLP launch path.
+    pub fn mlp_path(&self) -> MlpPath {
+        self.opts.mlp
     }
 
     /// Adam steps taken.
@@ -532,6 +615,7 @@ impl GpuInr {
                 .limits
                 .min_uniform_buffer_offset_alignment
                 .max(ARGS_BYTES as u32) as usize,
+            block: self.opts.mlp.block().unwrap_or(FUSED_BLOCK),
             ..Default::default()
         }
     }
@@ -569,13 +653,68 @@ impl GpuInr {
             self.ctx.queue.write_buffer(&self.args, 0, &prog.args);
         }
         if let Some(prof) = &mut self.profile {
+            let n = prog.calls.len();
+            if self.ctx.has_timestamps() && n > 0 && 2 * n <= wgpu::QUERY_SET_MAX_QUERIES as usize {
+                // Every dispatch in a compute pass of its own with timestamps at its start and
+                // end, all in one submission: the kernels' own times on the GPU.
+                let q = 2 * n as u32;
+                let qs = self.ctx.device.create_query_set(&wgpu::QuerySetDescriptor {
+                    label: Some("profile"),
+                    ty: wgpu::QueryType::Timestamp,
+                    count: q,
+                });
+                let size = 8 * q as u64;
+                let resolve = self.ctx.buffer(
+                    "timestamps",
+                    size,
+                    wgpu::BufferUsages::QUERY_RESOLVE | wgpu::BufferUsages::COPY_SRC,
+                )?;
+                let read = self.ctx.buffer(
+                    "timestamps (readback)",
+                    size,
+                    wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+                )?;
+                let mut enc = self.ctx.device.create_command_encoder(&Default::default());
+                for (i, &(k, off, g)) in prog.calls.iter().enumerate() {
+                    let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                        label: None,
+                        timestamp_writes: Some(wgpu::ComputePassTimestampWrites {
+                            query_set: &qs,
+                            beginning_of_pass_write_index: Some(2 * i as u32),
+                            end_of_pass_write_index: Some(2 * i as u32 + 1),
+                        }),
+                    });
+                    pass.set_pipeline(pick(&self.ctx, &self.fused_pipe, k));
+                    pass.set_bind_group(0, &self.bind, &[off]);
+                    pass.dispatch_workgroups(g[0], g[1], g[2]);
+                }
+                enc.resolve_query_set(&qs, 0..q, &resolve, 0);
+                enc.copy_buffer_to_buffer(&resolve, 0, &read, 0, size);
+                after(&mut enc);
+                let idx = self.ctx.queue.submit([enc.finish()]);
+                let ticks = self.ctx.map_read_u64(&read, size, Some(idx.clone()))?;
+                let period = self.ctx.queue.get_timestamp_period() as f64 * 1e-9;
+                for (i, &(k, _, _)) in prog.calls.iter().enumerate() {
+                    let s = ticks[2 * i + 1].saturating_sub(ticks[2 * i]) as f64 * period;
+                    match prof.iter_mut().find(|e| e.0 == k) {
+                        Some(e) => {
+                            e.1 += 1;
+                            e.2 += s;
+                        }
+                        None => prof.push((k, 1, s)),
+                    }
+                }
+                self.profile_timer = "gpu timestamps";
+                return Ok(idx);
+            }
+            self.profile_timer = "host";
             // One dispatch per submission, waited for and timed (kernel costs, not speed).
             for &(k, off, g) in &prog.calls {
                 let t = std::time::Instant::now();
                 let mut enc = self.ctx.device.create_command_encoder(&Default::default());
                 {
                     let mut pass = enc.begin_compute_pass(&Default::default());
-                    pass.set_pipeline(self.ctx.pipeline(k));
+                    pass.set_pipeline(pick(&self.ctx, &self.fused_pipe, k));
                     pass.set_bind_group(0, &self.bind, &[off]);
                     pass.dispatch_workgroups(g[0], g[1], g[2]);
                 }
@@ -600,7 +739,7 @@ impl GpuInr {
             let mut cur: Option<Kernel> = None;
             for &(k, off, g) in &prog.calls {
                 if cur != Some(k) {
-                    pass.set_pipeline(self.ctx.pipeline(k));
+                    pass.set_pipeline(pick(&self.ctx, &self.fused_pipe, k));
                     cur = Some(k);
                 }
                 pass.set_bind_group(0, &self.bind, &[off]);
@@ -802,7 +941,7 @@ impl GpuInr {
 
     /// Whether the dense layers run fused.
     fn fused(&self) -> bool {
-        self.opts.mlp == MlpPath::Fused
+        self.opts.mlp.block().is_some()
     }
 
     /// The hash-grid encoding of micro-batch `j` (`n` samples, already staged).
@@ -1365,6 +1504,20 @@ impl GpuInr {
             "features readback",
             (voxels * c * 4) as u64,
             wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+        )
+    }
+
+    /// A buffer in device memory for the features of `voxels` voxels (a copy destination for
+    /// [`Self::record_tile`] that stays on the GPU, to time extraction without the transfer
+    /// into host-mappable memory).
+    pub fn device_buffer_for(&self, voxels: usize, kind: FeatureKind) -> Result<Tracked> {
+        let c = kind.channels_of(&self.cfg, self.grid.out_dim(), self.layout.mlp_in());
+        self.ctx.buffer(
+            "features (device)",
+            (voxels * c * 4) as u64,
+            wgpu::BufferUsages::STORAGE
+                | wgpu::BufferUsages::COPY_DST
+                | wgpu::BufferUsages::COPY_SRC,
         )
     }
 

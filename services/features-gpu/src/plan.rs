@@ -7,9 +7,10 @@ use neuvolex_features::model::{DenseLayout, InrModel};
 /// Samples per weight-gradient split on the layered path (one workgroup's share of the sum
 /// over samples).
 pub const SPLIT: usize = 256;
-/// Samples per workgroup of the fused path (`shaders/inr_fused.wgsl` `FB`): its block of
-/// samples is also its weight-gradient split and its loss partial.
-pub const FUSED_BLOCK: usize = 64;
+/// Samples per workgroup of the default fused path (`shaders/inr_fused.wgsl` `FB`): its
+/// block of samples is also its weight-gradient split and its loss partial. The fused path
+/// also runs with blocks of 32 and 16 ([`crate::context::FUSED_BLOCKS`]).
+pub const FUSED_BLOCK: usize = crate::context::DEFAULT_FUSED_BLOCK;
 /// Steps whose (loss, sse) the arena keeps before the slots are reused.
 pub const STATS_RING: usize = 256;
 /// Invocations per workgroup of the element-wise kernels.
@@ -53,9 +54,9 @@ impl Mat {
 pub struct Plan {
     /// Samples per micro-batch.
     pub mb: usize,
-    /// Samples per weight-gradient partial ([`SPLIT`] layered, [`FUSED_BLOCK`] fused).
+    /// Samples per weight-gradient partial ([`SPLIT`] layered, the block fused).
     pub split: usize,
-    /// Samples per loss partial ([`WG`] layered, [`FUSED_BLOCK`] fused).
+    /// Samples per loss partial ([`WG`] layered, the block fused).
     pub group: usize,
     /// Samples per step (columns of the full-batch matrices).
     pub batch: usize,
@@ -154,12 +155,23 @@ impl Plan {
     }
 
     /// The layout for `model` with micro-batches of `mb` samples and steps of `batch`, for
-    /// the fused path's partials (`fused`) or the layered path's.
+    /// the fused path's partials (`fused`, blocks of [`FUSED_BLOCK`]) or the layered path's.
     pub fn new(model: &InrModel, mb: usize, batch: usize, train: bool, fused: bool) -> Plan {
-        let (split, group) = if fused {
-            (FUSED_BLOCK, FUSED_BLOCK)
-        } else {
-            (SPLIT, WG)
+        Plan::with_block(model, mb, batch, train, fused.then_some(FUSED_BLOCK))
+    }
+
+    /// [`Plan::new`] with the fused path's block of samples per workgroup (`Some(block)`) or
+    /// the layered path's partials (`None`).
+    pub fn with_block(
+        model: &InrModel,
+        mb: usize,
+        batch: usize,
+        train: bool,
+        block: Option<usize>,
+    ) -> Plan {
+        let (split, group) = match block {
+            Some(b) => (b.max(1), b.max(1)),
+            None => (SPLIT, WG),
         };
         let lay: &DenseLayout = &model.layout;
         let cfg = &model.cfg;
@@ -297,8 +309,10 @@ mod tests {
                 ..Default::default()
             };
             let m = InrModel::new(&cfg, [20, 30, 40], 0);
-            for fused in [false, true] {
-                let p = Plan::new(&m, 512, 1300, true, fused);
+            for block in [None, Some(64), Some(32), Some(16)] {
+                let p = Plan::with_block(&m, 512, 1300, true, block);
+                assert_eq!(p.split, block.unwrap_or(SPLIT));
+                assert_eq!(p.splits(512), 512 / p.split);
                 let mut spans: Vec<(u32, u32, &str)> = vec![
                     (p.params, m.layout.len as u32, "params"),
                     (p.patch.off, 125 * 512, "patch"),

@@ -61,11 +61,17 @@ impl Default for InrConfig {
     }
 }
 
+/// Outputs of the paper's heads: intensity, gradient (3), local mean, local std. Context
+/// outputs ([`InrConfig::context_sigmas`]) follow them. Defined here rather than in `model`
+/// so that the configuration depends on nothing else in the crate (`hashgrid` and `model`
+/// build on it, never the other way round); `model::TARGETS` re-exports it.
+pub const TARGETS: usize = 6;
+
 impl InrConfig {
     /// Target values per training sample: intensity, gradient (3), local mean, local std, then
     /// smoothed intensity and gradient magnitude per context sigma.
     pub fn targets(&self) -> usize {
-        crate::model::TARGETS + 2 * self.context_sigmas.len()
+        TARGETS + 2 * self.context_sigmas.len()
     }
 
     /// Loss weight of every output of the heads layer, in output order: the paper's heads
@@ -89,12 +95,12 @@ impl InrConfig {
     /// The target index of each output of the heads layer.
     pub fn head_targets(&self) -> Vec<usize> {
         let base = if self.ablation.multitask() {
-            crate::model::TARGETS
+            TARGETS
         } else {
             1
         };
         (0..base)
-            .chain((0..2 * self.context_sigmas.len()).map(|k| crate::model::TARGETS + k))
+            .chain((0..2 * self.context_sigmas.len()).map(|k| TARGETS + k))
             .collect()
     }
 

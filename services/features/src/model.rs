@@ -14,9 +14,8 @@ use serde::{Deserialize, Serialize};
 /// Samples per chunk of forward/backward work.
 pub const CHUNK: usize = 256;
 
-/// Outputs of the paper's heads: intensity, gradient (3), local mean, local std. Context
-/// outputs ([`InrConfig::context_sigmas`]) follow them.
-pub const TARGETS: usize = 6;
+/// Outputs of the paper's heads (defined beside the configuration, which counts them).
+pub use crate::config::TARGETS;
 
 /// One dense layer inside the flat parameter vector: `w` is `out x in` row-major.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]

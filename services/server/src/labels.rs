@@ -432,7 +432,10 @@ pub fn save_bricks(
     let save = |b: &LabelBrick| -> ApiResult<String> {
         let p = dir.join(format!("{}.zst", b.name));
         if !known_good(&p, &b.zst) {
-            neuvolex_bricks::atomic::replace_file(&p, &b.zst)
+            // Neither synced nor preceded by a scan of the folder: a brick is named by its
+            // content and checked on load, a lost one means the round is classified afresh,
+            // and stale temporaries go at start-up ([`collect_garbage`]).
+            neuvolex_bricks::atomic::put_cached_file(&p, &b.zst)
                 .map_err(|e| ApiError::write_failed(format!("label brick {}: {e}", p.display())))?;
             let mut w = written().lock().unwrap_or_else(|p| p.into_inner());
             // Bounded: past a million names the files are read and compared again.

@@ -32,12 +32,17 @@ pub struct Server {
     pub addr: String,
     /// The first URL printed.
     pub url: String,
+    /// The server's log (its stderr), printed when the test panics.
+    pub log: Option<std::path::PathBuf>,
 }
 
 impl Server {
     pub fn start(d: &Path, data: &Path, extra: &[&str], env: &[(&str, &str)]) -> Server {
         let mut cmd = Command::new(env!("CARGO_BIN_EXE_neuvolex"));
         // Its log (`D/server-N.log`, N counting the servers of one test) is shown on failure.
+        let log = (0..)
+            .map(|n| d.join(format!("server-{n}.log")))
+            .find(|p| !p.exists());
         cmd.args(["serve", "--port", "0", "--data-root"])
             .arg(data)
             .arg("--work")
@@ -46,9 +51,7 @@ impl Server {
             .env_remove("NEUVOLEX_TOKEN")
             .stdout(Stdio::piped())
             .stderr(
-                (0..)
-                    .map(|n| d.join(format!("server-{n}.log")))
-                    .find(|p| !p.exists())
+                log.as_ref()
                     .and_then(|p| std::fs::File::create(p).ok())
                     .map_or_else(Stdio::null, Stdio::from),
             );
@@ -88,6 +91,7 @@ impl Server {
             child,
             addr: format!("127.0.0.1:{port}"),
             url,
+            log,
         }
     }
 
@@ -119,6 +123,16 @@ impl Drop for Server {
     fn drop(&mut self) {
         let _ = self.child.kill();
         let _ = self.child.wait();
+        if std::thread::panicking() {
+            if let Some(p) = &self.log {
+                let text = std::fs::read_to_string(p).unwrap_or_default();
+                eprintln!(
+                    "--- {} ---\n{text}--- end of {} ---",
+                    p.display(),
+                    p.display()
+                );
+            }
+        }
     }
 }
 

@@ -361,7 +361,18 @@ impl AppState {
             if s.closing.load(Ordering::SeqCst) || !unsaved(&s) {
                 continue;
             }
-            match save_state(&self.cfg.work_dir, &s) {
+            let t = std::time::Instant::now();
+            let r = save_state(&self.cfg.work_dir, &s);
+            let took = t.elapsed();
+            if took > AUTOSAVE {
+                tracing::warn!(
+                    "session {} took {} ms to save (the autosave runs every {} ms)",
+                    s.id,
+                    took.as_millis(),
+                    AUTOSAVE.as_millis()
+                );
+            }
+            match r {
                 Ok(Some(p)) => out.push(p),
                 Ok(None) => {}
                 Err(e) => tracing::warn!("session {} not saved: {e}", s.id),

@@ -1,0 +1,67 @@
+#!/usr/bin/env bash
+# The device side of benches/gpu_device.sh: runs on the lent GPU machine (no Rust toolchain, no
+# network) from the repository root, with `.gpubench/` and `.gl/` carried, and writes under
+# $OUT. It records where the figures come from (provenance.txt: commit, build and device
+# machines, driver, PyTorch, CUDA), puts the Vulkan loader in place, samples nvidia-smi beside
+# the benches (smi.csv), and runs the parts named, each under its own time limit so a part that
+# overruns leaves the next its time and its own partial report:
+#
+#   classify  benches/classify_gpu.rs: the filter bank and the forest on the GPU, streamed by
+#             brick over the 512x512x452 phantom, beside the CPU path (issue 49)
+#   inr       benches/inr_gpu.rs: INR training and extraction on the GPU against PyTorch from
+#             the same initial weights, the launch-path sweep, the kernel profile (issue 46)
+#   cluster   benches/cluster.rs: classification of the 512x512x452 phantom in one process and
+#             on 2 and 16 one-thread workers over nats-server (the serial part, issue 49)
+#
+#   bash benches/gpu_device_run.sh classify inr     # one device call (about 8 minutes)
+#   bash benches/gpu_device_run.sh cluster          # a second call on the warm machine
+#
+# At most 8 files come back from a device call: provenance.txt, smi.csv, and a JSON report and
+# a log per part.
+set -uo pipefail
+: "${OUT:?OUT must name the folder whose files come back}"
+b=.gpubench
+for x in "$b"/*.xz; do
+  [ -e "$x" ] && xz -d -k -f "$x" && chmod +x "${x%.xz}"
+done
+{
+  cat "$b/provenance.txt"
+  echo "device: $(grep -m1 'model name' /proc/cpuinfo | cut -d: -f2 | xargs), $(nproc) threads, $(awk '/MemTotal/ {printf "%.0f GiB", $2 / 1048576}' /proc/meminfo), $(nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader | head -1)"
+  python3 -c 'import torch, numpy; print(f"device references: torch {torch.__version__} (CUDA {torch.version.cuda}, cuDNN {torch.backends.cudnn.version()}), numpy {numpy.__version__}")' 2>&1
+  echo "parts: $*; started $(date -u '+%F %T') UTC"
+} | tee -a "$OUT/provenance.txt"
+for f in .gl/*.deb; do dpkg -x "$f" /; done
+ldconfig
+export VK_DRIVER_FILES=/usr/local/nvidia/share/vulkan/icd.d/nvidia_icd.json
+export NEUVOLEX_DATA=$PWD/$b/data NEUVOLEX_TORCH_SCRIPT=$PWD/$b/inr_torch.py NEUVOLEX_TORCH_PYTHON=python3
+BENCH_DATE=$(date -u +%F)
+export BENCH_DATE
+nvidia-smi --query-gpu=timestamp,utilization.gpu,memory.used --format=csv,noheader -l 1 >>"$OUT/smi.csv" 2>&1 &
+smi=$!
+for part in "$@"; do
+  echo "== $part: $(date -u '+%T') UTC" | tee -a "$OUT/provenance.txt"
+  case "$part" in
+    classify)
+      timeout 110 "$b/classify_gpu" --out "$OUT/classify_gpu.json" 2>&1 | tee "$OUT/classify_gpu.log"
+      rc=${PIPESTATUS[0]}
+      ;;
+    inr)
+      timeout 420 "$b/inr_gpu" --cap-s 60 --sweep-s 8 --sweep-paths layered,fused,fused32,fused16 \
+        --paths fused,fused32,fused16 --torch-steps 400 --rounds 3 --cpu-s 5 \
+        --out "$OUT/inr_gpu.json" 2>&1 | tee "$OUT/inr_gpu.log"
+      rc=${PIPESTATUS[0]}
+      ;;
+    cluster)
+      # The bench's helper looks for nats-server in /usr/sbin, /usr/bin and /usr/local/bin.
+      cp "$b/nats-server" /usr/local/bin/nats-server
+      NEUVOLEX_BENCH_STAGES=classify NEUVOLEX_BENCH_WORKERS="${CLUSTER_WORKERS:-2,16}" \
+        NEUVOLEX_BENCH_WORKER_THREADS=1 NEUVOLEX_BENCH_OUT="$OUT/cluster.json" \
+        timeout "${CLUSTER_S:-240}" "$b/cluster" --bench 2>&1 | tee "$OUT/cluster.log"
+      rc=${PIPESTATUS[0]}
+      ;;
+    *) echo "unknown part $part (classify, inr, cluster)"; rc=2 ;;
+  esac
+  echo "== $part ended $(date -u '+%T') UTC (exit $rc)" | tee -a "$OUT/provenance.txt"
+done
+kill "$smi" 2>/dev/null
+awk -F', ' '{u=$2+0; s+=u; n++; if(u>0){b++}} END {if(n) printf "nvidia-smi: %d samples, mean utilisation %.0f %%, busy in %d\n", n, s/n, b}' "$OUT/smi.csv" | tee -a "$OUT/provenance.txt"
