@@ -196,6 +196,7 @@ fn stages<E: Executor>(
         bricks_per_task: 1,
         prior: None,
         hold: None,
+        gpu: false,
     };
     let t = Instant::now();
     let o = classify(&req, exec, &mut |_| {}).expect("classify");

@@ -42,7 +42,8 @@ for part in "$@"; do
   echo "== $part: $(date -u '+%T') UTC" | tee -a "$OUT/provenance.txt"
   case "$part" in
     classify)
-      timeout 110 "$b/classify_gpu" --out "$OUT/classify_gpu.json" 2>&1 | tee "$OUT/classify_gpu.log"
+      # shellcheck disable=SC2086
+      timeout "${CLASSIFY_S:-110}" "$b/classify_gpu" ${CLASSIFY_ARGS:-} --out "$OUT/classify_gpu.json" 2>&1 | tee "$OUT/classify_gpu.log"
       rc=${PIPESTATUS[0]}
       ;;
     inr)

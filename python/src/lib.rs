@@ -1114,6 +1114,7 @@ impl Store {
             bricks_per_task: 1,
             prior: s.prior,
             hold: None,
+            gpu: false,
         };
         let (o, proba, store, key, scr) = detached(py, progress, |ctl| {
             let scr = scr.scribbles();

@@ -18,6 +18,10 @@ pub const FOREST_WGSL: &str = include_str!("forest.wgsl");
 /// Classes the kernel holds per voxel (its accumulators live in registers).
 pub const MAX_CLASSES: usize = 16;
 
+/// The label of a voxel whose top probability is below the forest's `tau`
+/// ([`GpuForest::with_tau`]).
+pub const BELOW_TAU: u8 = 255;
+
 /// Voxels per workgroup: output is written in whole groups.
 pub const GROUP: usize = 64;
 
@@ -71,7 +75,8 @@ struct Params {
     groups: u32,
     groups_x: u32,
     width: u32,
-    pad: [u32; 2],
+    tau: f32,
+    pad: u32,
 }
 
 /// What one prediction gives back.
@@ -96,6 +101,7 @@ pub struct GpuForest {
     inv: f32,
     nodes_at: u32,
     probs_at: u32,
+    tau: f32,
 }
 
 impl std::fmt::Debug for GpuForest {
@@ -178,7 +184,16 @@ impl GpuForest {
             inv: 1.0 / trees as f32,
             nodes_at: nodes_at as u32,
             probs_at: probs_at as u32,
+            tau: f32::MIN,
         })
+    }
+
+    /// Labels a voxel [`BELOW_TAU`] where its top probability is below `tau` (the f32
+    /// probability, compared as `neuvolex_classify::shard::predict_brick` does); by default
+    /// (`f32::MIN`) every voxel takes its first most probable class.
+    pub fn with_tau(mut self, tau: f32) -> Self {
+        self.tau = tau;
+        self
     }
 
     /// The device.
@@ -262,7 +277,8 @@ impl GpuForest {
             groups,
             groups_x: gx,
             width: self.classes.next_multiple_of(4) as u32,
-            pad: [0; 2],
+            tau: self.tau,
+            pad: 0,
         };
         let ubuf = self.dev.upload(
             "forest args",

@@ -6,8 +6,8 @@
 // a leaf's `next` is the offset of its fractions. The fractions add in tree order, four classes
 // at a time, and the sums times 1/trees are the CPU forest's probabilities bit for bit.
 // Each workgroup writes its 64 voxels' u8 probabilities (voxel-major, `classes` bytes each,
-// rounded as neuvolex_classify::stable::to_u8) and u8 labels (the first most probable class)
-// as whole words.
+// rounded as neuvolex_classify::stable::to_u8) and u8 labels (the first most probable class,
+// or 255 where its probability is below `tau`) as whole words.
 
 struct Params {
     n: u32,            // voxels
@@ -24,7 +24,7 @@ struct Params {
     groups: u32,       // workgroups with voxels
     groups_x: u32,     // workgroups along x of the dispatch
     width: u32,        // classes rounded up to a multiple of 4
-    pad0: u32,
+    tau: f32,          // a voxel whose top probability is below it gets label 255
     pad1: u32,
 }
 
@@ -106,7 +106,7 @@ fn predict(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_inde
             }
         }
     }
-    lab[li] = select(0u, best, v < P.n);
+    lab[li] = select(0u, select(255u, best, top >= P.tau), v < P.n);
     workgroupBarrier();
     let words = WG * c / 4u;
     for (var w = li; w < words; w += WG) {

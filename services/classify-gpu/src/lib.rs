@@ -13,6 +13,7 @@ pub mod device;
 pub mod error;
 pub mod filters;
 pub mod forest;
+pub mod stage;
 
 /// The wgpu this crate builds on (for callers that record its dispatches into their own encoders).
 pub use wgpu;
@@ -20,4 +21,7 @@ pub use wgpu;
 pub use device::{adapters_named, AdapterKind, GpuDevice, Tracked};
 pub use error::{GpuError, Result};
 pub use filters::GpuFilterBank;
-pub use forest::{FeatureLayout, GpuForest, Prediction, FOREST_WGSL, GROUP, MAX_CLASSES};
+pub use forest::{
+    FeatureLayout, GpuForest, Prediction, BELOW_TAU, FOREST_WGSL, GROUP, MAX_CLASSES,
+};
+pub use stage::{gpu_features, GpuAccelerator, GPU_FEATURE_SETS};

@@ -8,7 +8,7 @@ mod common;
 use common::{check_forest as check, filters_xyz, gpu, phantom, train_forest as train};
 use neuvolex_bricks::derived::Normaliser;
 use neuvolex_bricks::rng::Rng;
-use neuvolex_classify_gpu::{FeatureLayout, GpuError, GpuForest, MAX_CLASSES};
+use neuvolex_classify_gpu::{FeatureLayout, GpuError, GpuForest, BELOW_TAU, MAX_CLASSES};
 use neuvolex_filters::Classic;
 
 #[test]
@@ -76,6 +76,26 @@ fn gpu_forest_equals_the_cpu_forest_on_the_filter_bank_of_a_phantom() {
         .encode(&mut enc, &fb, FeatureLayout::planes(n + 1), n + 1, &ob)
         .unwrap_err();
     assert!(matches!(e, GpuError::Input(_)), "{e}");
+    // With a threshold, a voxel whose top f32 probability is below it is labelled BELOW_TAU,
+    // as `neuvolex_classify::shard::predict_brick` thresholds it (`neuvolex classify --gpu`).
+    let p = forest.predict_proba(&x).expect("cpu");
+    for tau in [0.3f32, 0.5, 0.7] {
+        let g = GpuForest::new(dev.clone(), &forest)
+            .expect("upload")
+            .with_tau(tau);
+        let want: Vec<u8> = p
+            .chunks_exact(classes)
+            .map(|r| match neuvolex_classify::shard::argmax(r) {
+                (k, v) if v >= tau => k as u8,
+                _ => BELOW_TAU,
+            })
+            .collect();
+        let got = g.predict(&x).expect("rows").labels;
+        let below = want.iter().filter(|&&k| k == BELOW_TAU).count();
+        let differ = want.iter().zip(&got).filter(|(a, b)| a != b).count();
+        eprintln!("tau {tau}: {below} of {n} voxels below it, {differ} labels differ");
+        assert_eq!(differ, 0, "tau {tau}");
+    }
     dev.check().expect("no device error");
 }
 

@@ -8,6 +8,7 @@
 
 #![warn(missing_docs)]
 
+pub mod accel;
 pub mod cache;
 pub mod components;
 pub mod features;

@@ -218,12 +218,21 @@ pub struct PredictStage {
     labels: VectorArray,
     /// Where this process keeps feature bricks between runs (never sent to workers).
     memo: Option<crate::FeatureMemo>,
+    /// Predicts the bricks instead of the CPU forest (the GPU; never sent to workers).
+    accel: Option<Arc<dyn crate::accel::BrickPredictor>>,
 }
 
 impl PredictStage {
     /// Serves the features of the bricks this process predicts through `memo`.
     pub fn with_memo(mut self, memo: Option<crate::FeatureMemo>) -> Self {
         self.memo = memo;
+        self
+    }
+
+    /// Predicts the bricks this process runs with `pred` (the GPU) instead of the CPU forest:
+    /// the same outputs where `pred` gives the CPU's u8 probabilities and classes.
+    pub fn with_predictor(mut self, pred: Option<Arc<dyn crate::accel::BrickPredictor>>) -> Self {
+        self.accel = pred;
         self
     }
 
@@ -254,6 +263,7 @@ impl PredictStage {
             src,
             params,
             memo: None,
+            accel: None,
         })
     }
 
@@ -300,15 +310,26 @@ impl Stage for PredictStage {
                 ctx.skip(1);
                 continue;
             }
-            let r = classify_brick(
-                &fx,
-                &self.forest,
-                &self.params.labels,
-                &self.out_labels,
-                &self.roi,
-                &self.cfg,
-                &b,
-            )
+            let r = match &self.accel {
+                Some(p) => crate::accel::classify_brick_on(
+                    p.as_ref(),
+                    &self.src.store,
+                    &self.params.labels,
+                    &self.out_labels,
+                    &self.roi,
+                    &self.cfg,
+                    &b,
+                ),
+                None => classify_brick(
+                    &fx,
+                    &self.forest,
+                    &self.params.labels,
+                    &self.out_labels,
+                    &self.roi,
+                    &self.cfg,
+                    &b,
+                ),
+            }
             .map_err(|e| TaskError::Failed(format!("brick {bi:?}: {e}")))?;
             self.proba.write_brick(&b, &r.proba)?;
             let lab: Vec<f32> = r.labels.iter().map(|&l| l as f32).collect();
@@ -357,6 +378,10 @@ pub struct ClassifyRequest {
     /// probabilities prefer the change by the rule's `delta`. Ignored unless these scribbles
     /// keep every earlier one ([`crate::stable::added`]).
     pub hold: Option<crate::stable::Hold>,
+    /// Predict on the accelerator passed to [`classify_with`] (the GPU of `neuvolex classify
+    /// --gpu`) in this process; an error without one. Default false: the CPU forest, the
+    /// reference.
+    pub gpu: bool,
 }
 
 /// What the spatial prior did to the label image.
@@ -424,6 +449,8 @@ pub struct ClassifyReport {
     pub voxels_held: Option<u64>,
     /// How the stage ran.
     pub run: RunReport,
+    /// The accelerator that predicted ([`ClassifyRequest::gpu`]; absent on the CPU).
+    pub gpu: Option<String>,
 }
 
 /// The result of the pipeline.
@@ -469,19 +496,16 @@ fn label_volume(store: &BrickStore, labels: &[u16]) -> MemVolume {
             .flat_map_iter(|l| l.to_ne_bytes())
             .collect()
     };
-    let mut m = MemVolume {
-        meta: VolumeMeta::new(store.info().dims, dtype),
+    MemVolume {
+        // The store's whole geometry (spacing, affine, NIfTI frames), in the labels' type.
+        meta: VolumeMeta {
+            dtype,
+            scaling: None,
+            ..store.meta()
+        },
         bytes,
-        name: PathBuf::new(),
-    };
-    // The store's whole geometry (spacing, affine, NIfTI frames), in the labels' type.
-    m.meta = VolumeMeta {
-        dtype,
-        scaling: None,
-        ..store.meta()
-    };
-    m.name = PathBuf::from("<classified>");
-    m
+        name: PathBuf::from("<classified>"),
+    }
 }
 
 /// Runs `neuvolex classify` on `exec`: reads the scribbles from `req.scribbles`, then
@@ -491,13 +515,24 @@ pub fn classify<E: Executor + ?Sized>(
     exec: &E,
     progress: &mut dyn FnMut(RunEvent),
 ) -> Result<ClassifyOutcome, ClassifyError> {
+    classify_with(req, None, exec, progress)
+}
+
+/// [`classify`] predicting on `accel` when [`ClassifyRequest::gpu`] is set (it must then be
+/// given, and `exec` must run in this process).
+pub fn classify_with<E: Executor + ?Sized>(
+    req: &ClassifyRequest,
+    accel: Option<&dyn crate::accel::Accelerator>,
+    exec: &E,
+    progress: &mut dyn FnMut(RunEvent),
+) -> Result<ClassifyOutcome, ClassifyError> {
     check_out(req)?;
     let meta = BrickStore::open(&req.store)?.meta();
     let scr = load_scribbles(&req.scribbles, &meta).map_err(|e| ClassifyError::File {
         path: req.scribbles.clone(),
         detail: format!("cannot use these scribbles: {e}"),
     })?;
-    classify_scribbles(req, scr, exec, progress)
+    classify_scribbles_on(req, scr, None, accel, exec, progress)
 }
 
 /// Refuses an existing `--out` unless `--force`.
@@ -533,8 +568,31 @@ pub fn classify_scribbles_memo<E: Executor + ?Sized>(
     exec: &E,
     progress: &mut dyn FnMut(RunEvent),
 ) -> Result<ClassifyOutcome, ClassifyError> {
+    classify_scribbles_on(req, scr, memo, None, exec, progress)
+}
+
+/// [`classify_scribbles_memo`] predicting on `accel` when [`ClassifyRequest::gpu`] is set.
+pub fn classify_scribbles_on<E: Executor + ?Sized>(
+    req: &ClassifyRequest,
+    scr: Scribbles,
+    memo: Option<crate::FeatureMemo>,
+    accel: Option<&dyn crate::accel::Accelerator>,
+    exec: &E,
+    progress: &mut dyn FnMut(RunEvent),
+) -> Result<ClassifyOutcome, ClassifyError> {
     let cfg = &req.config;
     check_out(req)?;
+    let accel = match (req.gpu, accel) {
+        (false, _) => None,
+        (true, Some(a)) => Some(a),
+        (true, None) => {
+            return Err(ClassifyError::Input(
+                "--gpu: this build has no GPU classification (build neuvolex with the `gpu` \
+                 feature)"
+                    .into(),
+            ))
+        }
+    };
     let mut store = BrickStore::open(&req.store)?;
     if scr.dims != store.info().dims {
         return Err(ClassifyError::File {
@@ -682,7 +740,22 @@ pub fn classify_scribbles_memo<E: Executor + ?Sized>(
         spec,
         model_bytes: None,
     };
-    let stage = PredictStage::new(params, src, forest_bytes)?.with_memo(memo);
+    let pred = match accel {
+        Some(a) => {
+            let p = a.prepare(store_arc.clone(), &set, &forest, cfg.tau)?;
+            tracing::info!(
+                adapter = %a.describe(),
+                features = %set,
+                "classify: predicting on the GPU (the filter bank and the forest per brick)"
+            );
+            Some(Arc::<dyn crate::accel::BrickPredictor>::from(p))
+        }
+        None => None,
+    };
+    let gpu = accel.map(|a| a.describe());
+    let stage = PredictStage::new(params, src, forest_bytes)?
+        .with_memo(memo)
+        .with_predictor(pred);
     let tasks = neuvolex_tasks::plan(&pending, req.bricks_per_task, 0);
     let t = Instant::now();
     let (outs, run) = execute_ordered(exec, &stage, &tasks, progress)
@@ -810,6 +883,7 @@ pub fn classify_scribbles_memo<E: Executor + ?Sized>(
             prior: prior_report,
             voxels_held,
             run,
+            gpu,
         },
         classes,
         scribbled_voxels: scr.voxels.len(),

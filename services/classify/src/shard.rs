@@ -10,7 +10,7 @@ use crate::forest::{ClassWeight, Dataset, Forest, ForestConfig};
 use crate::scribble::Scribbles;
 use crate::ClassifyError;
 use neuvolex_bricks::synth::ClassInfo;
-use neuvolex_bricks::{Brick, VectorArray};
+use neuvolex_bricks::{Brick, BrickStore, VectorArray};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use std::collections::{BTreeMap, BTreeSet};
@@ -381,6 +381,34 @@ pub struct BrickResult {
     pub predict_seconds: f64,
 }
 
+/// The result of an empty brick taken as background with certainty, without prediction:
+/// when `cfg.skip_empty`, background is scribbled, the brick is below the store's background
+/// threshold and no ROI scribble lies in it; `None` when the brick must be predicted.
+pub fn empty_brick(
+    store: &BrickStore,
+    labels: &[u32],
+    roi_bricks: &BTreeSet<[usize; 3]>,
+    cfg: &ClassifyConfig,
+    b: &Brick,
+) -> Option<BrickResult> {
+    let k = labels.iter().position(|&l| l == cfg.background)?;
+    if !cfg.skip_empty || store.is_occupied(b, None) || roi_bricks.contains(&b.index) {
+        return None;
+    }
+    let mut p = vec![0.0f32; b.voxels() * labels.len()];
+    p.iter_mut()
+        .skip(k)
+        .step_by(labels.len())
+        .for_each(|v| *v = 1.0);
+    Some(BrickResult {
+        proba: p,
+        labels: vec![0; b.voxels()],
+        skipped: true,
+        feature_seconds: 0.0,
+        predict_seconds: 0.0,
+    })
+}
+
 /// Classifies one brick: the pure per-brick step that every executor schedules. A brick below
 /// the store's background threshold is background with certainty, without prediction, when
 /// `cfg.skip_empty`, background is scribbled and no ROI scribble lies in it.
@@ -393,24 +421,8 @@ pub fn classify_brick(
     cfg: &ClassifyConfig,
     b: &Brick,
 ) -> Result<BrickResult, ClassifyError> {
-    let bg = labels.iter().position(|&l| l == cfg.background);
-    let skip = cfg.skip_empty
-        && bg.is_some()
-        && !fx.store().is_occupied(b, None)
-        && !roi_bricks.contains(&b.index);
-    if let (true, Some(k)) = (skip, bg) {
-        let mut p = vec![0.0f32; b.voxels() * labels.len()];
-        p.iter_mut()
-            .skip(k)
-            .step_by(labels.len())
-            .for_each(|v| *v = 1.0);
-        return Ok(BrickResult {
-            proba: p,
-            labels: vec![0; b.voxels()],
-            skipped: true,
-            feature_seconds: 0.0,
-            predict_seconds: 0.0,
-        });
+    if let Some(r) = empty_brick(fx.store(), labels, roi_bricks, cfg, b) {
+        return Ok(r);
     }
     let t = Instant::now();
     let f = fx.brick(b)?;

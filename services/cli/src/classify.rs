@@ -141,6 +141,12 @@ pub struct ClassifyArgs {
     /// Write a JSON report here.
     #[arg(long)]
     pub report: Option<PathBuf>,
+    /// Predict on the GPU: the filter bank and the forest per brick in this process (feature
+    /// sets filters+xyz and filters; not with --cluster), writing the same probabilities and
+    /// labels as the CPU, the default and the reference. An error where no GPU adapter (or
+    /// Mesa's software lavapipe) exists, or in a build without the `gpu` feature.
+    #[arg(long)]
+    pub gpu: bool,
     #[command(flatten)]
     pub forest: ForestArgs,
     #[command(flatten)]
@@ -169,10 +175,18 @@ pub fn run_classify(a: &ClassifyArgs, quiet: bool) -> Result<()> {
         bricks_per_task: a.cluster.bricks_per_task,
         prior: Some(prior_config(a.prior_mass, a.prior_grow)?).filter(|_| !a.no_prior),
         hold: None,
+        gpu: a.gpu,
+    };
+    let accel = if a.gpu {
+        Some(gpu_accelerator(a, &req)?)
+    } else {
+        None
     };
     let exec = a.cluster.executor()?;
     let mut bar = crate::cluster::StageBar::new(quiet);
-    let o = neuvolex_classify::pipeline::classify(&req, &exec, &mut |e| bar.on(e))?;
+    let o = neuvolex_classify::pipeline::classify_with(&req, accel.as_deref(), &exec, &mut |e| {
+        bar.on(e)
+    })?;
     bar.finish();
     let r = &o.report;
     if let Some(p) = &a.report {
@@ -213,6 +227,9 @@ pub fn run_classify(a: &ClassifyArgs, quiet: bool) -> Result<()> {
         r.seconds_assemble,
         r.seconds_publish
     );
+    if let Some(g) = &r.gpu {
+        println!("  predicted on the GPU: {g}");
+    }
     if r.run.per_worker.len() > 1 || a.cluster.cluster.is_some() {
         let w: Vec<String> = r
             .run
@@ -248,4 +265,47 @@ pub fn run_classify(a: &ClassifyArgs, quiet: bool) -> Result<()> {
         println!("  label volume: {}", o.display());
     }
     Ok(())
+}
+
+/// The GPU `--gpu` predicts on, after the checks that need no device: no `--cluster`, a
+/// feature set the GPU computes.
+#[cfg(feature = "gpu")]
+fn gpu_accelerator(
+    a: &ClassifyArgs,
+    req: &ClassifyRequest,
+) -> Result<Box<dyn neuvolex_classify::accel::Accelerator>> {
+    use neuvolex_classify_gpu::{stage, AdapterKind, GpuAccelerator, GpuDevice};
+    if a.cluster.cluster.is_some() {
+        bail!(
+            "--gpu predicts in this process and cannot be combined with --cluster; drop one of \
+             them"
+        );
+    }
+    if stage::gpu_features(&req.features).is_none() {
+        bail!("{}", stage::unsupported_features(&req.features));
+    }
+    let dev = GpuDevice::new(AdapterKind::Any)
+        .map_err(|e| anyhow::anyhow!("--gpu: {e}; classify without --gpu to use the CPU"))?;
+    if dev.is_software() {
+        tracing::warn!(
+            adapter = %dev.describe(),
+            "--gpu: only a software adapter was found; the CPU path is usually faster"
+        );
+    }
+    Ok(Box::new(GpuAccelerator::new(dev)))
+}
+
+/// Without the `gpu` feature, `--gpu` is an error.
+#[cfg(not(feature = "gpu"))]
+fn gpu_accelerator(
+    a: &ClassifyArgs,
+    _req: &ClassifyRequest,
+) -> Result<Box<dyn neuvolex_classify::accel::Accelerator>> {
+    if a.cluster.cluster.is_some() {
+        bail!(
+            "--gpu predicts in this process and cannot be combined with --cluster; drop one of \
+             them"
+        );
+    }
+    bail!("--gpu: this neuvolex was built without the `gpu` feature (cargo build --features gpu)")
 }

@@ -1,0 +1,167 @@
+//! The GPU as `neuvolex-classify`'s [`Accelerator`]: what `neuvolex classify --gpu` passes to
+//! [`neuvolex_classify::pipeline::classify_with`]. Per brick, its halo is read and normalised
+//! on the host as the CPU does, the filter bank and the forest run on the GPU in one
+//! submission, and the u8 probabilities and classes come back; the pipeline writes them as the
+//! CPU's results.
+//!
+//! Bricks are run one at a time on the device (a lock around the reused buffers of each brick
+//! shape); the streamed ring of issue 49 part 4 is `benches/classify_gpu.rs`'s, not this.
+
+use crate::device::{GpuDevice, Tracked};
+use crate::error::GpuError;
+use crate::filters::{FilterSlot, GpuFilterBank};
+use crate::forest::{FeatureLayout, GpuForest, BELOW_TAU};
+use neuvolex_bricks::{Brick, BrickStore};
+use neuvolex_classify::accel::{AcceleratedBrick, Accelerator, BrickPredictor};
+use neuvolex_classify::features::{Component, FeatureSet};
+use neuvolex_classify::{ClassifyError, Forest};
+use neuvolex_filters::Classic;
+use std::collections::hash_map::{Entry, HashMap};
+use std::sync::{Arc, Mutex};
+
+/// The feature sets the GPU computes, as `--features` names them.
+pub const GPU_FEATURE_SETS: &str = "filters+xyz (the default) or filters";
+
+/// Whether the GPU computes `set`: `Some(xyz)` for `filters` (false) and `filters+xyz` (true).
+pub fn gpu_features(set: &FeatureSet) -> Option<bool> {
+    match set.0.as_slice() {
+        [Component::Classic(Classic::Filters)] => Some(false),
+        [Component::Classic(Classic::Filters), Component::Xyz] => Some(true),
+        _ => None,
+    }
+}
+
+/// The error for a feature set the GPU does not compute.
+pub fn unsupported_features(set: &FeatureSet) -> String {
+    format!(
+        "--gpu computes the feature sets {GPU_FEATURE_SETS}, not '{set}'; drop --gpu or choose \
+         --features filters+xyz"
+    )
+}
+
+fn gpu_err(e: GpuError) -> ClassifyError {
+    ClassifyError::Input(e.to_string())
+}
+
+/// A GPU device as an [`Accelerator`].
+#[derive(Debug, Clone)]
+pub struct GpuAccelerator {
+    dev: Arc<GpuDevice>,
+}
+
+impl GpuAccelerator {
+    /// Predicts on `dev`.
+    pub fn new(dev: Arc<GpuDevice>) -> Self {
+        GpuAccelerator { dev }
+    }
+}
+
+impl Accelerator for GpuAccelerator {
+    fn describe(&self) -> String {
+        self.dev.describe()
+    }
+
+    fn prepare(
+        &self,
+        store: Arc<BrickStore>,
+        set: &FeatureSet,
+        forest: &Forest,
+        tau: f32,
+    ) -> Result<Box<dyn BrickPredictor>, ClassifyError> {
+        let xyz =
+            gpu_features(set).ok_or_else(|| ClassifyError::Input(unsupported_features(set)))?;
+        let bank = GpuFilterBank::new(self.dev.clone(), xyz).map_err(gpu_err)?;
+        let gf = GpuForest::new(self.dev.clone(), forest)
+            .map_err(gpu_err)?
+            .with_tau(tau);
+        if gf.features() != bank.channels() {
+            return Err(ClassifyError::Input(format!(
+                "the forest takes {} features, the GPU's '{set}' gives {}",
+                gf.features(),
+                bank.channels()
+            )));
+        }
+        Ok(Box::new(GpuPredictor {
+            store,
+            halo: set.halo(),
+            bank,
+            forest: gf,
+            slots: Mutex::default(),
+        }))
+    }
+}
+
+/// The buffers of one brick shape: the filter bank's and the forest's output.
+struct Slot {
+    filt: FilterSlot,
+    out: Tracked,
+}
+
+/// A forest and the filter bank on the GPU over one store's bricks.
+struct GpuPredictor {
+    store: Arc<BrickStore>,
+    halo: usize,
+    bank: GpuFilterBank,
+    forest: GpuForest,
+    slots: Mutex<HashMap<[usize; 3], Slot>>,
+}
+
+impl GpuPredictor {
+    fn run(&self, b: &Brick) -> Result<AcceleratedBrick, GpuError> {
+        let hb = self
+            .store
+            .read_halo(b, self.halo)
+            .map_err(|e| GpuError::Input(format!("brick {:?}: {e}", b.index)))?;
+        let norm = self.store.normaliser();
+        let dims = self.store.info().dims;
+        let n = b.voxels();
+        let dev = self.bank.device();
+        let mut slots = self.slots.lock().unwrap_or_else(|p| p.into_inner());
+        let s = match slots.entry(b.size) {
+            Entry::Occupied(e) => e.into_mut(),
+            Entry::Vacant(e) => {
+                let filt = self.bank.slot(b.size, self.halo)?;
+                let out = dev.buffer(
+                    "forest out",
+                    self.forest.output_bytes(n),
+                    wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
+                )?;
+                e.insert(Slot { filt, out })
+            }
+        };
+        let mut enc = dev.device.create_command_encoder(&Default::default());
+        self.bank.encode(&s.filt, &mut enc, &hb, &norm, dims)?;
+        self.forest.encode(
+            &mut enc,
+            s.filt.features(),
+            FeatureLayout::planes(n),
+            n,
+            &s.out,
+        )?;
+        dev.queue.submit([enc.finish()]);
+        let bytes = dev.read(&s.out, self.forest.output_bytes(n))?;
+        let c = self.forest.classes();
+        let lo = self.forest.labels_offset(n) as usize;
+        let classes: Vec<u8> = bytes[lo..lo + n]
+            .iter()
+            .map(|&k| {
+                if k == BELOW_TAU {
+                    neuvolex_classify::accel::BELOW_TAU
+                } else {
+                    k
+                }
+            })
+            .collect();
+        Ok(AcceleratedBrick {
+            probs: bytes[..n * c].to_vec(),
+            classes,
+        })
+    }
+}
+
+impl BrickPredictor for GpuPredictor {
+    fn predict(&self, b: &Brick) -> Result<AcceleratedBrick, ClassifyError> {
+        self.run(b)
+            .map_err(|e| ClassifyError::Input(format!("GPU, brick {:?}: {e}", b.index)))
+    }
+}

@@ -1,0 +1,98 @@
+//! Prediction on an accelerator (the GPU of `neuvolex-classify-gpu`) behind two small traits,
+//! so that this crate never depends on a GPU API: the command line passes an [`Accelerator`]
+//! into [`crate::pipeline::classify_with`], the pipeline binds it to the trained forest once
+//! ([`Accelerator::prepare`]), and [`classify_brick_on`], the pure per-brick step, turns what
+//! the [`BrickPredictor`] gives into the same [`BrickResult`] as [`crate::shard::classify_brick`],
+//! so everything after prediction (the stored probabilities and labels, the prior, the
+//! published label image) is unchanged.
+
+use crate::features::FeatureSet;
+use crate::forest::Forest;
+use crate::shard::{empty_brick, BrickResult, ClassifyConfig};
+use crate::ClassifyError;
+use neuvolex_bricks::{Brick, BrickStore};
+use std::collections::BTreeSet;
+use std::sync::Arc;
+use std::time::Instant;
+
+/// The class index of a voxel whose top probability is below `tau` (in
+/// [`AcceleratedBrick::classes`]).
+pub const BELOW_TAU: u8 = u8::MAX;
+
+/// What an accelerator gives for one brick.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct AcceleratedBrick {
+    /// Class probabilities, `voxels x classes`, as u8 ([`crate::stable::to_u8`] of the CPU
+    /// forest's f32 probabilities).
+    pub probs: Vec<u8>,
+    /// Per voxel, the first most probable class index, or [`BELOW_TAU`] where its probability
+    /// is below `tau` (compared in f32, as [`crate::shard::predict_brick`] does).
+    pub classes: Vec<u8>,
+}
+
+/// Something that predicts bricks with a trained forest (a GPU).
+pub trait Accelerator: Send + Sync {
+    /// The device, for the log ("NVIDIA H200 (Vulkan, DiscreteGpu)").
+    fn describe(&self) -> String;
+
+    /// `forest` bound to this device, over the features `set` gives for `store`'s bricks;
+    /// an error naming the set where the device cannot compute it.
+    fn prepare(
+        &self,
+        store: Arc<BrickStore>,
+        set: &FeatureSet,
+        forest: &Forest,
+        tau: f32,
+    ) -> Result<Box<dyn BrickPredictor>, ClassifyError>;
+}
+
+/// A forest bound to an accelerator.
+pub trait BrickPredictor: Send + Sync {
+    /// Computes brick `b`'s features and predicts them.
+    fn predict(&self, b: &Brick) -> Result<AcceleratedBrick, ClassifyError>;
+}
+
+/// [`crate::shard::classify_brick`] with the features and the forest on `pred`: the same
+/// empty-brick rule, and the same probabilities and labels where `pred` gives the CPU's u8
+/// probabilities and classes (the probabilities come back as `q / 255`, which the store's u8
+/// arrays write as `q`).
+pub fn classify_brick_on(
+    pred: &dyn BrickPredictor,
+    store: &BrickStore,
+    labels: &[u32],
+    out_labels: &[u16],
+    roi_bricks: &BTreeSet<[usize; 3]>,
+    cfg: &ClassifyConfig,
+    b: &Brick,
+) -> Result<BrickResult, ClassifyError> {
+    if let Some(r) = empty_brick(store, labels, roi_bricks, cfg, b) {
+        return Ok(r);
+    }
+    let t = Instant::now();
+    let p = pred.predict(b)?;
+    let n = b.voxels();
+    if p.probs.len() != n * labels.len() || p.classes.len() != n {
+        return Err(ClassifyError::Input(format!(
+            "the accelerator gave {} probabilities and {} labels for a brick of {n} voxels and {} \
+             classes",
+            p.probs.len(),
+            p.classes.len(),
+            labels.len()
+        )));
+    }
+    let lab = p
+        .classes
+        .iter()
+        .map(|&k| match k {
+            BELOW_TAU => 0,
+            k => out_labels.get(k as usize).copied().unwrap_or(0),
+        })
+        .collect();
+    Ok(BrickResult {
+        proba: p.probs.iter().map(|&q| q as f32 / 255.0).collect(),
+        labels: lab,
+        skipped: false,
+        feature_seconds: 0.0,
+        predict_seconds: t.elapsed().as_secs_f64(),
+    })
+}
