@@ -5,7 +5,7 @@
 #
 #   deploy/flake_hunt.sh [-n RUNS] [-l LOAD_PER_CORE] [SUITE...]
 #
-# SUITEs are integration test targets of the workspace (default: serve api history access
+# FLAKE_HUNT_HOG_GIB=N adds a process holding N GiB. SUITEs are integration test targets of the workspace (default: serve api history access
 # crash cli; the timing-sensitive ones). Built once with the CI feature set (`cargo test
 # --workspace --release --features neuvolex-tests/gpu,neuvolex/gpu --no-run`), then each
 # suite's binary runs RUNS times (default 5) from its package folder, as cargo runs it. The load
@@ -26,7 +26,7 @@ done
 shift $((OPTIND - 1))
 suites=("$@")
 [ ${#suites[@]} -gt 0 ] || suites=(serve api history access crash cli)
-out=target/flake-hunt
+out=$(pwd)/target/flake-hunt
 rm -rf "$out"
 mkdir -p "$out"
 
@@ -44,7 +44,7 @@ limit=7200
 pids=()
 stop_load() {
   for p in "${pids[@]}"; do kill "$p" 2>/dev/null || true; done
-  rm -f "$out/load.bin"
+  rm -f "$out"/load*.bin
 }
 trap stop_load EXIT
 cores=$(nproc)
@@ -52,10 +52,27 @@ for _ in $(seq 1 $((cores * per_core))); do
   timeout "$limit" sh -c 'while :; do :; done' &
   pids+=($!)
 done
-# A writer that syncs 32 MiB at a time, as builds and other jobs on a CI machine do.
-timeout "$limit" sh -c "while :; do dd if=/dev/zero of=$out/load.bin bs=1M count=32 conv=fsync 2>/dev/null; done" &
-pids+=($!)
-echo "load: $((cores * per_core)) busy loops on $cores cores and a syncing writer"
+# Writers that sync 64 MiB at a time, as the linker and other jobs on a CI machine do: one per
+# busy loop, so a test's own fsync waits behind theirs.
+for w in $(seq 1 $((cores * per_core))); do
+  timeout "$limit" sh -c "while :; do dd if=/dev/zero of=$out/load$w.bin bs=1M count=64 conv=fsync 2>/dev/null; done" &
+  pids+=($!)
+done
+# Memory pressure, as a CI machine's link steps make it: a process that holds and touches
+# FLAKE_HUNT_HOG_GIB GiB (default: none), so the page cache the tests read through is evicted.
+hog=${FLAKE_HUNT_HOG_GIB:-0}
+if [ "$hog" -gt 0 ]; then
+  timeout "$limit" python3 -c "
+import time
+b = bytearray($hog << 30)
+while True:
+    for i in range(0, len(b), 4096):
+        b[i] = (b[i] + 1) & 255
+    time.sleep(0.5)
+" &
+  pids+=($!)
+fi
+echo "load: $((cores * per_core)) busy loops on $cores cores, as many syncing writers, ${hog} GiB held"
 
 failed=0
 : >"$out/report.txt"
@@ -75,7 +92,7 @@ for s in "${suites[@]}"; do
       rm -f "$log"
     else
       failed=1
-      names=$(grep -E '^test .* FAILED$' "$log" | sed 's/^test //; s/ \.\.\. FAILED$//' | tr '\n' ' ')
+      names=$(grep -E '^test .* FAILED$' "$log" | sed 's/^test //; s/ \.\.\. FAILED$//' | tr '\n' ' ' || true)
       echo "$s run $r: FAILED ${names:-(no test named; see $log)}" | tee -a "$out/report.txt"
       grep -m3 -A2 "panicked at" "$log" | sed 's/^/    /' | tee -a "$out/report.txt" || true
     fi
