@@ -21,7 +21,9 @@
 //!   per-iteration ratio too.
 //! - **Algorithms**, two pairs: plain Lloyd (neuvolex `bounds_mib: 0`: every distance every
 //!   pass) against scikit-learn `algorithm="lloyd"`, and bounded: neuvolex Hamerly (a bounds
-//!   budget that holds every row's 10 bytes) against scikit-learn `algorithm="elkan"`.
+//!   budget that holds every row's 10 bytes, `bounds: Always`) against scikit-learn
+//!   `algorithm="elkan"`. (neuvolex's default, `bounds: Auto`, measures both on the first
+//!   passes and keeps the faster.)
 //! - **Threads**: `--threads` (2 by default) on both sides: neuvolex's rayon global pool (its
 //!   only parallelism; the matrix product is single-threaded), scikit-learn's OpenMP and BLAS
 //!   pools limited by threadpoolctl (`threadpool_limits`) and `OMP_NUM_THREADS`. Both counts
@@ -43,6 +45,11 @@
 //!   its own `inertia_`, a float32 sum, is printed below the table). A ratio off 1 by more than
 //!   1e-3 is flagged.
 //!
+//! - **Best against best**: per volume, each side's fastest algorithm (the lower median time of
+//!   its two) against the other's, as one more row and `summary:` line (the per-round ratio of
+//!   those two fits); and neuvolex's default configuration (`bounds: Auto`, run once a round
+//!   after the pairs) against scikit-learn's fastest.
+//!
 //! Also: mini-batch k-means (3 epochs, from the same start) and the time to aggregate cluster
 //! normals over every occupied brick, score 1800 views and select, from the Hamerly fit.
 //! Without Python or scikit-learn a SKIP line says so and neuvolex's side still runs.
@@ -55,7 +62,7 @@ use neuvolex_classify::features::BrickFeatures;
 use neuvolex_features::extract::extract_brick;
 use neuvolex_features::FeatureKind;
 use neuvolex_ingest::{ingest, IngestOptions};
-use neuvolex_viewpoints::kmeans::Algorithm;
+use neuvolex_viewpoints::kmeans::{Algorithm, BoundsUse};
 use neuvolex_viewpoints::scores::{score_views, select, Aggregator, SelectConfig};
 use neuvolex_viewpoints::{fibonacci_sphere, ClusterPartial, KMeans, KMeansConfig};
 use std::io::{BufWriter, Write};
@@ -221,6 +228,7 @@ fn main() {
         // Hamerly's budget holds every row's bounds (10 bytes a row).
         let hamerly = KMeansConfig {
             bounds_mib: (rows * 10).div_ceil(1 << 20).max(base.bounds_mib),
+            bounds: BoundsUse::Always,
             ..base
         };
         let plain = KMeansConfig {
@@ -251,6 +259,8 @@ fn main() {
         ];
         // runs[pair][side]: side 0 neuvolex, 1 scikit-learn.
         let mut runs: [[Runs; 2]; 2] = Default::default();
+        // neuvolex's default (`bounds: Auto`), once a round after the pairs.
+        let mut auto = Runs::default();
         let mut sk_own_inertia: [Vec<f64>; 2] = Default::default();
         let mut fitted = None;
         for round in 0..rounds {
@@ -299,6 +309,17 @@ fn main() {
                     }
                 }
             }
+            let t = Instant::now();
+            let km = KMeans::fit_from(chunks.len(), dim, load, &base, &init).expect("kmeans");
+            let secs = t.elapsed().as_secs_f64();
+            eprintln!(
+                "{name} round {}: neuvolex default (auto): {secs:.2} s, {} iterations",
+                round + 1,
+                km.iterations
+            );
+            auto.secs.push(secs);
+            auto.iters.push(km.iterations);
+            auto.inertia.push(km.inertia);
         }
         for (p, (label, _, algo)) in pairs.iter().enumerate() {
             let [n, o] = &runs[p];
@@ -361,6 +382,69 @@ fn main() {
                     median(&sk_own_inertia[p])
                 ));
             }
+        }
+        // Best against best: each side's fastest algorithm on this volume (lowest median
+        // time), per-round times of those two.
+        let have_sk = runs.iter().all(|r| r[1].secs.iter().any(|s| s.is_finite()));
+        if have_sk {
+            let fastest = |side: usize| -> usize {
+                let m = |p: usize| median(&runs[p][side].secs);
+                if m(1) < m(0) {
+                    1
+                } else {
+                    0
+                }
+            };
+            let (bn, bo) = (fastest(0), fastest(1));
+            let (n, o) = (&runs[bn][0], &runs[bo][1]);
+            let n_name = ["plain Lloyd", "Hamerly"][bn];
+            let o_name = pairs[bo].2;
+            let label = format!("best against best (neuvolex {n_name} vs {o_name})");
+            let ratio = ratio_spread(&o.secs, &n.secs);
+            let in_ratio = median(&ratios(&n.inertia, &o.inertia));
+            table.push(format!(
+                "| {name} | {what} | {rows} x {dim} | {} / {sk_threads} | {label} | {} / {} | {} | {} | {ratio} | {:.6e} / {:.6e} ({in_ratio:.6}) |",
+                rayon::current_num_threads(),
+                iters(&n.iters),
+                iters(&o.iters),
+                spread(&n.secs, 2),
+                spread(&o.secs, 2),
+                median(&n.inertia),
+                median(&o.inertia),
+            ));
+            summaries.push(format!(
+                "| k-means {label}, {name} | k = {k}, {rows} x {dim} float32 rows ({what}), each side's fastest of its two algorithms by median time, the same k-means++ start, tol 0 and {max_iter} iterations on both ({} / {}); timed: fit alone; {} threads each; {rounds} rounds | {} s | {} s (scikit-learn {}) | {ratio} | inertia ratio {in_ratio:.6} |",
+                iters(&n.iters),
+                iters(&o.iters),
+                rayon::current_num_threads(),
+                spread(&n.secs, 2),
+                spread(&o.secs, 2),
+                sk.as_ref().map_or("?", |s| s.0.ready["sklearn"].as_str().unwrap_or("?")),
+            ));
+            // neuvolex's default (bounds: Auto, which measures both ways on its first passes)
+            // against scikit-learn's fastest.
+            let label = format!("default (auto) against scikit-learn's best ({o_name})");
+            let ratio = ratio_spread(&o.secs, &auto.secs);
+            let in_ratio = median(&ratios(&auto.inertia, &o.inertia));
+            table.push(format!(
+                "| {name} | {what} | {rows} x {dim} | {} / {sk_threads} | {label} | {} / {} | {} | {} | {ratio} | {:.6e} / {:.6e} ({in_ratio:.6}) |",
+                rayon::current_num_threads(),
+                iters(&auto.iters),
+                iters(&o.iters),
+                spread(&auto.secs, 2),
+                spread(&o.secs, 2),
+                median(&auto.inertia),
+                median(&o.inertia),
+            ));
+            summaries.push(format!(
+                "| k-means {label}, {name} | k = {k}, {rows} x {dim} float32 rows ({what}), neuvolex's default configuration (bounds: Auto) against scikit-learn's fastest of its two algorithms by median time, the same k-means++ start, tol 0 and {max_iter} iterations on both ({} / {}); timed: fit alone; {} threads each; {rounds} rounds | {} s | {} s (scikit-learn {}) | {ratio} | inertia ratio {in_ratio:.6} |",
+                iters(&auto.iters),
+                iters(&o.iters),
+                rayon::current_num_threads(),
+                spread(&auto.secs, 2),
+                spread(&o.secs, 2),
+                sk.as_ref().map_or("?", |s| s.0.ready["sklearn"].as_str().unwrap_or("?")),
+            ));
         }
         let km = fitted.expect("a fit");
         // Mini-batch from the same start, one run.

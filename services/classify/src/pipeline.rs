@@ -825,6 +825,13 @@ pub fn classify_scribbles_on<E: Executor + ?Sized>(
         };
         if let Some(h) = &req.hold {
             voxels_held = hold_to(&store_arc, &stage, &scr, h, &v, &mut labels)?;
+            if let (Some(held), Some(pc)) = (voxels_held.as_mut(), &req.prior) {
+                let dims = store_arc.info().dims;
+                // Each voxel growth now gives its verdict was one the rule had held.
+                *held -= h
+                    .config
+                    .follow(&mut labels, (&v.forest, &v.verdict), dims, pc.grow);
+            }
         }
         verdicts = Some(v);
         counts = label_counts(&labels);

@@ -86,6 +86,10 @@ pub struct EvalArgs {
     /// row (the previous round's forest already gave the new label).
     #[arg(long, default_value_t = neuvolex_classify::stable::DEFAULT_CONFIRM, action = clap::ArgAction::Set)]
     pub stable_confirm: bool,
+    /// Robot rounds: whether growth follows the labels the rule shows (a doubtful voxel that
+    /// growth gave a class takes it when it touches a shown voxel of that class).
+    #[arg(long, default_value_t = neuvolex_classify::stable::DEFAULT_FOLLOW, action = clap::ArgAction::Set)]
+    pub stable_follow: bool,
     /// The prior keeps an unscribbled component whose probability mass is at least this
     /// fraction of its class's largest scribbled component.
     #[arg(long, default_value_t = neuvolex_classify::PriorConfig::default().relative_mass)]
@@ -336,6 +340,7 @@ pub fn run_eval(a: &EvalArgs, quiet: bool) -> Result<()> {
             stable_ramp: a.stable_ramp,
             stable_prior: a.stable_prior,
             stable_confirm: a.stable_confirm,
+            stable_follow: a.stable_follow,
         };
         let rows = neuvolex_eval::robot::run(&cfg, &rc, &events)?;
         println!("\n{}", robot_table(&rows, &rc.targets));

@@ -105,6 +105,14 @@ pub struct RobotConfig {
     /// ([`neuvolex_classify::StableConfig::confirm`]).
     #[serde(default = "default_confirm")]
     pub stable_confirm: bool,
+    /// Whether growth follows the labels the rule shows
+    /// ([`neuvolex_classify::StableConfig::follow`]).
+    #[serde(default = "default_follow")]
+    pub stable_follow: bool,
+}
+
+fn default_follow() -> bool {
+    neuvolex_classify::stable::DEFAULT_FOLLOW
 }
 
 fn default_confirm() -> bool {
@@ -136,6 +144,7 @@ impl Default for RobotConfig {
             stable_ramp: default_ramp(),
             stable_prior: true,
             stable_confirm: default_confirm(),
+            stable_follow: default_follow(),
         }
     }
 }
@@ -747,6 +756,7 @@ pub fn run(cfg: &EvalConfig, rc: &RobotConfig, events: Events) -> Result<Vec<Rou
                                         ramp: rc.stable_ramp,
                                         prior: rc.stable_prior,
                                         confirm: rc.stable_confirm,
+                                        follow: rc.stable_follow,
                                     };
                                     let ev = Evidence {
                                         probs: &p.probs,
@@ -759,6 +769,12 @@ pub fn run(cfg: &EvalConfig, rc: &RobotConfig, events: Events) -> Result<Vec<Rou
                                         verdict_before: &ps.grown,
                                     };
                                     rule.hold(&mut labels, pl, &ev, &rule.levels(a), Some(&v));
+                                    rule.follow(
+                                        &mut labels,
+                                        (&st.raw, &st.grown),
+                                        dims,
+                                        cfg.prior.grow,
+                                    );
                                 }
                                 let seconds = t0.elapsed().as_secs_f64();
                                 let visited: Vec<usize> = strokes

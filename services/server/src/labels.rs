@@ -690,7 +690,7 @@ pub fn settle_labels(
     if cfg.grow > 0 {
         grow_bricks(store, probs, &mut filtered, cfg.grow)?;
     }
-    let (voxels_held, restored) = settle(store, probs, history, &mut filtered)?;
+    let (voxels_held, restored) = settle(store, probs, history, &mut filtered, cfg.grow)?;
     let mut changed = HashMap::new();
     let mut voxels_grown = 0;
     for (b, (raw, l)) in filtered {
@@ -736,8 +736,9 @@ fn settle(
     probs: &Probs,
     history: &Mutex<LabelHistory>,
     filtered: &mut HashMap<[usize; 3], (Vec<u16>, Vec<u16>)>,
+    grow: u32,
 ) -> ApiResult<(u64, bool)> {
-    use neuvolex_classify::stable::{Evidence, StableConfig, Verdicts};
+    use neuvolex_classify::stable::{follow_in, follow_todo, Evidence, StableConfig, Verdicts};
     let (strokes, features) = (&probs.strokes, probs.features.as_str());
     // The history is held only to look up and to record, not while labels are computed.
     let (exact, base) = {
@@ -801,6 +802,12 @@ fn settle(
             .par_iter()
             .map(|(k, v)| Ok((*k, (v.forest.unpack()?, v.verdict.unpack()?))))
             .collect::<ApiResult<_>>()?;
+        // The verdicts before the rule, for growth to follow what the rule shows.
+        let verdict: HashMap<[usize; 3], Vec<u16>> = if cfg.follow && grow > 0 {
+            filtered.iter().map(|(k, (_, l))| (*k, l.clone())).collect()
+        } else {
+            HashMap::new()
+        };
         for (idx, (raw, l)) in filtered.iter_mut() {
             let (Some(before), Some(px)) = (before.get(idx), probs.bricks.get(idx)) else {
                 continue;
@@ -830,6 +837,30 @@ fn settle(
                 );
             }
         }
+        if !verdict.is_empty() {
+            let mut todo = Vec::new();
+            for (idx, (raw, l)) in filtered.iter() {
+                let b = store.brick(*idx)?;
+                let w = b.size[0];
+                for (k, row) in b.rows(d).enumerate() {
+                    let r = k * w..(k + 1) * w;
+                    todo.extend(follow_todo(
+                        row,
+                        &raw[r.clone()],
+                        &verdict[idx][r.clone()],
+                        &l[r],
+                    ));
+                }
+            }
+            let bs = store.info().brick;
+            let mut grid = BrickLabels {
+                dims: d,
+                brick: bs,
+                bricks: filtered,
+            };
+            // Each voxel growth now gives its verdict was one the rule had held.
+            held -= follow_in(&mut grid, d, todo, grow);
+        }
     }
     // Recorded, each brick shared with the base where it did not change.
     let packed: Vec<([usize; 3], Arc<LabelBrick>)> = filtered
@@ -849,6 +880,40 @@ fn settle(
             verdicts: decisions,
         });
     Ok((held, false))
+}
+
+/// The shown labels of the bricks (`bricks[index].1`) as one volume, for
+/// [`neuvolex_classify::stable::follow_in`]; 0 in bricks not held.
+struct BrickLabels<'a> {
+    dims: [usize; 3],
+    brick: usize,
+    bricks: &'a mut HashMap<[usize; 3], (Vec<u16>, Vec<u16>)>,
+}
+
+impl BrickLabels<'_> {
+    /// The brick of voxel `i` and the voxel's index inside it.
+    fn locate(&self, i: usize) -> ([usize; 3], usize) {
+        let d = self.dims;
+        let p = [i % d[0], (i / d[0]) % d[1], i / (d[0] * d[1])];
+        let k = p.map(|v| v / self.brick);
+        let o = k.map(|v| v * self.brick);
+        let size = [0, 1, 2].map(|a| self.brick.min(d[a] - o[a]));
+        let local = ((p[2] - o[2]) * size[1] + p[1] - o[1]) * size[0] + p[0] - o[0];
+        (k, local)
+    }
+}
+
+impl neuvolex_classify::stable::LabelGrid for BrickLabels<'_> {
+    fn get(&self, i: usize) -> u16 {
+        let (k, j) = self.locate(i);
+        self.bricks.get(&k).map_or(0, |(_, l)| l[j])
+    }
+    fn set(&mut self, i: usize, l: u16) {
+        let (k, j) = self.locate(i);
+        if let Some((_, b)) = self.bricks.get_mut(&k) {
+            b[j] = l;
+        }
+    }
 }
 
 /// Grows the filtered labels (`filtered[brick].1`) `steps` voxels into doubtful voxels (raw
@@ -908,6 +973,56 @@ fn grow_bricks(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn growth_follows_the_shown_labels_across_brick_faces_as_on_one_volume() {
+        use neuvolex_classify::stable::{follow, follow_in, follow_todo};
+        let (dims, bs) = ([7usize, 6, 5], 4usize);
+        let n = 7 * 6 * 5;
+        // Random forest labels (1 or doubtful), growth verdicts (1 or 2 where doubtful) and
+        // labels shown (0, 1 or 2).
+        let mut rng = neuvolex_bricks::rng::Rng::new(11);
+        let (mut forest, mut verdict, mut shown) = (vec![0u16; n], vec![0u16; n], vec![0u16; n]);
+        for i in 0..n {
+            forest[i] = u16::from(rng.f32() < 0.3);
+            verdict[i] = forest[i].max(1 + u16::from(rng.f32() < 0.5) * (1 - forest[i]));
+            shown[i] = (rng.f32() * 3.0) as u16;
+        }
+        let mut want = shown.clone();
+        let grown = follow(&mut want, &forest, &verdict, dims, 2);
+        assert!(grown > 0);
+        // The same volume cut into bricks of 4 (smaller at the far faces), x fastest in each.
+        let cut = |v: &[u16], k: [usize; 3]| -> Vec<u16> {
+            let o = k.map(|c| c * bs);
+            let size = [0, 1, 2].map(|a| bs.min(dims[a] - o[a]));
+            let mut b = Vec::new();
+            for z in 0..size[2] {
+                for y in 0..size[1] {
+                    for x in 0..size[0] {
+                        b.push(v[((o[2] + z) * dims[1] + o[1] + y) * dims[0] + o[0] + x]);
+                    }
+                }
+            }
+            b
+        };
+        let keys: Vec<[usize; 3]> = (0..2)
+            .flat_map(|z| (0..2).flat_map(move |y| (0..2).map(move |x| [x, y, z])))
+            .collect();
+        let mut bricks: HashMap<[usize; 3], (Vec<u16>, Vec<u16>)> = keys
+            .iter()
+            .map(|&k| (k, (cut(&forest, k), cut(&shown, k))))
+            .collect();
+        let todo = follow_todo(0, &forest, &verdict, &shown).collect();
+        let mut grid = BrickLabels {
+            dims,
+            brick: bs,
+            bricks: &mut bricks,
+        };
+        assert_eq!(follow_in(&mut grid, dims, todo, 2), grown);
+        for k in keys {
+            assert_eq!(bricks[&k].1, cut(&want, k), "brick {k:?}");
+        }
+    }
 
     #[test]
     fn one_hot_labels_follow_the_half_rule_and_the_prior() {

@@ -10,19 +10,23 @@
 //! distance product, so a row is only skipped when the product would assign it to the same
 //! cluster: every pass's statistics equal the sum of [`KMeans::partial`] over the bricks (the
 //! step a distributed run merges) bit for bit. `bounds_mib: 0` turns the bounds off: plain
-//! Lloyd, every distance every pass, the same result.
+//! Lloyd, every distance every pass, the same result. [`KMeansConfig::bounds`] says whether
+//! passes use them always or only where they measure faster ([`BoundsUse::Auto`], the default:
+//! with the fused assignment kernel of `crate::nearest`, plain passes are usually faster at
+//! k = 50).
 //!
 //! [`KMeans::fit_from`] starts from given centroids instead of k-means++ (for comparisons
 //! against another implementation from the same start); [`KMeans::init_centroids`] gives the
 //! centroids [`KMeans::fit`] would start from.
 
+use crate::nearest::{Packed, Path};
 use crate::{Result, ViewpointError};
 use neuvolex_bricks::rng::Rng;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 
-/// Rows per matrix-product block.
+/// Rows per parallel task of [`KMeans::assign`].
 const BLOCK: usize = 2048;
 
 /// Bytes of bounds per row: the cluster (u16) and two f32 bounds.
@@ -62,6 +66,24 @@ pub struct KMeansConfig {
     /// the bounds off (plain Lloyd).
     #[serde(default = "default_bounds_mib")]
     pub bounds_mib: usize,
+    /// Whether Lloyd passes use the bounds (within `bounds_mib`): always, or where they
+    /// measure faster. The result is the same either way, bit for bit.
+    #[serde(default)]
+    pub bounds: BoundsUse,
+}
+
+/// When Lloyd keeps Hamerly's bounds (which never change the result, only the time).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+pub enum BoundsUse {
+    /// Measured: the first pass runs without bounds, the next two with them (the first of
+    /// those makes them), and the rest run the faster way. With the fused assignment kernel a
+    /// pass without bounds is usually the faster on low-k features (k = 50 on 11-D or 64-D
+    /// features: about 2x in `benches/kmeans.rs`); the bounds can pay off where the distance
+    /// product is large (`k x dim`) and most rows settle.
+    #[default]
+    Auto,
+    /// Every pass with bounds (Hamerly's algorithm).
+    Always,
 }
 
 fn default_bounds_mib() -> usize {
@@ -78,6 +100,7 @@ impl Default for KMeansConfig {
             init_sample: 20_000,
             algorithm: Algorithm::Lloyd,
             bounds_mib: default_bounds_mib(),
+            bounds: BoundsUse::Auto,
         }
     }
 }
@@ -135,7 +158,7 @@ impl Partial {
 /// lanes; one running sum is a chain of dependent additions, and LLVM may not reorder it).
 /// Every path (bounds, plain passes, assignment) uses this one function, so they agree bit for
 /// bit; the bounds' error margin holds for any order of summation.
-#[inline]
+#[inline(always)]
 fn sq_dist(a: &[f32], b: &[f32]) -> f32 {
     let mut acc = [0.0f32; 8];
     let (ca, cb) = (a.chunks_exact(8), b.chunks_exact(8));
@@ -152,24 +175,6 @@ fn sq_dist(a: &[f32], b: &[f32]) -> f32 {
     ((acc[0] + acc[4]) + (acc[1] + acc[5])) + ((acc[2] + acc[6]) + (acc[3] + acc[7])) + tail
 }
 
-/// The smallest entry of `n2[j] - 2 dots[j]` (first index on ties), and the smallest over the
-/// other entries (infinite for one centroid).
-#[inline]
-fn nearest_two(dots: &[f32], n2: &[f32]) -> (usize, f32) {
-    let mut best = (0, f32::INFINITY);
-    let mut second = f32::INFINITY;
-    for (c, (&dot, &n)) in dots.iter().zip(n2).enumerate() {
-        let v = n - 2.0 * dot;
-        if v < best.1 {
-            second = best.1;
-            best = (c, v);
-        } else if v < second {
-            second = v;
-        }
-    }
-    (best.0, second)
-}
-
 /// Hamerly's bounds of one chunk's rows: the assigned cluster, an upper bound on the distance to
 /// its centroid and a lower bound on the distance to every other centroid.
 #[derive(Debug, Clone, Default)]
@@ -184,6 +189,8 @@ struct Bounds {
 enum ChunkState {
     /// Not seen yet.
     Fresh,
+    /// Checked by a pass without bounds; no bounds yet.
+    Seen,
     /// Past the bounds budget: every distance, every pass.
     Plain,
     /// With bounds.
@@ -194,8 +201,8 @@ enum ChunkState {
 /// the safe way (upper bounds up, lower bounds down) by a relative margin above the rounding
 /// error of `d`-term sums, so a skipped row is one the distance product would not move.
 struct Geometry {
-    /// Squared centroid norms, exactly as the distance product uses them.
-    n2: Vec<f32>,
+    /// The centroids as the assignment kernel reads them.
+    packed: Packed,
     /// Upper bounds of the centroid norms.
     norm: Vec<f32>,
     /// Largest centroid norm (upper bound).
@@ -246,7 +253,7 @@ impl Geometry {
         }
         let moved_other = (0..k).map(|j| if j == at { m2 } else { m1 }).collect();
         Geometry {
-            n2,
+            packed: Packed::new(&km.centroids, d, &n2),
             norm,
             norm_max,
             half_gap,
@@ -338,62 +345,36 @@ impl KMeans {
             .collect()
     }
 
-    /// `out[r * k + j] = x_r . c_j` for the `n` rows of `blk`.
-    fn dots(&self, blk: &[f32], out: &mut [f32]) {
-        let (k, d) = (self.k(), self.dim);
-        let n = blk.len() / d;
-        assert!(out.len() >= n * k && self.centroids.len() == k * d);
-        // SAFETY: `blk` holds n x d values, the centroids k x d, `out` at least n x k (checked).
-        unsafe {
-            matrixmultiply::sgemm(
-                n,
-                d,
-                k,
-                1.0,
-                blk.as_ptr(),
-                d as isize,
-                1,
-                self.centroids.as_ptr(),
-                1,
-                d as isize,
-                0.0,
-                out.as_mut_ptr(),
-                k as isize,
-                1,
-            );
-        }
+    /// The centroids as the assignment kernel reads them.
+    fn packed(&self) -> Packed {
+        Packed::new(&self.centroids, self.dim, &self.norms2())
     }
 
-    /// Nearest centroid of every row, through one matrix product per block (`|c|^2 - 2 x.c`
-    /// is `|x - c|^2` less the row's own `|x|^2`, as scikit-learn computes it). Ties go to the
-    /// lower index.
-    fn nearest_rows(&self, rows: &[f32], n2: &[f32]) -> Vec<u16> {
-        let k = self.k();
-        let mut out = Vec::with_capacity(rows.len() / self.dim);
-        let mut dots = vec![0.0f32; BLOCK * k];
-        for blk in rows.chunks(BLOCK * self.dim) {
-            self.dots(blk, &mut dots);
-            let n = blk.len() / self.dim;
-            out.extend(
-                dots[..n * k]
-                    .chunks_exact(k)
-                    .map(|row| nearest_two(row, n2).0 as u16),
-            );
-        }
+    /// Nearest centroid of every row by the smallest `|c|^2 - 2 x.c` (`|x - c|^2` less the
+    /// row's own `|x|^2`, as scikit-learn computes it; the fused kernel of [`crate::nearest`]).
+    /// Ties go to the lower index.
+    fn nearest_rows(&self, rows: &[f32], packed: &Packed) -> Vec<u16> {
+        let mut out = vec![0u16; rows.len() / self.dim];
+        packed.nearest(rows, &mut out, None);
         out
     }
 
     /// The nearest cluster of every row.
     pub fn assign(&self, rows: &[f32]) -> Vec<u16> {
-        let n2 = self.norms2();
+        let packed = self.packed();
         rows.par_chunks(self.dim * BLOCK)
-            .flat_map_iter(|ch| self.nearest_rows(ch, &n2))
+            .flat_map_iter(|ch| self.nearest_rows(ch, &packed))
             .collect()
     }
 
     /// The assignment statistics of one brick's rows (the pure per-brick step).
     pub fn partial(&self, rows: &[f32]) -> Partial {
-        let assign = self.nearest_rows(rows, &self.norms2());
+        self.partial_packed(rows, &self.packed())
+    }
+
+    /// [`Self::partial`] with the centroids already packed.
+    fn partial_packed(&self, rows: &[f32], packed: &Packed) -> Partial {
+        let assign = self.nearest_rows(rows, packed);
         self.tally(rows, &assign)
     }
 
@@ -406,6 +387,42 @@ impl KMeans {
     /// [`Self::tally`] where `known[i]`, when `i` is inside it and it is not NaN, is already
     /// `sq_dist` of row `i` to its centroid (the same value, so the same bits).
     fn tally_known(&self, rows: &[f32], assign: &[u16], known: &[f32]) -> Partial {
+        self.tally_on(Path::detect(), rows, assign, known)
+    }
+
+    /// [`Self::tally_known`] compiled for the given path (which must be
+    /// [`Path::available`]): the same operations in the same order, so the same bits.
+    fn tally_on(&self, path: Path, rows: &[f32], assign: &[u16], known: &[f32]) -> Partial {
+        assert!(path.available());
+        #[cfg(target_arch = "x86_64")]
+        match path {
+            Path::Avx512 => {
+                /// The body compiled for AVX-512 (wider f64 sums).
+                #[target_feature(enable = "avx512f")]
+                fn wide(km: &KMeans, rows: &[f32], assign: &[u16], known: &[f32]) -> Partial {
+                    km.tally_body(rows, assign, known)
+                }
+                // SAFETY: AVX-512F is available (asserted above).
+                return unsafe { wide(self, rows, assign, known) };
+            }
+            Path::Avx2Fma => {
+                /// The body compiled for AVX2 (Rust never contracts `a * b + c` into an FMA,
+                /// so enabling it changes no rounding).
+                #[target_feature(enable = "avx2,fma")]
+                fn wide(km: &KMeans, rows: &[f32], assign: &[u16], known: &[f32]) -> Partial {
+                    km.tally_body(rows, assign, known)
+                }
+                // SAFETY: AVX2 and FMA are available (asserted above).
+                return unsafe { wide(self, rows, assign, known) };
+            }
+            Path::Scalar => {}
+        }
+        self.tally_body(rows, assign, known)
+    }
+
+    /// The body of [`Self::tally_known`].
+    #[inline(always)]
+    fn tally_body(&self, rows: &[f32], assign: &[u16], known: &[f32]) -> Partial {
         let (k, d) = (self.k(), self.dim);
         let mut p = Partial::new(k, d);
         for (i, (x, &c)) in rows.chunks_exact(d).zip(assign).enumerate() {
@@ -428,7 +445,65 @@ impl KMeans {
     /// change of cluster. `state` is the chunk's bounds (made on the first pass). Also returns
     /// how many rows needed every distance.
     fn bounded_partial(&self, rows: &[f32], state: &mut Bounds, g: &Geometry) -> (Partial, usize) {
-        let (k, d) = (self.k(), self.dim);
+        self.bounded_on(Path::detect(), rows, state, g)
+    }
+
+    /// [`Self::bounded_partial`] compiled for (and running the kernels of) the given path,
+    /// which must be [`Path::available`]: the same operations in the same order, so the same
+    /// bits.
+    fn bounded_on(
+        &self,
+        path: Path,
+        rows: &[f32],
+        state: &mut Bounds,
+        g: &Geometry,
+    ) -> (Partial, usize) {
+        assert!(path.available());
+        #[cfg(target_arch = "x86_64")]
+        match path {
+            Path::Avx512 => {
+                /// The body compiled for AVX-512.
+                #[target_feature(enable = "avx512f")]
+                fn wide(
+                    km: &KMeans,
+                    rows: &[f32],
+                    state: &mut Bounds,
+                    g: &Geometry,
+                ) -> (Partial, usize) {
+                    km.bounded_body(Path::Avx512, rows, state, g)
+                }
+                // SAFETY: AVX-512F is available (asserted above).
+                return unsafe { wide(self, rows, state, g) };
+            }
+            Path::Avx2Fma => {
+                /// The body compiled for AVX2 and FMA (never contracted into).
+                #[target_feature(enable = "avx2,fma")]
+                fn wide(
+                    km: &KMeans,
+                    rows: &[f32],
+                    state: &mut Bounds,
+                    g: &Geometry,
+                ) -> (Partial, usize) {
+                    km.bounded_body(Path::Avx2Fma, rows, state, g)
+                }
+                // SAFETY: AVX2 and FMA are available (asserted above).
+                return unsafe { wide(self, rows, state, g) };
+            }
+            Path::Scalar => {}
+        }
+        self.bounded_body(path, rows, state, g)
+    }
+
+    /// The body of [`Self::bounded_partial`].
+    #[inline(always)]
+    fn bounded_body(
+        &self,
+        path: Path,
+        rows: &[f32],
+        state: &mut Bounds,
+        g: &Geometry,
+    ) -> (Partial, usize) {
+        let d = self.dim;
         let n = rows.len() / d;
         let mut pending: Vec<u32> = Vec::new();
         // Squared distances to the final centroid where computed (NaN: not computed).
@@ -457,23 +532,25 @@ impl KMeans {
                 state.upper[i] = u;
             }
         }
-        // Rows the bounds cannot settle: the full distance product, as `partial` computes it.
+        // Rows the bounds cannot settle: the full assignment kernel, as `partial` runs it.
         const GATHER: usize = 256;
         let zero = vec![0.0f32; d];
-        let mut blk = vec![0.0f32; GATHER.min(pending.len()) * d];
-        let mut dots = vec![0.0f32; GATHER.min(pending.len()) * k];
+        let m = GATHER.min(pending.len());
+        let mut blk = vec![0.0f32; m * d];
+        let (mut labels, mut seconds) = (vec![0u16; m], vec![0.0f32; m]);
         for ids in pending.chunks(GATHER) {
             for (j, &i) in ids.iter().enumerate() {
                 let i = i as usize;
                 blk[j * d..(j + 1) * d].copy_from_slice(&rows[i * d..(i + 1) * d]);
             }
             let b = &blk[..ids.len() * d];
-            self.dots(b, &mut dots);
+            g.packed
+                .nearest_on(path, b, &mut labels, None, Some(&mut seconds));
             for (j, &i) in ids.iter().enumerate() {
                 let (x, i) = (&b[j * d..(j + 1) * d], i as usize);
-                let (a, second) = nearest_two(&dots[j * k..(j + 1) * k], &g.n2);
+                let (a, second) = (labels[j] as usize, seconds[j]);
                 let xn = sq_dist(x, &zero);
-                // |x|^2 + (|c|^2 - 2 x.c) is the squared distance within the product's error.
+                // |x|^2 + (|c|^2 - 2 x.c) is the squared distance within the kernel's error.
                 let e = g.error(g.up(xn.sqrt()));
                 state.assign[i] = a as u16;
                 let dist = sq_dist(x, &self.centroids[a * d..(a + 1) * d]);
@@ -482,7 +559,10 @@ impl KMeans {
                 state.lower[i] = g.down((second + xn - e).max(0.0).sqrt());
             }
         }
-        (self.tally_known(rows, &state.assign, &known), pending.len())
+        (
+            self.tally_on(path, rows, &state.assign, &known),
+            pending.len(),
+        )
     }
 
     /// Fits on `chunks` chunks of rows (`load(i)` gives chunk `i`, `dim` values per row); chunks
@@ -587,8 +667,23 @@ impl KMeans {
                 // the threads; the result does not, bounds or not).
                 let budget = AtomicUsize::new(cfg.bounds_mib.saturating_mul(1 << 20));
                 let mut states = vec![ChunkState::Fresh; chunks];
+                // The centroids of the last pass with bounds (their moves since then widen
+                // the bounds; passes without bounds leave them as they are).
                 let mut previous: Option<Vec<f32>> = None;
+                // Auto: [time without bounds, time of the second pass with bounds].
+                let mut probe = [f64::NAN; 2];
+                let mut pass_no = 0usize;
                 let mut bounded = |km: &KMeans| -> Result<Partial> {
+                    let use_bounds = cfg.bounds_mib > 0
+                        && match cfg.bounds {
+                            BoundsUse::Always => true,
+                            BoundsUse::Auto => match pass_no {
+                                0 => false,
+                                1 | 2 => true,
+                                _ => probe[1] < probe[0],
+                            },
+                        };
+                    let started = std::time::Instant::now();
                     let g = Geometry::new(km, previous.as_deref());
                     let parts: Vec<Result<Partial>> = states
                         .par_iter_mut()
@@ -600,29 +695,57 @@ impl KMeans {
                             // read the same chunk again, so only its shape is checked.
                             if let ChunkState::Fresh = st {
                                 check_rows(rows, dim)?;
-                                let bytes = rows.len() / dim * BOUND_BYTES;
-                                let fits = budget
-                                    .fetch_update(Ordering::Relaxed, Ordering::Relaxed, |b| {
-                                        b.checked_sub(bytes)
-                                    })
-                                    .is_ok();
-                                *st = if fits {
-                                    ChunkState::Bounded(Bounds::default())
-                                } else {
-                                    ChunkState::Plain
-                                };
+                                *st = ChunkState::Seen;
                             } else {
                                 check_shape(rows, dim)?;
                             }
+                            if use_bounds {
+                                if let ChunkState::Seen = st {
+                                    let bytes = rows.len() / dim * BOUND_BYTES;
+                                    let fits = budget
+                                        .fetch_update(Ordering::Relaxed, Ordering::Relaxed, |b| {
+                                            b.checked_sub(bytes)
+                                        })
+                                        .is_ok();
+                                    *st = if fits {
+                                        ChunkState::Bounded(Bounds::default())
+                                    } else {
+                                        ChunkState::Plain
+                                    };
+                                }
+                            }
                             let (p, n) = match st {
-                                ChunkState::Bounded(b) => km.bounded_partial(rows, b, &g),
-                                _ => (km.partial(rows), rows.len() / dim),
+                                ChunkState::Bounded(b) if use_bounds => {
+                                    km.bounded_partial(rows, b, &g)
+                                }
+                                _ => (km.partial_packed(rows, &g.packed), rows.len() / dim),
                             };
                             full.fetch_add(n as u64, Ordering::Relaxed);
                             Ok(p)
                         })
                         .collect();
-                    previous = Some(km.centroids.clone());
+                    let secs = started.elapsed().as_secs_f64();
+                    match pass_no {
+                        0 => probe[0] = secs,
+                        2 => probe[1] = secs,
+                        _ => {}
+                    }
+                    if cfg.bounds == BoundsUse::Auto && pass_no == 2 {
+                        tracing::debug!(
+                            plain_s = probe[0],
+                            bounded_s = probe[1],
+                            "k-means: bounds {}",
+                            if probe[1] < probe[0] {
+                                "kept"
+                            } else {
+                                "dropped"
+                            }
+                        );
+                    }
+                    pass_no += 1;
+                    if use_bounds {
+                        previous = Some(km.centroids.clone());
+                    }
                     let mut total = Partial::new(km.k(), dim);
                     for p in parts {
                         total.merge(&p?);
@@ -1012,7 +1135,11 @@ mod tests {
                         chunks.len(),
                         d,
                         |i| Ok(&chunks[i][..]),
-                        &KMeansConfig { bounds_mib, ..cfg },
+                        &KMeansConfig {
+                            bounds_mib,
+                            bounds: BoundsUse::Always,
+                            ..cfg
+                        },
                         None,
                     )
                     .unwrap()
@@ -1026,6 +1153,18 @@ mod tests {
         assert_eq!(bounded, plain, "bounds change nothing");
         assert!(some < all / 4, "bounds skip most rows: {some} of {all}");
         assert_eq!(run(1024, 1).0, plain);
+        // Auto (bounds where they measure faster, either way) changes nothing either.
+        let auto = KMeans::fit(
+            chunks.len(),
+            d,
+            |i| Ok(&chunks[i][..]),
+            &KMeansConfig {
+                bounds: BoundsUse::Auto,
+                ..cfg
+            },
+        )
+        .unwrap();
+        assert_eq!(auto, plain);
         // Each chunk's final statistics are its plain partial.
         let mut sum = Partial::new(16, d);
         for c in &chunks {
@@ -1033,6 +1172,53 @@ mod tests {
         }
         assert_eq!(sum.counts, plain.counts);
         assert_eq!(sum.inertia, plain.inertia);
+    }
+
+    /// Every path the CPU has gives the bits of the scalar path in Hamerly's passes and the
+    /// tally: labels, bounds, statistics and the rows that needed the kernel.
+    #[test]
+    fn bounded_passes_and_tally_give_the_same_bits_on_every_path() {
+        let (n, d, k) = (1500, 11, 70);
+        let mut r = Rng::new(9);
+        let centres: Vec<f32> = (0..20 * d).map(|_| r.uniform(-1.0, 1.0)).collect();
+        let rows: Vec<f32> = (0..n * d)
+            .map(|i| centres[((i / d) * 7) % 20 * d + i % d] * 3.0 + r.uniform(-2.0, 2.0))
+            .collect();
+        let start = KMeans {
+            dim: d,
+            centroids: rows[..k * d].to_vec(),
+            inertia: 0.0,
+            iterations: 0,
+            counts: vec![0; k],
+        };
+        let run = |path: Path| {
+            let (mut km, mut state, mut prev) = (start.clone(), Bounds::default(), None);
+            let mut out = Vec::new();
+            for _ in 0..5 {
+                let g = Geometry::new(&km, prev.as_deref());
+                let (p, pending) = km.bounded_on(path, &rows, &mut state, &g);
+                let t = km.tally_on(path, &rows, &state.assign, &[]);
+                assert_eq!(t, p, "{path:?}: the bounded pass is the plain tally");
+                let f = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+                out.push((
+                    p,
+                    pending,
+                    state.assign.clone(),
+                    f(&state.upper),
+                    f(&state.lower),
+                ));
+                prev = Some(km.centroids.clone());
+                km.update(&out.last().unwrap().0, &rows);
+            }
+            out
+        };
+        let want = run(Path::Scalar);
+        assert!(want.last().unwrap().1 < n, "the bounds skip rows");
+        for path in [Path::Avx512, Path::Avx2Fma] {
+            if path.available() {
+                assert!(run(path) == want, "{path:?}");
+            }
+        }
     }
 
     #[test]
@@ -1057,7 +1243,11 @@ mod tests {
                     chunks.len(),
                     2,
                     load,
-                    &KMeansConfig { bounds_mib, ..cfg },
+                    &KMeansConfig {
+                        bounds_mib,
+                        bounds: BoundsUse::Always,
+                        ..cfg
+                    },
                     &init,
                 )
                 .unwrap();
@@ -1100,7 +1290,11 @@ mod tests {
         assert!(km.centroids[2] < 20.0, "{km:?}");
         // From k-means++'s own start, `fit_from` is `fit` bit for bit, bounds or not.
         for bounds_mib in [0, 1024] {
-            let c = KMeansConfig { bounds_mib, ..cfg };
+            let c = KMeansConfig {
+                bounds_mib,
+                bounds: BoundsUse::Always,
+                ..cfg
+            };
             let init = KMeans::init_centroids(chunks.len(), 2, load, &c).unwrap();
             assert_eq!(
                 KMeans::fit_from(chunks.len(), 2, load, &c, &init).unwrap(),

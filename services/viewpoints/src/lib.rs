@@ -14,6 +14,7 @@
 
 pub mod distributed;
 pub mod kmeans;
+mod nearest;
 pub mod pick;
 pub mod pipeline;
 pub mod scores;
