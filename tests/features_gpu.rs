@@ -649,3 +649,30 @@ fn gpu_errors_are_clear() {
     // The engine stays usable after refusals.
     ctx.check().unwrap();
 }
+
+#[test]
+fn gpu_engines_share_one_device() {
+    if gpu().is_none() {
+        return;
+    }
+    // Two contexts on one device (as GPU classification opens on the INR's): one card, one
+    // memory account, one error slot.
+    let dev = neuvolex_features_gpu::GpuDevice::new(AdapterKind::Any).unwrap();
+    let a = GpuContext::on(dev.clone()).unwrap();
+    let b = GpuContext::on(a.gpu().clone()).unwrap();
+    assert!(Arc::ptr_eq(a.gpu(), &dev) && Arc::ptr_eq(b.gpu(), &dev));
+    assert_eq!(a.describe(), b.describe());
+    let buf = dev
+        .upload(
+            "shared",
+            &[7u8; 1024],
+            neuvolex_features_gpu::wgpu::BufferUsages::COPY_SRC,
+        )
+        .unwrap();
+    assert_eq!(a.memory().live_bytes, 1024);
+    assert_eq!(b.memory().live_bytes, 1024);
+    drop(buf);
+    assert_eq!((b.memory().live_bytes, b.memory().peak_bytes), (0, 1024));
+    a.check().unwrap();
+    b.check().unwrap();
+}

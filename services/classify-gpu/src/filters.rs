@@ -10,7 +10,7 @@
 //! scaled by the power of two of its largest entry (the CPU's is f64). The features land in one plane per channel
 //! ([`crate::FeatureLayout::planes`]), ready for [`crate::GpuForest::encode`].
 
-use crate::device::{grid, GpuDevice, Tracked};
+use crate::device::{grid, GpuDevice, Tracked, STORAGE_BUFFERS};
 use crate::error::{GpuError, Result};
 use neuvolex_bricks::derived::{HaloBrick, Normaliser};
 use neuvolex_filters::{filter_halo, gaussian_kernel, pos, radius, PER_SIGMA, SIGMAS};
@@ -191,6 +191,7 @@ impl GpuFilterBank {
     /// Compiles the kernels; `xyz` adds the voxel's normalised position as three more
     /// channels after the bank's (the default `filters+xyz` set).
     pub fn new(dev: Arc<GpuDevice>, xyz: bool) -> Result<Self> {
+        dev.require_storage_buffers(STORAGE_BUFFERS)?;
         let scope = dev.device.push_error_scope(wgpu::ErrorFilter::Validation);
         let storage = |binding, read_only| wgpu::BindGroupLayoutEntry {
             binding,

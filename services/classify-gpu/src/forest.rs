@@ -7,7 +7,7 @@
 //! host, as the CPU forest does, so on a device with IEEE f32 addition and multiplication the
 //! probabilities are the CPU's bits and the labels equal [`neuvolex_classify::Forest::predict`].
 
-use crate::device::{grid, GpuDevice, Tracked};
+use crate::device::{bind, grid, pipeline, GpuDevice, Tracked, STORAGE_BUFFERS};
 use crate::error::{GpuError, Result};
 use neuvolex_classify::{Forest, LEAF_FEATURE};
 use std::sync::Arc;
@@ -131,6 +131,7 @@ impl GpuForest {
     /// # Ok::<(), neuvolex_classify_gpu::GpuError>(())
     /// ```
     pub fn new(dev: Arc<GpuDevice>, forest: &Forest) -> Result<Self> {
+        dev.require_storage_buffers(STORAGE_BUFFERS)?;
         let flat = forest.flat()?;
         let c = flat.classes;
         if c > MAX_CLASSES {
@@ -171,7 +172,7 @@ impl GpuForest {
             wgpu::BufferUsages::STORAGE,
         )?;
         let (pipe, layout) =
-            dev.pipeline("forest", FOREST_WGSL, "predict", &[true, true, false])?;
+            pipeline(&dev, "forest", FOREST_WGSL, "predict", &[true, true, false])?;
         Ok(GpuForest {
             dev,
             forest: fbuf,
@@ -285,9 +286,12 @@ impl GpuForest {
             bytemuck::bytes_of(&p),
             wgpu::BufferUsages::UNIFORM,
         )?;
-        let bind = self
-            .dev
-            .bind(&self.layout, &ubuf, &[&self.forest, features, out]);
+        let bind = bind(
+            &self.dev,
+            &self.layout,
+            &ubuf,
+            &[&self.forest, features, out],
+        );
         let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
             label: Some("forest"),
             timestamp_writes: None,

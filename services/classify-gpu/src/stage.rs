@@ -50,9 +50,23 @@ pub struct GpuAccelerator {
 }
 
 impl GpuAccelerator {
-    /// Predicts on `dev`.
+    /// Predicts on `dev`, which may be shared with other engines of the process (the INR's
+    /// `neuvolex_features_gpu::GpuContext::gpu`, say): one card, one memory account.
+    ///
+    /// ```no_run
+    /// use neuvolex_classify_gpu::{AdapterKind, GpuAccelerator, GpuDevice};
+    /// let dev = GpuDevice::new(AdapterKind::Any)?;
+    /// let accel = GpuAccelerator::new(dev.clone());
+    /// assert!(std::sync::Arc::ptr_eq(accel.device(), &dev));
+    /// # Ok::<(), neuvolex_classify_gpu::GpuError>(())
+    /// ```
     pub fn new(dev: Arc<GpuDevice>) -> Self {
         GpuAccelerator { dev }
+    }
+
+    /// The device it predicts on.
+    pub fn device(&self) -> &Arc<GpuDevice> {
+        &self.dev
     }
 }
 

@@ -1,7 +1,12 @@
-//! The device: adapter choice (hardware or any), the compiled kernels, GPU-memory accounting and
-//! error capture. One context serves any number of engines, one after another or side by side.
+//! The INR's kernels on a [`neuvolex_gpu::GpuDevice`] (adapter choice, GPU-memory accounting
+//! and error capture live there). One context serves any number of engines, one after another
+//! or side by side, and its device can serve other GPU crates too ([`GpuContext::on`]).
 
 use crate::error::{GpuError, Result};
+pub use neuvolex_gpu::{
+    adapters, adapters_named, hardware_adapter, is_software, AdapterKind, GpuDevice, MemoryReport,
+    Tracked,
+};
 use std::sync::{Arc, Mutex};
 
 /// The shared WGSL header (bindings and helpers) and the kernel modules.
@@ -16,15 +21,6 @@ pub const FUSED_WGSL: &str = include_str!("../../../shaders/inr_fused.wgsl");
 pub const GRID_WGSL: &str = include_str!("../../../shaders/inr_grid.wgsl");
 /// FiLM, loss, reductions, Adam and the feature gather.
 pub const OPS_WGSL: &str = include_str!("../../../shaders/inr_ops.wgsl");
-
-/// Which adapters qualify.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum AdapterKind {
-    /// Any adapter, software ones (Mesa lavapipe, llvmpipe, SwiftShader) included.
-    Any,
-    /// Hardware GPUs only: an adapter whose type is `Cpu` counts as no GPU.
-    Hardware,
-}
 
 /// A kernel (one compute entry point).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -98,61 +94,15 @@ pub const FUSED_OPS: usize = 64;
 /// [`FUSED_OPS`] records of [`ARGS_BYTES`]), which every other kernel's arguments fit in.
 pub const WINDOW_BYTES: u64 = 16 + FUSED_OPS as u64 * ARGS_BYTES;
 
-#[derive(Debug, Default)]
-struct Memory {
-    live: u64,
-    peak: u64,
-    reserved_peak: u64,
-}
-
-/// GPU memory use: bytes of the engine's buffers (live and peak) and the peak of the
-/// allocator's reserved blocks, where the backend reports it (Vulkan, D3D12).
-#[derive(Debug, Clone, Copy, PartialEq, Default)]
-pub struct MemoryReport {
-    /// Bytes of buffers alive now.
-    pub live_bytes: u64,
-    /// Largest sum of live buffers seen.
-    pub peak_bytes: u64,
-    /// Largest allocator reservation seen (includes staging and allocator slack), if reported.
-    pub reserved_peak_bytes: Option<u64>,
-}
-
-/// A buffer counted in the context's memory accounting.
-#[derive(Debug)]
-pub struct Tracked {
-    /// The buffer.
-    pub buf: wgpu::Buffer,
-    mem: Arc<Mutex<Memory>>,
-}
-
-impl Drop for Tracked {
-    fn drop(&mut self) {
-        let mut m = self.mem.lock().unwrap_or_else(|p| p.into_inner());
-        m.live = m.live.saturating_sub(self.buf.size());
-    }
-}
-
-impl std::ops::Deref for Tracked {
-    type Target = wgpu::Buffer;
-    fn deref(&self) -> &wgpu::Buffer {
-        &self.buf
-    }
-}
-
-/// The device, its queue, the compiled kernels and the memory accounting.
+/// The INR's compiled kernels on a device that other engines of the process may share
+/// ([`GpuContext::gpu`], [`GpuContext::on`]).
 pub struct GpuContext {
-    pub(crate) device: wgpu::Device,
-    pub(crate) queue: wgpu::Queue,
-    info: wgpu::AdapterInfo,
-    pub(crate) limits: wgpu::Limits,
+    pub(crate) gpu: Arc<GpuDevice>,
     pub(crate) layout: wgpu::BindGroupLayout,
     pipelines: Vec<wgpu::ComputePipeline>,
     /// Fused kernels for blocks other than [`DEFAULT_FUSED_BLOCK`], compiled on first use.
     fused_variants: Mutex<Vec<(usize, wgpu::ComputePipeline)>>,
     pipeline_layout: wgpu::PipelineLayout,
-    timestamps: bool,
-    mem: Arc<Mutex<Memory>>,
-    error: Arc<Mutex<Option<String>>>,
 }
 
 impl std::fmt::Debug for GpuContext {
@@ -163,140 +113,39 @@ impl std::fmt::Debug for GpuContext {
     }
 }
 
-fn instance() -> wgpu::Instance {
-    wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle_from_env())
-}
-
-fn rank(t: wgpu::DeviceType) -> u8 {
-    match t {
-        wgpu::DeviceType::DiscreteGpu => 0,
-        wgpu::DeviceType::IntegratedGpu => 1,
-        wgpu::DeviceType::VirtualGpu => 2,
-        wgpu::DeviceType::Other => 3,
-        wgpu::DeviceType::Cpu => 4,
-    }
-}
-
-/// Whether an adapter is a software rasteriser rather than a GPU.
-pub fn is_software(info: &wgpu::AdapterInfo) -> bool {
-    info.device_type == wgpu::DeviceType::Cpu
-}
-
-/// Every adapter wgpu finds that can run compute shaders (Vulkan, Metal, D3D12), best first:
-/// discrete, integrated, virtual, other, software. `NEUVOLEX_GPU_ADAPTER` keeps only adapters
-/// whose name contains it (case-insensitive).
-pub fn adapters() -> Vec<wgpu::Adapter> {
-    adapters_named(std::env::var("NEUVOLEX_GPU_ADAPTER").ok().as_deref())
-}
-
-/// [`adapters`] whose name contains `name` (case-insensitive), all where `None`.
-pub fn adapters_named(name: Option<&str>) -> Vec<wgpu::Adapter> {
-    let inst = instance();
-    let mut all: Vec<wgpu::Adapter> =
-        pollster::block_on(inst.enumerate_adapters(wgpu::Backends::PRIMARY))
-            .into_iter()
-            .filter(|a| {
-                a.get_downlevel_capabilities()
-                    .flags
-                    .contains(wgpu::DownlevelFlags::COMPUTE_SHADERS)
-            })
-            .collect();
-    if let Some(want) = name {
-        let want = want.to_lowercase();
-        all.retain(|a| a.get_info().name.to_lowercase().contains(&want));
-    }
-    all.sort_by_key(|a| rank(a.get_info().device_type));
-    all
-}
-
-/// The name of the best hardware GPU adapter, if there is one (what `--backend auto` uses).
-pub fn hardware_adapter() -> Option<String> {
-    adapters()
-        .into_iter()
-        .map(|a| a.get_info())
-        .find(|i| !is_software(i))
-        .map(|i| i.name)
-}
+/// Storage buffers per shader stage the INR kernels bind.
+const STORAGE_BUFFERS: u32 = 8;
 
 impl GpuContext {
-    /// Opens the best adapter of `kind` and compiles the kernels.
+    /// Opens the best adapter of `kind` (narrowed by `NEUVOLEX_GPU_ADAPTER` where set) and
+    /// compiles the kernels.
     pub fn new(kind: AdapterKind) -> Result<Arc<Self>> {
-        Self::open(kind, std::env::var("NEUVOLEX_GPU_ADAPTER").ok().as_deref())
+        Self::on(GpuDevice::new(kind)?)
     }
 
     /// Opens the best adapter of `kind` whose name contains `name` (any where `None`).
     pub fn open(kind: AdapterKind, name: Option<&str>) -> Result<Arc<Self>> {
-        let found = adapters_named(name);
-        let names: Vec<String> = found
-            .iter()
-            .map(|a| {
-                let i = a.get_info();
-                format!("{} ({:?})", i.name, i.device_type)
-            })
-            .collect();
-        let adapter = found
-            .into_iter()
-            .find(|a| kind == AdapterKind::Any || !is_software(&a.get_info()))
-            .ok_or_else(|| {
-                GpuError::NoAdapter(if names.is_empty() && name.is_some() {
-                    format!("none whose name contains '{}'", name.unwrap_or_default())
-                } else if names.is_empty() {
-                    "wgpu found none; install a Vulkan driver (for example mesa-vulkan-drivers for \
-                     the software lavapipe, or the NVIDIA driver)"
-                        .into()
-                } else {
-                    format!("only software adapters were found ({})", names.join(", "))
-                })
-            })?;
-        Self::with_adapter(adapter)
+        Self::on(GpuDevice::open(kind, name)?)
     }
 
     /// Opens `adapter` and compiles the kernels.
     pub fn with_adapter(adapter: wgpu::Adapter) -> Result<Arc<Self>> {
-        let info = adapter.get_info();
-        let have = adapter.limits();
-        let unsupported = |detail: String| GpuError::Unsupported {
-            adapter: info.name.clone(),
-            detail,
-        };
-        if have.max_storage_buffers_per_shader_stage < 8 {
-            return Err(unsupported(format!(
-                "needs 8 storage buffers per shader stage, has {}",
-                have.max_storage_buffers_per_shader_stage
-            )));
-        }
-        let required = wgpu::Limits {
-            max_storage_buffers_per_shader_stage: 8,
-            max_storage_buffer_binding_size: have.max_storage_buffer_binding_size,
-            max_buffer_size: have.max_buffer_size,
-            max_compute_workgroups_per_dimension: have.max_compute_workgroups_per_dimension,
-            ..wgpu::Limits::downlevel_defaults()
-        };
-        // Timestamp queries where the adapter has them: GpuInr's profile times kernels on the
-        // GPU with them.
-        let features = adapter.features() & wgpu::Features::TIMESTAMP_QUERY;
-        let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
-            label: Some("neuvolex-features-gpu"),
-            required_features: features,
-            required_limits: required.clone(),
-            ..Default::default()
-        }))
-        .map_err(|e| GpuError::Device(format!("{}: {e}", info.name)))?;
-        let error: Arc<Mutex<Option<String>>> = Arc::default();
-        let slot = error.clone();
-        device.on_uncaptured_error(Arc::new(move |e: wgpu::Error| {
-            let mut s = slot.lock().unwrap_or_else(|p| p.into_inner());
-            if s.is_none() {
-                *s = Some(e.to_string());
-            }
-        }));
-        let slot = error.clone();
-        device.set_device_lost_callback(move |reason, msg| {
-            let mut s = slot.lock().unwrap_or_else(|p| p.into_inner());
-            if s.is_none() {
-                *s = Some(format!("device lost ({reason:?}): {msg}"));
-            }
-        });
+        Self::on(GpuDevice::with_adapter(adapter)?)
+    }
+
+    /// Compiles the kernels on an open device, which other engines (GPU classification, say)
+    /// may share: one card, one memory account.
+    ///
+    /// ```no_run
+    /// use neuvolex_features_gpu::{AdapterKind, GpuContext, GpuDevice};
+    /// let dev = GpuDevice::new(AdapterKind::Any)?;
+    /// let ctx = GpuContext::on(dev.clone())?;
+    /// assert!(std::sync::Arc::ptr_eq(ctx.gpu(), &dev));
+    /// # Ok::<(), neuvolex_features_gpu::GpuError>(())
+    /// ```
+    pub fn on(gpu: Arc<GpuDevice>) -> Result<Arc<Self>> {
+        gpu.require_storage_buffers(STORAGE_BUFFERS)?;
+        let device = &gpu.device;
         let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
         let storage = |binding, read_only| wgpu::BindGroupLayoutEntry {
             binding,
@@ -360,49 +209,48 @@ impl GpuContext {
             return Err(GpuError::Device(format!("compiling the INR kernels: {e}")));
         }
         Ok(Arc::new(GpuContext {
-            device,
-            queue,
-            info,
-            limits: required,
+            gpu,
             layout,
             pipelines,
             fused_variants: Mutex::default(),
             pipeline_layout: pl,
-            timestamps: features.contains(wgpu::Features::TIMESTAMP_QUERY),
-            mem: Arc::default(),
-            error,
         }))
+    }
+
+    /// The device the kernels run on, to share with other engines.
+    pub fn gpu(&self) -> &Arc<GpuDevice> {
+        &self.gpu
     }
 
     /// The adapter's description.
     pub fn info(&self) -> &wgpu::AdapterInfo {
-        &self.info
+        self.gpu.info()
     }
 
     /// Whether the adapter is a software rasteriser.
     pub fn is_software(&self) -> bool {
-        is_software(&self.info)
+        self.gpu.is_software()
     }
 
     /// "name (backend, type)".
     pub fn describe(&self) -> String {
-        format!(
-            "{} ({:?}, {:?})",
-            self.info.name, self.info.backend, self.info.device_type
-        )
+        self.gpu.describe()
     }
 
     /// Whether the device has GPU timestamp queries (`wgpu::Features::TIMESTAMP_QUERY`), which
     /// [`crate::GpuInr::set_profile`] times kernels with.
     pub fn has_timestamps(&self) -> bool {
-        self.timestamps
+        self.gpu.has_timestamps()
     }
 
     /// The largest buffer one binding may hold.
     pub fn max_binding(&self) -> u64 {
-        self.limits
-            .max_storage_buffer_binding_size
-            .min(self.limits.max_buffer_size)
+        self.gpu.max_binding()
+    }
+
+    /// Workgroups one dispatch dimension may hold.
+    pub(crate) fn max_groups(&self) -> u32 {
+        self.gpu.max_groups()
     }
 
     pub(crate) fn pipeline(&self, k: Kernel) -> &wgpu::ComputePipeline {
@@ -428,23 +276,20 @@ impl GpuContext {
                 "the fused kernel has blocks of {FUSED_BLOCKS:?} samples, not {block}"
             ))
         })?;
-        let scope = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
-        let module = self
-            .device
-            .create_shader_module(wgpu::ShaderModuleDescriptor {
-                label: Some("inr_fused.wgsl"),
-                source: wgpu::ShaderSource::Wgsl(src.into()),
-            });
-        let p = self
-            .device
-            .create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-                label: Some("fused"),
-                layout: Some(&self.pipeline_layout),
-                module: &module,
-                entry_point: Some("fused"),
-                compilation_options: Default::default(),
-                cache: None,
-            });
+        let device = &self.gpu.device;
+        let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
+        let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
+            label: Some("inr_fused.wgsl"),
+            source: wgpu::ShaderSource::Wgsl(src.into()),
+        });
+        let p = device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+            label: Some("fused"),
+            layout: Some(&self.pipeline_layout),
+            module: &module,
+            entry_point: Some("fused"),
+            compilation_options: Default::default(),
+            cache: None,
+        });
         if let Some(e) = pollster::block_on(scope.pop()) {
             return Err(GpuError::Device(format!(
                 "compiling the fused kernel for blocks of {block}: {e}"
@@ -454,97 +299,45 @@ impl GpuContext {
         Ok(p)
     }
 
-    /// A zeroed buffer, counted in the memory accounting.
+    /// A zeroed buffer, counted in the device's memory accounting.
     pub(crate) fn buffer(
         &self,
         label: &str,
         size: u64,
         usage: wgpu::BufferUsages,
     ) -> Result<Tracked> {
-        let size = size.max(4).div_ceil(4) * 4;
-        if usage.contains(wgpu::BufferUsages::STORAGE) && size > self.max_binding() {
-            return Err(GpuError::Config(format!(
-                "buffer '{label}' needs {} MiB, more than the adapter's storage binding limit of {} MiB",
-                size >> 20,
-                self.max_binding() >> 20
-            )));
-        }
-        let scope = self.device.push_error_scope(wgpu::ErrorFilter::OutOfMemory);
-        let buf = self.device.create_buffer(&wgpu::BufferDescriptor {
-            label: Some(label),
-            size,
-            usage,
-            mapped_at_creation: false,
-        });
-        if let Some(e) = pollster::block_on(scope.pop()) {
-            return Err(GpuError::Device(format!(
-                "allocating '{label}' ({} MiB): {e}",
-                size >> 20
-            )));
-        }
-        let mut m = self.mem.lock().unwrap_or_else(|p| p.into_inner());
-        m.live += size;
-        m.peak = m.peak.max(m.live);
-        Ok(Tracked {
-            buf,
-            mem: self.mem.clone(),
-        })
+        Ok(self.gpu.buffer(label, size, usage)?)
     }
 
     /// Records the allocator's current reservation in the peak (where the backend reports it).
     pub fn sample_memory(&self) {
-        if let Some(r) = self.device.generate_allocator_report() {
-            let mut m = self.mem.lock().unwrap_or_else(|p| p.into_inner());
-            m.reserved_peak = m.reserved_peak.max(r.total_reserved_bytes);
-        }
+        self.gpu.sample_memory()
     }
 
-    /// GPU memory use so far.
+    /// GPU memory use so far (of the whole device, other engines on it included).
     pub fn memory(&self) -> MemoryReport {
-        self.sample_memory();
-        let m = self.mem.lock().unwrap_or_else(|p| p.into_inner());
-        MemoryReport {
-            live_bytes: m.live,
-            peak_bytes: m.peak,
-            reserved_peak_bytes: (m.reserved_peak > 0).then_some(m.reserved_peak),
-        }
+        self.gpu.memory()
     }
 
     /// Resets the peaks to the current use (so a run reports its own peak).
     pub fn reset_peak(&self) {
-        let mut m = self.mem.lock().unwrap_or_else(|p| p.into_inner());
-        m.peak = m.live;
-        m.reserved_peak = 0;
+        self.gpu.reset_peak()
     }
 
-    /// The first error wgpu reported since the context was made (validation, out of memory,
+    /// The first error wgpu reported since the device was opened (validation, out of memory,
     /// device lost), as an error.
     pub fn check(&self) -> Result<()> {
-        match self.error.lock().unwrap_or_else(|p| p.into_inner()).clone() {
-            Some(e) => Err(GpuError::Device(e)),
-            None => Ok(()),
-        }
+        Ok(self.gpu.check()?)
     }
 
     /// Blocks until the queue is idle.
     pub fn wait(&self) -> Result<()> {
-        self.device
-            .poll(wgpu::PollType::wait_indefinitely())
-            .map_err(|e| GpuError::Device(e.to_string()))?;
-        self.check()
+        Ok(self.gpu.wait()?)
     }
 
     /// Copies `size` bytes at `offset` of `src` back to the host (blocking).
     pub(crate) fn read(&self, src: &wgpu::Buffer, offset: u64, size: u64) -> Result<Vec<u8>> {
-        let staging = self.buffer(
-            "readback",
-            size,
-            wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
-        )?;
-        let mut enc = self.device.create_command_encoder(&Default::default());
-        enc.copy_buffer_to_buffer(src, offset, &staging, 0, size.div_ceil(4) * 4);
-        self.queue.submit([enc.finish()]);
-        self.map_with(&staging, size, None, |b| b.to_vec())
+        Ok(self.gpu.read_at(src, offset, size)?)
     }
 
     /// The first `size` bytes (a multiple of 4) of a MAP_READ buffer whose copy was submitted,
@@ -556,7 +349,9 @@ impl GpuContext {
         size: u64,
         after: Option<wgpu::SubmissionIndex>,
     ) -> Result<Vec<f32>> {
-        self.map_with(staging, size, after, bytemuck::pod_collect_to_vec)
+        Ok(self
+            .gpu
+            .map_with(staging, size, after, bytemuck::pod_collect_to_vec)?)
     }
 
     /// [`GpuContext::map_read_f32`] for u64 values (timestamps).
@@ -566,38 +361,8 @@ impl GpuContext {
         size: u64,
         after: Option<wgpu::SubmissionIndex>,
     ) -> Result<Vec<u64>> {
-        self.map_with(staging, size, after, bytemuck::pod_collect_to_vec)
-    }
-
-    /// Maps `staging` once `after` is done and applies `read` to its first `size` bytes.
-    fn map_with<T>(
-        &self,
-        staging: &wgpu::Buffer,
-        size: u64,
-        after: Option<wgpu::SubmissionIndex>,
-        read: impl FnOnce(&[u8]) -> T,
-    ) -> Result<T> {
-        let slice = staging.slice(..);
-        let (tx, rx) = std::sync::mpsc::channel();
-        slice.map_async(wgpu::MapMode::Read, move |r| {
-            let _ = tx.send(r);
-        });
-        self.device
-            .poll(wgpu::PollType::Wait {
-                submission_index: after,
-                timeout: None,
-            })
-            .map_err(|e| GpuError::Device(e.to_string()))?;
-        self.check()?;
-        rx.recv()
-            .map_err(|e| GpuError::Device(e.to_string()))?
-            .map_err(|e| GpuError::Device(e.to_string()))?;
-        let out = read(
-            &slice
-                .get_mapped_range()
-                .map_err(|e| GpuError::Device(e.to_string()))?[..size as usize],
-        );
-        staging.unmap();
-        Ok(out)
+        Ok(self
+            .gpu
+            .map_with(staging, size, after, bytemuck::pod_collect_to_vec)?)
     }
 }

@@ -332,7 +332,7 @@ impl GpuInr {
         // block along x, so a micro-batch is at most that x the adapter's workgroups per
         // dimension.
         let per_group = opts.mlp.block().unwrap_or(TILE as usize).min(TILE as usize);
-        let most = per_group * ctx.limits.max_compute_workgroups_per_dimension.max(1) as usize;
+        let most = per_group * ctx.max_groups().max(1) as usize;
         let fused_pipe = match opts.mlp.block() {
             Some(b) => Some(ctx.fused_pipeline(b)?),
             None => None,
@@ -401,7 +401,8 @@ impl GpuInr {
             s | cd,
         )?;
         let align = ctx
-            .limits
+            .gpu
+            .limits()
             .min_uniform_buffer_offset_alignment
             .max(ARGS_BYTES as u32) as u64;
         let args = ctx.buffer(
@@ -474,11 +475,13 @@ impl GpuInr {
                 },
             })
             .collect();
-        ctx.device.create_bind_group(&wgpu::BindGroupDescriptor {
-            label: Some("inr"),
-            layout: &ctx.layout,
-            entries: &entries,
-        })
+        ctx.gpu
+            .device
+            .create_bind_group(&wgpu::BindGroupDescriptor {
+                label: Some("inr"),
+                layout: &ctx.layout,
+                entries: &entries,
+            })
     }
 
     /// The context.
@@ -522,7 +525,7 @@ impl GpuInr {
 
     /// Writes the model's parameters and fixed tables (levels, coordinates, loss weights).
     pub fn upload_model(&mut self, model: &InrModel) {
-        let q = &self.ctx.queue;
+        let q = &self.ctx.gpu.queue;
         let p = &self.plan;
         q.write_buffer(&self.table, 0, bytes(&model.table));
         q.write_buffer(&self.arena, p.params as u64 * 4, bytes(&model.dense));
@@ -562,7 +565,7 @@ impl GpuInr {
                 "optimiser state does not match the model".into(),
             ));
         }
-        let q = &self.ctx.queue;
+        let q = &self.ctx.gpu.queue;
         q.write_buffer(&self.m_table, 0, bytes(&a.m_table));
         q.write_buffer(&self.v_table, 0, bytes(&a.v_table));
         q.write_buffer(&self.arena, self.plan.m as u64 * 4, bytes(&a.m_dense));
@@ -612,7 +615,8 @@ impl GpuInr {
         Program {
             stride: self
                 .ctx
-                .limits
+                .gpu
+                .limits()
                 .min_uniform_buffer_offset_alignment
                 .max(ARGS_BYTES as u32) as usize,
             block: self.opts.mlp.block().unwrap_or(FUSED_BLOCK),
@@ -650,7 +654,7 @@ impl GpuInr {
             );
         }
         if !prog.args.is_empty() {
-            self.ctx.queue.write_buffer(&self.args, 0, &prog.args);
+            self.ctx.gpu.queue.write_buffer(&self.args, 0, &prog.args);
         }
         if let Some(prof) = &mut self.profile {
             let n = prog.calls.len();
@@ -658,11 +662,15 @@ impl GpuInr {
                 // Every dispatch in a compute pass of its own with timestamps at its start and
                 // end, all in one submission: the kernels' own times on the GPU.
                 let q = 2 * n as u32;
-                let qs = self.ctx.device.create_query_set(&wgpu::QuerySetDescriptor {
-                    label: Some("profile"),
-                    ty: wgpu::QueryType::Timestamp,
-                    count: q,
-                });
+                let qs = self
+                    .ctx
+                    .gpu
+                    .device
+                    .create_query_set(&wgpu::QuerySetDescriptor {
+                        label: Some("profile"),
+                        ty: wgpu::QueryType::Timestamp,
+                        count: q,
+                    });
                 let size = 8 * q as u64;
                 let resolve = self.ctx.buffer(
                     "timestamps",
@@ -674,7 +682,11 @@ impl GpuInr {
                     size,
                     wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
                 )?;
-                let mut enc = self.ctx.device.create_command_encoder(&Default::default());
+                let mut enc = self
+                    .ctx
+                    .gpu
+                    .device
+                    .create_command_encoder(&Default::default());
                 for (i, &(k, off, g)) in prog.calls.iter().enumerate() {
                     let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
                         label: None,
@@ -691,9 +703,9 @@ impl GpuInr {
                 enc.resolve_query_set(&qs, 0..q, &resolve, 0);
                 enc.copy_buffer_to_buffer(&resolve, 0, &read, 0, size);
                 after(&mut enc);
-                let idx = self.ctx.queue.submit([enc.finish()]);
+                let idx = self.ctx.gpu.queue.submit([enc.finish()]);
                 let ticks = self.ctx.map_read_u64(&read, size, Some(idx.clone()))?;
-                let period = self.ctx.queue.get_timestamp_period() as f64 * 1e-9;
+                let period = self.ctx.gpu.queue.get_timestamp_period() as f64 * 1e-9;
                 for (i, &(k, _, _)) in prog.calls.iter().enumerate() {
                     let s = ticks[2 * i + 1].saturating_sub(ticks[2 * i]) as f64 * period;
                     match prof.iter_mut().find(|e| e.0 == k) {
@@ -711,14 +723,18 @@ impl GpuInr {
             // One dispatch per submission, waited for and timed (kernel costs, not speed).
             for &(k, off, g) in &prog.calls {
                 let t = std::time::Instant::now();
-                let mut enc = self.ctx.device.create_command_encoder(&Default::default());
+                let mut enc = self
+                    .ctx
+                    .gpu
+                    .device
+                    .create_command_encoder(&Default::default());
                 {
                     let mut pass = enc.begin_compute_pass(&Default::default());
                     pass.set_pipeline(pick(&self.ctx, &self.fused_pipe, k));
                     pass.set_bind_group(0, &self.bind, &[off]);
                     pass.dispatch_workgroups(g[0], g[1], g[2]);
                 }
-                self.ctx.queue.submit([enc.finish()]);
+                self.ctx.gpu.queue.submit([enc.finish()]);
                 self.ctx.wait()?;
                 let s = t.elapsed().as_secs_f64();
                 match prof.iter_mut().find(|e| e.0 == k) {
@@ -729,11 +745,19 @@ impl GpuInr {
                     None => prof.push((k, 1, s)),
                 }
             }
-            let mut enc = self.ctx.device.create_command_encoder(&Default::default());
+            let mut enc = self
+                .ctx
+                .gpu
+                .device
+                .create_command_encoder(&Default::default());
             after(&mut enc);
-            return Ok(self.ctx.queue.submit([enc.finish()]));
+            return Ok(self.ctx.gpu.queue.submit([enc.finish()]));
         }
-        let mut enc = self.ctx.device.create_command_encoder(&Default::default());
+        let mut enc = self
+            .ctx
+            .gpu
+            .device
+            .create_command_encoder(&Default::default());
         {
             let mut pass = enc.begin_compute_pass(&Default::default());
             let mut cur: Option<Kernel> = None;
@@ -747,13 +771,13 @@ impl GpuInr {
             }
         }
         after(&mut enc);
-        Ok(self.ctx.queue.submit([enc.finish()]))
+        Ok(self.ctx.gpu.queue.submit([enc.finish()]))
     }
 
     /// Workgroups for `n` invocations of a 1-D kernel, spread over x and y.
     fn groups_1d(&self, n: usize) -> [u32; 3] {
         let g = n.div_ceil(WG);
-        let maxd = self.ctx.limits.max_compute_workgroups_per_dimension.max(1) as usize;
+        let maxd = self.ctx.max_groups().max(1) as usize;
         let x = g.min(maxd);
         [x as u32, g.div_ceil(x.max(1)) as u32, 1]
     }
@@ -1300,10 +1324,14 @@ impl GpuInr {
             })
             .collect();
         // Leave the accumulators clean for the next call.
-        let mut enc = self.ctx.device.create_command_encoder(&Default::default());
+        let mut enc = self
+            .ctx
+            .gpu
+            .device
+            .create_command_encoder(&Default::default());
         enc.clear_buffer(&self.acc_lo, 0, None);
         enc.clear_buffer(&self.acc_hi, 0, None);
-        self.ctx.queue.submit([enc.finish()]);
+        self.ctx.gpu.queue.submit([enc.finish()]);
         self.ctx.check()?;
         Ok(Gradients {
             loss,
@@ -1317,6 +1345,7 @@ impl GpuInr {
     fn write(&self, off: u32, data: &[f32]) {
         if !data.is_empty() {
             self.ctx
+                .gpu
                 .queue
                 .write_buffer(&self.arena, off as u64 * 4, bytes(data));
         }
@@ -1359,7 +1388,7 @@ impl GpuInr {
             0,
             0,
         ];
-        let q = &self.ctx.queue;
+        let q = &self.ctx.gpu.queue;
         q.write_buffer(
             &self.ring,
             (slot * HEADER) as u64 * 4,
@@ -1382,6 +1411,7 @@ impl GpuInr {
             ));
         }
         self.ctx
+            .gpu
             .queue
             .write_buffer(&self.order, first as u64 * 8, bytemuck::cast_slice(pairs));
         Ok(())
@@ -1395,7 +1425,11 @@ impl GpuInr {
             (STATS_RING * 8) as u64,
             wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
         )?;
-        let mut enc = self.ctx.device.create_command_encoder(&Default::default());
+        let mut enc = self
+            .ctx
+            .gpu
+            .device
+            .create_command_encoder(&Default::default());
         enc.copy_buffer_to_buffer(
             &self.arena,
             self.plan.stats as u64 * 4,
@@ -1403,7 +1437,7 @@ impl GpuInr {
             0,
             (STATS_RING * 8) as u64,
         );
-        self.ctx.queue.submit([enc.finish()]);
+        self.ctx.gpu.queue.submit([enc.finish()]);
         Ok(buf)
     }
 

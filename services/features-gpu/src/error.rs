@@ -35,6 +35,19 @@ impl From<neuvolex_formats::FormatError> for GpuError {
     }
 }
 
+impl From<neuvolex_gpu::GpuError> for GpuError {
+    /// The device's error as this crate's: a buffer past the binding limit is a [`GpuError::Config`].
+    fn from(e: neuvolex_gpu::GpuError) -> Self {
+        use neuvolex_gpu::GpuError as G;
+        match e {
+            G::NoAdapter(s) => GpuError::NoAdapter(s),
+            G::Unsupported { adapter, detail } => GpuError::Unsupported { adapter, detail },
+            G::Device(s) => GpuError::Device(s),
+            e @ G::TooLarge { .. } => GpuError::Config(e.to_string()),
+        }
+    }
+}
+
 /// Result alias.
 pub type Result<T, E = GpuError> = std::result::Result<T, E>;
 

@@ -18,6 +18,8 @@
 //!   prepared on host threads while the GPU trains on the previous group, and are written
 //!   into a ring of two tile groups; GPU memory is the model plus that ring, whatever the
 //!   volume's size ([`context::MemoryReport`]).
+//! - The device is a [`neuvolex_gpu::GpuDevice`], which other GPU crates (classification) can
+//!   share: [`GpuContext::on`] compiles the kernels on an open one, [`GpuContext::gpu`] gives it.
 
 #![warn(missing_docs)]
 
@@ -28,7 +30,10 @@ pub mod extract;
 pub mod plan;
 pub mod train;
 
-pub use context::{hardware_adapter, AdapterKind, GpuContext, MemoryReport};
+/// The wgpu this crate builds on (for callers that use the shared [`GpuDevice`] directly).
+pub use neuvolex_gpu::wgpu;
+
+pub use context::{hardware_adapter, AdapterKind, GpuContext, GpuDevice, MemoryReport};
 pub use engine::{EngineOptions, GpuInr, MlpPath, StepRates};
 pub use error::{GpuError, Result};
 pub use extract::write_features_gpu;

@@ -122,7 +122,7 @@ impl Stats {
         final_step: Option<u64>,
         events: &mut dyn FnMut(TrainEvent),
     ) -> Result<()> {
-        let _ = ctx.device.poll(wgpu::PollType::Poll);
+        let _ = ctx.gpu.device.poll(wgpu::PollType::Poll);
         while let Some(rb) = self.readbacks.front() {
             let ready = match rb.rx.try_recv() {
                 Ok(r) => Some(r),

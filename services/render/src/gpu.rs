@@ -259,37 +259,22 @@ fn gpu_err(e: impl std::fmt::Display) -> RenderError {
 }
 
 impl<S: BrickSource> GpuRenderer<S> {
-    /// Opens the first adapter wgpu finds (hardware preferred; set `WGPU_BACKEND` or
-    /// `WGPU_ADAPTER_NAME` to choose) and compiles the shader.
+    /// Opens the best adapter wgpu finds (hardware preferred; `NEUVOLEX_GPU_ADAPTER` narrows
+    /// by name, as for the other GPU engines) and compiles the shader.
     pub fn new(source: S) -> Result<Self> {
-        let instance =
-            wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle_from_env());
-        let adapter = pollster::block_on(instance.request_adapter(&wgpu::RequestAdapterOptions {
-            power_preference: wgpu::PowerPreference::HighPerformance,
-            force_fallback_adapter: false,
-            compatible_surface: None,
-            ..Default::default()
-        }))
-        .map_err(|e| {
+        let gpu = neuvolex_gpu::GpuDevice::new(neuvolex_gpu::AdapterKind::Any).map_err(|e| {
             gpu_err(format!(
-                "no GPU adapter ({e}); install a Vulkan driver (e.g. mesa-vulkan-drivers) or use the CPU renderer"
+                "{e}; install a Vulkan driver (e.g. mesa-vulkan-drivers) or use the CPU renderer"
             ))
         })?;
-        let info = adapter.get_info();
-        let limits = adapter.limits();
-        let required = wgpu::Limits {
-            max_storage_buffer_binding_size: limits.max_storage_buffer_binding_size,
-            max_buffer_size: limits.max_buffer_size,
-            max_storage_buffers_per_shader_stage: 7,
-            ..wgpu::Limits::downlevel_defaults()
-        };
-        let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
-            label: Some("neuvolex-render"),
-            required_features: wgpu::Features::empty(),
-            required_limits: required,
-            ..Default::default()
-        }))
-        .map_err(gpu_err)?;
+        Self::on(&gpu, source)
+    }
+
+    /// Compiles the shader on an open device, which other engines of the process (the INR,
+    /// classification) may share.
+    pub fn on(gpu: &neuvolex_gpu::GpuDevice, source: S) -> Result<Self> {
+        gpu.require_storage_buffers(7).map_err(gpu_err)?;
+        let (device, queue) = (gpu.device.clone(), gpu.queue.clone());
         let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
             label: Some("raymarch.wgsl"),
             source: wgpu::ShaderSource::Wgsl(SHADER.into()),
@@ -339,8 +324,7 @@ impl<S: BrickSource> GpuRenderer<S> {
             compilation_options: Default::default(),
             cache: None,
         });
-        let max_binding =
-            (limits.max_storage_buffer_binding_size as u64).min(limits.max_buffer_size);
+        let max_binding = gpu.max_binding();
         let storage = wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST;
         let bufs = Buffers {
             params: device.create_buffer(&wgpu::BufferDescriptor {
@@ -375,7 +359,7 @@ impl<S: BrickSource> GpuRenderer<S> {
             queue,
             pipeline,
             layout,
-            adapter: format!("{} ({:?}, {:?})", info.name, info.backend, info.device_type),
+            adapter: gpu.describe(),
             max_binding,
             budget: DEFAULT_RESIDENT_BYTES,
             atlas: Atlas::default(),
