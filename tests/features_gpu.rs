@@ -601,7 +601,10 @@ fn gpu_errors_are_clear() {
     let Some(ctx) = gpu() else { return };
     let e = GpuContext::open(AdapterKind::Any, Some("no-such-adapter")).unwrap_err();
     assert!(
-        matches!(e, GpuError::NoAdapter(_)) && e.to_string().contains("no-such-adapter"),
+        matches!(
+            e,
+            GpuError::Gpu(neuvolex_features_gpu::DeviceError::NoAdapter(_))
+        ) && e.to_string().contains("no-such-adapter"),
         "{e}"
     );
     // A table larger than a binding allows is refused by name, before anything runs.

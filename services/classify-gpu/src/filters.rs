@@ -251,7 +251,9 @@ impl GpuFilterBank {
         };
         let (conv, product, assemble) = (pipe("conv"), pipe("product"), pipe("assemble"));
         if let Some(e) = pollster::block_on(scope.pop()) {
-            return Err(GpuError::Device(format!("compiling the filter bank: {e}")));
+            return Err(
+                neuvolex_gpu::GpuError::Device(format!("compiling the filter bank: {e}")).into(),
+            );
         }
         Ok(GpuFilterBank {
             dev,

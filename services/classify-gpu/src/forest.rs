@@ -7,7 +7,7 @@
 //! host, as the CPU forest does, so on a device with IEEE f32 addition and multiplication the
 //! probabilities are the CPU's bits and the labels equal [`neuvolex_classify::Forest::predict`].
 
-use crate::device::{bind, grid, pipeline, GpuDevice, Tracked, STORAGE_BUFFERS};
+use crate::device::{grid, GpuDevice, Tracked, STORAGE_BUFFERS};
 use crate::error::{GpuError, Result};
 use neuvolex_classify::{Forest, LEAF_FEATURE};
 use std::sync::Arc;
@@ -172,7 +172,7 @@ impl GpuForest {
             wgpu::BufferUsages::STORAGE,
         )?;
         let (pipe, layout) =
-            pipeline(&dev, "forest", FOREST_WGSL, "predict", &[true, true, false])?;
+            dev.compute_pipeline("forest", FOREST_WGSL, "predict", &[true, true, false])?;
         Ok(GpuForest {
             dev,
             forest: fbuf,
@@ -286,12 +286,9 @@ impl GpuForest {
             bytemuck::bytes_of(&p),
             wgpu::BufferUsages::UNIFORM,
         )?;
-        let bind = bind(
-            &self.dev,
-            &self.layout,
-            &ubuf,
-            &[&self.forest, features, out],
-        );
+        let bind = self
+            .dev
+            .bind(&self.layout, &ubuf, &[&self.forest, features, out]);
         let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
             label: Some("forest"),
             timestamp_writes: None,

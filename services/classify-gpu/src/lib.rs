@@ -24,4 +24,6 @@ pub use filters::GpuFilterBank;
 pub use forest::{
     FeatureLayout, GpuForest, Prediction, BELOW_TAU, FOREST_WGSL, GROUP, MAX_CLASSES,
 };
+/// The shared device's errors, which [`GpuError::Gpu`] carries.
+pub use neuvolex_gpu::GpuError as DeviceError;
 pub use stage::{gpu_features, GpuAccelerator, GPU_FEATURE_SETS};

@@ -206,7 +206,9 @@ impl GpuContext {
             })
             .collect();
         if let Some(e) = pollster::block_on(scope.pop()) {
-            return Err(GpuError::Device(format!("compiling the INR kernels: {e}")));
+            return Err(
+                neuvolex_gpu::GpuError::Device(format!("compiling the INR kernels: {e}")).into(),
+            );
         }
         Ok(Arc::new(GpuContext {
             gpu,
@@ -291,9 +293,10 @@ impl GpuContext {
             cache: None,
         });
         if let Some(e) = pollster::block_on(scope.pop()) {
-            return Err(GpuError::Device(format!(
+            return Err(neuvolex_gpu::GpuError::Device(format!(
                 "compiling the fused kernel for blocks of {block}: {e}"
-            )));
+            ))
+            .into());
         }
         v.push((block, p.clone()));
         Ok(p)

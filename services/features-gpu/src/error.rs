@@ -3,20 +3,10 @@
 /// Everything that can fail on the GPU path.
 #[derive(Debug, thiserror::Error)]
 pub enum GpuError {
-    /// No adapter of the kind asked for.
-    #[error("no GPU adapter: {0}")]
-    NoAdapter(String),
-    /// The adapter lacks a limit or feature the kernels need.
-    #[error("GPU adapter {adapter}: {detail}")]
-    Unsupported {
-        /// The adapter.
-        adapter: String,
-        /// What is missing.
-        detail: String,
-    },
-    /// wgpu reported an error (validation, out of memory, device lost, mapping).
-    #[error("GPU: {0}")]
-    Device(String),
+    /// Opening or using the device failed ([`neuvolex_gpu::GpuError`]: no adapter, a missing
+    /// limit, a wgpu error, a buffer past the binding limit).
+    #[error(transparent)]
+    Gpu(#[from] neuvolex_gpu::GpuError),
     /// The model or the run cannot be placed on this device.
     #[error("GPU: {0}")]
     Config(String),
@@ -32,19 +22,6 @@ impl From<neuvolex_formats::FormatError> for GpuError {
     /// A volume file error, as the store reports it ([`neuvolex_bricks::BrickError::Format`]).
     fn from(e: neuvolex_formats::FormatError) -> Self {
         GpuError::Brick(e.into())
-    }
-}
-
-impl From<neuvolex_gpu::GpuError> for GpuError {
-    /// The device's error as this crate's: a buffer past the binding limit is a [`GpuError::Config`].
-    fn from(e: neuvolex_gpu::GpuError) -> Self {
-        use neuvolex_gpu::GpuError as G;
-        match e {
-            G::NoAdapter(s) => GpuError::NoAdapter(s),
-            G::Unsupported { adapter, detail } => GpuError::Unsupported { adapter, detail },
-            G::Device(s) => GpuError::Device(s),
-            e @ G::TooLarge { .. } => GpuError::Config(e.to_string()),
-        }
     }
 }
 

@@ -37,6 +37,8 @@ pub use context::{hardware_adapter, AdapterKind, GpuContext, GpuDevice, MemoryRe
 pub use engine::{EngineOptions, GpuInr, MlpPath, StepRates};
 pub use error::{GpuError, Result};
 pub use extract::write_features_gpu;
+/// The shared device's errors, which [`GpuError::Gpu`] carries.
+pub use neuvolex_gpu::GpuError as DeviceError;
 pub use train::{train_gpu, train_gpu_tuned, GpuTrained, GpuTune};
 
 use neuvolex_features::Backend;
@@ -50,7 +52,7 @@ pub fn resolve(backend: Backend) -> Result<Option<Arc<GpuContext>>> {
         Backend::Gpu => GpuContext::new(AdapterKind::Any).map(Some),
         Backend::Auto => match GpuContext::new(AdapterKind::Hardware) {
             Ok(c) => Ok(Some(c)),
-            Err(GpuError::NoAdapter(_)) => Ok(None),
+            Err(GpuError::Gpu(DeviceError::NoAdapter(_))) => Ok(None),
             Err(e) => {
                 tracing::warn!("no usable GPU ({e}); using the CPU engine");
                 Ok(None)

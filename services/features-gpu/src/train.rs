@@ -130,13 +130,17 @@ impl Stats {
                     let t = Instant::now();
                     ctx.wait()?;
                     self.wait_s += t.elapsed().as_secs_f64();
-                    Some(rb.rx.recv().map_err(|e| GpuError::Device(e.to_string()))?)
+                    Some(
+                        rb.rx
+                            .recv()
+                            .map_err(|e| neuvolex_gpu::GpuError::Device(e.to_string()))?,
+                    )
                 }
                 Err(mpsc::TryRecvError::Empty) => None,
-                Err(e) => return Err(GpuError::Device(e.to_string())),
+                Err(e) => return Err(neuvolex_gpu::GpuError::Device(e.to_string()).into()),
             };
             let Some(r) = ready else { break };
-            r.map_err(|e| GpuError::Device(e.to_string()))?;
+            r.map_err(|e| neuvolex_gpu::GpuError::Device(e.to_string()))?;
             ctx.check()?;
             let Some(rb) = self.readbacks.pop_front() else {
                 break;
@@ -146,7 +150,7 @@ impl Stats {
                     .buf
                     .slice(..)
                     .get_mapped_range()
-                    .map_err(|e| GpuError::Device(e.to_string()))?;
+                    .map_err(|e| neuvolex_gpu::GpuError::Device(e.to_string()))?;
                 bytemuck::pod_collect_to_vec(&view)
             };
             rb.buf.unmap();

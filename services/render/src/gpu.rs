@@ -275,55 +275,16 @@ impl<S: BrickSource> GpuRenderer<S> {
     pub fn on(gpu: &neuvolex_gpu::GpuDevice, source: S) -> Result<Self> {
         gpu.require_storage_buffers(7).map_err(gpu_err)?;
         let (device, queue) = (gpu.device.clone(), gpu.queue.clone());
-        let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
-            label: Some("raymarch.wgsl"),
-            source: wgpu::ShaderSource::Wgsl(SHADER.into()),
-        });
-        let storage = |binding, read_only| wgpu::BindGroupLayoutEntry {
-            binding,
-            visibility: wgpu::ShaderStages::COMPUTE,
-            ty: wgpu::BindingType::Buffer {
-                ty: wgpu::BufferBindingType::Storage { read_only },
-                has_dynamic_offset: false,
-                min_binding_size: None,
-            },
-            count: None,
-        };
-        let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
-            label: Some("raymarch"),
-            entries: &[
-                wgpu::BindGroupLayoutEntry {
-                    binding: 0,
-                    visibility: wgpu::ShaderStages::COMPUTE,
-                    ty: wgpu::BindingType::Buffer {
-                        ty: wgpu::BufferBindingType::Uniform,
-                        has_dynamic_offset: false,
-                        min_binding_size: None,
-                    },
-                    count: None,
-                },
-                storage(1, true),
-                storage(2, true),
-                storage(3, true),
-                storage(4, true),
-                storage(5, true),
-                storage(6, false),
-                storage(7, true),
-            ],
-        });
-        let pl = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
-            label: Some("raymarch"),
-            bind_group_layouts: &[Some(&layout)],
-            immediate_size: 0,
-        });
-        let pipeline = device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-            label: Some("raymarch"),
-            layout: Some(&pl),
-            module: &module,
-            entry_point: Some("main"),
-            compilation_options: Default::default(),
-            cache: None,
-        });
+        // One uniform (binding 0), then entries, ints, probs, luts, class info (read), the
+        // accumulation buffer (written) and the cells (read).
+        let (pipeline, layout) = gpu
+            .compute_pipeline(
+                "raymarch",
+                SHADER,
+                "main",
+                &[true, true, true, true, true, false, true],
+            )
+            .map_err(gpu_err)?;
         let max_binding = gpu.max_binding();
         let storage = wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST;
         let bufs = Buffers {
