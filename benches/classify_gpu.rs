@@ -1,25 +1,29 @@
 //! A whole round of classification on the GPU (`cargo bench -p neuvolex-benches --features gpu
 //! --bench classify_gpu -- [options]`, or the built binary run directly on a device): the
-//! generated CT-like phantom (512x512x452 by default, 118.5 M voxels) streamed brick by brick
-//! through upload -> filter bank -> forest -> read back with a bounded number of bricks in
-//! flight, against the CPU path (`neuvolex_filters::compute` + `Forest::predict_proba`, the
-//! session's per-brick work) on the same machine in the same run.
+//! generated CT-like phantom (512x512x452 by default, 118.5 M voxels) in a brick store,
+//! streamed through the library's ring (`neuvolex-classify-gpu`'s `predict_stream`, what
+//! `neuvolex classify --gpu` and the service's rounds run: blocks of bricks read from the store,
+//! upload -> filter bank -> forest -> read back, a bounded number in flight), against the CPU
+//! path (`neuvolex_filters::compute` + `Forest::predict_proba`, the session's per-brick work) on
+//! the same machine in the same run.
 //!
 //! Steps, each printed as it ends (a run cut short by a time limit still shows the rest):
-//! 1. the phantom, generated in memory (rayon over slices; not timed as classification);
+//! 1. the phantom, generated in memory (rayon over slices) and written as a brick store of
+//!    `--brick` (default 64, the CLI's) in a temporary folder (not timed as classification);
 //! 2. a forest of `--trees` trees (default 32: the session's `trees_for` a volume this size)
 //!    trained on `--train-rows` voxels of nine bricks spread over the volume (CPU features,
 //!    the phantom's labels);
-//! 3. the GPU path over every brick: bricks of `--brick` voxels (default 128) with the filter
-//!    bank's halo, padded to whole bricks at the volume's far ends; the host reads and normalises
-//!    each halo brick (rayon) ahead of the GPU, `--in-flight` bricks (default 2) share the GPU
-//!    ring, the u8 probabilities and labels come back per brick; voxels/s, whole-volume seconds,
-//!    peak GPU buffer bytes, and one brick's filter and forest times apart;
+//! 3. the GPU path over every brick: blocks of up to `--block` voxels a side (default 128) with
+//!    the filter bank's halo, read from the store and normalised on the host ahead of the GPU,
+//!    `--in-flight` blocks (default 2) in the ring, the u8 probabilities and labels back per
+//!    brick; voxels/s, whole-volume seconds, peak GPU buffer bytes, and the first block's time
+//!    (the warm-up: pipelines, the ring's allocation);
 //! 4. the CPU path on `--cpu-bricks` of the same bricks (default 4; `all` for every brick),
 //!    timed, its voxels/s and the whole volume's seconds extrapolated from them (marked so), and
 //!    the labels' agreement with the GPU's on those bricks.
 //!
-//! Options: `--dims X,Y,Z` (default 512,512,452), `--brick B`, `--in-flight K`, `--trees T`,
+//! Options: `--dims X,Y,Z` (default 512,512,452), `--brick B`, `--block V`, `--in-flight K`,
+//! `--trees T`,
 //! `--train-rows R` (default 20000), `--cpu-bricks N|all`, `--software` (allow a software
 //! adapter: lavapipe, for a dry run; its times are no evidence of speed; without a GPU the GPU
 //! path is skipped and the CPU path still runs), `--out FILE` (the JSON report, written after
@@ -43,14 +47,14 @@ mod gpu {
     use neuvolex_bricks::synth::{phantom_at, Phantom, PhantomChannel, PhantomParams};
     use neuvolex_classify::stable::to_u8;
     use neuvolex_classify::{Dataset, Forest, ForestConfig};
-    use neuvolex_classify_gpu::{
-        wgpu, AdapterKind, FeatureLayout, GpuDevice, GpuFilterBank, GpuForest,
-    };
+    use neuvolex_bricks::BrickStore;
+    use neuvolex_classify::accel::{AccelOptions, Accelerator};
+    use neuvolex_classify_gpu::{AdapterKind, GpuAccelerator, GpuDevice, StreamConfig};
+    use std::sync::Arc;
     use neuvolex_filters::{compute, filter_halo, pos, Classic};
     use neuvolex_formats::VolumeSource;
     use rayon::prelude::*;
     use serde_json::{json, Value};
-    use std::sync::mpsc::sync_channel;
     use std::time::Instant;
 
     fn arg<T: std::str::FromStr>(args: &[String], flag: &str, default: T) -> T {
@@ -86,22 +90,6 @@ mod gpu {
                 s.copy_from_slice(&slab.to_f32_scaled(src.meta()));
             });
         v
-    }
-
-    /// A strided sample's 0.5 and 99.5 percentiles, as the store's robust normaliser.
-    fn normaliser(v: &[f32]) -> Normaliser {
-        let mut s: Vec<f32> = v.iter().step_by(61).copied().collect();
-        s.sort_by(|a, b| a.total_cmp(b));
-        let q = |f: f64| s[((s.len() - 1) as f64 * f) as usize] as f64;
-        let (lo, hi) = (q(0.005), q(0.995));
-        if hi > lo {
-            Normaliser { lo, hi }
-        } else {
-            Normaliser {
-                lo: s[0] as f64,
-                hi: s[s.len() - 1] as f64,
-            }
-        }
     }
 
     /// `filters+xyz` of a brick on the CPU (voxel-major), as the session computes it.
@@ -146,7 +134,8 @@ mod gpu {
                 std::process::exit(2);
             }
         };
-        let brick: usize = arg(&args, "--brick", 128usize).max(8);
+        let brick: usize = arg(&args, "--brick", 64usize).max(8);
+        let block: usize = arg(&args, "--block", 128usize).max(8);
         let in_flight: usize = arg(&args, "--in-flight", 2usize).max(1);
         let trees: usize = arg(&args, "--trees", 32usize).max(1);
         let train_rows: usize = arg(&args, "--train-rows", 20000usize).max(100);
@@ -165,13 +154,13 @@ mod gpu {
         let voxels: usize = dims.iter().product();
         let mut report = json!({
             "bench": "classify_gpu",
-            "dims": dims, "voxels": voxels, "brick": brick, "halo": filter_halo(),
+            "dims": dims, "voxels": voxels, "brick": brick, "block": block, "halo": filter_halo(),
             "in_flight": in_flight, "trees": trees, "features": "filters+xyz",
             "threads": rayon::current_num_threads(),
         });
         println!(
-            "classify_gpu: {dims:?} ({:.1} M voxels), bricks of {brick} + halo {}, {in_flight} \
-             in flight, {trees} trees, {} CPU threads",
+            "classify_gpu: {dims:?} ({:.1} M voxels), bricks of {brick} in blocks of up to \
+             {block} + halo {}, {in_flight} in flight, {trees} trees, {} CPU threads",
             voxels as f64 / 1e6,
             filter_halo(),
             rayon::current_num_threads()
@@ -185,10 +174,26 @@ mod gpu {
             noise: 18.0,
         };
         let vol = slices(params, PhantomChannel::Image, 0, dims[2]);
-        let norm = normaliser(&vol);
+        let dir = tempfile::tempdir().expect("temporary folder");
+        let sp = dir.path().join("phantom.zarr");
+        let mut mem = neuvolex_formats::MemVolume::from_f32(dims, &vol);
+        neuvolex_ingest::ingest(
+            &mut mem,
+            &sp,
+            &neuvolex_ingest::IngestOptions {
+                brick,
+                ..Default::default()
+            },
+            &mut |_| {},
+        )
+        .expect("the phantom's store");
+        drop(mem);
+        let store = Arc::new(BrickStore::open(&sp).expect("the phantom's store"));
+        // The store's normaliser, which the GPU path reads: the CPU path uses it too.
+        let norm = store.normaliser();
         let gen_s = t.elapsed().as_secs_f64();
         println!(
-            "phantom generated in {gen_s:.1} s; normaliser {:.1}..{:.1}",
+            "phantom generated and stored in {gen_s:.1} s; normaliser {:.1}..{:.1}",
             norm.lo, norm.hi
         );
         report["phantom_s"] = json!(gen_s);
@@ -279,21 +284,10 @@ mod gpu {
         report["train_s"] = json!(train_s);
         write(&out, &report);
 
-        // The bricks, in z-major order.
-        let nb = dims.map(|d| d.div_ceil(brick));
-        let mut bricks = Vec::new();
-        for bz in 0..nb[2] {
-            for by in 0..nb[1] {
-                for bx in 0..nb[0] {
-                    bricks.push([bx * brick, by * brick, bz * brick]);
-                }
-            }
-        }
-        let cube = [brick; 3];
-        let inside =
-            |o: [usize; 3]| -> [usize; 3] { std::array::from_fn(|a| (dims[a] - o[a]).min(brick)) };
+        // The store's bricks, in z-major order.
+        let bricks: Vec<neuvolex_bricks::Brick> = store.bricks().collect();
 
-        // 3. The GPU path.
+        // 3. The GPU path: the library's stream over every brick.
         let kind = if software {
             AdapterKind::Any
         } else {
@@ -313,184 +307,59 @@ mod gpu {
             println!("device: {}", dev.describe());
             report["device"] = json!(dev.describe());
             report["software_adapter"] = json!(dev.is_software());
-            let gpu_result = (|| -> neuvolex_classify_gpu::Result<Value> {
-                let bank = GpuFilterBank::new(dev.clone(), true)?;
-                let gf = GpuForest::new(dev.clone(), &forest)?;
-                let core = brick * brick * brick;
-                let obytes = gf.output_bytes(core);
-                let lo = gf.labels_offset(core) as usize;
-                let h = filter_halo();
-                struct Slot {
-                    filt: neuvolex_classify_gpu::filters::FilterSlot,
-                    out: neuvolex_classify_gpu::Tracked,
-                    staging: neuvolex_classify_gpu::Tracked,
-                }
-                let ring: Vec<Slot> = (0..in_flight)
-                    .map(|_| -> neuvolex_classify_gpu::Result<Slot> {
-                        Ok(Slot {
-                            filt: bank.slot(cube, h)?,
-                            out: dev.buffer(
-                                "forest out",
-                                obytes,
-                                wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
-                            )?,
-                            staging: dev.buffer(
-                                "staging",
-                                obytes,
-                                wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
-                            )?,
-                        })
-                    })
-                    .collect::<neuvolex_classify_gpu::Result<_>>()?;
-                println!(
-                    "GPU ring: {in_flight} x {:.0} MiB, forest {:.1} MiB",
-                    (ring[0].filt.bytes() + 2 * obytes) as f64 / (1u64 << 20) as f64,
-                    gf.bytes() as f64 / (1u64 << 20) as f64
-                );
-                // One brick's phases apart (also the warm-up: pipelines, first allocation).
-                // The normalised halo brick (as `halo_from_volume` then `Normaliser::apply`), planes
-                // in parallel.
-                let pad_of = |o: [usize; 3]| -> Vec<f32> {
-                    let p = cube.map(|c| c + 2 * h);
-                    let at = |a: usize, i: usize| {
-                        (o[a] as isize + i as isize - h as isize).clamp(0, dims[a] as isize - 1)
-                            as usize
-                    };
-                    let mut g = vec![0.0f32; p[0] * p[1] * p[2]];
-                    g.par_chunks_mut(p[0] * p[1])
-                        .enumerate()
-                        .for_each(|(z, plane)| {
-                            let gz = at(2, z);
-                            for (y, row) in plane.chunks_exact_mut(p[0]).enumerate() {
-                                let src = &vol[(gz * dims[1] + at(1, y)) * dims[0]..][..dims[0]];
-                                for (x, v) in row.iter_mut().enumerate() {
-                                    *v = norm.apply(src[at(0, x)]);
-                                }
-                            }
-                        });
-                    g
+            let gpu_result = (|| -> Result<Value, neuvolex_classify::ClassifyError> {
+                let accel = GpuAccelerator::new(dev.clone()).with_stream(StreamConfig {
+                    in_flight,
+                    block,
+                    ..StreamConfig::default()
+                });
+                let set = "filters+xyz".parse().expect("feature set");
+                let pred =
+                    accel.prepare(store.clone(), &set, &forest, &AccelOptions::tau(f32::MIN))?;
+                let mut put = |b: &neuvolex_bricks::Brick, classes: &[u8]| {
+                    for (row, l) in b.rows(dims).zip(classes.chunks_exact(b.size[0])) {
+                        labels_gpu[row..row + b.size[0]].copy_from_slice(l);
+                    }
                 };
-                let first = pad_of(bricks[0]);
-                let time = |f: &dyn Fn(
-                    &mut wgpu::CommandEncoder,
-                ) -> neuvolex_classify_gpu::Result<()>|
-                 -> neuvolex_classify_gpu::Result<f64> {
-                    let t = Instant::now();
-                    let mut enc = dev.device.create_command_encoder(&Default::default());
-                    f(&mut enc)?;
-                    dev.queue.submit([enc.finish()]);
-                    dev.wait()?;
-                    Ok(t.elapsed().as_secs_f64())
-                };
-                let s0 = &ring[0];
-                time(&|e| bank.encode_normalised(&s0.filt, e, &first, bricks[0], dims))?;
-                let filter_s =
-                    time(&|e| bank.encode_normalised(&s0.filt, e, &first, bricks[0], dims))?;
-                let forest_s = time(&|e| {
-                    gf.encode(
-                        e,
-                        s0.filt.features(),
-                        FeatureLayout::planes(core),
-                        core,
-                        &s0.out,
-                    )
-                })?;
-                println!(
-                "one brick of {brick}^3 ({:.2} M voxels): filter bank {:.1} ms, forest {:.1} ms \
-                 (upload and read back apart)",
-                core as f64 / 1e6,
-                filter_s * 1e3,
-                forest_s * 1e3
-            );
-                dev.reset_peak();
-                // The stream: a producer thread reads and normalises bricks ahead; the GPU ring holds
-                // `in_flight` bricks; a brick's results are read when its slot comes round again.
+                // The warm-up: the first brick's block (pipelines, the ring's allocation).
                 let t = Instant::now();
-                let (tx, rx) = sync_channel::<(usize, Vec<f32>)>(in_flight);
-                let mut pending: Vec<Option<(usize, wgpu::SubmissionIndex)>> =
-                    (0..in_flight).map(|_| None).collect();
-                let mut done = 0usize;
-                let mut last_print = Instant::now();
-                let collect = |slot: &Slot,
-                               bi: usize,
-                               idx: wgpu::SubmissionIndex,
-                               labels: &mut [u8]|
-                 -> neuvolex_classify_gpu::Result<()> {
-                    let bytes = dev.map_read_after(&slot.staging, obytes, Some(idx))?;
-                    let o = bricks[bi];
-                    let s = inside(o);
-                    for z in 0..s[2] {
-                        for yy in 0..s[1] {
-                            let src = lo + (z * brick + yy) * brick;
-                            let dst = ((o[2] + z) * dims[1] + o[1] + yy) * dims[0] + o[0];
-                            labels[dst..dst + s[0]].copy_from_slice(&bytes[src..src + s[0]]);
-                        }
-                    }
-                    Ok(())
-                };
-                std::thread::scope(|sc| -> neuvolex_classify_gpu::Result<()> {
-                    // Owned here, so an early return drops it and the producer stops.
-                    let rx = rx;
-                    let prod = sc.spawn(|| {
-                        for (bi, &o) in bricks.iter().enumerate() {
-                            if tx.send((bi, pad_of(o))).is_err() {
-                                return;
-                            }
-                        }
-                        drop(tx);
-                    });
-                    for (k, (bi, padded)) in rx.iter().enumerate() {
-                        let si = k % in_flight;
-                        if let Some((prev, idx)) = pending[si].take() {
-                            collect(&ring[si], prev, idx, &mut labels_gpu)?;
-                            done += 1;
-                        }
-                        let slot = &ring[si];
-                        let mut enc = dev.device.create_command_encoder(&Default::default());
-                        bank.encode_normalised(&slot.filt, &mut enc, &padded, bricks[bi], dims)?;
-                        gf.encode(
-                            &mut enc,
-                            slot.filt.features(),
-                            FeatureLayout::planes(core),
-                            core,
-                            &slot.out,
-                        )?;
-                        enc.copy_buffer_to_buffer(&slot.out, 0, &slot.staging, 0, obytes);
-                        let idx = dev.queue.submit([enc.finish()]);
-                        pending[si] = Some((bi, idx));
-                        if last_print.elapsed().as_secs_f64() > 2.0 {
-                            println!(
-                                "  GPU: {done}/{} bricks in {:.1} s",
-                                bricks.len(),
-                                t.elapsed().as_secs_f64()
-                            );
-                            last_print = Instant::now();
-                        }
-                    }
-                    for si in 0..in_flight {
-                        if let Some((prev, idx)) = pending[si].take() {
-                            collect(&ring[si], prev, idx, &mut labels_gpu)?;
-                            done += 1;
-                        }
-                    }
-                    let _ = prod.join();
-                    Ok(())
+                pred.predict_stream(&bricks[..1], &mut |b, a| {
+                    put(b, &a.classes);
+                    true
                 })?;
-                dev.check()?;
+                let first_s = t.elapsed().as_secs_f64();
+                println!("first block (warm-up) in {:.1} ms", first_s * 1e3);
+                dev.reset_peak();
+                let t = Instant::now();
+                let (mut done, mut last_print) = (0usize, Instant::now());
+                pred.predict_stream(&bricks, &mut |b, a| {
+                    put(b, &a.classes);
+                    done += 1;
+                    if last_print.elapsed().as_secs_f64() > 2.0 {
+                        println!(
+                            "  GPU: {done}/{} bricks in {:.1} s",
+                            bricks.len(),
+                            t.elapsed().as_secs_f64()
+                        );
+                        last_print = Instant::now();
+                    }
+                    true
+                })?;
                 let secs = t.elapsed().as_secs_f64();
                 let peak = dev.peak_bytes();
                 println!(
-                "GPU path: {} bricks, {:.1} M voxels in {secs:.2} s = {:.1} M voxels/s; peak GPU \
-                 buffers {:.0} MiB",
-                bricks.len(),
-                voxels as f64 / 1e6,
-                voxels as f64 / secs / 1e6,
-                peak as f64 / (1u64 << 20) as f64
-            );
+                    "GPU path: {} bricks, {:.1} M voxels in {secs:.2} s = {:.1} M voxels/s; peak \
+                     GPU buffers {:.0} MiB (budget {:.0} MiB)",
+                    bricks.len(),
+                    voxels as f64 / 1e6,
+                    voxels as f64 / secs / 1e6,
+                    peak as f64 / (1u64 << 20) as f64,
+                    accel.stream().budget as f64 / (1u64 << 20) as f64
+                );
                 Ok(json!({
                     "seconds": secs, "voxels_per_s": voxels as f64 / secs,
-                    "peak_gpu_buffer_bytes": peak, "bricks": bricks.len(),
-                    "one_brick_filter_s": filter_s, "one_brick_forest_s": forest_s,
+                    "peak_gpu_buffer_bytes": peak, "budget_bytes": accel.stream().budget,
+                    "bricks": bricks.len(), "first_block_s": first_s,
                     "label_histogram": (0..classes).map(|k| labels_gpu.iter().filter(|&&l| l as usize == k).count()).collect::<Vec<_>>(),
                 }))
             })();
@@ -519,8 +388,7 @@ mod gpu {
         let t = Instant::now();
         let (mut cpu_vox, mut agree) = (0usize, 0usize);
         for (k, &bi) in chosen.iter().enumerate() {
-            let o = bricks[bi];
-            let s = inside(o);
+            let (o, s) = (bricks[bi].origin, bricks[bi].size);
             let x = cpu_features(&vol, dims, o, s, &norm);
             let p = match forest.predict_proba(&x) {
                 Ok(p) => p,

@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Packages the GPU benchmarks for a machine with an NVIDIA GPU but no Rust toolchain and no
 # network (the device machine of /work/.library/device/README.md): the `inr_gpu`,
-# `classify_gpu` and `cluster` bench binaries (built here, stripped, xz-compressed), nats-server,
+# `classify_gpu`, `cluster` and `rounds` bench binaries (built here, stripped, xz-compressed), nats-server,
 # benches/inr_torch.py, the volumes they read, and the Vulkan loader .deb packages; the device
 # side is benches/gpu_device_run.sh. Everything goes into two git-ignored folders of the repository
 # root, `.gpubench/` and `.gl/`, which the device call carries; nothing here is committed.
@@ -56,7 +56,7 @@ for l in sys.stdin:
 }
 rm -rf .gpubench
 mkdir -p .gpubench/data
-for bench in inr_gpu classify_gpu cluster; do
+for bench in inr_gpu classify_gpu cluster rounds; do
   echo "building the $bench bench binary (release, --features gpu)"
   exe=$(bench_exe "$bench")
   [ -x "$exe" ] || { echo "no $bench executable was built" >&2; exit 1; }
@@ -78,7 +78,7 @@ dirty=$(git status --porcelain --untracked-files=no | wc -l)
 {
   echo "commit: $(git rev-parse HEAD) ($(git log -1 --format=%cs)), $([ "$dirty" -eq 0 ] && echo clean || echo "dirty ($dirty tracked files modified)")"
   echo "built: $(date -u '+%F %H:%M') UTC on $(grep -m1 'model name' /proc/cpuinfo | cut -d: -f2 | xargs), $(rustc --version)"
-  for bench in inr_gpu classify_gpu cluster; do
+  for bench in inr_gpu classify_gpu cluster rounds; do
     echo "$bench sha256: $(sha256sum ".gpubench/$bench" | cut -c1-16)"
   done
 } >.gpubench/provenance.txt
@@ -103,10 +103,11 @@ if ! ls .gl/libvulkan1_*.deb >/dev/null 2>&1; then
   (cd .gl && apt-get $o download libvulkan1 libegl1 libglvnd0 libopengl0 libgl1 libglx0 libgles2)
 fi
 
-xz -T0 -6 -f .gpubench/inr_gpu .gpubench/classify_gpu .gpubench/cluster
+xz -T0 -6 -f .gpubench/inr_gpu .gpubench/classify_gpu .gpubench/cluster .gpubench/rounds
 [ -f .gpubench/nats-server ] && xz -T0 -6 -f .gpubench/nats-server
 du -sh .gpubench .gl
 echo
 echo "device run: carry [\".gpubench\", \".gl\"], timeout_s 600, command (then, on the warm"
-echo "machine, 'bash benches/gpu_device_run.sh cluster' with the time left):"
+echo "machine, 'bash benches/gpu_device_run.sh rounds' and 'bash benches/gpu_device_run.sh cluster'"
+echo "with the time left):"
 device_command

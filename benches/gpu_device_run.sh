@@ -12,9 +12,13 @@
 #             the same initial weights, the launch-path sweep, the kernel profile (issue 46)
 #   cluster   benches/cluster.rs: classification of the 512x512x452 phantom in one process and
 #             on 2 and 16 one-thread workers over nats-server (the serial part, issue 49)
+#   rounds    benches/rounds.rs: whole session rounds of the 512x512x452 phantom predicted on
+#             the GPU (streamed blocks), then on the CPU for the ratio, with nothing kept in the
+#             store and then with the features kept (issue 49; about 6 minutes)
 #
 #   bash benches/gpu_device_run.sh classify inr     # one device call (about 8 minutes)
 #   bash benches/gpu_device_run.sh cluster          # a second call on the warm machine
+#   bash benches/gpu_device_run.sh rounds           # a third
 #
 # At most 8 files come back from a device call: provenance.txt, smi.csv, and a JSON report and
 # a log per part.
@@ -60,7 +64,14 @@ for part in "$@"; do
         timeout "${CLUSTER_S:-240}" "$b/cluster" --bench 2>&1 | tee "$OUT/cluster.log"
       rc=${PIPESTATUS[0]}
       ;;
-    *) echo "unknown part $part (classify, inr, cluster)"; rc=2 ;;
+    rounds)
+      NEUVOLEX_BENCH_GPU=1 NEUVOLEX_BENCH_ONLY_PHANTOM=1 \
+        NEUVOLEX_BENCH_PHANTOM_WHOLE="${ROUNDS_WHOLE:-3}" NEUVOLEX_BENCH_PHANTOM_CPU="${ROUNDS_CPU:-1}" \
+        NEUVOLEX_BENCH_PHANTOM_STORED=1 \
+        timeout "${ROUNDS_S:-540}" "$b/rounds" 2>&1 | tee "$OUT/rounds.log"
+      rc=${PIPESTATUS[0]}
+      ;;
+    *) echo "unknown part $part (classify, inr, cluster, rounds)"; rc=2 ;;
   esac
   echo "== $part ended $(date -u '+%T') UTC (exit $rc)" | tee -a "$OUT/provenance.txt"
 done

@@ -17,13 +17,23 @@
 //! `NEUVOLEX_BENCH_PHANTOM_WHOLE=N` then runs N rounds more to their end (minutes each on 2
 //! cores: the features of most bricks are recomputed), and with
 //! `NEUVOLEX_BENCH_PHANTOM_STORED` set, first keeps every brick's features in the store, as
-//! `neuvolex serve` does in the background when a volume opens, so the rounds read them.
+//! `neuvolex serve` does in the background when a volume opens, so the rounds read them (the
+//! whole rounds then run twice: with nothing kept, then with the features kept).
+//!
+//! The GPU path (issue 49; `--features gpu`): `NEUVOLEX_BENCH_GPU=1` predicts the phantom's
+//! rounds on a hardware GPU (the filter bank and the forest, streamed by block, as
+//! `neuvolex serve --backend auto` does; `NEUVOLEX_BENCH_GPU=software` allows lavapipe for a dry
+//! run, whose times are no evidence of speed), and reports the peak GPU buffer bytes of the
+//! phantom's whole rounds; `NEUVOLEX_BENCH_PHANTOM_CPU=N` then runs N whole rounds more with the
+//! CPU forest in the same run, for the ratio. `NEUVOLEX_BENCH_ONLY_PHANTOM` skips the real
+//! volumes; `NEUVOLEX_BENCH_PHANTOM_DIMS=X,Y,Z` changes the phantom's grid (a dry run).
 //! Rounds: `NEUVOLEX_BENCH_ROUNDS` (default 10).
 
 use neuvolex_benches::{machine, shared, spread};
 use neuvolex_bricks::rng::Rng;
 use neuvolex_bricks::synth::PhantomParams;
 use neuvolex_bricks::{open_volume, BrickStore};
+use neuvolex_classify::accel::Accelerator;
 use neuvolex_classify::scribble::{simulate, Level, SimConfig, Stroke};
 use neuvolex_classify::SliceMass;
 use neuvolex_eval::robot::{next_strokes, Placement};
@@ -174,9 +184,61 @@ fn robot(v: &Volume, rounds: usize) {
     );
 }
 
+/// The GPU rounds predict on (`NEUVOLEX_BENCH_GPU`), with a reader of its peak buffer bytes
+/// (reset on each call).
+type Gpu = (Arc<dyn Accelerator>, Box<dyn Fn() -> u64>);
+
+fn gpu() -> Option<Gpu> {
+    let want = std::env::var("NEUVOLEX_BENCH_GPU").ok()?;
+    #[cfg(feature = "gpu")]
+    {
+        use neuvolex_classify_gpu::{AdapterKind, GpuAccelerator, GpuDevice};
+        let kind = if want == "software" {
+            AdapterKind::Any
+        } else {
+            AdapterKind::Hardware
+        };
+        match GpuDevice::new(kind) {
+            Ok(d) => {
+                println!("GPU: {} (streamed blocks, 2 GiB budget)", d.describe());
+                let dev = d.clone();
+                let peak = Box::new(move || {
+                    let p = dev.peak_bytes();
+                    dev.reset_peak();
+                    p
+                });
+                Some((Arc::new(GpuAccelerator::new(d)), peak))
+            }
+            Err(e) => {
+                println!("SKIP: the GPU path ({want}): {e}");
+                None
+            }
+        }
+    }
+    #[cfg(not(feature = "gpu"))]
+    {
+        println!("SKIP: NEUVOLEX_BENCH_GPU={want} needs --features gpu");
+        None
+    }
+}
+
+/// The phantom's grid (`NEUVOLEX_BENCH_PHANTOM_DIMS`, default 512x512x452).
+fn phantom_dims() -> [usize; 3] {
+    let v: Vec<usize> = std::env::var("NEUVOLEX_BENCH_PHANTOM_DIMS")
+        .ok()
+        .map(|s| s.split(',').filter_map(|x| x.trim().parse().ok()).collect())
+        .unwrap_or_default();
+    match v[..] {
+        [x, y, z] if x > 0 && y > 0 && z > 0 => [x, y, z],
+        _ => [512, 512, 452],
+    }
+}
+
 /// The phantom: a class and a background stroke on a new axial slice per round, timed to the
 /// first overlay under it, then cancelled; then `whole` rounds more that run to their end
-/// (features recomputed where the cache no longer holds them, the prior over 118 M voxels).
+/// (features recomputed where the cache no longer holds them, the prior over 118 M voxels),
+/// on the GPU where one is asked for (then `NEUVOLEX_BENCH_PHANTOM_CPU` rounds on the CPU),
+/// and again with the features kept in the store where `NEUVOLEX_BENCH_PHANTOM_STORED` is set.
 fn phantom(rounds: usize, whole: usize) {
     let dir = tempfile::tempdir().expect("tmp");
     let sp = dir.path().join("phantom.zarr");
@@ -185,7 +247,7 @@ fn phantom(rounds: usize, whole: usize) {
         ..Default::default()
     };
     let params = PhantomParams {
-        dims: [512, 512, 452],
+        dims: phantom_dims(),
         seed: 0,
         noise: 18.0,
     };
@@ -194,13 +256,24 @@ fn phantom(rounds: usize, whole: usize) {
     eprintln!("phantom written in {:.0} s", t.elapsed().as_secs_f64());
     let store = Arc::new(BrickStore::open(&sp).expect("store"));
     let d = store.info().dims;
+    let size = format!("{}x{}x{}", d[0], d[1], d[2]);
+    let mvox = format!("{:.1} M", d.iter().product::<usize>() as f64 / 1e6);
     let truth = store
         .read_labels_box("ground_truth", [0; 3], d)
         .expect("truth");
     let (s, _) = neuvolex_benches::session_with_classes("phantom", store.clone(), &truth);
+    let gpu = gpu();
+    s.set_accelerator(gpu.as_ref().map(|g| g.0.clone()));
+    let engine = if gpu.is_some() { "GPU" } else { "CPU" };
+    // Each round strokes a new axial slice.
+    let mut k = 0usize;
+    let mut next_slice = || {
+        k += 1;
+        (d[2] / 2 + k * 40) % d[2]
+    };
     let mut firsts = Vec::new();
     for r in 0..=rounds {
-        let z = d[2] / 2 + r * 40 - 40 * (rounds / 2);
+        let z = next_slice();
         let class = neuvolex_benches::main_class(&truth, d, z);
         let strokes = neuvolex_benches::strokes_on(&truth, d, z, class, 0);
         let (g, _) = s.add_strokes(strokes).expect("strokes");
@@ -210,17 +283,63 @@ fn phantom(rounds: usize, whole: usize) {
         }
     }
     println!(
-        "| phantom | 512x512x452 | 118.5 M | {} | — | {} | — (cancelled after the first overlay) | — | — | — |",
+        "| phantom, {engine} | {size} | {mvox} | {} | — | {} | — (cancelled after the first overlay) | — | — | — |",
         s.round_trees(),
         spread(&firsts, 2)
     );
     if whole == 0 {
         return;
     }
+    let cpu_rounds: usize = std::env::var("NEUVOLEX_BENCH_PHANTOM_CPU")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(0);
+    let mut whole_rounds = |n: usize, engine: &str, kept: &str| {
+        let (mut firsts, mut alls) = (Vec::new(), Vec::new());
+        for r in 0..n {
+            let z = next_slice();
+            let class = neuvolex_benches::main_class(&truth, d, z);
+            let strokes = neuvolex_benches::strokes_on(&truth, d, z, class, 0);
+            let (g, _) = s.add_strokes(strokes).expect("strokes");
+            let (first, all) = timed_round(&s, g, z, false);
+            let st = s.status.read().unwrap().clone();
+            assert_eq!(st.state, "done", "round {r}: {st:?}");
+            eprintln!(
+                "phantom whole round {r} ({engine}{kept}, predicted on {}): first overlay {first:.2} s, round {all:.1} s",
+                st.engine
+            );
+            firsts.push(first);
+            alls.push(all);
+        }
+        let peak = match (&gpu, engine) {
+            (Some(g), "GPU") => format!(
+                ", peak GPU buffers {:.0} MiB",
+                g.1() as f64 / (1u64 << 20) as f64
+            ),
+            _ => String::new(),
+        };
+        println!(
+            "| phantom, whole rounds, {engine}{kept}{peak} | {size} | {mvox} | {} | — | {} | {} | — | — | — |",
+            s.round_trees(),
+            spread(&firsts, 2),
+            spread(&alls, 1)
+        );
+    };
+    let both = |run: &mut dyn FnMut(usize, &str, &str), kept: &str| {
+        if let Some(g) = &gpu {
+            g.1();
+        }
+        run(whole, engine, kept);
+        if gpu.is_some() && cpu_rounds > 0 {
+            s.set_accelerator(None);
+            run(cpu_rounds, "CPU", kept);
+            s.set_accelerator(gpu.as_ref().map(|g| g.0.clone()));
+        }
+    };
+    both(&mut whole_rounds, "");
     // The features kept in the store, as `neuvolex serve` computes them in the background
     // when a volume opens (its `--feature-store-gib` set high enough for the phantom).
-    let stored = std::env::var_os("NEUVOLEX_BENCH_PHANTOM_STORED").is_some();
-    if stored {
+    if std::env::var_os("NEUVOLEX_BENCH_PHANTOM_STORED").is_some() {
         let t = Instant::now();
         // The pass ends when only it holds the session (a server that dropped it): the
         // server's session table holds another, as this clone does.
@@ -238,29 +357,8 @@ fn phantom(rounds: usize, whole: usize) {
             "phantom features kept in the store ({n:?} bricks) in {:.0} s",
             t.elapsed().as_secs_f64()
         );
+        both(&mut whole_rounds, ", features kept in the store");
     }
-    let (mut firsts, mut alls) = (Vec::new(), Vec::new());
-    for r in 0..whole {
-        let z = d[2] / 2 + 20 + r * 40;
-        let class = neuvolex_benches::main_class(&truth, d, z);
-        let strokes = neuvolex_benches::strokes_on(&truth, d, z, class, 0);
-        let (g, _) = s.add_strokes(strokes).expect("strokes");
-        let (first, all) = timed_round(&s, g, z, false);
-        eprintln!("phantom whole round {r}: first overlay {first:.2} s, round {all:.1} s");
-        firsts.push(first);
-        alls.push(all);
-    }
-    println!(
-        "| phantom, whole rounds{} | 512x512x452 | 118.5 M | {} | — | {} | {} | — | — | — |",
-        if stored {
-            ", features kept in the store"
-        } else {
-            ""
-        },
-        s.round_trees(),
-        spread(&firsts, 2),
-        spread(&alls, 1)
-    );
 }
 
 fn main() {
@@ -282,8 +380,9 @@ fn main() {
     );
     println!("| volume | dims | voxels | trees | round 0 (cold features) s | first overlay s, median [range] | round s, median [range] | mean F1 r0 → last | worse rounds | worst drop |");
     println!("|---|---|---|---|---|---|---|---|---|---|");
+    let only_phantom = std::env::var_os("NEUVOLEX_BENCH_ONLY_PHANTOM").is_some();
     match (
-        shared("abdomen_ct/ct.nii.gz"),
+        shared("abdomen_ct/ct.nii.gz").filter(|_| !only_phantom),
         shared("abdomen_ct/labels.nii.gz"),
     ) {
         (Some(img), Some(lab)) => {
@@ -298,10 +397,11 @@ fn main() {
                 rounds,
             );
         }
+        _ if only_phantom => println!("SKIP: abdomen_ct (NEUVOLEX_BENCH_ONLY_PHANTOM is set)"),
         _ => println!("SKIP: abdomen_ct is absent (../shared/data)"),
     }
     match (
-        shared("brain_mri/t1_norm.nii.gz"),
+        shared("brain_mri/t1_norm.nii.gz").filter(|_| !only_phantom),
         shared("brain_mri/labels.nii.gz"),
     ) {
         (Some(img), Some(lab)) => {
@@ -317,6 +417,7 @@ fn main() {
                 rounds,
             );
         }
+        _ if only_phantom => println!("SKIP: brain_mri (NEUVOLEX_BENCH_ONLY_PHANTOM is set)"),
         _ => println!("SKIP: brain_mri is absent (../shared/data)"),
     }
     if std::env::var_os("NEUVOLEX_BENCH_NO_PHANTOM").is_some() {

@@ -69,6 +69,19 @@ fn boxes_halos_and_derived_match_whole_volume() {
             store.read_box(0, [5, 3, 6], [9, 12, 7]).unwrap(),
             sub(&vals, dims, [5, 3, 6], [9, 12, 7])
         );
+        // Blocks of bricks, one passing the grid's far ends on every axis, read edge-clamped.
+        for (o, sz, halo) in [
+            ([0, 0, 0], [16, 16, 16], 3),
+            ([8, 8, 8], [16, 16, 16], 5),
+            ([16, 0, 8], [8, 24, 16], 2),
+            ([20, 18, 16], [1, 1, 1], 0),
+        ] {
+            let h = store.read_padded(o, sz, halo).unwrap();
+            let want = derived::halo_from_volume(&vals, dims, o, sz, halo);
+            assert_eq!(h.data, want.data, "box {o:?}+{sz:?} halo {halo}");
+        }
+        assert!(store.read_padded([21, 0, 0], [1, 1, 1], 1).is_err());
+        assert!(store.read_padded([0, 0, 0], [0, 1, 1], 1).is_err());
         let norm = store.normaliser();
         let whole = derived::reference(&vals, dims, &norm);
         for b in store.bricks() {

@@ -391,44 +391,52 @@ impl BrickStore {
 
     /// Reads brick `b` of level 0 with `halo` voxels on each side, edge-clamped at the border.
     pub fn read_halo(&self, b: &Brick, halo: usize) -> Result<HaloBrick> {
+        self.read_padded(b.origin, b.size, halo)
+    }
+
+    /// Reads the box `origin..origin+size` of level 0 with `halo` voxels on each side, every
+    /// voxel outside the grid taking the value of the nearest voxel inside (edge-clamped): as
+    /// [`Self::read_halo`] for a box that may be larger than a brick, or pass the grid's far
+    /// ends (a block of bricks computed as one; its voxels past the grid are read but unused).
+    pub fn read_padded(
+        &self,
+        origin: [usize; 3],
+        size: [usize; 3],
+        halo: usize,
+    ) -> Result<HaloBrick> {
         let d = self.info.dims;
-        let lo: Vec<usize> = (0..3).map(|k| b.origin[k].saturating_sub(halo)).collect();
+        if (0..3).any(|k| size[k] == 0 || origin[k] >= d[k]) {
+            return Err(BrickError::InvalidArgument(format!(
+                "box {origin:?}+{size:?} does not start inside the grid {d:?}"
+            )));
+        }
+        let lo: Vec<usize> = (0..3).map(|k| origin[k].saturating_sub(halo)).collect();
         let hi: Vec<usize> = (0..3)
-            .map(|k| (b.origin[k] + b.size[k] + halo).min(d[k]))
+            .map(|k| (origin[k] + size[k] + halo).min(d[k]))
             .collect();
         let rs = [hi[0] - lo[0], hi[1] - lo[1], hi[2] - lo[2]];
         let inner = self.read_box(0, [lo[0], lo[1], lo[2]], rs)?;
-        let p = [
-            b.size[0] + 2 * halo,
-            b.size[1] + 2 * halo,
-            b.size[2] + 2 * halo,
-        ];
+        let p = size.map(|s| s + 2 * halo);
         let mut data = vec![0.0f32; p[0] * p[1] * p[2]];
         let h = halo as isize;
-        let xs: Vec<usize> = (0..p[0] as isize)
-            .map(|x| {
-                ((b.origin[0] as isize + x - h).clamp(lo[0] as isize, hi[0] as isize - 1) as usize)
-                    - lo[0]
-            })
-            .collect();
-        for z in 0..p[2] {
-            let sz = (b.origin[2] as isize + z as isize - h)
-                .clamp(lo[2] as isize, hi[2] as isize - 1) as usize
-                - lo[2];
-            for y in 0..p[1] {
-                let sy = (b.origin[1] as isize + y as isize - h)
-                    .clamp(lo[1] as isize, hi[1] as isize - 1) as usize
-                    - lo[1];
-                let src = (sz * rs[1] + sy) * rs[0];
-                let dst = (z * p[1] + y) * p[0];
-                for (x, &sx) in xs.iter().enumerate() {
-                    data[dst + x] = inner[src + sx];
+        let at = |k: usize, i: usize| -> usize {
+            ((origin[k] as isize + i as isize - h).clamp(lo[k] as isize, hi[k] as isize - 1)
+                as usize)
+                - lo[k]
+        };
+        let xs: Vec<usize> = (0..p[0]).map(|x| at(0, x)).collect();
+        for (z, plane) in data.chunks_exact_mut(p[0] * p[1]).enumerate() {
+            let sz = at(2, z);
+            for (y, row) in plane.chunks_exact_mut(p[0]).enumerate() {
+                let src = (sz * rs[1] + at(1, y)) * rs[0];
+                for (v, &sx) in row.iter_mut().zip(&xs) {
+                    *v = inner[src + sx];
                 }
             }
         }
         Ok(HaloBrick {
-            origin: b.origin,
-            size: b.size,
+            origin,
+            size,
             halo,
             data,
         })

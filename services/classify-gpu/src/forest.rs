@@ -76,7 +76,7 @@ struct Params {
     groups_x: u32,
     width: u32,
     tau: f32,
-    pad: u32,
+    f16: u32,
 }
 
 /// What one prediction gives back.
@@ -102,6 +102,7 @@ pub struct GpuForest {
     nodes_at: u32,
     probs_at: u32,
     tau: f32,
+    f16: bool,
 }
 
 impl std::fmt::Debug for GpuForest {
@@ -186,6 +187,7 @@ impl GpuForest {
             nodes_at: nodes_at as u32,
             probs_at: probs_at as u32,
             tau: f32::MIN,
+            f16: false,
         })
     }
 
@@ -194,6 +196,16 @@ impl GpuForest {
     /// (`f32::MIN`) every voxel takes its first most probable class.
     pub fn with_tau(mut self, tau: f32) -> Self {
         self.tau = tau;
+        self
+    }
+
+    /// Rounds every feature through f16 before comparing it (`true`), as the service's cache
+    /// holds features for [`neuvolex_classify::Forest::predict_proba_f16`]
+    /// ([`neuvolex_classify::features::f16_saturating`]: clamped to f16's largest finite
+    /// magnitude, then to the nearest f16; WGSL leaves a tie's direction to the device where the
+    /// CPU rounds ties to even). Default false.
+    pub fn with_f16(mut self, f16: bool) -> Self {
+        self.f16 = f16;
         self
     }
 
@@ -279,7 +291,7 @@ impl GpuForest {
             groups_x: gx,
             width: self.classes.next_multiple_of(4) as u32,
             tau: self.tau,
-            pad: 0,
+            f16: self.f16 as u32,
         };
         let ubuf = self.dev.upload(
             "forest args",

@@ -25,7 +25,7 @@ struct Params {
     groups_x: u32,     // workgroups along x of the dispatch
     width: u32,        // classes rounded up to a multiple of 4
     tau: f32,          // a voxel whose top probability is below it gets label 255
-    pad1: u32,
+    round16: u32,      // 1: each feature rounded through f16 before it is compared
 }
 
 @group(0) @binding(0) var<uniform> P: Params;
@@ -47,6 +47,12 @@ fn leaf_quad(p: u32) -> vec4<f32> {
         bitcast<f32>(forest[p + 2u]),
         bitcast<f32>(forest[p + 3u]),
     );
+}
+
+// `v` as the service's feature cache holds it (neuvolex_classify::features::f16_saturating):
+// clamped to f16's largest finite magnitude, 65504, then rounded to the nearest f16.
+fn half(v: f32) -> f32 {
+    return unpack2x16float(pack2x16float(vec2<f32>(clamp(v, -65504.0, 65504.0), 0.0))).x;
 }
 
 // Round half away from zero of `v` in [0, 255], as Rust's `f32::round`, without an add that a
@@ -79,7 +85,8 @@ fn predict(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_inde
                 if (f == LEAF) {
                     break;
                 }
-                let val = x[row + f * P.stride_f];
+                let raw = x[row + f * P.stride_f];
+                let val = select(raw, half(raw), P.round16 != 0u);
                 at = forest[nd + 2u] + select(0u, 1u, val > bitcast<f32>(forest[nd + 1u]));
             }
             let p = P.probs_at + forest[P.nodes_at + 3u * at + 2u];

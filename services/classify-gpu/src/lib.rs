@@ -14,6 +14,7 @@ pub mod error;
 pub mod filters;
 pub mod forest;
 pub mod stage;
+pub mod stream;
 
 /// The wgpu this crate builds on (for callers that record its dispatches into their own encoders).
 pub use wgpu;
@@ -27,3 +28,4 @@ pub use forest::{
 /// The shared device's errors, which [`GpuError::Gpu`] carries.
 pub use neuvolex_gpu::GpuError as DeviceError;
 pub use stage::{gpu_features, GpuAccelerator, GPU_FEATURE_SETS};
+pub use stream::{plan_blocks, Block, StreamConfig, DEFAULT_BUDGET};

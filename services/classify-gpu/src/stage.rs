@@ -4,15 +4,17 @@
 //! submission, and the u8 probabilities and classes come back; the pipeline writes them as the
 //! CPU's results.
 //!
-//! Bricks are run one at a time on the device (a lock around the reused buffers of each brick
-//! shape); the streamed ring of issue 49 part 4 is `benches/classify_gpu.rs`'s, not this.
+//! One brick ([`BrickPredictor::predict`]) runs alone on the device (a lock around the reused
+//! buffers of each brick shape); a run of bricks ([`BrickPredictor::predict_stream`]) goes
+//! through [`crate::stream`]'s ring of blocks, within the accelerator's GPU memory budget.
 
 use crate::device::{GpuDevice, Tracked};
 use crate::error::GpuError;
 use crate::filters::{FilterSlot, GpuFilterBank};
 use crate::forest::{FeatureLayout, GpuForest, BELOW_TAU};
+use crate::stream::{Ring, StreamConfig};
 use neuvolex_bricks::{Brick, BrickStore};
-use neuvolex_classify::accel::{AcceleratedBrick, Accelerator, BrickPredictor};
+use neuvolex_classify::accel::{AccelOptions, AcceleratedBrick, Accelerator, BrickPredictor};
 use neuvolex_classify::features::{Component, FeatureSet};
 use neuvolex_classify::{ClassifyError, Forest};
 use neuvolex_filters::Classic;
@@ -47,6 +49,7 @@ fn gpu_err(e: GpuError) -> ClassifyError {
 #[derive(Debug, Clone)]
 pub struct GpuAccelerator {
     dev: Arc<GpuDevice>,
+    stream: StreamConfig,
 }
 
 impl GpuAccelerator {
@@ -61,7 +64,21 @@ impl GpuAccelerator {
     /// # Ok::<(), neuvolex_classify_gpu::GpuError>(())
     /// ```
     pub fn new(dev: Arc<GpuDevice>) -> Self {
-        GpuAccelerator { dev }
+        GpuAccelerator {
+            dev,
+            stream: StreamConfig::default(),
+        }
+    }
+
+    /// Streams runs of bricks as `cfg` says (blocks, ring depth, GPU memory budget).
+    pub fn with_stream(mut self, cfg: StreamConfig) -> Self {
+        self.stream = cfg;
+        self
+    }
+
+    /// How runs of bricks stream.
+    pub fn stream(&self) -> &StreamConfig {
+        &self.stream
     }
 
     /// The device it predicts on.
@@ -80,14 +97,15 @@ impl Accelerator for GpuAccelerator {
         store: Arc<BrickStore>,
         set: &FeatureSet,
         forest: &Forest,
-        tau: f32,
+        opts: &AccelOptions,
     ) -> Result<Box<dyn BrickPredictor>, ClassifyError> {
         let xyz =
             gpu_features(set).ok_or_else(|| ClassifyError::Input(unsupported_features(set)))?;
         let bank = GpuFilterBank::new(self.dev.clone(), xyz).map_err(gpu_err)?;
         let gf = GpuForest::new(self.dev.clone(), forest)
             .map_err(gpu_err)?
-            .with_tau(tau);
+            .with_tau(opts.tau)
+            .with_f16(opts.f16_features);
         if gf.features() != bank.channels() {
             return Err(ClassifyError::Input(format!(
                 "the forest takes {} features, the GPU's '{set}' gives {}",
@@ -101,6 +119,8 @@ impl Accelerator for GpuAccelerator {
             bank,
             forest: gf,
             slots: Mutex::default(),
+            stream: self.stream,
+            ring: Mutex::default(),
         }))
     }
 }
@@ -118,6 +138,9 @@ struct GpuPredictor {
     bank: GpuFilterBank,
     forest: GpuForest,
     slots: Mutex<HashMap<[usize; 3], Slot>>,
+    stream: StreamConfig,
+    /// The ring of blocks, made by the first stream and kept for the next.
+    ring: Mutex<Option<Ring>>,
 }
 
 impl GpuPredictor {
@@ -156,26 +179,74 @@ impl GpuPredictor {
         let bytes = dev.read(&s.out, self.forest.output_bytes(n))?;
         let c = self.forest.classes();
         let lo = self.forest.labels_offset(n) as usize;
-        let classes: Vec<u8> = bytes[lo..lo + n]
-            .iter()
-            .map(|&k| {
-                if k == BELOW_TAU {
-                    neuvolex_classify::accel::BELOW_TAU
-                } else {
-                    k
-                }
-            })
-            .collect();
         Ok(AcceleratedBrick {
             probs: bytes[..n * c].to_vec(),
-            classes,
+            classes: classes(bytes[lo..lo + n].to_vec()),
         })
     }
+
+    fn stream(
+        &self,
+        bricks: &[Brick],
+        on: &mut dyn FnMut(&Brick, AcceleratedBrick) -> bool,
+    ) -> Result<(), GpuError> {
+        let mut ring = self.ring.lock().unwrap_or_else(|p| p.into_inner());
+        let ring = match &mut *ring {
+            Some(r) => r,
+            None => ring.insert(Ring::new(
+                &self.bank,
+                &self.forest,
+                &self.store,
+                self.halo,
+                &self.stream,
+            )?),
+        };
+        let norm = self.store.normaliser();
+        crate::stream::run(
+            ring,
+            &self.bank,
+            &self.forest,
+            &self.store,
+            self.halo,
+            &norm,
+            bricks,
+            &mut |out| {
+                out.into_iter().all(|(b, probs, cls)| {
+                    on(
+                        &b,
+                        AcceleratedBrick {
+                            probs,
+                            classes: classes(cls),
+                        },
+                    )
+                })
+            },
+        )
+    }
+}
+
+/// The GPU forest's class codes as [`AcceleratedBrick::classes`] holds them.
+fn classes(mut codes: Vec<u8>) -> Vec<u8> {
+    for k in &mut codes {
+        if *k == BELOW_TAU {
+            *k = neuvolex_classify::accel::BELOW_TAU;
+        }
+    }
+    codes
 }
 
 impl BrickPredictor for GpuPredictor {
     fn predict(&self, b: &Brick) -> Result<AcceleratedBrick, ClassifyError> {
         self.run(b)
             .map_err(|e| ClassifyError::Input(format!("GPU, brick {:?}: {e}", b.index)))
+    }
+
+    fn predict_stream(
+        &self,
+        bricks: &[Brick],
+        on: &mut dyn FnMut(&Brick, AcceleratedBrick) -> bool,
+    ) -> Result<(), ClassifyError> {
+        self.stream(bricks, on)
+            .map_err(|e| ClassifyError::Input(format!("GPU: {e}")))
     }
 }

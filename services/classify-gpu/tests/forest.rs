@@ -5,7 +5,9 @@
 
 mod common;
 
-use common::{check_forest as check, filters_xyz, gpu, phantom, train_forest as train};
+use common::{
+    check_forest as check, class_indices, filters_xyz, gpu, phantom, train_forest as train,
+};
 use neuvolex_bricks::derived::Normaliser;
 use neuvolex_bricks::rng::Rng;
 use neuvolex_classify_gpu::{FeatureLayout, GpuError, GpuForest, BELOW_TAU, MAX_CLASSES};
@@ -23,18 +25,7 @@ fn gpu_forest_equals_the_cpu_forest_on_the_filter_bank_of_a_phantom() {
     let x = filters_xyz(&v, dims, &norm);
     let d = Classic::Filters.channels() + 3;
     // Classes in order of first appearance.
-    let mut seen: Vec<u8> = Vec::new();
-    let y: Vec<u16> = lab
-        .iter()
-        .map(|l| match seen.iter().position(|s| s == l) {
-            Some(k) => k as u16,
-            None => {
-                seen.push(*l);
-                seen.len() as u16 - 1
-            }
-        })
-        .collect();
-    let classes = seen.len();
+    let (y, classes) = class_indices(&lab);
     assert!(classes >= 3, "the phantom has several classes");
     let forest = train(&x, &y, d, classes, 4000, 24);
     let g = GpuForest::new(dev.clone(), &forest).expect("upload");

@@ -30,6 +30,32 @@ pub struct AcceleratedBrick {
     pub classes: Vec<u8>,
 }
 
+/// Bricks a task of the pipeline gives an accelerator at once (at least), so that its stream
+/// ([`BrickPredictor::predict_stream`]) can overlap and group them.
+pub const STREAM_BRICKS: usize = 64;
+
+/// How a forest is bound to an accelerator ([`Accelerator::prepare`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct AccelOptions {
+    /// Voxels whose top probability is below it get [`BELOW_TAU`] (the CLI's `--tau`; 0 where
+    /// only the probabilities are used, as in the service).
+    pub tau: f32,
+    /// Round every feature through f16 before the forest reads it, as the service's feature
+    /// cache holds them ([`crate::Forest::predict_proba_f16`]): a forest trained on the cache's
+    /// features then sees the values it was trained on.
+    pub f16_features: bool,
+}
+
+impl AccelOptions {
+    /// `tau`, features in f32 (the CLI's `--gpu`).
+    pub fn tau(tau: f32) -> Self {
+        AccelOptions {
+            tau,
+            f16_features: false,
+        }
+    }
+}
+
 /// Something that predicts bricks with a trained forest (a GPU).
 pub trait Accelerator: Send + Sync {
     /// The device, for the log ("NVIDIA H200 (Vulkan, DiscreteGpu)").
@@ -42,7 +68,7 @@ pub trait Accelerator: Send + Sync {
         store: Arc<BrickStore>,
         set: &FeatureSet,
         forest: &Forest,
-        tau: f32,
+        opts: &AccelOptions,
     ) -> Result<Box<dyn BrickPredictor>, ClassifyError>;
 }
 
@@ -50,6 +76,24 @@ pub trait Accelerator: Send + Sync {
 pub trait BrickPredictor: Send + Sync {
     /// Computes brick `b`'s features and predicts them.
     fn predict(&self, b: &Brick) -> Result<AcceleratedBrick, ClassifyError>;
+
+    /// Predicts `bricks` and gives each brick's result to `on` as it comes back, until `on`
+    /// returns false (the bricks not given yet are then not predicted). Results come in the
+    /// order of `bricks`, except that an accelerator may predict neighbouring bricks together
+    /// and give them together, at the place of the first of them. The default predicts one
+    /// brick at a time; the GPU's overlaps reading the next bricks with the device's work.
+    fn predict_stream(
+        &self,
+        bricks: &[Brick],
+        on: &mut dyn FnMut(&Brick, AcceleratedBrick) -> bool,
+    ) -> Result<(), ClassifyError> {
+        for b in bricks {
+            if !on(b, self.predict(b)?) {
+                break;
+            }
+        }
+        Ok(())
+    }
 }
 
 /// [`crate::shard::classify_brick`] with the features and the forest on `pred`: the same
@@ -70,6 +114,18 @@ pub fn classify_brick_on(
     }
     let t = Instant::now();
     let p = pred.predict(b)?;
+    brick_result(p, labels, out_labels, b, t.elapsed().as_secs_f64())
+}
+
+/// The [`BrickResult`] of what an accelerator gave for brick `b` (`seconds` of prediction):
+/// the probabilities as `q / 255` and the classes as the output labels of `out_labels`.
+pub fn brick_result(
+    p: AcceleratedBrick,
+    labels: &[u32],
+    out_labels: &[u16],
+    b: &Brick,
+    seconds: f64,
+) -> Result<BrickResult, ClassifyError> {
     let n = b.voxels();
     if p.probs.len() != n * labels.len() || p.classes.len() != n {
         return Err(ClassifyError::Input(format!(
@@ -93,6 +149,6 @@ pub fn classify_brick_on(
         labels: lab,
         skipped: false,
         feature_seconds: 0.0,
-        predict_seconds: t.elapsed().as_secs_f64(),
+        predict_seconds: seconds,
     })
 }

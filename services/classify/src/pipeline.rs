@@ -9,7 +9,10 @@ use crate::components::{apply_in_memory, PriorConfig};
 use crate::features::{BrickFeatures, FeatureSet};
 use crate::forest::Forest;
 use crate::scribble::{load_scribbles, Scribbles};
-use crate::shard::{classify_brick, fit, output_labels, training_set, ClassTable, ClassifyConfig};
+use crate::shard::{
+    classify_brick, empty_brick, fit, output_labels, training_set, BrickResult, ClassTable,
+    ClassifyConfig,
+};
 use crate::ClassifyError;
 use neuvolex_bricks::synth::ClassInfo;
 use neuvolex_bricks::{Brick, BrickStore, VectorArray, VectorEncoding};
@@ -300,9 +303,8 @@ impl Stage for PredictStage {
     }
 
     fn run(&self, task: &Task, ctx: &TaskCtx<'_>) -> neuvolex_tasks::Result<PredictOutput> {
-        let mut fx = self.src.features().map_err(TaskError::failed)?;
-        fx.set_memo(self.memo.clone());
         let mut out = PredictOutput::default();
+        let mut todo = Vec::with_capacity(task.bricks.len());
         for &bi in &task.bricks {
             ctx.check()?;
             let b = self.src.store.brick(bi)?;
@@ -310,42 +312,98 @@ impl Stage for PredictStage {
                 ctx.skip(1);
                 continue;
             }
-            let r = match &self.accel {
-                Some(p) => crate::accel::classify_brick_on(
-                    p.as_ref(),
-                    &self.src.store,
-                    &self.params.labels,
-                    &self.out_labels,
-                    &self.roi,
-                    &self.cfg,
-                    &b,
-                ),
-                None => classify_brick(
+            todo.push(b);
+        }
+        let failed = |b: &Brick, e: &dyn std::fmt::Display| {
+            TaskError::Failed(format!("brick {:?}: {e}", b.index))
+        };
+        let Some(p) = &self.accel else {
+            let mut fx = self.src.features().map_err(TaskError::failed)?;
+            fx.set_memo(self.memo.clone());
+            for b in &todo {
+                ctx.check()?;
+                let r = classify_brick(
                     &fx,
                     &self.forest,
                     &self.params.labels,
                     &self.out_labels,
                     &self.roi,
                     &self.cfg,
-                    &b,
-                ),
+                    b,
+                )
+                .map_err(|e| failed(b, &e))?;
+                self.put(b, &r, &mut out)?;
             }
-            .map_err(|e| TaskError::Failed(format!("brick {bi:?}: {e}")))?;
-            self.proba.write_brick(&b, &r.proba)?;
-            let lab: Vec<f32> = r.labels.iter().map(|&l| l as f32).collect();
-            self.labels.write_brick(&b, &lab)?;
-            self.proba.mark_done(&b)?;
-            self.labels.mark_done(&b)?;
-            if r.skipped {
-                out.empty += 1;
-            } else {
-                out.predicted += 1;
-                out.voxels += b.voxels() as u64;
-                out.feature_seconds += r.feature_seconds;
-                out.predict_seconds += r.predict_seconds;
+            return Ok(out);
+        };
+        // On the accelerator: empty bricks at once, the rest streamed through it (the next
+        // bricks read while the device works on these).
+        let mut rest = Vec::with_capacity(todo.len());
+        for b in todo {
+            match empty_brick(
+                &self.src.store,
+                &self.params.labels,
+                &self.roi,
+                &self.cfg,
+                &b,
+            ) {
+                Some(r) => self.put(&b, &r, &mut out)?,
+                None => rest.push(b),
             }
         }
-        Ok(out)
+        let mut err = None;
+        let mut t = Instant::now();
+        p.predict_stream(&rest, &mut |b, a| {
+            let r = ctx.check().and_then(|()| {
+                let r = crate::accel::brick_result(
+                    a,
+                    &self.params.labels,
+                    &self.out_labels,
+                    b,
+                    t.elapsed().as_secs_f64(),
+                )
+                .map_err(|e| failed(b, &e))?;
+                self.put(b, &r, &mut out)
+            });
+            t = Instant::now();
+            match r {
+                Ok(()) => true,
+                Err(e) => {
+                    err = Some(e);
+                    false
+                }
+            }
+        })
+        .map_err(|e| TaskError::Failed(e.to_string()))?;
+        match err {
+            Some(e) => Err(e),
+            None => Ok(out),
+        }
+    }
+}
+
+impl PredictStage {
+    /// Writes brick `b`'s probabilities and labels, marks it done and counts it in `out`.
+    fn put(
+        &self,
+        b: &Brick,
+        r: &BrickResult,
+        out: &mut PredictOutput,
+    ) -> neuvolex_tasks::Result<()> {
+        self.proba.write_brick(b, &r.proba)?;
+        let lab: Vec<f32> = r.labels.iter().map(|&l| l as f32).collect();
+        self.labels.write_brick(b, &lab)?;
+        self.proba.mark_done(b)?;
+        self.labels.mark_done(b)?;
+        if r.skipped {
+            out.empty += 1;
+        } else {
+            out.predicted += 1;
+            out.voxels += b.voxels() as u64;
+            out.feature_seconds += r.feature_seconds;
+            out.predict_seconds += r.predict_seconds;
+        }
+        Ok(())
     }
 }
 
@@ -742,7 +800,12 @@ pub fn classify_scribbles_on<E: Executor + ?Sized>(
     };
     let pred = match accel {
         Some(a) => {
-            let p = a.prepare(store_arc.clone(), &set, &forest, cfg.tau)?;
+            let p = a.prepare(
+                store_arc.clone(),
+                &set,
+                &forest,
+                &crate::accel::AccelOptions::tau(cfg.tau),
+            )?;
             tracing::info!(
                 adapter = %a.describe(),
                 features = %set,
@@ -756,7 +819,12 @@ pub fn classify_scribbles_on<E: Executor + ?Sized>(
     let stage = PredictStage::new(params, src, forest_bytes)?
         .with_memo(memo)
         .with_predictor(pred);
-    let tasks = neuvolex_tasks::plan(&pending, req.bricks_per_task, 0);
+    // An accelerator gets bricks in runs long enough for its stream to overlap and group them.
+    let per = match &gpu {
+        Some(_) => req.bricks_per_task.max(crate::accel::STREAM_BRICKS),
+        None => req.bricks_per_task,
+    };
+    let tasks = neuvolex_tasks::plan(&pending, per, 0);
     let t = Instant::now();
     let (outs, run) = execute_ordered(exec, &stage, &tasks, progress)
         .map_err(|e| ClassifyError::Input(e.to_string()))?;
@@ -993,7 +1061,7 @@ fn assemble_labels(store: &BrickStore, va: &VectorArray) -> Result<Vec<u16>, Cla
 }
 
 /// Voxels per label of a label image, counted in parallel.
-fn label_counts(labels: &[u16]) -> BTreeMap<u16, u64> {
+pub(crate) fn label_counts(labels: &[u16]) -> BTreeMap<u16, u64> {
     let hist = labels
         .par_chunks(1 << 20)
         .map(|c| {

@@ -141,8 +141,9 @@ pub struct ClassifyArgs {
     /// Write a JSON report here.
     #[arg(long)]
     pub report: Option<PathBuf>,
-    /// Predict on the GPU: the filter bank and the forest per brick in this process (feature
-    /// sets filters+xyz and filters; not with --cluster), writing the same probabilities and
+    /// Predict on the GPU: the filter bank and the forest in this process, bricks streamed in
+    /// blocks through a ring within a 2 GiB GPU memory budget (feature sets filters+xyz and
+    /// filters; not with --cluster), writing the same probabilities and
     /// labels as the CPU, the default and the reference. An error where no GPU adapter (or
     /// Mesa's software lavapipe) exists, or in a build without the `gpu` feature.
     #[arg(long)]

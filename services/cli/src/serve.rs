@@ -70,8 +70,10 @@ pub struct ServeArgs {
     /// opens find the features ready; 0 turns it off.
     #[arg(long, default_value_t = 4.0)]
     feature_store_gib: f64,
-    /// Engines of the INR trainer and the renderer: cpu, gpu (any adapter, software ones
-    /// included) or auto (a hardware GPU where one exists). GPU needs `--features gpu`.
+    /// Engines of the INR trainer, the renderer and the sessions' classification rounds (the
+    /// filter bank and the forest, for the filters+xyz and filters feature sets): cpu, gpu (any
+    /// adapter, software ones included) or auto (a hardware GPU where one exists). The log's
+    /// `engines` line says which run where. GPU needs `--features gpu`.
     #[arg(long, default_value = "auto")]
     backend: String,
     #[command(flatten)]

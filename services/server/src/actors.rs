@@ -262,6 +262,11 @@ impl Actors {
         &self.compute.info
     }
 
+    /// Where sessions' rounds predict ([`crate::compute::Compute::accel`]).
+    pub fn accelerator(&self) -> Option<Arc<dyn neuvolex_classify::accel::Accelerator>> {
+        self.compute.accel.clone()
+    }
+
     /// [`Actors::start`] with the trainer and renderer on `compute`'s engines, and
     /// classification and viewpoints on `cluster`'s workers when one is given.
     pub fn start_with(

@@ -4,6 +4,7 @@
 use crate::error::{ApiError, ApiResult};
 use neuvolex_bricks::synth::{palette, ClassInfo};
 use neuvolex_bricks::{BrickStore, Normaliser};
+use neuvolex_classify::accel::{AccelOptions, Accelerator, BrickPredictor};
 use neuvolex_classify::features::{BrickFeatures, FeatureSet};
 use neuvolex_classify::persist::PersistedFeatures;
 use neuvolex_classify::pipeline::{
@@ -128,6 +129,9 @@ pub struct Status {
     pub message: String,
     /// Feature set used.
     pub features: String,
+    /// Where the round's bricks were predicted: `cpu`, `gpu`, `cluster`, or `gpu+cpu` (the
+    /// GPU failed during the round and the CPU finished it).
+    pub engine: String,
 }
 
 /// One opened volume.
@@ -210,6 +214,9 @@ pub struct Session {
     pub render_owner: u64,
     /// Bytes of probabilities this session has reserved in [`Self::memory`].
     probs_reserved: Mutex<usize>,
+    /// Where rounds predict when not on a cluster: the server's GPU ([`Self::set_accelerator`];
+    /// `None`, the CPU forest).
+    accel: RwLock<Option<Arc<dyn Accelerator>>>,
 }
 
 type ModelBlob = (u64, String, Arc<Vec<u8>>);
@@ -314,7 +321,21 @@ impl Session {
             memory: memory.clone(),
             render_owner,
             probs_reserved: Mutex::new(0),
+            accel: RwLock::new(None),
         })
+    }
+
+    /// Predicts this session's rounds on `accel` (the server's GPU: the filter bank and the
+    /// forest per block of bricks, streamed), for the feature sets it computes; `None` (the
+    /// default), or a set it does not compute, predicts on the CPU as before. A round the
+    /// accelerator fails finishes on the CPU.
+    pub fn set_accelerator(&self, accel: Option<Arc<dyn Accelerator>>) {
+        *self.accel.write().unwrap_or_else(|p| p.into_inner()) = accel;
+    }
+
+    /// The accelerator rounds predict on, if any.
+    pub fn accelerator(&self) -> Option<Arc<dyn Accelerator>> {
+        self.accel.read().unwrap_or_else(|p| p.into_inner()).clone()
     }
 
     /// Gives back what this session holds in the server's memory (it was closed): its
@@ -910,6 +931,7 @@ impl Session {
             s.state = "classifying".into();
             s.done = 0;
             s.total = total;
+            s.engine = if cluster.is_some() { "cluster" } else { "cpu" }.into();
         });
         let (model_id, model_bytes) = match (&model, cluster) {
             (Some((v, m)), Some(_)) => {
@@ -943,6 +965,72 @@ impl Session {
             spec,
             model_bytes,
         };
+        let mut done = 0usize;
+        let mut cancelled = false;
+        // Each brick's probabilities as they arrive: shown at once (false: a newer round began).
+        let mut deliver = |bi: [usize; 3], u8s: Vec<u8>| -> bool {
+            {
+                let mut p = self.probs.write().unwrap_or_else(|p| p.into_inner());
+                if p.generation != generation {
+                    cancelled = true;
+                    return false;
+                }
+                p.bricks.insert(bi, Arc::new(u8s));
+            }
+            self.dirty
+                .lock()
+                .unwrap_or_else(|p| p.into_inner())
+                .insert(bi);
+            done += 1;
+            let n = done;
+            self.set_status(|s| s.done = n);
+            on_brick(bi, n, total);
+            true
+        };
+        // On the GPU where the server has one and it computes this feature set (not on a
+        // cluster): the filter bank and the forest per block of bricks, streamed; the features
+        // are rounded through f16 as the cache holds them, so the forest sees what it was
+        // trained on. What it does not finish (a device error) goes to the CPU below.
+        let (mut bricks, mut stopped) = (bricks, false);
+        if let Some(a) = cluster.is_none().then(|| self.accelerator()).flatten() {
+            let opts = AccelOptions {
+                tau: 0.0,
+                f16_features: true,
+            };
+            match a.prepare(self.store.clone(), &set, &forest, &opts) {
+                Ok(p) => {
+                    self.set_status(|s| s.engine = "gpu".into());
+                    let t = std::time::Instant::now();
+                    match self.predict_on(p.as_ref(), &bricks, &ts.labels, generation, &mut deliver)
+                    {
+                        Ok(left) => {
+                            tracing::debug!(
+                                session = %self.id,
+                                adapter = %a.describe(),
+                                seconds = t.elapsed().as_secs_f64(),
+                                stopped = left.is_none(),
+                                "predicted on the GPU"
+                            );
+                            stopped = left.is_none();
+                            bricks = left.unwrap_or_default();
+                        }
+                        Err((left, e)) => {
+                            tracing::warn!(
+                                session = %self.id,
+                                "GPU classification failed ({e}); the round finishes on the CPU"
+                            );
+                            self.set_status(|s| s.engine = "gpu+cpu".into());
+                            bricks = left;
+                        }
+                    }
+                }
+                Err(e) => tracing::debug!(
+                    session = %self.id,
+                    features = %set,
+                    "not on the GPU ({e}); the CPU forest predicts"
+                ),
+            }
+        }
         let hook: Option<FeatureHook<'_>> = match cluster {
             Some(_) => None,
             None => Some(Box::new(|b: &neuvolex_bricks::Brick| {
@@ -959,32 +1047,18 @@ impl Session {
         let tasks = neuvolex_tasks::plan(&bricks, per, 0);
         let me = self.clone();
         let poll: CancelPoll = Arc::new(move || !me.current(generation));
-        let mut done = 0usize;
-        let mut cancelled = false;
         let mut on = |e: Event<Vec<([usize; 3], Vec<u8>)>>| {
             let Event::Done(d) = e else { return };
             for (bi, u8s) in d.output {
-                {
-                    let mut p = self.probs.write().unwrap_or_else(|p| p.into_inner());
-                    if p.generation != generation {
-                        cancelled = true;
-                        return;
-                    }
-                    p.bricks.insert(bi, Arc::new(u8s));
+                if !deliver(bi, u8s) {
+                    return;
                 }
-                self.dirty
-                    .lock()
-                    .unwrap_or_else(|p| p.into_inner())
-                    .insert(bi);
-                done += 1;
-                let n = done;
-                self.set_status(|s| s.done = n);
-                on_brick(bi, n, total);
             }
         };
-        let run = match cluster {
-            Some(c) => c.with_cancel(poll).execute(&stage, &tasks, &mut on),
-            None => LocalExecutor::new()
+        let run = match (cluster, bricks.is_empty()) {
+            (_, true) => Ok(neuvolex_tasks::RunReport::default()),
+            (Some(c), false) => c.with_cancel(poll).execute(&stage, &tasks, &mut on),
+            (None, false) => LocalExecutor::new()
                 .labelled("actors")
                 .with_cancel(poll)
                 .execute(&stage, &tasks, &mut on),
@@ -996,7 +1070,7 @@ impl Session {
                 d.bricks, d.error
             )));
         }
-        let cancelled = cancelled || run.cancelled;
+        let cancelled = cancelled || run.cancelled || stopped;
         let predicted = t0.elapsed().as_secs_f64();
         if !cancelled {
             self.refresh_prior()?;
@@ -1011,6 +1085,66 @@ impl Session {
         }
         self.set_status(|s| s.state = if cancelled { "cancelled" } else { "done" }.into());
         Ok(done)
+    }
+
+    /// Predicts the bricks `order` (indices, in the round's order) on `pred` and gives each
+    /// brick's u8 probabilities to `deliver`: empty bricks at once as certain background (as
+    /// [`ProbaStage`] gives them), the others streamed through the accelerator. `Ok(Some)` with
+    /// the bricks left to predict elsewhere (none when all went well), `Ok(None)` when a newer
+    /// round stopped it; `Err` with the bricks not given yet and the accelerator's error.
+    #[allow(clippy::type_complexity)]
+    fn predict_on(
+        &self,
+        pred: &dyn BrickPredictor,
+        order: &[[usize; 3]],
+        labels: &[u32],
+        generation: u64,
+        deliver: &mut dyn FnMut([usize; 3], Vec<u8>) -> bool,
+    ) -> Result<Option<Vec<[usize; 3]>>, (Vec<[usize; 3]>, neuvolex_classify::ClassifyError)> {
+        let c = labels.len();
+        let bg = labels.iter().position(|&l| l == BACKGROUND);
+        let mut occupied = Vec::with_capacity(order.len());
+        for (i, &bi) in order.iter().enumerate() {
+            let b = self
+                .store
+                .brick(bi)
+                .map_err(|e| (order[i..].to_vec(), e.into()))?;
+            if self.store.is_occupied(&b, None) {
+                occupied.push(b);
+                continue;
+            }
+            let mut v = vec![0u8; b.voxels() * c];
+            if let Some(k) = bg {
+                for px in v.chunks_exact_mut(c) {
+                    px[k] = 255;
+                }
+            }
+            if !deliver(bi, v) {
+                return Ok(None);
+            }
+        }
+        let mut given = BTreeSet::new();
+        let mut stopped = false;
+        let r = pred.predict_stream(&occupied, &mut |b, a| {
+            // A render in flight goes first; a newer round stops this one.
+            self.memory.yield_to_renders();
+            if !self.current(generation) || !deliver(b.index, a.probs) {
+                stopped = true;
+                return false;
+            }
+            given.insert(b.index);
+            true
+        });
+        let left: Vec<[usize; 3]> = occupied
+            .iter()
+            .map(|b| b.index)
+            .filter(|i| !given.contains(i))
+            .collect();
+        match r {
+            _ if stopped => Ok(None),
+            Ok(()) => Ok(Some(left)),
+            Err(e) => Err((left, e)),
+        }
     }
 
     /// The render source over this session's store and streamed probabilities.

@@ -26,10 +26,10 @@ async function loadVolumes() {
 async function loadBackend() {
   try {
     const b = await api("GET", "/api/backend");
-    const gpu = b.train === "gpu" || b.render === "gpu";
+    const gpu = b.train === "gpu" || b.render === "gpu" || b.classify === "gpu";
     const e = $("engines");
     e.textContent = gpu ? `GPU${b.software ? " (software)" : ""}: ${b.adapter}` : "CPU";
-    e.title = `INR training: ${b.train}, rendering: ${b.render} (requested: ${b.requested}${b.gpu_build ? "" : "; this build has no GPU engines"})`;
+    e.title = `INR training: ${b.train}, rendering: ${b.render}, classification: ${b.classify} (requested: ${b.requested}${b.gpu_build ? "" : "; this build has no GPU engines"})`;
     e.style.background = gpu ? "#1f4d2b" : "#333";
     e.style.color = gpu ? "#9e9" : "#aaa";
   } catch (_) { $("engines").textContent = "engines unknown"; }

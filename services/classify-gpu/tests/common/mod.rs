@@ -49,6 +49,22 @@ pub fn phantom(dims: [usize; 3], noise: f32, seed: u64) -> (Vec<f32>, Vec<u8>) {
     (v, l)
 }
 
+/// Labels as class indices in order of first appearance, and the number of classes.
+pub fn class_indices(lab: &[u8]) -> (Vec<u16>, usize) {
+    let mut seen: Vec<u8> = Vec::new();
+    let y = lab
+        .iter()
+        .map(|l| match seen.iter().position(|s| s == l) {
+            Some(k) => k as u16,
+            None => {
+                seen.push(*l);
+                seen.len() as u16 - 1
+            }
+        })
+        .collect();
+    (y, seen.len())
+}
+
 /// Relative tolerance of the smoothed channels (Gaussian, LoG, gradient magnitude, DoG).
 pub const REL: f32 = 2e-5;
 /// Relative tolerance of the eigenvalue channels (f32 closed form against f64), of the largest

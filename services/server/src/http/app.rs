@@ -463,6 +463,7 @@ impl AppState {
             &self.memory,
             n,
         );
+        s.set_accelerator(self.actors.accelerator());
         self.sessions
             .write()
             .unwrap_or_else(|p| p.into_inner())
