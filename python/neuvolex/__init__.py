@@ -374,8 +374,11 @@ class Session:
     them: each :meth:`classify` holds to the labels this session's previous round gave
     (the stability rule of ``neuvolex_classify::stable``: beyond ``DEFAULTS["margin"]`` voxels
     of the strokes added since, a voxel keeps its label unless the new probabilities prefer
-    the change by ``delta``), and the features it computed are kept for the next rounds, so a
-    round after the first costs the forest and the prediction only.
+    the change by ``delta``), and the features it computed are kept for the next rounds (in
+    half precision, as the browser's service keeps them), so a round after the first costs the
+    forest and the prediction only. Rounds run in memory and write nothing into the store:
+    :meth:`suggest_slice` reads the session's last round, and :meth:`Store.add_labels` or
+    :meth:`Store.export` with ``labels=`` save its labels.
 
     Made by :meth:`Store.session`; saved with :meth:`save` and restored with :meth:`load`.
     Only this object's own rounds count: :meth:`Store.classify` never holds to anything.
@@ -424,10 +427,14 @@ class Session:
         probabilities: bool = True,
         progress: Progress = None,
     ) -> tuple[np.ndarray, Optional[np.ndarray]]:
-        """One round: :meth:`Store.classify` with the same arguments and results, except that
-        when these scribbles keep every scribble of this session's previous round and add more,
-        with the same settings and model, the labels beyond the margin of the added strokes
-        hold to that round's (``self.last_report["voxels_held"]`` counts them)."""
+        """One round: :meth:`Store.classify` with the same arguments and result types, on the
+        kept features rounded to half precision (float16) and with the probabilities in steps
+        of 1/255 (the values ``Store.classify`` returns too); so a label may differ from
+        ``Store.classify``'s where rounding a feature moves it across a split. When these
+        scribbles keep every scribble of this session's previous round and add more, with the
+        same settings and model, the labels beyond the margin of the added strokes hold to
+        that round's (``self.last_report["voxels_held"]`` counts them). Nothing is written into
+        the store (unlike :meth:`Store.classify`)."""
         args = _settings(features, prior, trees, seed, tau, min_split, class_weight, background, prior_mass, prior_grow)
         out = _call(progress, "classify", self._native.classify, scribbles, *args, bool(probabilities))
         labels, proba = self.store._unpack(out)
@@ -456,6 +463,14 @@ class Session:
             scribbles, a, int(index), args[0], args[2], args[3], args[4], args[5], args[6], args[7]
         )
         return flat.reshape(h, w)
+
+    def suggest_slice(self, axis: Union[str, int] = "z", visited: Iterable[int] = ()) -> Optional[int]:
+        """:meth:`Store.suggest_slice` under this session's last round: the slice along
+        ``axis`` where its probabilities are most doubtful, away from ``visited`` slices;
+        ``None`` before any round."""
+        a = _check_axis(axis, 0)
+        s = self._native.suggest_slice(a, [int(v) for v in visited])
+        return None if s is None else int(s[0])
 
     def reset(self) -> None:
         """Forgets the last round: the next one holds to nothing (the kept features stay)."""

@@ -133,7 +133,7 @@ class Store:
     ) -> npt.NDArray[np.uint8]: ...
 
 class Session:
-    """Interactive rounds on a store: the stability rule and kept features."""
+    """Interactive rounds on a store, in memory: the stability rule and kept (f16) features."""
 
     def __init__(self, store: Store, delta: Optional[float] = None, cache_bytes: int = 1 << 30) -> None: ...
     @property
@@ -171,6 +171,7 @@ class Session:
         class_weight: str,
         background: int,
     ) -> tuple[npt.NDArray[np.uint16], list[int]]: ...
+    def suggest_slice(self, axis: str = "z", visited: Sequence[int] = ()) -> Optional[tuple[int, float]]: ...
     def history(
         self,
     ) -> Optional[

@@ -15,6 +15,7 @@ use arrays::{ScribbleArray, VolumeArray};
 use neuvolex_bricks::{BrickStore, Progress};
 use neuvolex_classify::features::{BrickFeatures, FeatureSet};
 use neuvolex_classify::pipeline::{self, ClassifyRequest, FeatureSpec, OpenedFeatures};
+use neuvolex_classify::round::{self, KeptFeatures, RoundRequest};
 use neuvolex_classify::{ClassWeight, ClassifyConfig, PriorConfig, SliceMass};
 use neuvolex_formats::VolumeMeta;
 use neuvolex_render::{BrickSource, Camera, Mode, RenderParams, Renderer, StoreSource, TfFile};
@@ -629,7 +630,7 @@ impl Store {
             prior_grow,
         )?;
         let scr = ScribbleArray::extract(scribbles, "scribbles", self.store.info().dims)?;
-        let o = self.run_classify(py, scr, &s, probabilities, None, None, progress)?;
+        let o = self.run_classify(py, scr, &s, probabilities, progress)?;
         Ok(o.into_py(py))
     }
 
@@ -983,7 +984,6 @@ struct Outcome {
     proba: Option<Vec<f32>>,
     classes: Vec<u32>,
     report: String,
-    shown: Shown,
 }
 
 impl Outcome {
@@ -1031,54 +1031,6 @@ fn probabilities_last(store: &BrickStore) -> Result<Vec<f32>, WorkError> {
     Ok(out)
 }
 
-/// Feature bricks a [`Session`] keeps between its rounds, in f32 (so a round gives what a
-/// fresh computation gives), up to a byte budget: once full it keeps no more.
-struct Memo {
-    map: std::sync::Mutex<std::collections::HashMap<MemoKey, Arc<Vec<f32>>>>,
-    used: std::sync::atomic::AtomicUsize,
-    budget: usize,
-}
-
-/// A memo entry: the feature set and model, and the brick's origin and size.
-type MemoKey = (String, [usize; 3], [usize; 3]);
-
-impl Memo {
-    fn new(budget: usize) -> Self {
-        Memo {
-            map: Default::default(),
-            used: Default::default(),
-            budget,
-        }
-    }
-
-    /// The memo of the features named `key` (feature set and model identity).
-    fn for_key(self: &Arc<Self>, key: String) -> neuvolex_classify::FeatureMemo {
-        use std::sync::atomic::Ordering;
-        let memo = self.clone();
-        Arc::new(move |b, compute| {
-            let k = (key.clone(), b.origin, b.size);
-            if let Some(v) = memo.map.lock().ok().and_then(|m| m.get(&k).cloned()) {
-                return Ok(v.as_ref().clone());
-            }
-            let v = compute()?;
-            let cost = v.len() * 4;
-            if memo.used.load(Ordering::SeqCst) + cost <= memo.budget {
-                if let Ok(mut m) = memo.map.lock() {
-                    if m.insert(k, Arc::new(v.clone())).is_none() {
-                        memo.used.fetch_add(cost, Ordering::SeqCst);
-                    }
-                }
-            }
-            Ok(v)
-        })
-    }
-
-    /// Bytes of features kept.
-    fn used(&self) -> usize {
-        self.used.load(std::sync::atomic::Ordering::SeqCst)
-    }
-}
-
 impl Store {
     /// The identity of the model `set` reads ('' when it needs none).
     fn model_key(&self, set: &FeatureSet) -> Result<String, WorkError> {
@@ -1087,22 +1039,17 @@ impl Store {
         }))
     }
 
-    /// Runs the `neuvolex classify` pipeline on `scr` with settings `s`; with `hold` (the
-    /// result shown last and the rule's settings), holds to it when it was made with the same
-    /// settings and model ([`neuvolex_classify::stable`], through the pipeline's
-    /// [`ClassifyRequest::hold`]); with `memo`, keeps and reuses feature bricks.
-    #[allow(clippy::too_many_arguments)]
+    /// Runs the `neuvolex classify` pipeline on `scr` with settings `s` (its outputs written
+    /// into the store as its last classification).
     fn run_classify(
         &mut self,
         py: Python<'_>,
         scr: ScribbleArray,
         s: &Settings,
         probabilities: bool,
-        hold: Option<(&Shown, neuvolex_classify::StableConfig)>,
-        memo: Option<&Arc<Memo>>,
         progress: Option<&Bound<'_, PyAny>>,
     ) -> PyResult<Outcome> {
-        let mut req = ClassifyRequest {
+        let req = ClassifyRequest {
             store: self.location.clone(),
             scribbles: PathBuf::from("scribbles"),
             features: s.set.clone(),
@@ -1116,19 +1063,8 @@ impl Store {
             hold: None,
             gpu: false,
         };
-        let (o, proba, store, key, scr) = detached(py, progress, |ctl| {
+        let (o, proba, store) = detached(py, progress, |ctl| {
             let scr = scr.scribbles();
-            let model = self.model_key(&req.features)?;
-            let key = format!("{}|{model}", s.key);
-            req.hold = hold
-                .filter(|(shown, _)| shown.key == key)
-                .map(|(shown, config)| neuvolex_classify::stable::Hold {
-                    scribbles: shown.scribbles.clone(),
-                    labels: shown.labels.clone(),
-                    config,
-                    verdicts: shown.verdicts.clone(),
-                });
-            let memo = memo.map(|m| m.for_key(format!("{}|{model}", req.features)));
             // An earlier call stopped half way (Ctrl-C) left pending outputs of its own
             // scribbles: a new call starts over instead of being refused.
             for name in [pipeline::PROBA, pipeline::LABELS] {
@@ -1136,22 +1072,17 @@ impl Store {
                     .discard_pending_vectors(name)
                     .map_err(|e| WorkError::bricks(&e))?;
             }
-            let o = pipeline::classify_scribbles_memo(
-                &req,
-                scr.clone(),
-                memo,
-                &executor(ctl),
-                &mut task_progress(ctl),
-            )
-            .map_err(|e| match e {
-                // The "file" of in-memory scribbles is the caller's argument.
-                neuvolex_classify::ClassifyError::File { ref path, .. }
-                    if *path == req.scribbles =>
-                {
-                    WorkError::value(e)
-                }
-                e => WorkError::classify(&e),
-            })?;
+            let o =
+                pipeline::classify_scribbles(&req, scr, &executor(ctl), &mut task_progress(ctl))
+                    .map_err(|e| match e {
+                        // The "file" of in-memory scribbles is the caller's argument.
+                        neuvolex_classify::ClassifyError::File { ref path, .. }
+                            if *path == req.scribbles =>
+                        {
+                            WorkError::value(e)
+                        }
+                        e => WorkError::classify(&e),
+                    })?;
             if !o.dead.is_empty() || o.labels.is_empty() {
                 return Err(WorkError::Other(if ctl.cancelled() {
                     "classification cancelled".into()
@@ -1166,18 +1097,12 @@ impl Store {
             } else {
                 None
             };
-            Ok((o, proba, store, key, scr))
+            Ok((o, proba, store))
         })?;
         self.store = Arc::new(store);
         let report = serde_json::to_string(&o.report)
             .map_err(|e| run::raise(py, "NeuvolexRuntimeError", e.to_string()))?;
         Ok(Outcome {
-            shown: Shown {
-                key,
-                scribbles: scr,
-                labels: o.labels.clone(),
-                verdicts: o.verdicts.clone(),
-            },
             classes: o.report.labels.clone(),
             labels: o.labels,
             proba,
@@ -1196,7 +1121,7 @@ impl Store {
         index: usize,
         features: &str,
         config: ClassifyConfig,
-        memo: Option<&Arc<Memo>>,
+        memo: Option<&Arc<KeptFeatures>>,
     ) -> PyResult<(Bound<'py, numpy::PyArray1<u16>>, [usize; 2])> {
         let a = axis_index(axis)?;
         let dims = self.store.info().dims;
@@ -1212,7 +1137,7 @@ impl Store {
             let src = self.features_of(&set)?;
             let mut fx = src.features().map_err(|e| WorkError::classify(&e))?;
             if let Some(m) = memo {
-                fx.set_memo(Some(m.for_key(format!("{set}|{}", self.model_key(&set)?))));
+                fx.set_memo(Some(m.memo(format!("{set}|{}", self.model_key(&set)?))));
             }
             let scr = scr.scribbles();
             let cancel = ctl.cancel.clone();
@@ -1228,14 +1153,17 @@ impl Store {
     }
 }
 
-/// A series of interactive rounds on one store: each `classify` holds to the labels the
-/// session showed last with the stability rule of [`neuvolex_classify::stable`] (through the
-/// pipeline's `hold`), and the feature bricks it computed are kept for the next rounds.
+/// A series of interactive rounds on one store, run in memory ([`neuvolex_classify::round`]):
+/// each `classify` holds to the labels the session showed last with the stability rule of
+/// [`neuvolex_classify::stable`], the feature bricks it computed are kept (f16) for the next
+/// rounds, and nothing is written into the store.
 #[pyclass(module = "neuvolex._native")]
 struct Session {
     store: Py<Store>,
-    memo: Arc<Memo>,
+    kept: Arc<KeptFeatures>,
     shown: Option<Shown>,
+    /// The last round's u8 probabilities (voxel-major) and their channels.
+    proba: Option<(Vec<u8>, usize)>,
     rule: neuvolex_classify::StableConfig,
 }
 
@@ -1255,8 +1183,9 @@ impl Session {
         }
         Ok(Session {
             store,
-            memo: Arc::new(Memo::new(cache_bytes)),
+            kept: Arc::new(KeptFeatures::new(cache_bytes)),
             shown: None,
+            proba: None,
             rule,
         })
     }
@@ -1276,11 +1205,13 @@ impl Session {
     /// Bytes of feature bricks kept.
     #[getter]
     fn cached_bytes(&self) -> usize {
-        self.memo.used()
+        self.kept.used()
     }
 
-    /// One round: [`Store::classify`], holding to the labels of the session's last round
-    /// when the scribbles extend its scribbles and the settings and model are the same.
+    /// One round, in memory ([`neuvolex_classify::round`]): [`Store::classify`]'s forest,
+    /// labels, prior and report on the kept features rounded to f16, the probabilities in u8
+    /// steps, holding to the labels of the session's last round when the scribbles extend its
+    /// scribbles and the settings and model are the same; nothing is written into the store.
     #[pyo3(signature = (scribbles, features, prior, trees, seed, tau, min_split, class_weight,
         background, prior_mass, prior_grow, probabilities, progress=None))]
     #[allow(clippy::too_many_arguments)]
@@ -1313,20 +1244,82 @@ impl Session {
             prior_mass,
             prior_grow,
         )?;
-        let mut store = self.store.bind(py).try_borrow_mut()?;
+        let store = self.store.bind(py).try_borrow()?;
         let scr = ScribbleArray::extract(scribbles, "scribbles", store.store.info().dims)?;
-        let hold = self.shown.as_ref().map(|sh| (sh, self.rule));
-        let o = store.run_classify(py, scr, &s, probabilities, hold, Some(&self.memo), progress)?;
+        let st: &Store = &store;
+        let (shown, rule, kept) = (self.shown.as_ref(), self.rule, &self.kept);
+        let (r, key, scr) = detached(py, progress, |ctl| {
+            let src = st.features_of(&s.set)?;
+            let model = src
+                .model
+                .as_deref()
+                .map_or_else(String::new, neuvolex_features::stage::model_identity);
+            let key = format!("{}|{model}", s.key);
+            // The last round, when made with these settings and model (the rule checks that
+            // the scribbles extend its scribbles).
+            let hold = shown
+                .filter(|sh| sh.key == key)
+                .map(|sh| neuvolex_classify::stable::Hold {
+                    scribbles: sh.scribbles.clone(),
+                    labels: sh.labels.clone(),
+                    config: rule,
+                    verdicts: sh.verdicts.clone(),
+                });
+            let fx = src.features().map_err(|e| WorkError::classify(&e))?;
+            let scr = scr.scribbles();
+            let req = RoundRequest {
+                scribbles: &scr,
+                config: &s.config,
+                prior: s.prior,
+                hold: hold.as_ref(),
+            };
+            let cancel = ctl.cancel.clone();
+            let r = round::classify_round(
+                &fx,
+                kept,
+                &format!("{}|{model}", s.set),
+                &req,
+                &move || cancel.load(std::sync::atomic::Ordering::SeqCst),
+                &|done, total| ctl.progress(done as u64, total as u64, "classify"),
+            )
+            .map_err(|e| WorkError::classify(&e))?;
+            Ok((r, key, scr))
+        })?;
         drop(store);
-        let Outcome {
-            labels,
-            proba,
-            classes,
-            report,
-            shown,
-        } = o;
-        self.shown = Some(shown);
-        Ok(Outcome::py_values(py, labels, proba, classes, report))
+        let report = serde_json::to_string(&r.report)
+            .map_err(|e| run::raise(py, "NeuvolexRuntimeError", e.to_string()))?;
+        let classes = r.report.labels.clone();
+        // The probabilities as the pipeline stores and `Store.classify` returns them.
+        let proba = probabilities.then(|| r.proba.iter().map(|&q| q as f32 / 255.0).collect());
+        self.shown = Some(Shown {
+            key,
+            scribbles: scr,
+            labels: r.labels.clone(),
+            verdicts: Some(r.verdicts),
+        });
+        self.proba = Some((r.proba, classes.len()));
+        Ok(Outcome::py_values(py, r.labels, proba, classes, report))
+    }
+
+    /// The most doubtful slice along `axis` (`x`, `y` or `z`) under the probabilities of the
+    /// session's last round, skipping near `visited`: `(index, score)`, or `None` before any.
+    #[pyo3(signature = (axis="z", visited=Vec::new()))]
+    fn suggest_slice(
+        &self,
+        py: Python<'_>,
+        axis: &str,
+        visited: Vec<usize>,
+    ) -> PyResult<Option<(usize, f64)>> {
+        let a = axis_index(axis)?;
+        let dims = self.store.bind(py).try_borrow()?.store.info().dims;
+        let Some((p, c)) = &self.proba else {
+            return Ok(None);
+        };
+        let c = *c;
+        detached(py, None, move |_| {
+            let mass = SliceMass::of_brick(dims, [0, 0, 0], dims, p, c);
+            Ok(mass.suggest(a, &visited).map(|s| (s.slice, s.share)))
+        })
     }
 
     /// [`Store::preview_slice`] through the session's kept features.
@@ -1356,7 +1349,7 @@ impl Session {
             index,
             features,
             config,
-            Some(&self.memo),
+            Some(&self.kept),
         )
     }
 

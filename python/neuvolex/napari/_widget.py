@@ -814,7 +814,9 @@ class NeuvolexWidget(QWidget):
             self._set_status("Busy: ask again when the running work ends.")
             return None
         try:
-            index = session.store.suggest_slice(axis="z", visited=tuple(session.visited))
+            # The session's last round (its rounds write nothing into the store).
+            source = getattr(session.rounds, "suggest_slice", session.store.suggest_slice)
+            index = source(axis="z", visited=tuple(session.visited))
         except Exception as exc:  # noqa: BLE001
             self._error("suggest slice failed", exc)
             return None

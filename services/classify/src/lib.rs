@@ -17,6 +17,7 @@ mod packed;
 pub mod persist;
 pub mod pipeline;
 pub mod preview;
+pub mod round;
 pub mod scribble;
 pub mod shard;
 pub mod stable;
