@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # The Python package: a venv under target/pyenv with what the Python and napari tests need
-# (maturin, pytest, pytest-qt, napari with PyQt5, nibabel, tqdm) and Xvfb, then the `neuvolex` wheel
+# (maturin, pytest, pytest-qt, napari with PyQt5, nibabel, tqdm, zarr: the napari reader test of
+# OME-Zarr written by zarr-python) and Xvfb, then the `neuvolex` wheel
 # built from python/ with maturin (release, against the workspace's target/) and installed.
 #   deploy/python.sh          set up (once) and build and install the wheel
 #   deploy/python.sh venv     only the venv
@@ -12,11 +13,11 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 py=target/pyenv/bin/python
-need="nibabel maturin pytest pytest-qt napari[pyqt5] tqdm"
+need="nibabel maturin pytest pytest-qt napari[pyqt5] tqdm zarr"
 if ! [ -x "$py" ]; then
   python3 -m venv target/pyenv
 fi
-if ! "$py" -c 'import nibabel, maturin, pytest, pytestqt, napari, tqdm' >/dev/null 2>&1; then
+if ! "$py" -c 'import nibabel, maturin, pytest, pytestqt, napari, tqdm, zarr' >/dev/null 2>&1; then
   echo "installing the Python test tools into target/pyenv (${need})"
   # shellcheck disable=SC2086
   "$py" -m pip install -q --disable-pip-version-check $need

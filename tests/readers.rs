@@ -294,3 +294,59 @@ fn ome_zarr_store_reads_back_through_the_reader() {
     assert_eq!(lm.dims, dims);
     assert_eq!(lback, labels);
 }
+
+/// An OME-Zarr 0.5 image as other writers make it (zarr-python and ome-zarr-py): the image's
+/// place given partly by its first level's transformations and partly by the multiscale's own
+/// (applied after the level's, as the NGFF specification says), and a chunk left unwritten
+/// because it holds only the fill value. The reader composes both transformations and reads
+/// the unwritten chunk as the fill value, where a neuvolex store (which writes every chunk)
+/// still calls it damage (`bad_input.rs`).
+#[test]
+fn a_foreign_ome_zarr_composes_its_transformations_and_fills_unwritten_chunks() {
+    let dir = tmp();
+    let dims = [16, 16, 16];
+    let vals: Vec<f64> = (0..dims.iter().product::<usize>())
+        .map(|i| (i % 200) as f64 + 1.0)
+        .collect();
+    let mut vol = MemVolume::from_f64(dims, DType::U8, &vals);
+    let store = dir.path().join("other.zarr");
+    let opts = neuvolex_ingest::IngestOptions {
+        brick: 8,
+        ..Default::default()
+    };
+    neuvolex_ingest::ingest(&mut vol, &store, &opts, &mut |_| {}).unwrap();
+    // Made foreign: no neuvolex attributes, the writer's own transformations, and the chunk of
+    // the first brick (x, y, z < 8) not written.
+    let zj = store.join("zarr.json");
+    let mut root: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&zj).unwrap()).unwrap();
+    let attrs = root["attributes"].as_object_mut().unwrap();
+    attrs.remove("neuvolex");
+    let ms = &mut root["attributes"]["ome"]["multiscales"][0];
+    ms["datasets"][0]["coordinateTransformations"] = serde_json::json!([
+        {"type": "scale", "scale": [2.0, 3.0, 4.0]},
+        {"type": "translation", "translation": [1.0, 2.0, 3.0]}
+    ]);
+    ms["coordinateTransformations"] = serde_json::json!([
+        {"type": "scale", "scale": [0.5, 2.0, 1.0]},
+        {"type": "translation", "translation": [10.0, 20.0, 30.0]}
+    ]);
+    std::fs::write(&zj, serde_json::to_string(&root).unwrap()).unwrap();
+    std::fs::remove_file(store.join("0/c.0.0.0")).unwrap();
+    let (m, back) = read_all_f64(&store, None);
+    // (z, y, x) scale (2, 3, 4) then (0.5, 2, 1); translation (1, 2, 3) scaled, plus (10, 20, 30).
+    assert_eq!(m.spacing, [4.0, 6.0, 1.0]);
+    assert_eq!(m.origin(), [33.0, 24.0, 10.5]);
+    let mut want = vals.clone();
+    for z in 0..8 {
+        for y in 0..8 {
+            for x in 0..8 {
+                want[(z * dims[1] + y) * dims[0] + x] = 0.0;
+            }
+        }
+    }
+    assert_eq!(
+        back, want,
+        "the unwritten chunk reads as the fill value, the rest as written"
+    );
+}

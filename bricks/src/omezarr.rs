@@ -219,6 +219,21 @@ pub fn check_chunks_exist(
     name: &str,
     subset: &[Range<u64>],
 ) -> Result<()> {
+    check_chunks(array, root, name, subset, true)
+}
+
+/// [`check_chunks_exist`] where `required` says whether an absent chunk is an error (a
+/// neuvolex store writes every chunk, so one missing means damage) or, as the Zarr
+/// specification has it, stands for the array's fill value (other writers, zarr-python among
+/// them, omit chunks that hold only the fill value); present chunks' sizes are checked either
+/// way.
+pub fn check_chunks(
+    array: &ZArray,
+    root: &Path,
+    name: &str,
+    subset: &[Range<u64>],
+    required: bool,
+) -> Result<()> {
     let chunks = array
         .chunks_in_array_subset(&subset.to_vec())
         .map_err(|e| BrickError::zarr(root, e))?
@@ -233,6 +248,9 @@ pub fn check_chunks_exist(
             .size_key(&key)
             .map_err(|e| BrickError::zarr(root, e))?;
         let Some(stored) = size else {
+            if !required {
+                continue;
+            }
             return Err(BrickError::MissingChunk {
                 path: root.to_path_buf(),
                 array: name.to_string(),
@@ -307,6 +325,8 @@ pub struct OmeZarrSource {
     array: ZArray,
     array_name: String,
     lead: usize,
+    /// A neuvolex store: every chunk must be there ([`check_chunks`]).
+    strict: bool,
 }
 
 impl OmeZarrSource {
@@ -317,6 +337,7 @@ impl OmeZarrSource {
         let backend = Backend::open(&location)?;
         let path = &location.as_path();
         let node = read_node(&backend, "")?;
+        let strict = node.pointer("/attributes/neuvolex").is_some();
         let storage = backend.zarr();
         let (array_path, spacing, origin) = match node.get("node_type").and_then(Value::as_str) {
             Some("array") => ("/".to_string(), [1.0; 3], [0.0; 3]),
@@ -367,26 +388,34 @@ impl OmeZarrSource {
                         ),
                     ));
                 }
-                let mut spacing = [1.0; 3];
-                let mut origin = [0.0; 3];
-                for t in ds
-                    .get("coordinateTransformations")
-                    .and_then(Value::as_array)
-                    .into_iter()
-                    .flatten()
-                {
-                    let key = t.get("type").and_then(Value::as_str).unwrap_or("");
-                    let vals: Vec<f64> = t
-                        .get(key)
-                        .and_then(Value::as_array)
-                        .map(|a| a.iter().filter_map(Value::as_f64).collect())
-                        .unwrap_or_default();
-                    if vals.len() >= 3 {
+                // The dataset's transformations, then the multiscale's own (which apply to
+                // every level after the level's), each a scale and a translation in order.
+                let (mut spacing, mut origin) = ([1.0; 3], [0.0; 3]);
+                for list in [ds, ms].map(|v| v.get("coordinateTransformations")) {
+                    for t in list.and_then(Value::as_array).into_iter().flatten() {
+                        let key = t.get("type").and_then(Value::as_str).unwrap_or("");
+                        let vals: Vec<f64> = t
+                            .get(key)
+                            .and_then(Value::as_array)
+                            .map(|a| a.iter().filter_map(Value::as_f64).collect())
+                            .unwrap_or_default();
+                        if vals.len() < 3 {
+                            continue;
+                        }
                         let n = vals.len();
                         let xyz = [vals[n - 1], vals[n - 2], vals[n - 3]];
                         match key {
-                            "scale" => spacing = xyz,
-                            "translation" => origin = xyz,
+                            "scale" => {
+                                for k in 0..3 {
+                                    spacing[k] *= xyz[k];
+                                    origin[k] *= xyz[k];
+                                }
+                            }
+                            "translation" => {
+                                for k in 0..3 {
+                                    origin[k] += xyz[k];
+                                }
+                            }
                             _ => {}
                         }
                     }
@@ -449,6 +478,7 @@ impl OmeZarrSource {
             array,
             array_name: array_path,
             lead,
+            strict,
         })
     }
 }
@@ -473,7 +503,13 @@ impl OmeZarrSource {
         subset.push(z0 as u64..(z0 + depth) as u64);
         subset.push(0..self.meta.dims[1] as u64);
         subset.push(0..self.meta.dims[0] as u64);
-        check_chunks_exist(&self.array, &self.path, &self.array_name, &subset)?;
+        check_chunks(
+            &self.array,
+            &self.path,
+            &self.array_name,
+            &subset,
+            self.strict,
+        )?;
         let bytes =
             read_bytes(&self.array, &subset).map_err(|e| BrickError::corrupt(&self.path, e))?;
         Ok(Slab {

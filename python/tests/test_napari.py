@@ -8,10 +8,13 @@ and is skipped when there is none.
 
 from __future__ import annotations
 
+import gzip
+import json
 import os
 import shutil
 import subprocess
 import threading
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -369,6 +372,280 @@ def test_dropping_an_ome_zarr_store_gives_its_image_and_label_images(make_napari
     np.testing.assert_array_equal(np.asarray(image.data), store.read().astype(np.int16))
     for layer in layers:
         np.testing.assert_allclose(layer.affine.affine_matrix, store.napari_affine)
+
+
+# -- NRRD as 3D Slicer writes it, and OME-Zarr as other tools write it -----------------------
+
+# NRRD's "space" -> the signs that take its coordinates to RAS+ (NIfTI's and nibabel's world).
+_TO_RAS = {"left-posterior-superior": np.array([-1.0, -1.0, 1.0]), "right-anterior-superior": np.ones(3)}
+_NRRD_TYPES = {"int16": "short", "uint8": "uchar", "uint16": "ushort", "float32": "float"}
+
+
+def _oblique_directions() -> np.ndarray:
+    """NRRD "space directions" (one row per voxel axis i, j, k): rotated about two axes,
+    voxels 0.7 x 0.9 x 2.0 mm, and a gantry-tilt-like shear of the third axis."""
+    a, b = np.deg2rad(25.0), np.deg2rad(-12.0)
+    rz = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
+    rx = np.array([[1, 0, 0], [0, np.cos(b), -np.sin(b)], [0, np.sin(b), np.cos(b)]])
+    r = rz @ rx
+    return np.array([0.7 * r[:, 0], 0.9 * r[:, 1], 2.0 * (r[:, 2] + 0.15 * r[:, 1])])
+
+
+def _write_nrrd(path: Path, data_zyx: np.ndarray, space: str, directions, origin, encoding: str = "raw", extra=()):
+    """An attached NRRD written by hand, as 3D Slicer writes one: x fastest, little-endian."""
+    nz, ny, nx = data_zyx.shape
+    vec = lambda v: "(" + ",".join(f"{float(c):.17g}" for c in v) + ")"  # noqa: E731
+    raw = np.ascontiguousarray(data_zyx, dtype=data_zyx.dtype.newbyteorder("<")).tobytes()
+    if encoding == "gzip":
+        raw = gzip.compress(raw)
+    header = [
+        "NRRD0004",
+        "# Complete NRRD file format specification at:",
+        "# http://teem.sourceforge.net/nrrd/format.html",
+        f"type: {_NRRD_TYPES[data_zyx.dtype.name]}",
+        "dimension: 3",
+        f"space: {space}",
+        f"sizes: {nx} {ny} {nz}",
+        "space directions: " + " ".join(vec(d) for d in directions),
+        "kinds: domain domain domain",
+        "endian: little",
+        f"encoding: {encoding}",
+        f"space origin: {vec(origin)}",
+        *extra,
+    ]
+    path.write_bytes(("\n".join(header) + "\n\n").encode("ascii") + raw)
+
+
+def _nrrd_ras(voxel_ijk, space: str, directions, origin) -> np.ndarray:
+    """Where the NRRD header puts voxel (i, j, k), in RAS+: origin + sum of index * direction
+    in the file's space, then to RAS+ (LPS flips x and y)."""
+    point = np.asarray(origin, float) + np.asarray(voxel_ijk, float) @ np.asarray(directions, float)
+    return point * _TO_RAS[space]
+
+
+@pytest.mark.parametrize("space", ["left-posterior-superior", "right-anterior-superior"])
+def test_dropping_an_oblique_nrrd_and_its_segmentation_gives_layers_on_the_headers_world(make_napari_viewer, tmp_path, space):
+    """viewer.open of an oblique NRRD (rotated, anisotropic, sheared, off-centre; LPS as 3D
+    Slicer writes it, or RAS) and of its segmentation (.seg.nrrd, gzip): each voxel lies at
+    the RAS+ point the header gives, in napari's reversed axes, as the NIfTI drops do."""
+    rng = np.random.default_rng(3)
+    shape = (6, 9, 11)  # z, y, x: k, j, i
+    image = rng.integers(-1000, 3000, shape).astype(np.int16)
+    image[2, 4, 3] = 1234  # voxel (i, j, k) = (3, 4, 2)
+    seg = np.zeros(shape, np.uint8)
+    seg[1:4, 2:7, 3:9] = 1
+    seg[4, 5, 7] = 2
+    directions = _oblique_directions()
+    origin = np.array([-85.25, 112.5, -40.75])
+    tag = "lps" if space.startswith("left") else "ras"
+    src, seg_src = tmp_path / f"oblique_{tag}.nrrd", tmp_path / f"oblique_{tag}.seg.nrrd"
+    _write_nrrd(src, image, space, directions, origin)
+    _write_nrrd(seg_src, seg, space, directions, origin, encoding="gzip",
+                extra=("Segment0_ID:=Segment_1", "Segment0_LabelValue:=1", "Segment1_ID:=Segment_2"))
+    viewer = make_napari_viewer(show=False)
+    (layer,) = viewer.open(str(src), plugin="neuvolex")
+    (labels,) = viewer.open(str(seg_src), plugin="neuvolex")
+    assert type(layer).__name__ == "Image" and type(labels).__name__ == "Labels"
+    assert layer.name == f"oblique_{tag}" and labels.name == f"oblique_{tag}.seg"
+    np.testing.assert_array_equal(np.asarray(layer.data), image)
+    np.testing.assert_array_equal(np.asarray(labels.data), seg)
+    assert np.asarray(layer.data)[2, 4, 3] == 1234 and np.asarray(labels.data)[4, 5, 7] == 2
+    nz, ny, nx = shape
+    voxels = [(0, 0, 0), (nx - 1, 0, 0), (0, ny - 1, 0), (0, 0, nz - 1), (nx - 1, ny - 1, nz - 1), (3, 4, 2)]
+    for lay in (layer, labels):
+        for v in voxels:
+            np.testing.assert_allclose(_world_of(lay, v), _nrrd_ras(v, space, directions, origin), atol=1e-4, err_msg=f"{lay.name} voxel {v}")
+    np.testing.assert_allclose(labels.affine.affine_matrix, layer.affine.affine_matrix, atol=1e-9)
+    # The reader's store has the same geometry (the widget classifies on it).
+    store = layer.metadata["neuvolex_store"]
+    np.testing.assert_allclose(store.napari_affine, layer.affine.affine_matrix, atol=1e-9)
+
+
+def _nhdr_fields(path: Path) -> dict:
+    fields = {}
+    for line in path.read_text().splitlines()[1:]:
+        if not line:
+            break
+        if line.startswith("#") or ":=" in line:
+            continue
+        key, value = line.split(": ", 1)
+        fields[key.strip()] = value.strip()
+    return fields
+
+
+def test_dropping_the_tooth_nhdr_gives_its_headers_grid_and_values(make_napari_viewer, data):
+    """The shared tooth (a detached NRRD header, big-endian 16-bit, spacings and no space):
+    the layer holds the raw file's values and lies on the header's grid."""
+    from conftest import need
+
+    nhdr = data / "tooth" / "tooth.nhdr"
+    need(str(nhdr), nhdr.exists())
+    fields = _nhdr_fields(nhdr)
+    nx, ny, nz = (int(n) for n in fields["sizes"].split())
+    spacing = np.array([float(s) for s in fields["spacings"].split()])  # x, y, z
+    assert fields["type"] == "unsigned short" and fields["endian"] == "big" and fields["encoding"] == "raw"
+    assert "space" not in fields and "space origin" not in fields
+    raw = np.fromfile(nhdr.parent / fields["data file"], dtype=">u2").reshape(nz, ny, nx)
+    viewer = make_napari_viewer(show=False)
+    (layer,) = viewer.open(str(nhdr), plugin="neuvolex")
+    assert type(layer).__name__ == "Image" and layer.name == "tooth"
+    assert layer.data.shape == (nz, ny, nx)
+    np.testing.assert_array_equal(np.asarray(layer.data), raw)
+    for v in ([0, 0, 0], [nx - 1, ny - 1, nz - 1], [nx - 1, 0, 0], [0, ny - 1, nz - 1], [51, 47, 80]):
+        np.testing.assert_allclose(_world_of(layer, v), np.asarray(v) * spacing, atol=1e-6)
+
+
+# An OME-Zarr 0.4 image (axes z, y, x in micrometres), as ome-zarr-py or zarr-python 2 write it.
+NGFF_SCALE = np.array([2.0, 0.5, 0.75])  # z, y, x at level 0
+NGFF_TRANSLATION = np.array([10.0, -5.0, 3.0])
+
+
+def _ngff_axes():
+    return [{"name": n, "type": "space", "unit": "micrometer"} for n in "zyx"]
+
+
+def _ngff_datasets(levels=2):
+    """Level k: 2^k-subsampled, its voxel centres where level 0's voxel 2^k * index lies."""
+    return [
+        {"path": str(k), "coordinateTransformations": [
+            {"type": "scale", "scale": (NGFF_SCALE * 2**k).tolist()},
+            {"type": "translation", "translation": NGFF_TRANSLATION.tolist()},
+        ]}
+        for k in range(levels)
+    ]
+
+
+def _label_datasets(levels=2):
+    """The label image's transformations written another way: unit dataset scale with a
+    translation in voxels, and the multiscale's own scale applied after them (NGFF 0.4
+    applies a dataset's transformations, then the multiscale's): the same world as the image."""
+    datasets = [
+        {"path": str(k), "coordinateTransformations": [
+            {"type": "scale", "scale": [2.0**k] * 3},
+            {"type": "translation", "translation": (NGFF_TRANSLATION / NGFF_SCALE).tolist()},
+        ]}
+        for k in range(levels)
+    ]
+    return datasets, [{"type": "scale", "scale": NGFF_SCALE.tolist()}]
+
+
+def _write_zarr_v2_array(folder: Path, data: np.ndarray, chunks, compressor=None, separator=None, skip_empty=False):
+    """A Zarr v2 array by hand: `.zarray`, and one file per chunk (edge chunks padded to the
+    full chunk shape, as Zarr v2 stores them)."""
+    folder.mkdir(parents=True)
+    meta = {"zarr_format": 2, "shape": list(data.shape), "chunks": list(chunks), "dtype": data.dtype.str,
+            "order": "C", "fill_value": 0, "filters": None,
+            "compressor": {"id": "zlib", "level": 1} if compressor == "zlib" else None}
+    if separator is not None:
+        meta["dimension_separator"] = separator
+    (folder / ".zarray").write_text(json.dumps(meta))
+    for index in np.ndindex(*[-(-s // c) for s, c in zip(data.shape, chunks)]):
+        part = data[tuple(slice(i * c, (i + 1) * c) for i, c in zip(index, chunks))]
+        if skip_empty and not part.any():
+            continue  # never written: readers take the fill value
+        block = np.zeros(chunks, data.dtype)
+        block[tuple(slice(0, n) for n in part.shape)] = part
+        raw = block.tobytes()
+        chunk = folder / (separator or ".").join(str(i) for i in index)
+        chunk.parent.mkdir(parents=True, exist_ok=True)
+        chunk.write_bytes(zlib.compress(raw) if compressor == "zlib" else raw)
+
+
+def _ngff_volumes():
+    z, y, x = np.indices((9, 11, 13))
+    image = (1000 + 100 * z + 10 * y + x).astype(np.uint16)
+    nuclei = np.zeros(image.shape, np.uint32)
+    nuclei[(z - 3) ** 2 + (y - 4) ** 2 + (x - 4) ** 2 <= 6] = 1
+    nuclei[5:8, 6:10, 8:12] = 7
+    return image, nuclei
+
+
+def _write_ngff_v2_by_hand(root: Path, image: np.ndarray, nuclei: np.ndarray) -> None:
+    root.mkdir()
+    (root / ".zgroup").write_text(json.dumps({"zarr_format": 2}))
+    (root / ".zattrs").write_text(json.dumps({"multiscales": [{
+        "version": "0.4", "name": "cells", "axes": _ngff_axes(), "datasets": _ngff_datasets(), "type": "subsample"}]}))
+    for k in range(2):
+        _write_zarr_v2_array(root / str(k), image[:: 2**k, :: 2**k, :: 2**k], (4, 5, 6), compressor="zlib")
+    labels = root / "labels"
+    labels.mkdir()
+    (labels / ".zgroup").write_text(json.dumps({"zarr_format": 2}))
+    (labels / ".zattrs").write_text(json.dumps({"labels": ["nuclei"]}))
+    (labels / "nuclei").mkdir()
+    (labels / "nuclei" / ".zgroup").write_text(json.dumps({"zarr_format": 2}))
+    datasets, outer = _label_datasets()
+    (labels / "nuclei" / ".zattrs").write_text(json.dumps({
+        "image-label": {"version": "0.4", "colors": [{"label-value": 1, "rgba": [255, 0, 0, 255]}]},
+        "multiscales": [{"version": "0.4", "name": "nuclei", "axes": _ngff_axes(), "datasets": datasets,
+                         "coordinateTransformations": outer}]}))
+    for k in range(2):
+        _write_zarr_v2_array(labels / "nuclei" / str(k), nuclei[:: 2**k, :: 2**k, :: 2**k], (4, 4, 4),
+                             separator="/", skip_empty=True)
+
+
+def _write_ngff_with_zarr_python(root: Path, image: np.ndarray, nuclei: np.ndarray, version: str) -> None:
+    """The same store written by zarr-python (its default compressors; empty chunks not
+    written): OME-Zarr 0.4 on Zarr v2, or 0.5 on Zarr v3 (the OME metadata under "ome")."""
+    zarr = pytest.importorskip("zarr")
+    v3 = int(zarr.__version__.split(".")[0]) >= 3
+    if version == "0.5" and not v3:
+        pytest.skip(f"SKIP: zarr-python {zarr.__version__} writes no Zarr v3 (OME-Zarr 0.5)")
+    group = zarr.open_group(str(root), mode="w", **({"zarr_format": 2 if version == "0.4" else 3} if v3 else {}))
+
+    def array(g, name, data, chunks):
+        if v3:
+            g.create_array(name, data=data, chunks=chunks)
+        else:
+            g.create_dataset(name, data=data, chunks=chunks)
+
+    def attrs(g, **values):
+        if version == "0.4":
+            for entry in values.get("multiscales", []):
+                entry["version"] = "0.4"
+            g.attrs.update(values)
+        else:
+            g.attrs["ome"] = {"version": "0.5", **values}
+
+    for k in range(2):
+        array(group, str(k), image[:: 2**k, :: 2**k, :: 2**k], (4, 5, 6))
+    attrs(group, multiscales=[{"name": "cells", "axes": _ngff_axes(), "datasets": _ngff_datasets()}])
+    labels = group.require_group("labels")
+    attrs(labels, labels=["nuclei"])
+    nuc = labels.require_group("nuclei")
+    for k in range(2):
+        array(nuc, str(k), nuclei[:: 2**k, :: 2**k, :: 2**k], (4, 4, 4))
+    datasets, outer = _label_datasets()
+    attrs(nuc, multiscales=[{"name": "nuclei", "axes": _ngff_axes(), "datasets": datasets, "coordinateTransformations": outer}],
+          **{"image-label": {"version": version} if version == "0.4" else {}})
+
+
+@pytest.mark.parametrize("writer", ["0.4 by hand", "0.4 zarr-python", "0.5 zarr-python"])
+def test_dropping_an_ome_zarr_of_another_tool_gives_its_image_and_labels_on_its_world(make_napari_viewer, tmp_path, writer):
+    """An OME-Zarr store not written by neuvolex (0.4 on Zarr v2, by hand or by zarr-python;
+    0.5 on Zarr v3 by zarr-python): 2 levels with scale and translation, axes z, y, x in
+    micrometres, and a label image whose transformations are written another way (the
+    multiscale's scale after the datasets'). The image layer's world is scale * index +
+    translation (NGFF), the label layer lies on it, values are level 0's."""
+    image, nuclei = _ngff_volumes()
+    root = tmp_path / "cells.ome.zarr"
+    if writer == "0.4 by hand":
+        _write_ngff_v2_by_hand(root, image, nuclei)
+    else:
+        _write_ngff_with_zarr_python(root, image, nuclei, writer.split()[0])
+    viewer = make_napari_viewer(show=False)
+    layers = viewer.open(str(root), plugin="neuvolex")
+    assert [type(layer).__name__ for layer in layers] == ["Image", "Labels"]
+    layer, labels = layers
+    assert layer.name == "cells" and labels.name == "cells nuclei"
+    np.testing.assert_array_equal(np.asarray(layer.data), image)
+    np.testing.assert_array_equal(np.asarray(labels.data), nuclei)
+    assert np.asarray(layer.data)[4, 7, 12] == 1000 + 400 + 70 + 12 and np.asarray(labels.data)[6, 8, 10] == 7
+    nz, ny, nx = image.shape
+    for index in ([0, 0, 0], [nz - 1, ny - 1, nx - 1], [nz - 1, 0, 0], [0, ny - 1, nx - 1], [4, 7, 12], [6, 8, 10]):
+        expected = NGFF_SCALE * np.asarray(index) + NGFF_TRANSLATION  # z, y, x: napari's axes
+        for lay in (layer, labels):
+            np.testing.assert_allclose(lay.data_to_world(index), expected, atol=1e-9, err_msg=f"{lay.name} {index}")
+    np.testing.assert_allclose(labels.affine.affine_matrix, layer.affine.affine_matrix, atol=1e-12)
 
 
 def test_the_status_line_counts_the_labels_the_stability_rule_kept(setup, qtbot):

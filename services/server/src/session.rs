@@ -1088,8 +1088,9 @@ impl Session {
     }
 
     /// Predicts the bricks `order` (indices, in the round's order) on `pred` and gives each
-    /// brick's u8 probabilities to `deliver`: empty bricks at once as certain background (as
-    /// [`ProbaStage`] gives them), the others streamed through the accelerator. `Ok(Some)` with
+    /// brick's u8 probabilities to `deliver`: occupied bricks streamed through the accelerator
+    /// (block by block, in the order of each block's first brick), empty bricks as certain
+    /// background (as [`ProbaStage`] gives them) at their place in the order. `Ok(Some)` with
     /// the bricks left to predict elsewhere (none when all went well), `Ok(None)` when a newer
     /// round stopped it; `Err` with the bricks not given yet and the accelerator's error.
     #[allow(clippy::type_complexity)]
@@ -1103,45 +1104,70 @@ impl Session {
     ) -> Result<Option<Vec<[usize; 3]>>, (Vec<[usize; 3]>, neuvolex_classify::ClassifyError)> {
         let c = labels.len();
         let bg = labels.iter().position(|&l| l == BACKGROUND);
-        let mut occupied = Vec::with_capacity(order.len());
-        for (i, &bi) in order.iter().enumerate() {
-            let b = self
-                .store
-                .brick(bi)
-                .map_err(|e| (order[i..].to_vec(), e.into()))?;
-            if self.store.is_occupied(&b, None) {
-                occupied.push(b);
-                continue;
-            }
+        let background = |b: &neuvolex_bricks::Brick| {
             let mut v = vec![0u8; b.voxels() * c];
             if let Some(k) = bg {
                 for px in v.chunks_exact_mut(c) {
                     px[k] = 255;
                 }
             }
-            if !deliver(bi, v) {
-                return Ok(None);
+            v
+        };
+        // Occupied bricks go to the accelerator; empty ones need no device and are given at
+        // their place in the order, before the first predicted brick that comes after them.
+        let (mut occupied, mut empties) = (Vec::with_capacity(order.len()), Vec::new());
+        let mut rank = std::collections::HashMap::with_capacity(order.len());
+        for (i, &bi) in order.iter().enumerate() {
+            let b = self
+                .store
+                .brick(bi)
+                .map_err(|e| (order[i..].to_vec(), e.into()))?;
+            rank.insert(bi, i);
+            if self.store.is_occupied(&b, None) {
+                occupied.push(b);
+            } else {
+                empties.push((i, b));
             }
         }
+        let mut next = 0usize;
         let mut given = BTreeSet::new();
         let mut stopped = false;
         let r = pred.predict_stream(&occupied, &mut |b, a| {
             // A render in flight goes first; a newer round stops this one.
             self.memory.yield_to_renders();
-            if !self.current(generation) || !deliver(b.index, a.probs) {
+            if !self.current(generation) {
+                stopped = true;
+                return false;
+            }
+            let at = rank.get(&b.index).copied().unwrap_or(usize::MAX);
+            while let Some((_, e)) = empties.get(next).filter(|(i, _)| *i < at) {
+                if !deliver(e.index, background(e)) {
+                    stopped = true;
+                    return false;
+                }
+                next += 1;
+            }
+            if !deliver(b.index, a.probs) {
                 stopped = true;
                 return false;
             }
             given.insert(b.index);
             true
         });
+        if stopped {
+            return Ok(None);
+        }
+        for (_, e) in &empties[next..] {
+            if !deliver(e.index, background(e)) {
+                return Ok(None);
+            }
+        }
         let left: Vec<[usize; 3]> = occupied
             .iter()
             .map(|b| b.index)
             .filter(|i| !given.contains(i))
             .collect();
         match r {
-            _ if stopped => Ok(None),
             Ok(()) => Ok(Some(left)),
             Err(e) => Err((left, e)),
         }

@@ -1471,6 +1471,116 @@ fn classify_now(
     v
 }
 
+/// An accelerator whose stream gives its first `ok` bricks (all probability on class index
+/// 0) and then fails, as a device lost mid-round would.
+struct FailingAccel {
+    ok: usize,
+}
+
+struct FailingPredictor {
+    ok: usize,
+    classes: usize,
+}
+
+impl neuvolex_classify::accel::Accelerator for FailingAccel {
+    fn describe(&self) -> String {
+        "a failing test accelerator".into()
+    }
+
+    fn prepare(
+        &self,
+        _store: std::sync::Arc<BrickStore>,
+        _set: &neuvolex_classify::features::FeatureSet,
+        forest: &neuvolex_classify::Forest,
+        _opts: &neuvolex_classify::accel::AccelOptions,
+    ) -> Result<Box<dyn neuvolex_classify::accel::BrickPredictor>, neuvolex_classify::ClassifyError>
+    {
+        Ok(Box::new(FailingPredictor {
+            ok: self.ok,
+            classes: forest.classes(),
+        }))
+    }
+}
+
+impl neuvolex_classify::accel::BrickPredictor for FailingPredictor {
+    fn predict(
+        &self,
+        _b: &neuvolex_bricks::Brick,
+    ) -> Result<neuvolex_classify::accel::AcceleratedBrick, neuvolex_classify::ClassifyError> {
+        Err(neuvolex_classify::ClassifyError::Input(
+            "device lost".into(),
+        ))
+    }
+
+    fn predict_stream(
+        &self,
+        bricks: &[neuvolex_bricks::Brick],
+        on: &mut dyn FnMut(
+            &neuvolex_bricks::Brick,
+            neuvolex_classify::accel::AcceleratedBrick,
+        ) -> bool,
+    ) -> Result<(), neuvolex_classify::ClassifyError> {
+        for b in bricks.iter().take(self.ok) {
+            let mut probs = vec![0u8; b.voxels() * self.classes];
+            probs
+                .iter_mut()
+                .step_by(self.classes)
+                .for_each(|p| *p = 255);
+            let a = neuvolex_classify::accel::AcceleratedBrick {
+                probs,
+                classes: vec![0; b.voxels()],
+            };
+            if !on(b, a) {
+                return Ok(());
+            }
+        }
+        Err(neuvolex_classify::ClassifyError::Input(
+            "device lost".into(),
+        ))
+    }
+}
+
+/// A round whose accelerator fails part way finishes on the CPU: it ends `done`, names
+/// `gpu+cpu` as where it ran, every brick has probabilities, the bricks the accelerator gave
+/// keep its values, and the others equal a CPU-only session's bit for bit.
+#[actix_web::test]
+async fn a_round_the_accelerator_fails_finishes_on_the_cpu() {
+    let (_d, cfg) = data();
+    let st = AppState::new(cfg);
+    let cpu = st.open("ph.zarr").await.unwrap();
+    let want = {
+        let s = cpu.clone();
+        tokio::task::spawn_blocking(move || classify_now(&s))
+            .await
+            .unwrap()
+    };
+    assert_eq!(cpu.status.read().unwrap().engine, "cpu");
+    for ok in [0, 3] {
+        let s = st.open("ph.zarr").await.unwrap();
+        s.set_accelerator(Some(std::sync::Arc::new(FailingAccel { ok })));
+        let got = {
+            let s = s.clone();
+            tokio::task::spawn_blocking(move || classify_now(&s))
+                .await
+                .unwrap()
+        };
+        let status = s.status.read().unwrap().clone();
+        assert_eq!(
+            (status.state.as_str(), status.engine.as_str()),
+            ("done", "gpu+cpu")
+        );
+        assert_eq!(got.len(), want.len(), "every brick classified");
+        let from_accel = got
+            .iter()
+            .zip(&want)
+            .filter(|((_, g), (_, w))| g != w)
+            .count();
+        // The accelerator's bricks are occupied ones (all on class index 0, unlike the
+        // forest's); the rest are the CPU's.
+        assert_eq!(from_accel, ok, "bricks from the failing accelerator");
+    }
+}
+
 #[actix_web::test]
 async fn features_are_prepared_in_the_background_and_kept_in_the_store() {
     let (d, cfg) = data();
