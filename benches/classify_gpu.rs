@@ -45,16 +45,16 @@ mod gpu {
     use neuvolex_bricks::derived::{halo_from_volume, Normaliser};
     use neuvolex_bricks::rng::Rng;
     use neuvolex_bricks::synth::{phantom_at, Phantom, PhantomChannel, PhantomParams};
-    use neuvolex_classify::stable::to_u8;
-    use neuvolex_classify::{Dataset, Forest, ForestConfig};
     use neuvolex_bricks::BrickStore;
     use neuvolex_classify::accel::{AccelOptions, Accelerator};
+    use neuvolex_classify::stable::to_u8;
+    use neuvolex_classify::{Dataset, Forest, ForestConfig};
     use neuvolex_classify_gpu::{AdapterKind, GpuAccelerator, GpuDevice, StreamConfig};
-    use std::sync::Arc;
     use neuvolex_filters::{compute, filter_halo, pos, Classic};
     use neuvolex_formats::VolumeSource;
     use rayon::prelude::*;
     use serde_json::{json, Value};
+    use std::sync::Arc;
     use std::time::Instant;
 
     fn arg<T: std::str::FromStr>(args: &[String], flag: &str, default: T) -> T {

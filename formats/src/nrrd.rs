@@ -20,6 +20,23 @@ fn parse_vec(path: &Path, s: &str) -> Result<Vec<f64>> {
         .collect()
 }
 
+/// The per-axis entries of `space directions`: each `(a,b,c)` vector (spaces inside the
+/// parentheses allowed, as some writers put them) or `none`.
+fn direction_tokens(s: &str) -> Vec<&str> {
+    let mut out = Vec::new();
+    let mut rest = s.trim_start();
+    while !rest.is_empty() {
+        let end = if rest.starts_with('(') {
+            rest.find(')').map_or(rest.len(), |i| i + 1)
+        } else {
+            rest.find(char::is_whitespace).unwrap_or(rest.len())
+        };
+        out.push(&rest[..end]);
+        rest = rest[end..].trim_start();
+    }
+    out
+}
+
 /// Opens an NRRD file, following `data file:` for detached headers.
 pub fn open(path: &Path) -> Result<FileVolume> {
     let file = std::fs::File::open(path).map_err(|e| FormatError::io(path, e))?;
@@ -106,14 +123,49 @@ pub fn open(path: &Path) -> Result<FileVolume> {
             format!("dimension {ndim} but {} sizes", sizes.len()),
         ));
     }
-    // Accept 3-D, or 4-D with one axis of size 1 (kept as a 3-D grid).
+    // Accept 3-D, or 4-D whose one non-spatial axis (a `none` space direction, else a kind
+    // other than domain or space, else the first axis of size 1) has size 1: a 3-D grid.
     let sizes3: Vec<i64> = if ndim == 3 {
         sizes.clone()
-    } else if ndim == 4 && sizes.contains(&1) {
-        let mut s = sizes.clone();
-        let i = s.iter().position(|&v| v == 1).unwrap_or(0);
-        s.remove(i);
-        s
+    } else if ndim == 4 {
+        let from_dirs = get("space directions").and_then(|d| {
+            let t = direction_tokens(d);
+            (t.len() == 4).then(|| t.iter().position(|v| *v == "none"))?
+        });
+        let from_kinds = || {
+            let k: Vec<String> = get("kinds")?
+                .split_whitespace()
+                .map(str::to_ascii_lowercase)
+                .collect();
+            (k.len() == 4).then(|| k.iter().position(|v| v != "domain" && v != "space"))?
+        };
+        let axis = from_dirs
+            .or_else(from_kinds)
+            .or_else(|| sizes.iter().position(|&v| v == 1));
+        match axis {
+            Some(i) if sizes[i] == 1 => {
+                let mut s = sizes.clone();
+                s.remove(i);
+                s
+            }
+            Some(i) => {
+                return Err(FormatError::BadDims {
+                    path: path.to_path_buf(),
+                    detail: format!(
+                        "sizes {sizes:?}: axis {i} holds {} values per voxel (a vector or                          list axis); only 3-D scalar volumes are supported",
+                        sizes[i]
+                    ),
+                })
+            }
+            None => {
+                return Err(FormatError::BadDims {
+                    path: path.to_path_buf(),
+                    detail: format!(
+                        "dimension 4 with sizes {sizes:?}: only 3-D scalar volumes are supported"
+                    ),
+                })
+            }
+        }
     } else {
         return Err(FormatError::BadDims {
             path: path.to_path_buf(),
@@ -145,7 +197,10 @@ pub fn open(path: &Path) -> Result<FileVolume> {
     let mut spacing = [1.0f64; 3];
     let mut affine = crate::geometry::diag_affine(spacing, [0.0; 3]);
     if let Some(dirs) = get("space directions") {
-        let vecs: Vec<&str> = dirs.split_whitespace().filter(|s| *s != "none").collect();
+        let vecs: Vec<&str> = direction_tokens(dirs)
+            .into_iter()
+            .filter(|s| *s != "none")
+            .collect();
         if vecs.len() == 3 {
             let mut d3 = [[0.0; 3]; 3];
             for (j, v) in vecs.iter().enumerate() {
@@ -376,5 +431,67 @@ mod tests {
         assert_eq!(v.meta().spacing, [0.5, 0.7, 2.5]);
         let f = v.meta().nifti.clone().unwrap();
         assert_eq!((f.qform_code, f.sform_code), (1, 1));
+    }
+
+    /// Writes a detached NRRD header (`extra` lines) over `n` zero bytes and opens it.
+    fn open_with(extra: &str, n: usize) -> Result<FileVolume> {
+        let d = tempfile::tempdir().unwrap();
+        let p = d.path().join("v.nhdr");
+        std::fs::write(d.path().join("v.raw"), vec![0u8; n]).unwrap();
+        std::fs::write(
+            &p,
+            format!("NRRD0004\ntype: uchar\n{extra}encoding: raw\ndata file: v.raw\n"),
+        )
+        .unwrap();
+        open(&p)
+    }
+
+    /// Space directions with spaces inside the parentheses read as without.
+    #[test]
+    fn direction_vectors_may_hold_spaces() {
+        assert_eq!(
+            direction_tokens("none ( 1, 0,0) (0 ,2, 0)   (0, 0, 3)"),
+            ["none", "( 1, 0,0)", "(0 ,2, 0)", "(0, 0, 3)"]
+        );
+        let v = open_with(
+            "dimension: 3\nsizes: 2 3 4\nspace: right-anterior-superior\n\
+             space directions: (0.5, 0, 0) (0, 0.7, 0) (0, 0, 2.5)\n",
+            24,
+        )
+        .unwrap();
+        assert_eq!(v.meta().spacing, [0.5, 0.7, 2.5]);
+    }
+
+    /// A 4-D file is a 3-D grid only where its non-spatial axis has one value: that axis is
+    /// found from a `none` space direction or the kinds, not taken to be any axis of size 1, so a
+    /// one-slice vector volume is refused instead of read with its components as an axis.
+    #[test]
+    fn four_d_files_keep_their_spatial_axes() {
+        let dirs =
+            "space: right-anterior-superior\nspace directions: none (1,0,0) (0,1,0) (0,0,2)\n";
+        let v = open_with(&format!("dimension: 4\nsizes: 1 4 5 6\n{dirs}"), 120).unwrap();
+        assert_eq!(v.meta().dims, [4, 5, 6]);
+        assert_eq!(v.meta().spacing, [1.0, 1.0, 2.0]);
+        let e = open_with(&format!("dimension: 4\nsizes: 3 4 5 1\n{dirs}"), 60)
+            .err()
+            .expect("a one-slice vector volume is refused");
+        assert!(
+            e.to_string().contains("axis 0 holds 3 values per voxel"),
+            "{e}"
+        );
+        let kinds = |k: &str, sizes: &str| {
+            open_with(&format!("dimension: 4\nsizes: {sizes}\nkinds: {k}\n"), 120)
+        };
+        assert_eq!(
+            kinds("domain domain domain list", "4 5 6 1")
+                .unwrap()
+                .meta()
+                .dims,
+            [4, 5, 6]
+        );
+        assert!(kinds("vector domain domain domain", "2 4 5 1").is_err());
+        // Without either, the axis of size 1 goes (as before).
+        let v = open_with("dimension: 4\nsizes: 4 5 1 6\n", 120).unwrap();
+        assert_eq!(v.meta().dims, [4, 5, 6]);
     }
 }
