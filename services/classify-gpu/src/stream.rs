@@ -109,10 +109,11 @@ pub(crate) struct Ring {
 }
 
 impl Ring {
-    /// GPU bytes of one slot of blocks of `size`.
+    /// GPU bytes of one slot of blocks of `size`, with room for the small uniform, tap and
+    /// argument buffers of a dispatch.
     fn slot_bytes(bank: &GpuFilterBank, forest: &GpuForest, size: [usize; 3], halo: usize) -> u64 {
         let core: usize = size.iter().product();
-        bank.slot_bytes(size, halo) + 2 * forest.output_bytes(core)
+        bank.slot_bytes(size, halo) + 2 * forest.output_bytes(core) + SMALL
     }
 
     /// The largest blocks (at most `cfg.block` voxels a side) whose slot, with the forest,
@@ -135,8 +136,7 @@ impl Ring {
             if 13 * p * 4 > binding || bank.channels() as u64 * core * 4 > binding {
                 return None;
             }
-            // With room for the small uniform, tap and argument buffers of a dispatch.
-            let slot = Self::slot_bytes(bank, forest, size, halo) + SMALL;
+            let slot = Self::slot_bytes(bank, forest, size, halo);
             (forest.bytes() + slot <= cfg.budget).then_some(slot)
         };
         let mut per = (cfg.block / brick).max(1);
@@ -146,7 +146,7 @@ impl Ring {
                 break (size, slot);
             }
             if per == 1 {
-                let need = forest.bytes() + Self::slot_bytes(bank, forest, size, halo) + SMALL;
+                let need = forest.bytes() + Self::slot_bytes(bank, forest, size, halo);
                 return Err(GpuError::Input(format!(
                     "one brick of {size:?} voxels needs {:.0} MiB of GPU memory with the forest, \
                      over the budget of {:.0} MiB (or past the device's largest binding of {:.0} \

@@ -1,19 +1,18 @@
 //! Prediction on an accelerator (the GPU of `neuvolex-classify-gpu`) behind two small traits,
 //! so that this crate never depends on a GPU API: the command line passes an [`Accelerator`]
 //! into [`crate::pipeline::classify_with`], the pipeline binds it to the trained forest once
-//! ([`Accelerator::prepare`]), and [`classify_brick_on`], the pure per-brick step, turns what
-//! the [`BrickPredictor`] gives into the same [`BrickResult`] as [`crate::shard::classify_brick`],
+//! ([`Accelerator::prepare`]) and streams a task's occupied bricks through it
+//! ([`BrickPredictor::predict_stream`]), and [`brick_result`], the pure per-brick step, turns
+//! what the predictor gives into the same [`BrickResult`] as [`crate::shard::classify_brick`],
 //! so everything after prediction (the stored probabilities and labels, the prior, the
 //! published label image) is unchanged.
 
 use crate::features::FeatureSet;
 use crate::forest::Forest;
-use crate::shard::{empty_brick, BrickResult, ClassifyConfig};
+use crate::shard::BrickResult;
 use crate::ClassifyError;
 use neuvolex_bricks::{Brick, BrickStore};
-use std::collections::BTreeSet;
 use std::sync::Arc;
-use std::time::Instant;
 
 /// The class index of a voxel whose top probability is below `tau` (in
 /// [`AcceleratedBrick::classes`]).
@@ -94,27 +93,6 @@ pub trait BrickPredictor: Send + Sync {
         }
         Ok(())
     }
-}
-
-/// [`crate::shard::classify_brick`] with the features and the forest on `pred`: the same
-/// empty-brick rule, and the same probabilities and labels where `pred` gives the CPU's u8
-/// probabilities and classes (the probabilities come back as `q / 255`, which the store's u8
-/// arrays write as `q`).
-pub fn classify_brick_on(
-    pred: &dyn BrickPredictor,
-    store: &BrickStore,
-    labels: &[u32],
-    out_labels: &[u16],
-    roi_bricks: &BTreeSet<[usize; 3]>,
-    cfg: &ClassifyConfig,
-    b: &Brick,
-) -> Result<BrickResult, ClassifyError> {
-    if let Some(r) = empty_brick(store, labels, roi_bricks, cfg, b) {
-        return Ok(r);
-    }
-    let t = Instant::now();
-    let p = pred.predict(b)?;
-    brick_result(p, labels, out_labels, b, t.elapsed().as_secs_f64())
 }
 
 /// The [`BrickResult`] of what an accelerator gave for brick `b` (`seconds` of prediction):

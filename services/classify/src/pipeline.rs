@@ -1159,6 +1159,18 @@ pub struct ProbaParams {
 pub type FeatureHook<'a> =
     Box<dyn Fn(&Brick) -> Result<Arc<Vec<half::f16>>, ClassifyError> + Send + Sync + 'a>;
 
+/// The u8 probabilities of an empty brick of `voxels` voxels over `classes` classes: the
+/// background class (index `bg`, when the classes include it) with certainty.
+pub fn certain_background(voxels: usize, classes: usize, bg: Option<usize>) -> Vec<u8> {
+    let mut v = vec![0u8; voxels * classes];
+    if let Some(k) = bg {
+        for px in v.chunks_exact_mut(classes) {
+            px[k] = 255;
+        }
+    }
+    v
+}
+
 /// Predicts a task's bricks and returns their u8 probabilities (occupied bricks through the
 /// forest, empty ones background with certainty): the service's streaming classification.
 pub struct ProbaStage<'a> {
@@ -1272,14 +1284,7 @@ impl Stage for ProbaStage<'_> {
                     .map_err(|e| failed(&e))?;
                     p.iter().map(|&v| crate::stable::to_u8(v)).collect()
                 } else {
-                    // Empty brick: background with certainty.
-                    let mut v = vec![0u8; b.voxels() * c];
-                    if let Some(k) = bg {
-                        for px in v.chunks_exact_mut(c) {
-                            px[k] = 255;
-                        }
-                    }
-                    v
+                    certain_background(b.voxels(), c, bg)
                 };
                 Ok((bi, u8s))
             })

@@ -1102,16 +1102,9 @@ impl Session {
         generation: u64,
         deliver: &mut dyn FnMut([usize; 3], Vec<u8>) -> bool,
     ) -> Result<Option<Vec<[usize; 3]>>, (Vec<[usize; 3]>, neuvolex_classify::ClassifyError)> {
-        let c = labels.len();
         let bg = labels.iter().position(|&l| l == BACKGROUND);
         let background = |b: &neuvolex_bricks::Brick| {
-            let mut v = vec![0u8; b.voxels() * c];
-            if let Some(k) = bg {
-                for px in v.chunks_exact_mut(c) {
-                    px[k] = 255;
-                }
-            }
-            v
+            neuvolex_classify::pipeline::certain_background(b.voxels(), labels.len(), bg)
         };
         // Occupied bricks go to the accelerator; empty ones need no device and are given at
         // their place in the order, before the first predicted brick that comes after them.
