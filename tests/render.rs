@@ -228,6 +228,61 @@ fn updating_changed_bricks_equals_a_full_render_and_touches_fewer_pixels() {
 }
 
 #[test]
+fn one_renderer_across_tables_modes_and_views_draws_what_a_fresh_one_draws() {
+    // A renderer keeps each brick's cell map (empty-space skipping) from frame to frame; a
+    // map made under other tables or another mode must not be used.
+    let dims = [40, 36, 32];
+    let (v, p) = scene(dims);
+    let low = tf(
+        r#"{"space":"normalised","intensity":{"opacity":[[0.1,0],[0.15,0.3],[0.3,0.3],[0.31,0]]}}"#,
+    );
+    let high = tf(r#"{"space":"normalised","intensity":{"opacity":[[0.5,0],[0.55,0.6]]}}"#);
+    let grey = TfFile::preset("grey").unwrap();
+    let src = || MemSource::new(geom(dims, 8), v.clone(), two_classes(), p.clone()).unwrap();
+    let mut kept = Renderer::new(src(), 64 << 20);
+    let base = RenderParams {
+        width: 64,
+        height: 64,
+        ..RenderParams::default()
+    };
+    let turned = RenderParams {
+        camera: Camera {
+            azimuth: 75.0,
+            elevation: -20.0,
+            ..Camera::default()
+        },
+        ..base
+    };
+    let mut seen = Vec::new();
+    for (t, params) in [
+        (&low, base),
+        (&low, turned),
+        (&high, turned),
+        (&high, base),
+        (
+            &grey,
+            RenderParams {
+                mode: Mode::Probabilistic,
+                ..base
+            },
+        ),
+        (&grey, base),
+        (&low, base),
+    ] {
+        let luts = t.compile(&kept.source().normaliser(), &kept.source().classes());
+        let img = kept.render(&params, &luts).unwrap();
+        let mut fresh = Renderer::new(src(), 64 << 20);
+        let want = fresh.render(&params, &luts).unwrap();
+        assert_eq!(img, want, "{:?} {:?}", params.mode, params.camera);
+        seen.push(img);
+    }
+    // The tables show different parts of the volume (else a stale map could pass unseen).
+    assert_ne!(seen[1], seen[2]);
+    assert_ne!(seen[0], seen[3]);
+    assert_eq!(seen[0], seen[6]);
+}
+
+#[test]
 fn progressive_passes_refine_to_the_full_render() {
     let dims = [40, 36, 32];
     let src = MemSource::new(geom(dims, 16), blobs(dims), vec![], vec![]).unwrap();

@@ -6,7 +6,7 @@
 //! visited; a brick takes the samples inside its box (half-open), so each sample is taken once.
 
 use crate::camera::{dot, Camera, View};
-use crate::kernel::{floor_index, Kernels, Scalar, Steps, Trilinear};
+use crate::kernel::{floor_index, Kernels, Phong, Scalar, Steps, Trilinear};
 #[cfg(target_arch = "x86_64")]
 use crate::kernel::{has_avx2, Avx2};
 use crate::source::{RenderBrick, VolumeGeom, APRON, CELL};
@@ -233,8 +233,8 @@ pub struct Frame<'a> {
     pub alpha_exp: f32,
     /// The intensity table with its opacity corrected for the step (intensity mode).
     corrected: Lut,
-    /// Half the reciprocal spacing: central differences to world-unit gradients.
-    half_inv_spacing: [f32; 3],
+    /// The shading constants, when shaded.
+    phong: Option<Phong>,
     /// Each image row's rays, resolved on first use (shared with other frames of the same
     /// camera, image size and volume).
     rays: Arc<Rays>,
@@ -335,16 +335,6 @@ impl Correction {
     }
 }
 
-/// `x^e` for the specular term: repeated multiplication for whole exponents.
-#[inline(always)]
-fn spec_pow(x: f32, e: f32) -> f32 {
-    if e.fract() == 0.0 && e <= 256.0 {
-        powi_inline(x, e as u32)
-    } else {
-        x.powf(e)
-    }
-}
-
 /// Entry and exit `t` of the ray `o + t d` through the box `lo..hi`, or `None`.
 #[inline]
 pub fn slab(o: [f32; 3], d: [f32; 3], lo: [f32; 3], hi: [f32; 3]) -> Option<(f32, f32)> {
@@ -388,28 +378,6 @@ fn slab_inv(
         t1 = t1.min(b);
     }
     (t0 < t1).then_some((t0, t1))
-}
-
-/// Colour and opacity of a table at `x`, as [`Lut::get`], with the opacity first: a
-/// transparent entry returns before the colour is interpolated.
-#[inline(always)]
-fn lut_get(l: &Lut, x: f32) -> [f32; 4] {
-    let n = l.table.len();
-    // max(0) also sends NaN to the first entry.
-    let u = ((x - l.lo) * l.scale).max(0.0).min((n - 1) as f32);
-    let i = floor_index(u).min(n - 2);
-    let t = u - i as f32;
-    let (a, b) = (l.table[i], l.table[i + 1]);
-    let alpha = a[3] + (b[3] - a[3]) * t;
-    if alpha <= 0.0 {
-        return [0.0; 4];
-    }
-    [
-        a[0] + (b[0] - a[0]) * t,
-        a[1] + (b[1] - a[1]) * t,
-        a[2] + (b[2] - a[2]) * t,
-        alpha,
-    ]
 }
 
 /// Where a ray's cell walk goes on once its pending samples are taken.
@@ -481,20 +449,6 @@ fn ceil_index(x: f32) -> u64 {
     (t + ((t as f32) < x) as i64) as u64
 }
 
-/// `x^n` by repeated squaring.
-#[inline(always)]
-fn powi_inline(mut x: f32, mut n: u32) -> f32 {
-    let mut r = 1.0f32;
-    while n > 0 {
-        if n & 1 == 1 {
-            r *= x;
-        }
-        x *= x;
-        n >>= 1;
-    }
-    r
-}
-
 /// Trilinear probability of channel `n` (of `ch`) from the corners of a sample.
 #[inline(always)]
 fn prob_at(probs: &[u8], idx: &[usize; 8], w: &[f32; 8], ch: usize, n: usize) -> f32 {
@@ -533,7 +487,14 @@ impl<'a> Frame<'a> {
             dt,
             alpha_exp: params.step,
             corrected,
-            half_inv_spacing: inv_spacing.map(|v| 0.5 * v),
+            phong: params.shading.map(|s| Phong {
+                h: inv_spacing.map(|v| 0.5 * v),
+                min_sp: dt / params.step,
+                ambient: s.ambient,
+                diffuse: s.diffuse,
+                specular: s.specular,
+                shininess: s.shininess,
+            }),
             rays: Arc::new(Rays::new(&params, geom)),
             visible: Visible::new(luts),
         })
@@ -774,8 +735,8 @@ impl<'a> Frame<'a> {
         let diffs = self.params.shading.map(|_| b.differences());
         match self.params.mode {
             Mode::Intensity => {
-                self.march_rows_with(b, j, xs, row, mask, cells, |s, k, n, light| {
-                    self.samples_intensity::<H>(b, diffs, s, k, n, light)
+                self.march_rows_with(b, j, xs, row, mask, cells, |s, k, _, light| {
+                    self.samples_intensity::<H>(b, diffs, s, k, light)
                 })
             }
             Mode::Probabilistic | Mode::ProbIntensity => {
@@ -968,10 +929,8 @@ impl<'a> Frame<'a> {
         samples
     }
 
-    /// Shaded colours and corrected opacities of intensity-mode samples `k .. k + n` of a ray
-    /// (`diffs`: the brick's central differences when shading): the four intensities at once,
-    /// then the table, and the gradient for the visible ones only (most samples in a visible
-    /// cell are transparent).
+    /// Shaded colours and corrected opacities of intensity-mode samples `k .. k + RUN` of a
+    /// ray (`diffs`: the brick's central differences when shading), [`Kernels::samples4`].
     #[inline(always)]
     fn samples_intensity<H: Kernels>(
         &self,
@@ -979,35 +938,18 @@ impl<'a> Frame<'a> {
         diffs: Option<&[[u16; 4]]>,
         s: &Steps,
         k: u64,
-        n: usize,
         light: [f32; 3],
     ) -> [[f32; 4]; RUN] {
-        let run = H::run4(&b.intensity, b.padded, s, k);
-        let mut out = [[0.0; 4]; RUN];
-        // The table for every sample first, then the gradients of the visible ones: their
-        // reads (the differences are 8 bytes a voxel, often from L2) are then independent of
-        // each other and overlap.
-        let mut visible = [false; RUN];
-        for l in 0..n {
-            out[l] = lut_get(&self.corrected, run.values[l]);
-            visible[l] = out[l][3] > 0.0;
-        }
-        if let (Some(sh), Some(g)) = (self.params.shading, diffs) {
-            let mut grad = [[0.0; 4]; RUN];
-            for l in 0..n {
-                if visible[l] {
-                    grad[l] = H::gradient(g, &run.t[l]);
-                }
-            }
-            for l in 0..n {
-                if visible[l] {
-                    let e = out[l];
-                    let rgb = self.shade_grad(grad[l], [e[0], e[1], e[2]], light, sh);
-                    out[l] = [rgb[0], rgb[1], rgb[2], e[3]];
-                }
-            }
-        }
-        out
+        let shading = self.phong.as_ref().zip(diffs);
+        H::samples4(
+            &b.intensity,
+            b.padded,
+            s,
+            k,
+            &self.corrected,
+            shading,
+            light,
+        )
     }
 
     /// Colour (shaded) and uncorrected opacity of a sample at local padded coordinates `p`.
@@ -1087,31 +1029,11 @@ impl<'a> Frame<'a> {
         if a <= 0.0 {
             return [0.0; 4];
         }
-        let rgb = match (self.params.shading, diffs) {
-            (Some(s), Some(g)) => self.shade_grad(H::gradient(g, &t), rgb, light, s),
+        let rgb = match (&self.phong, diffs) {
+            (Some(p), Some(g)) => p.shade(H::gradient(g, &t), rgb, light),
             _ => rgb,
         };
         [rgb[0], rgb[1], rgb[2], a]
-    }
-
-    /// Blinn-Phong with a headlight, the normal from the intensity gradient (the central
-    /// differences of the trilinear field one voxel either side, in world units, read as the
-    /// trilinear interpolation of the voxels' central differences `acc`, lanes 0-2); flat
-    /// regions stay unshaded.
-    #[inline(always)]
-    fn shade_grad(&self, acc: [f32; 4], rgb: [f32; 3], light: [f32; 3], s: Shading) -> [f32; 3] {
-        let h = self.half_inv_spacing;
-        let g = [acc[0] * h[0], acc[1] * h[1], acc[2] * h[2]];
-        let len = dot(g, g).sqrt();
-        let min_sp = self.dt / self.params.step;
-        // Also catches NaN: a flat or degenerate gradient leaves the colour unshaded.
-        if (len * min_sp).partial_cmp(&1e-4) != Some(std::cmp::Ordering::Greater) {
-            return rgb;
-        }
-        let ndl = (dot(g, light) / len).abs();
-        let spec = s.specular * spec_pow(ndl, s.shininess);
-        let k = s.ambient + s.diffuse * ndl;
-        rgb.map(|c| (c * k + spec).min(1.0))
     }
 }
 
