@@ -283,6 +283,36 @@ fn one_renderer_across_tables_modes_and_views_draws_what_a_fresh_one_draws() {
 }
 
 #[test]
+fn a_frame_of_one_batch_stops_at_the_next_row_once_cancelled() {
+    // 3x3x2 bricks of 16: one batch, so only the row-by-row poll can stop the frame.
+    let dims = [40, 36, 32];
+    let (v, p) = scene(dims);
+    let src = MemSource::new(geom(dims, 16), v, two_classes(), p).unwrap();
+    let t = TfFile::preset("grey").unwrap();
+    let luts = t.compile(&src.normaliser(), &src.classes());
+    let params = RenderParams {
+        width: 128,
+        height: 128,
+        ..RenderParams::default()
+    };
+    let mut r = Renderer::new(src, 64 << 20);
+    let want = r.render(&params, &luts).unwrap();
+    let polls = Arc::new(std::sync::atomic::AtomicUsize::new(0));
+    let seen = polls.clone();
+    r.set_cancel(Some(Arc::new(move || {
+        seen.fetch_add(1, std::sync::atomic::Ordering::SeqCst) >= 3
+    })));
+    let e = r.render(&params, &luts).unwrap_err();
+    assert!(matches!(e, neuvolex_render::RenderError::Cancelled), "{e}");
+    // Polled once before the batch, then per row until the fourth poll said stop.
+    let n = polls.load(std::sync::atomic::Ordering::SeqCst);
+    assert!((4..=8).contains(&n), "{n} polls");
+    // The next frame renders from scratch, whole.
+    r.set_cancel(None);
+    assert_eq!(r.render(&params, &luts).unwrap(), want);
+}
+
+#[test]
 fn progressive_passes_refine_to_the_full_render() {
     let dims = [40, 36, 32];
     let src = MemSource::new(geom(dims, 16), blobs(dims), vec![], vec![]).unwrap();

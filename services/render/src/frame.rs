@@ -10,7 +10,7 @@ use crate::Result;
 use neuvolex_bricks::lru::Lru;
 use rayon::prelude::*;
 use std::collections::HashMap;
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, Weak};
 use std::time::Instant;
 
@@ -65,7 +65,8 @@ pub type BrickKey = (u64, [usize; 3], bool);
 /// between all its sessions: [`Renderer::with_cache`]).
 pub type BrickCache = Lru<BrickKey, Arc<RenderBrick>>;
 
-/// Polled between batches of bricks: `true` stops the frame with [`crate::RenderError::Cancelled`].
+/// Polled between batches of bricks and before each image row of a batch: `true` stops the
+/// frame with [`crate::RenderError::Cancelled`].
 pub type CancelPoll = Arc<dyn Fn() -> bool + Send + Sync>;
 
 /// A kept cell map and the brick it was made from.
@@ -156,9 +157,9 @@ impl<S: BrickSource> Renderer<S> {
         m
     }
 
-    /// Polls `cancel` between batches of bricks from now on (`None`: never cancelled); a
-    /// cancelled frame or update returns [`crate::RenderError::Cancelled`], and the next call
-    /// renders from scratch.
+    /// Polls `cancel` between batches of bricks and image rows from now on (`None`: never
+    /// cancelled); a cancelled frame or update returns [`crate::RenderError::Cancelled`], and
+    /// the next call renders from scratch.
     pub fn set_cancel(&mut self, cancel: Option<CancelPoll>) {
         self.cancel = cancel;
     }
@@ -333,6 +334,7 @@ impl<S: BrickSource> Renderer<S> {
             ..Default::default()
         };
         let samples = AtomicU64::new(0);
+        let cancelled = AtomicBool::new(false);
         let ert = frame.params.ert;
         let mut queue: Vec<([usize; 3], [usize; 4])> = Vec::with_capacity(PREFETCH);
         let mut pending = order.into_iter().peekable();
@@ -399,11 +401,19 @@ impl<S: BrickSource> Renderer<S> {
             ) else {
                 continue;
             };
+            // The cancel poll also runs row by row: a batch of a large image is long.
             acc[top * w..bottom * w]
                 .par_chunks_mut(w)
                 .enumerate()
                 .with_min_len(2)
                 .for_each(|(n, row)| {
+                    if cancelled.load(Ordering::Relaxed) {
+                        return;
+                    }
+                    if self.cancel.as_ref().is_some_and(|c| c()) {
+                        cancelled.store(true, Ordering::Relaxed);
+                        return;
+                    }
                     let j = top + n;
                     let m = mask.map(|m| &m[j * w..(j + 1) * w]);
                     let mut s = 0;
@@ -414,6 +424,9 @@ impl<S: BrickSource> Renderer<S> {
                     }
                     samples.fetch_add(s, Ordering::Relaxed);
                 });
+            if cancelled.load(Ordering::Relaxed) {
+                return Err(crate::RenderError::Cancelled);
+            }
         }
         stats.samples = samples.into_inner();
         stats.seconds = t.elapsed().as_secs_f64();
