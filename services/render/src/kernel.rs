@@ -195,15 +195,6 @@ impl Phong {
         let k = self.ambient + self.diffuse * ndl;
         rgb.map(|c| (c * k + spec).min(1.0))
     }
-
-    /// The specular exponent when it is whole and at most 256 (then taken by repeated
-    /// squaring, as [`spec_pow`] takes it).
-    #[cfg(target_arch = "x86_64")]
-    #[inline(always)]
-    fn whole(&self) -> Option<u32> {
-        let e = self.shininess;
-        (e.fract() == 0.0 && (0.0..=256.0).contains(&e)).then_some(e as u32)
-    }
 }
 
 /// `a . b`, summed left to right.
@@ -215,11 +206,24 @@ fn dot3(a: [f32; 3], b: [f32; 3]) -> f32 {
 /// `x^e` for the specular term: repeated squaring for whole exponents up to 256.
 #[inline(always)]
 fn spec_pow(x: f32, e: f32) -> f32 {
-    if e.fract() == 0.0 && e <= 256.0 {
-        powi_inline(x, e as u32)
-    } else {
-        x.powf(e)
+    match whole_exponent(e) {
+        Some(n) => powi_inline(x, n),
+        None => x.powf(e),
     }
+}
+
+/// The exponent [`spec_pow`] takes by repeated squaring: a whole `e` up to 256.
+#[inline(always)]
+fn whole_exponent(e: f32) -> Option<u32> {
+    (e.fract() == 0.0 && e <= 256.0).then_some(e as u32)
+}
+
+/// Whether the lanes' integer arithmetic is exact for samples `k .. k + 4` of a brick of
+/// `dims` (and the brick is not degenerate).
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+fn lanes_fit(dims: [usize; 3], k: u64) -> bool {
+    k + 4 < 1 << 24 && dims.iter().all(|&n| (2..1 << 20).contains(&n))
 }
 
 /// `x^n` by repeated squaring.
@@ -411,7 +415,7 @@ impl Kernels for Avx2 {
 
     #[inline(always)]
     fn run4(v: &[f32], dims: [usize; 3], s: &Steps, k: u64) -> Run4 {
-        if k + 4 < 1 << 24 && dims.iter().all(|&n| (2..1 << 20).contains(&n)) {
+        if lanes_fit(dims, k) {
             Self::run4_simd(v, dims, s, k)
         } else {
             // Beyond the lanes' exact integer range (or a degenerate brick): one at a time.
@@ -435,14 +439,14 @@ impl Kernels for Avx2 {
     ) -> [[f32; 4]; 4] {
         use std::arch::x86_64::*;
         let e = match shading {
-            Some((p, _)) => match p.whole() {
+            Some((p, _)) => match whole_exponent(p.shininess) {
                 Some(e) => e,
                 // A fractional exponent (powf): sample by sample.
                 None => return samples4_each::<Self>(v, dims, s, k, lut, shading, light),
             },
             None => 0,
         };
-        if !(k + 4 < 1 << 24 && dims.iter().all(|&n| (2..1 << 20).contains(&n))) {
+        if !lanes_fit(dims, k) {
             // Beyond the lanes' exact integer range (or a degenerate brick).
             return samples4_each::<Self>(v, dims, s, k, lut, shading, light);
         }
