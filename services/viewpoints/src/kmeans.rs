@@ -29,6 +29,10 @@ use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 /// Rows per parallel task of [`KMeans::assign`].
 const BLOCK: usize = 2048;
 
+/// Rows a plain pass assigns before it tallies them (64 KiB of 64-D rows: still in the core's
+/// cache when the tally reads them again).
+const TALLY_BLOCK: usize = 256;
+
 /// Bytes of bounds per row: the cluster (u16) and two f32 bounds.
 const BOUND_BYTES: usize = 10;
 
@@ -372,59 +376,58 @@ impl KMeans {
         self.partial_packed(rows, &self.packed())
     }
 
-    /// [`Self::partial`] with the centroids already packed.
+    /// [`Self::partial`] with the centroids already packed: blocks of [`TALLY_BLOCK`] rows
+    /// are assigned and then tallied while they are still in cache (in row order, so the
+    /// statistics are those of one assignment of the whole chunk followed by one tally).
     fn partial_packed(&self, rows: &[f32], packed: &Packed) -> Partial {
-        let assign = self.nearest_rows(rows, packed);
-        self.tally(rows, &assign)
+        let d = self.dim;
+        let mut p = Partial::new(self.k(), d);
+        let mut labels = vec![0u16; TALLY_BLOCK.min(rows.len() / d)];
+        let path = Path::detect();
+        for blk in rows.chunks(d * TALLY_BLOCK) {
+            let labels = &mut labels[..blk.len() / d];
+            packed.nearest_on(path, blk, labels, None, None);
+            self.tally_on(path, &mut p, blk, labels, &[]);
+        }
+        p
     }
 
-    /// The statistics of rows under a given assignment: counts, feature sums and squared
-    /// distances (each computed directly, `|x - c|^2`, in row order).
-    fn tally(&self, rows: &[f32], assign: &[u16]) -> Partial {
-        self.tally_known(rows, assign, &[])
-    }
-
-    /// [`Self::tally`] where `known[i]`, when `i` is inside it and it is not NaN, is already
-    /// `sq_dist` of row `i` to its centroid (the same value, so the same bits).
-    fn tally_known(&self, rows: &[f32], assign: &[u16], known: &[f32]) -> Partial {
-        self.tally_on(Path::detect(), rows, assign, known)
-    }
-
-    /// [`Self::tally_known`] compiled for the given path (which must be
-    /// [`Path::available`]): the same operations in the same order, so the same bits.
-    fn tally_on(&self, path: Path, rows: &[f32], assign: &[u16], known: &[f32]) -> Partial {
+    /// Adds the statistics of `rows` under the assignment `assign` to `p`, by the kernels of
+    /// the given path (which must be [`Path::available`]: the same operations in the same
+    /// order, so the same bits). `known[i]`, when `i` is inside it and it is not NaN, is
+    /// already `sq_dist` of row `i` to its centroid (the same value, so the same bits).
+    fn tally_on(&self, path: Path, p: &mut Partial, rows: &[f32], assign: &[u16], known: &[f32]) {
         assert!(path.available());
         #[cfg(target_arch = "x86_64")]
         match path {
             Path::Avx512 => {
                 /// The body compiled for AVX-512 (wider f64 sums).
                 #[target_feature(enable = "avx512f")]
-                fn wide(km: &KMeans, rows: &[f32], assign: &[u16], known: &[f32]) -> Partial {
-                    km.tally_body(rows, assign, known)
+                fn wide(km: &KMeans, p: &mut Partial, rows: &[f32], assign: &[u16], known: &[f32]) {
+                    km.tally_body(p, rows, assign, known)
                 }
                 // SAFETY: AVX-512F is available (asserted above).
-                return unsafe { wide(self, rows, assign, known) };
+                return unsafe { wide(self, p, rows, assign, known) };
             }
             Path::Avx2Fma => {
                 /// The body compiled for AVX2 (Rust never contracts `a * b + c` into an FMA,
                 /// so enabling it changes no rounding).
                 #[target_feature(enable = "avx2,fma")]
-                fn wide(km: &KMeans, rows: &[f32], assign: &[u16], known: &[f32]) -> Partial {
-                    km.tally_body(rows, assign, known)
+                fn wide(km: &KMeans, p: &mut Partial, rows: &[f32], assign: &[u16], known: &[f32]) {
+                    km.tally_body(p, rows, assign, known)
                 }
                 // SAFETY: AVX2 and FMA are available (asserted above).
-                return unsafe { wide(self, rows, assign, known) };
+                return unsafe { wide(self, p, rows, assign, known) };
             }
             Path::Scalar => {}
         }
-        self.tally_body(rows, assign, known)
+        self.tally_body(p, rows, assign, known)
     }
 
-    /// The body of [`Self::tally_known`].
+    /// The body of [`Self::tally_on`].
     #[inline(always)]
-    fn tally_body(&self, rows: &[f32], assign: &[u16], known: &[f32]) -> Partial {
-        let (k, d) = (self.k(), self.dim);
-        let mut p = Partial::new(k, d);
+    fn tally_body(&self, p: &mut Partial, rows: &[f32], assign: &[u16], known: &[f32]) {
+        let d = self.dim;
         for (i, (x, &c)) in rows.chunks_exact(d).zip(assign).enumerate() {
             let c = c as usize;
             p.counts[c] += 1;
@@ -437,7 +440,6 @@ impl KMeans {
                 *s += v as f64;
             }
         }
-        p
     }
 
     /// One Lloyd pass over a chunk with Hamerly's bounds: the same statistics as
@@ -559,10 +561,9 @@ impl KMeans {
                 state.lower[i] = g.down((second + xn - e).max(0.0).sqrt());
             }
         }
-        (
-            self.tally_on(path, rows, &state.assign, &known),
-            pending.len(),
-        )
+        let mut p = Partial::new(self.k(), d);
+        self.tally_on(path, &mut p, rows, &state.assign, &known);
+        (p, pending.len())
     }
 
     /// Fits on `chunks` chunks of rows (`load(i)` gives chunk `i`, `dim` values per row); chunks
@@ -1197,7 +1198,8 @@ mod tests {
             for _ in 0..5 {
                 let g = Geometry::new(&km, prev.as_deref());
                 let (p, pending) = km.bounded_on(path, &rows, &mut state, &g);
-                let t = km.tally_on(path, &rows, &state.assign, &[]);
+                let mut t = Partial::new(km.k(), d);
+                km.tally_on(path, &mut t, &rows, &state.assign, &[]);
                 assert_eq!(t, p, "{path:?}: the bounded pass is the plain tally");
                 let f = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
                 out.push((

@@ -8,7 +8,8 @@
 //! `+ 0.0` (a negative zero, from a product that underflows, becomes `+0`, so values that
 //! compare equal have equal bits and a minimum's bits never depend on the order it is taken
 //! in). The AVX-512 kernel computes 4 rows x 64 centroids at a time, the AVX2+FMA kernel 4 rows
-//! x 16 centroids, with the same per-lane operations, so both give the bits of the scalar rule
+//! x 16 centroids (each with a narrower last tile where the last centroids fit half of it),
+//! with the same per-lane operations, so both give the bits of the scalar rule
 //! ([`Packed::nearest_reference`]; a test compares every [`Path`] the CPU has), and a result
 //! never depends on the CPU, the block size or the thread count. Ties go to the lowest index.
 
@@ -259,12 +260,19 @@ mod avx512 {
     ) -> [(u32, f32, f32); R] {
         let mut best = [(0u32, f32::INFINITY, f32::INFINITY); R];
         let mut j0 = 0;
-        while j0 < p.kp {
-            let res = match (p.kp - j0) / LANES {
-                1 => panel::<R, 1, SECOND>(p, x, j0),
-                2 => panel::<R, 2, SECOND>(p, x, j0),
-                3 => panel::<R, 3, SECOND>(p, x, j0),
-                _ => panel::<R, 4, SECOND>(p, x, j0),
+        // Up to 64 columns a tile; where the last columns fit half a register, that half is
+        // an 8-lane AVX register (half the work on CPUs that split 512-bit operations). The
+        // columns past `k` are padding (`+inf`), so a tile may stop anywhere past them.
+        while j0 < p.k {
+            let res = match p.k - j0 {
+                1..=8 => panel::<R, 0, true, SECOND>(p, x, j0),
+                9..=16 => panel::<R, 1, false, SECOND>(p, x, j0),
+                17..=24 => panel::<R, 1, true, SECOND>(p, x, j0),
+                25..=32 => panel::<R, 2, false, SECOND>(p, x, j0),
+                33..=40 => panel::<R, 2, true, SECOND>(p, x, j0),
+                41..=48 => panel::<R, 3, false, SECOND>(p, x, j0),
+                49..=56 => panel::<R, 3, true, SECOND>(p, x, j0),
+                _ => panel::<R, 4, false, SECOND>(p, x, j0),
             };
             for (b, (l, v, s)) in best.iter_mut().zip(res) {
                 if v < b.1 {
@@ -278,24 +286,34 @@ mod avx512 {
         best
     }
 
-    /// One register tile: `R` rows against the `16 NV` centroid columns from `j0`; per row
-    /// the lowest column of the smallest value (relative to `j0`), that value, and (with
-    /// `SECOND`) the smallest value over the tile's other columns.
+    /// One register tile: `R` rows against the `16 NV` centroid columns from `j0`, and with
+    /// `HALF` the next 8 in an AVX register (the same per-lane operations); per row the lowest
+    /// column of the smallest value (relative to `j0`), that value, and (with `SECOND`) the
+    /// smallest value over the tile's other columns.
     #[target_feature(enable = "avx512f")]
-    fn panel<const R: usize, const NV: usize, const SECOND: bool>(
+    fn panel<const R: usize, const NV: usize, const HALF: bool, const SECOND: bool>(
         p: &Packed,
         x: &[f32],
         j0: usize,
     ) -> [(u32, f32, f32); R] {
         let (d, kp) = (p.d, p.kp);
-        assert!(x.len() == R * d && j0 + NV * LANES <= kp && p.m2c.len() == d * kp);
+        let cols = NV * LANES + if HALF { LANES / 2 } else { 0 };
+        assert!(
+            x.len() == R * d && j0 + cols <= kp && p.m2c.len() == d * kp && NV + HALF as usize <= 4
+        );
         let mut acc = [[_mm512_setzero_ps(); NV]; R];
+        let mut half = [_mm256_setzero_ps(); R];
         for v in 0..NV {
             // SAFETY: j0 + 16 NV <= kp = n2.len() (asserted above).
             let n2 = unsafe { _mm512_loadu_ps(p.n2.as_ptr().add(j0 + v * LANES)) };
             for a in acc.iter_mut() {
                 a[v] = n2;
             }
+        }
+        if HALF {
+            // SAFETY: j0 + 16 NV + 8 <= kp = n2.len() (asserted above).
+            let n2 = unsafe { _mm256_loadu_ps(p.n2.as_ptr().add(j0 + NV * LANES)) };
+            half = [n2; R];
         }
         let m2c = p.m2c.as_ptr();
         for t in 0..d {
@@ -304,19 +322,41 @@ mod avx512 {
                 // SAFETY: t < d and j0 + 16 NV <= kp, so the 16 values lie in m2c (d x kp).
                 *cv = unsafe { _mm512_loadu_ps(m2c.add(t * kp + j0 + v * LANES)) };
             }
+            let ch = if HALF {
+                // SAFETY: t < d and j0 + 16 NV + 8 <= kp, so the 8 values lie in m2c.
+                unsafe { _mm256_loadu_ps(m2c.add(t * kp + j0 + NV * LANES)) }
+            } else {
+                _mm256_setzero_ps()
+            };
             for (r, a) in acc.iter_mut().enumerate() {
-                let xv = _mm512_set1_ps(x[r * d + t]);
+                // SAFETY: r < R and t < d, and x holds R x d values (asserted above).
+                let xv = _mm512_set1_ps(unsafe { *x.get_unchecked(r * d + t) });
                 for v in 0..NV {
                     a[v] = _mm512_fmadd_ps(xv, c[v], a[v]);
                 }
+                if HALF {
+                    half[r] = _mm256_fmadd_ps(_mm512_castps512_ps256(xv), ch, half[r]);
+                }
             }
         }
-        // `+ 0.0`: -0 becomes +0 (the scalar rule).
-        for a in acc.iter_mut().flatten() {
-            *a = _mm512_add_ps(*a, _mm512_setzero_ps());
+        // `+ 0.0`: -0 becomes +0 (the scalar rule). The half register is widened with `+inf`
+        // lanes, which never win. The sums go to a new array by value: borrowing `acc` itself
+        // keeps it in memory, a store after every product (2.2x slower at 64 features).
+        let inf = _mm512_set1_ps(f32::INFINITY);
+        let mut wide = [[inf; 4]; R];
+        for (w, (a, h)) in wide.iter_mut().zip(acc.iter().zip(&half)) {
+            for v in 0..NV {
+                w[v] = _mm512_add_ps(a[v], _mm512_setzero_ps());
+            }
+            if HALF {
+                let h = _mm512_castps256_ps512(_mm256_add_ps(*h, _mm256_setzero_ps()));
+                w[NV] = _mm512_mask_mov_ps(inf, 0x00ff, h);
+            }
         }
+        let nw = NV + HALF as usize;
         let mut out = [(0u32, 0.0f32, f32::INFINITY); R];
-        for (o, a) in out.iter_mut().zip(&acc) {
+        for (o, w) in out.iter_mut().zip(&wide) {
+            let a = &w[..nw];
             let mut m = a[0];
             for &v in &a[1..] {
                 m = _mm512_min_ps(m, v);
@@ -358,7 +398,7 @@ mod avx2 {
     /// Columns (centroids) of one register tile: 2 registers (4 rows x 2 registers of
     /// accumulators, the centroid values and the broadcast feature use 11 of the 16; 3
     /// registers a row measured slower at 64 features). `kp` is a multiple of 16, so every
-    /// panel is whole.
+    /// panel lies inside the packed columns.
     const PANEL: usize = 2 * LANES;
 
     /// [`Packed::nearest_on`] with AVX2 and FMA: rows in groups of 4, centroids in panels of up
@@ -397,8 +437,14 @@ mod avx2 {
     ) -> [(u32, f32, f32); R] {
         let mut best = [(0u32, f32::INFINITY, f32::INFINITY); R];
         let mut j0 = 0;
-        while j0 < p.kp {
-            let res = panel::<R, 2, SECOND>(p, x, j0);
+        // The columns past `k` are padding (`+inf`): a last panel of at most 8 columns takes
+        // one register.
+        while j0 < p.k {
+            let res = if p.k - j0 <= LANES {
+                panel::<R, 1, SECOND>(p, x, j0)
+            } else {
+                panel::<R, 2, SECOND>(p, x, j0)
+            };
             for (b, (l, v, s)) in best.iter_mut().zip(res) {
                 if v < b.1 {
                     *b = (j0 as u32 + l, v, b.1.min(s));
@@ -448,20 +494,25 @@ mod avx2 {
                 *cv = unsafe { _mm256_loadu_ps(m2c.add(t * kp + j0 + v * LANES)) };
             }
             for (r, a) in acc.iter_mut().enumerate() {
-                let xv = _mm256_set1_ps(x[r * d + t]);
+                // SAFETY: r < R and t < d, and x holds R x d values (asserted above).
+                let xv = _mm256_set1_ps(unsafe { *x.get_unchecked(r * d + t) });
                 for v in 0..NV {
                     a[v] = _mm256_fmadd_ps(xv, c[v], a[v]);
                 }
             }
         }
-        // `+ 0.0`: -0 becomes +0 (the scalar rule).
-        for a in acc.iter_mut().flatten() {
-            *a = _mm256_add_ps(*a, _mm256_setzero_ps());
+        // `+ 0.0`: -0 becomes +0 (the scalar rule). The sums go to a new array by value:
+        // borrowing `acc` itself keeps it in memory, a store after every product.
+        let mut fin = [[_mm256_setzero_ps(); NV]; R];
+        for r in 0..R {
+            for v in 0..NV {
+                fin[r][v] = _mm256_add_ps(acc[r][v], _mm256_setzero_ps());
+            }
         }
         let lane = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
         let inf = _mm256_set1_ps(f32::INFINITY);
         let mut out = [(0u32, 0.0f32, f32::INFINITY); R];
-        for (o, a) in out.iter_mut().zip(&acc) {
+        for (o, a) in out.iter_mut().zip(&fin) {
             let mut m = a[0];
             for &v in &a[1..] {
                 m = _mm256_min_ps(m, v);
@@ -569,7 +620,8 @@ mod tests {
         let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
         let mut cases = 0;
         for d in [1, 2, 11, 17, 64] {
-            for k in [1, 2, 5, 8, 17, 24, 50, 64, 65, 100, 130] {
+            // Every width of the AVX-512 kernel's last tile (whole registers and a half).
+            for k in [1, 2, 5, 8, 12, 17, 24, 30, 40, 45, 50, 64, 65, 100, 130] {
                 for grid in [false, true] {
                     let n = 1 + (d * 7 + k * 3) % 23 + 8 * grid as usize;
                     // On a coarse grid of small integers and halves every product and sum is
@@ -612,7 +664,7 @@ mod tests {
                 }
             }
         }
-        assert_eq!(cases, 110);
+        assert_eq!(cases, 150);
     }
 
     /// A product that underflows makes -0 where an exactly zero centroid makes +0: the two tie,
