@@ -68,8 +68,8 @@ use neuvolex_features::tile::Tile;
 use neuvolex_features::train::training_bricks;
 use neuvolex_features::{train, Budget, FeatureKind, InrConfig, InrModel, TrainConfig, TrainEvent};
 use neuvolex_features_gpu::{
-    train_gpu_tuned, write_features_gpu, AdapterKind, EngineOptions, GpuContext, GpuInr, GpuTune,
-    MlpPath,
+    train_gpu_tuned, write_features_gpu, AdapterKind, EngineOptions, FeatureFormat, GpuContext,
+    GpuInr, GpuTune, MlpPath,
 };
 use neuvolex_ingest::{ingest, IngestOptions};
 use serde_json::{json, Value};
@@ -540,8 +540,9 @@ fn sweep(
 
 /// Extraction alone on `store` (every tile resident): the 64-D hidden feature of every voxel
 /// of the paper's model (initial weights: the time does not depend on them) per MLP path and
-/// inference micro-batch, into host-mappable memory (what the comparison with PyTorch times)
-/// and into a device buffer (no transfer); median of 5 passes after a warm-up pass.
+/// inference micro-batch, as f32 and as f16 (converted on the GPU, as the store keeps them),
+/// each into host-mappable memory (what the comparison with PyTorch times) and into a device
+/// buffer (no transfer); median of 5 passes after a warm-up pass.
 fn extract_sweep(
     ctx: &Arc<GpuContext>,
     store: &BrickStore,
@@ -557,13 +558,13 @@ fn extract_sweep(
         "\nfeature extraction alone ({voxels} voxels, every tile resident, the 64-D hidden feature; median of 5 passes):"
     );
     println!(
-        "| path | micro-batch | into mapped memory, M voxels/s | into device memory, M voxels/s |"
+        "| path | micro-batch | f32 into mapped memory, M voxels/s | f32 into device memory | f16 into mapped memory | f16 into device memory |"
     );
-    println!("|---|---|---|---|");
+    println!("|---|---|---|---|---|---|");
     let mut out = Vec::new();
     for &mlp in paths {
         for &mb in batches {
-            let run = || -> neuvolex_features_gpu::Result<(usize, f64, f64)> {
+            let run = || -> neuvolex_features_gpu::Result<(usize, [f64; 4], [usize; 3])> {
                 let mut inf = GpuInr::new(
                     ctx,
                     &model,
@@ -580,38 +581,66 @@ fn extract_sweep(
                     inf.upload_tile(i, t)?;
                 }
                 let most = bank.tiles.iter().map(|t| t.voxels()).max().unwrap_or(1);
-                let mapped = inf.staging_for(most, FeatureKind::Hidden)?;
-                let device = inf.device_buffer_for(most, FeatureKind::Hidden)?;
-                ctx.wait()?;
-                let mut rate = |dst: &neuvolex_features_gpu::context::Tracked| -> neuvolex_features_gpu::Result<f64> {
-                    let mut secs = Vec::new();
-                    for _ in 0..6 {
-                        let t = Instant::now();
-                        for (i, tile) in bank.tiles.iter().enumerate() {
-                            inf.record_tile(i, tile.voxels(), FeatureKind::Hidden, dst)?;
+                let mut rates = [0.0; 4];
+                for (j, fmt) in [FeatureFormat::F32, FeatureFormat::F16]
+                    .into_iter()
+                    .enumerate()
+                {
+                    let mapped = inf.staging_in(most, FeatureKind::Hidden, fmt)?;
+                    let device = inf.device_buffer_in(most, FeatureKind::Hidden, fmt)?;
+                    ctx.wait()?;
+                    let mut rate = |dst: &neuvolex_features_gpu::context::Tracked| -> neuvolex_features_gpu::Result<f64> {
+                        let mut secs = Vec::new();
+                        for _ in 0..6 {
+                            let t = Instant::now();
+                            for (i, tile) in bank.tiles.iter().enumerate() {
+                                inf.record_tile_in(i, tile.voxels(), FeatureKind::Hidden, fmt, dst)?;
+                            }
+                            ctx.wait()?;
+                            secs.push(t.elapsed().as_secs_f64());
                         }
-                        ctx.wait()?;
-                        secs.push(t.elapsed().as_secs_f64());
-                    }
-                    Ok(voxels as f64 / vs_torch::spread(&secs[1..]).0)
-                };
-                let m = rate(&mapped)?;
-                let d = rate(&device)?;
-                Ok((inf.micro_batch(), m, d))
+                        Ok(voxels as f64 / vs_torch::spread(&secs[1..]).0)
+                    };
+                    rates[2 * j] = rate(&mapped)?;
+                    rates[2 * j + 1] = rate(&device)?;
+                }
+                // The device's f16 conversion against the host's (round to nearest even) on
+                // the first tile: values equal, one f16 step apart, further apart.
+                let tile = &bank.tiles[0];
+                let f = inf.extract_tile(tile, FeatureKind::Hidden)?;
+                let h = inf.extract_tile_f16(tile, FeatureKind::Hidden)?;
+                let mut agree = [0usize; 3];
+                for (x, y) in f.iter().zip(&h) {
+                    let d = (half::f16::from_f32(*x).to_bits() as i32 - y.to_bits() as i32).abs();
+                    agree[d.min(2) as usize] += 1;
+                }
+                Ok((inf.micro_batch(), rates, agree))
             };
             match run() {
-                Ok((got, m, d)) => {
+                Ok((got, r, agree)) => {
                     println!(
-                        "| {} | {got} | {:.1} | {:.1} |",
+                        "| {} | {got} | {:.1} | {:.1} | {:.1} | {:.1} |",
                         mlp.name(),
-                        m / 1e6,
-                        d / 1e6
+                        r[0] / 1e6,
+                        r[1] / 1e6,
+                        r[2] / 1e6,
+                        r[3] / 1e6
+                    );
+                    println!(
+                        "f16 check ({}, first tile): {} values equal the host's conversion of the f32 features, {} one f16 step apart, {} further",
+                        mlp.name(),
+                        agree[0],
+                        agree[1],
+                        agree[2]
                     );
                     out.push(json!({"path": mlp.name(), "micro_batch": got,
-                        "mapped_voxels_per_s": m, "device_voxels_per_s": d, "voxels": voxels}));
+                        "mapped_voxels_per_s": r[0], "device_voxels_per_s": r[1],
+                        "f16_mapped_voxels_per_s": r[2], "f16_device_voxels_per_s": r[3],
+                        "f16_equal": agree[0], "f16_one_step": agree[1], "f16_further": agree[2],
+                        "voxels": voxels}));
                 }
                 Err(e) => {
-                    println!("| {} | {mb} | failed: {e} | |", mlp.name());
+                    println!("| {} | {mb} | failed: {e} | | | |", mlp.name());
                     out.push(
                         json!({"path": mlp.name(), "micro_batch": mb, "error": e.to_string()}),
                     );

@@ -169,3 +169,34 @@ fn gather(@builtin(global_invocation_id) gid: vec3<u32>) {
     }
     arena[A.a.z + s * A.a.y + c] = v;
 }
+
+// The value of feature c of voxel s, gathered as `gather` does (a as there).
+fn feature_at(s: u32, c: u32) -> f32 {
+    if (c < A.b.z) {
+        return arena[A.b.x + c * A.b.y + s];
+    } else if (c < A.b.z + A.c.z) {
+        return arena[A.c.x + (c - A.b.z) * A.c.y + s];
+    }
+    return arena[A.d.x + (c - A.b.z - A.c.z) * A.d.y + s];
+}
+
+// Per-voxel features as f16, voxel-major and packed two to a word (value i = s * C + c in the
+// low half of word i / 2 when i is even, the high half when odd), into acc_lo, which an
+// inference engine sizes for them (it has no table gradient). One invocation per word; a last
+// odd value pairs with zero. a: n, C, -, - | b, c, d as in `gather`.
+@compute @workgroup_size(256)
+fn gather_f16(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
+              @builtin(local_invocation_index) li: u32) {
+    let w = linear_id(wg, nwg, li);
+    let total = A.a.x * A.a.y;
+    let i = 2u * w;
+    if (i >= total) {
+        return;
+    }
+    let lo = feature_at(i / A.a.y, i % A.a.y);
+    var hi = 0.0;
+    if (i + 1u < total) {
+        hi = feature_at((i + 1u) / A.a.y, (i + 1u) % A.a.y);
+    }
+    atomicStore(&acc_lo[w], pack2x16float(vec2<f32>(lo, hi)));
+}

@@ -496,6 +496,19 @@ fn extraction_equals_the_cpu_features() {
         None,
     );
     let mut g = GpuInr::new(&ctx, &m, None, EngineOptions::inference(store.info().brick)).unwrap();
+    // An engine of 256-sample micro-batches: a tile spans several, the last one partial.
+    let mut small = GpuInr::new(
+        &ctx,
+        &m,
+        None,
+        EngineOptions {
+            micro_batch: Some(256),
+            ..EngineOptions::inference(store.info().brick)
+        },
+    )
+    .unwrap();
+    assert_eq!(small.micro_batch(), 256);
+    let (mut values, mut exact) = (0usize, 0usize);
     for b in store.bricks().take(3) {
         let tile = Tile::load(&store, &b, m.cfg.patch).unwrap();
         for kind in [
@@ -508,8 +521,28 @@ fn extraction_equals_the_cpu_features() {
             let x = g.extract_tile(&tile, kind).unwrap();
             let r = rel(&x, &c);
             assert!(r < 1e-4, "{kind:?} brick {:?}: {r:e}", b.index);
+            // The GPU's own f16 conversion: the f32 features rounded to f16, each within one
+            // f16 step of the host's round-to-nearest-even conversion, at any micro-batch
+            // (the voxels' values continue across micro-batches and an odd count of values).
+            for e in [&mut g, &mut small] {
+                let h = e.extract_tile_f16(&tile, kind).unwrap();
+                assert_eq!(h.len(), x.len(), "{kind:?}");
+                for (i, (&hv, &xv)) in h.iter().zip(&x).enumerate() {
+                    let want = half::f16::from_f32(xv);
+                    let (gb, hb) = (hv.to_bits() as i32, want.to_bits() as i32);
+                    assert!(
+                        gb == hb || ((gb - hb).abs() == 1 && (gb ^ hb) & 0x8000 == 0),
+                        "{kind:?} value {i} of brick {:?}: GPU f16 {hv} for {xv} (host {want})",
+                        b.index
+                    );
+                    exact += (gb == hb) as usize;
+                }
+                values += h.len();
+            }
         }
     }
+    eprintln!("f16 on the GPU: {exact} of {values} values equal the host's conversion");
+    assert!(values > 0);
     let cpu = write_features(&store, &m, FeatureKind::Hidden, true, &mut |_| {}).unwrap();
     let a: Vec<Vec<f32>> = {
         let va = store.open_vectors(&cpu.name).unwrap();
@@ -607,6 +640,27 @@ fn gpu_errors_are_clear() {
         ) && e.to_string().contains("no-such-adapter"),
         "{e}"
     );
+    // f16 features need an inference engine: a training engine's binding holds the table
+    // gradient, and it says so instead of overwriting it.
+    {
+        let (_d, store) = phantom();
+        let m = InrModel::new(&small_inr(Ablation::Full), store.info().dims, 0);
+        let mut t = GpuInr::new(
+            &ctx,
+            &m,
+            None,
+            EngineOptions {
+                train: true,
+                batch: BATCH as usize,
+                ..EngineOptions::inference(store.info().brick)
+            },
+        )
+        .unwrap();
+        let b = store.bricks().next().unwrap();
+        let tile = Tile::load(&store, &b, m.cfg.patch).unwrap();
+        let e = t.extract_tile_f16(&tile, FeatureKind::Hidden).unwrap_err();
+        assert!(e.to_string().contains("inference engine"), "{e}");
+    }
     // A table larger than a binding allows is refused by name, before anything runs.
     let (_d, store) = phantom();
     let huge = InrConfig {

@@ -304,6 +304,40 @@ fn vectors_roundtrip_f16_and_u8() {
         .unwrap_err()
         .to_string()
         .contains("not finite"));
+    // A finite f32 past f16's range would be stored as infinity: rejected, naming it.
+    let mut big = vec![0.0f32; bricks[0].voxels() * c];
+    big[5] = 1e5;
+    let e = f16.write_brick(&bricks[0], &big).unwrap_err().to_string();
+    assert!(e.contains("100000") && e.contains("f16"), "{e}");
+    // Values already in f16 (the GPU's extraction) store the bytes write_brick stores for
+    // their f32 values; the wrong size, infinity and an array of another encoding are errors.
+    let v = noise(bricks[1].voxels() * c, 99, -2.0, 2.0);
+    let h: Vec<half::f16> = v.iter().map(|&x| half::f16::from_f32(x)).collect();
+    f16.write_brick_f16(&bricks[1], &h).unwrap();
+    let got = f16.read_brick(&bricks[1]).unwrap();
+    assert!(got
+        .iter()
+        .zip(&h)
+        .all(|(a, b)| a.to_bits() == b.to_f32().to_bits()));
+    assert!(f16
+        .write_brick_f16(&bricks[1], &h[1..])
+        .unwrap_err()
+        .to_string()
+        .contains("needs"));
+    let mut hinf = h.clone();
+    hinf[3] = half::f16::INFINITY;
+    assert!(f16
+        .write_brick_f16(&bricks[1], &hinf)
+        .unwrap_err()
+        .to_string()
+        .contains("not finite"));
+    assert!(u8v
+        .write_brick_f16(&bricks[1], &h)
+        .unwrap_err()
+        .to_string()
+        .contains("f16 values written to an array encoded as"));
+    // Nothing of the refused writes landed: the brick still reads what was written.
+    assert_eq!(f16.read_brick(&bricks[1]).unwrap(), got);
 }
 
 #[test]

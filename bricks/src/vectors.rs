@@ -389,6 +389,40 @@ impl VectorArray {
         Ok([b.index[2] as u64, b.index[1] as u64, b.index[0] as u64, 0])
     }
 
+    /// [`Self::write_brick`] from values already in f16 (an array of [`VectorEncoding::F16`]
+    /// only): their bytes are stored as given. A value that is not finite (an f32 feature
+    /// past f16's range becomes infinite) is an error naming it, as there.
+    pub fn write_brick_f16(&self, b: &Brick, values: &[half::f16]) -> Result<()> {
+        let c = self.info.channels;
+        if values.len() != b.voxels() * c {
+            return Err(BrickError::InvalidArgument(format!(
+                "brick {:?} needs {} values ({} voxels x {c}), got {}",
+                b.index,
+                b.voxels() * c,
+                b.voxels(),
+                values.len()
+            )));
+        }
+        if !matches!(self.info.encoding, VectorEncoding::F16) {
+            return Err(BrickError::InvalidArgument(format!(
+                "{}: f16 values written to an array encoded as {:?}",
+                self.root.display(),
+                self.info.encoding
+            )));
+        }
+        if let Some(i) = values.iter().position(|v| !v.is_finite()) {
+            return Err(BrickError::InvalidArgument(format!(
+                "vector value {} at index {i} of brick {:?} is not finite (in f16)",
+                values[i], b.index
+            )));
+        }
+        let _ = self.chunk_of(b)?;
+        let mut sub = zyx(b.origin, b.size);
+        sub.push(0..c as u64);
+        write_bytes(&self.array, &sub, bytemuck::cast_slice(values).to_vec())
+            .map_err(|e| BrickError::zarr(&self.root, e))
+    }
+
     /// Writes one brick of vectors: `values` has `brick.voxels() * channels` entries, voxel-major
     /// (channels fastest), voxels x fastest.
     pub fn write_brick(&self, b: &Brick, values: &[f32]) -> Result<()> {
@@ -414,6 +448,13 @@ impl VectorArray {
         let r = match &self.info.encoding {
             VectorEncoding::F16 => {
                 let v: Vec<half::f16> = values.iter().map(|&x| half::f16::from_f32(x)).collect();
+                if let Some(i) = v.iter().position(|h| !h.is_finite()) {
+                    return Err(BrickError::InvalidArgument(format!(
+                        "vector value {} at index {i} of brick {:?} is past f16's range \
+                         (65504), so not finite in this f16 array",
+                        values[i], b.index
+                    )));
+                }
                 write_bytes(&self.array, &sub, bytemuck::cast_slice(&v).to_vec())
             }
             VectorEncoding::U8 { lo, hi } => {

@@ -47,11 +47,13 @@ pub enum Kernel {
     AdamTable,
     /// Per-voxel feature gather.
     Gather,
+    /// Per-voxel feature gather into packed f16 (inference engines).
+    GatherF16,
     /// A list of layer operations run per block of samples in one dispatch.
     Fused,
 }
 
-const KERNELS: [(Kernel, usize, &str); 12] = [
+const KERNELS: [(Kernel, usize, &str); 13] = [
     (Kernel::Gemm, 0, "gemm"),
     (Kernel::Stage, 1, "stage"),
     (Kernel::Encode, 1, "encode"),
@@ -63,6 +65,7 @@ const KERNELS: [(Kernel, usize, &str); 12] = [
     (Kernel::ReduceAdam, 2, "reduce_adam"),
     (Kernel::AdamTable, 2, "adam_table"),
     (Kernel::Gather, 2, "gather"),
+    (Kernel::GatherF16, 2, "gather_f16"),
     (Kernel::Fused, 3, "fused"),
 ];
 

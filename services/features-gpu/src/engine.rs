@@ -146,6 +146,27 @@ impl EngineOptions {
     }
 }
 
+/// How extracted features are written: f32, or f16 as the store keeps them (half the bytes
+/// to copy back and to map, and no conversion on the host). f16 needs an inference engine
+/// (its features are packed where a training engine keeps the table gradient).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum FeatureFormat {
+    /// 4 bytes a value.
+    F32,
+    /// IEEE binary16, two values to a 32-bit word, voxel-major (the store's encoding).
+    F16,
+}
+
+impl FeatureFormat {
+    /// Bytes of `values` values (f16: whole 4-byte words, a last odd value padded).
+    pub fn bytes(self, values: usize) -> u64 {
+        match self {
+            FeatureFormat::F32 => values as u64 * 4,
+            FeatureFormat::F16 => values.div_ceil(2) as u64 * 4,
+        }
+    }
+}
+
 /// Adam's learning rates and table mode for one step.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct StepRates {
@@ -380,8 +401,19 @@ impl GpuInr {
                 ctx.buffer("table Adam v", tlen, s | cd | cs)?,
             )
         } else {
+            // No table gradient: its binding (u32 words) holds a micro-batch's features packed
+            // as f16 (`gather_f16`), for the widest feature kind.
+            let widest = FeatureKind::Concat.channels_of(
+                &model.cfg,
+                model.grid.out_dim(),
+                model.layout.mlp_in(),
+            );
             (
-                ctx.buffer("unused", small, s)?,
+                ctx.buffer(
+                    "features (f16)",
+                    FeatureFormat::F16.bytes(mb * widest).max(small),
+                    s | cs,
+                )?,
                 ctx.buffer("unused", small, s)?,
                 ctx.buffer("unused", small, s)?,
                 ctx.buffer("unused", small, s)?,
@@ -1489,13 +1521,15 @@ impl GpuInr {
     }
 
     /// Records the forward pass and feature gather of voxels `first..first + n` of ring slot
-    /// `slot`, and the copy of the features to `dst` at byte `at`.
+    /// `slot`, and the copy of the features (as `fmt`) to `dst` at byte `at`.
+    #[allow(clippy::too_many_arguments)]
     fn record_features(
         &mut self,
         slot: usize,
         first: usize,
         n: usize,
         kind: FeatureKind,
+        fmt: FeatureFormat,
         dst: &wgpu::Buffer,
         at: u64,
     ) -> Result<wgpu::SubmissionIndex> {
@@ -1510,12 +1544,21 @@ impl GpuInr {
         for (i, (m, r)) in rows.iter().enumerate() {
             a[4 + 4 * i..7 + 4 * i].copy_from_slice(&[m.off, m.stride, *r as u32]);
         }
-        p.push(Kernel::Gather, a, [n.div_ceil(WG) as u32, c as u32, 1]);
-        let (arena, out) = (self.arena.buf.clone(), self.plan.out as u64 * 4);
-        let bytes = (n * c * 4) as u64;
+        let bytes = fmt.bytes(n * c);
+        let (src, from) = match fmt {
+            FeatureFormat::F32 => {
+                p.push(Kernel::Gather, a, [n.div_ceil(WG) as u32, c as u32, 1]);
+                (self.arena.buf.clone(), self.plan.out as u64 * 4)
+            }
+            FeatureFormat::F16 => {
+                let g = self.groups_1d((n * c).div_ceil(2));
+                p.push(Kernel::GatherF16, a, g);
+                (self.acc_lo.buf.clone(), 0)
+            }
+        };
         let dst = dst.clone();
         self.submit(p, |enc| {
-            enc.copy_buffer_to_buffer(&arena, out, &dst, at, bytes)
+            enc.copy_buffer_to_buffer(&src, from, &dst, at, bytes)
         })
     }
 
@@ -1531,32 +1574,69 @@ impl GpuInr {
             .map_read_f32(&staging, (tile.voxels() * c * 4) as u64, None)
     }
 
-    /// A MAP_READ buffer for the features of `voxels` voxels.
+    /// [`Self::extract_tile`] with the features written as f16 on the GPU (an inference
+    /// engine's [`FeatureFormat::F16`]), as the store keeps them.
+    pub fn extract_tile_f16(&mut self, tile: &Tile, kind: FeatureKind) -> Result<Vec<half::f16>> {
+        let fmt = FeatureFormat::F16;
+        let staging = self.staging_in(tile.voxels(), kind, fmt)?;
+        self.upload_tile(0, tile)?;
+        self.record_tile_in(0, tile.voxels(), kind, fmt, &staging)?;
+        let c = kind.channels_of(&self.cfg, self.grid.out_dim(), self.layout.mlp_in());
+        let values = tile.voxels() * c;
+        self.ctx
+            .gpu
+            .map_with(&staging, fmt.bytes(values), None, |b| {
+                bytemuck::cast_slice::<u8, half::f16>(b)[..values].to_vec()
+            })
+            .map_err(GpuError::from)
+    }
+
+    /// A MAP_READ buffer for the f32 features of `voxels` voxels.
     pub fn staging_for(&self, voxels: usize, kind: FeatureKind) -> Result<Tracked> {
+        self.staging_in(voxels, kind, FeatureFormat::F32)
+    }
+
+    /// A MAP_READ buffer for the features of `voxels` voxels written as `fmt`.
+    pub fn staging_in(
+        &self,
+        voxels: usize,
+        kind: FeatureKind,
+        fmt: FeatureFormat,
+    ) -> Result<Tracked> {
         let c = kind.channels_of(&self.cfg, self.grid.out_dim(), self.layout.mlp_in());
         self.ctx.buffer(
             "features readback",
-            (voxels * c * 4) as u64,
+            fmt.bytes(voxels * c),
             wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
         )
     }
 
-    /// A buffer in device memory for the features of `voxels` voxels (a copy destination for
-    /// [`Self::record_tile`] that stays on the GPU, to time extraction without the transfer
-    /// into host-mappable memory).
+    /// A buffer in device memory for the f32 features of `voxels` voxels (a copy destination
+    /// for [`Self::record_tile`] that stays on the GPU, to time extraction without the
+    /// transfer into host-mappable memory).
     pub fn device_buffer_for(&self, voxels: usize, kind: FeatureKind) -> Result<Tracked> {
+        self.device_buffer_in(voxels, kind, FeatureFormat::F32)
+    }
+
+    /// [`Self::device_buffer_for`] for features written as `fmt`.
+    pub fn device_buffer_in(
+        &self,
+        voxels: usize,
+        kind: FeatureKind,
+        fmt: FeatureFormat,
+    ) -> Result<Tracked> {
         let c = kind.channels_of(&self.cfg, self.grid.out_dim(), self.layout.mlp_in());
         self.ctx.buffer(
             "features (device)",
-            (voxels * c * 4) as u64,
+            fmt.bytes(voxels * c),
             wgpu::BufferUsages::STORAGE
                 | wgpu::BufferUsages::COPY_DST
                 | wgpu::BufferUsages::COPY_SRC,
         )
     }
 
-    /// Records the features of all `voxels` voxels of slot `slot` into `staging` (no wait);
-    /// returns the last submission.
+    /// Records the f32 features of all `voxels` voxels of slot `slot` into `staging` (no
+    /// wait); returns the last submission.
     pub fn record_tile(
         &mut self,
         slot: usize,
@@ -1564,19 +1644,38 @@ impl GpuInr {
         kind: FeatureKind,
         staging: &wgpu::Buffer,
     ) -> Result<wgpu::SubmissionIndex> {
+        self.record_tile_in(slot, voxels, kind, FeatureFormat::F32, staging)
+    }
+
+    /// [`Self::record_tile`] with the features written as `fmt` (voxel-major either way; f16
+    /// packed two to a word, [`FeatureFormat::bytes`]). f16 needs an inference engine whose
+    /// micro-batch holds an even number of values, so that each micro-batch starts on a whole
+    /// word (always so for the engine's power-of-two micro-batches).
+    pub fn record_tile_in(
+        &mut self,
+        slot: usize,
+        voxels: usize,
+        kind: FeatureKind,
+        fmt: FeatureFormat,
+        staging: &wgpu::Buffer,
+    ) -> Result<wgpu::SubmissionIndex> {
         let c = kind.channels_of(&self.cfg, self.grid.out_dim(), self.layout.mlp_in());
         let mb = self.plan.mb;
+        if fmt == FeatureFormat::F16 && (self.opts.train || !(mb * c).is_multiple_of(2)) {
+            return Err(GpuError::Config(format!(
+                "f16 features need an inference engine with an even number of values a \
+                 micro-batch (this one: training {}, {mb} samples x {c} channels)",
+                self.opts.train
+            )));
+        }
         let mut last = None;
         for first in (0..voxels.max(1)).step_by(mb) {
             let n = mb.min(voxels - first.min(voxels));
-            last = Some(self.record_features(
-                slot,
-                first,
-                n,
-                kind,
-                staging,
-                (first * c * 4) as u64,
-            )?);
+            let at = match fmt {
+                FeatureFormat::F32 => (first * c * 4) as u64,
+                FeatureFormat::F16 => (first * c * 2) as u64,
+            };
+            last = Some(self.record_features(slot, first, n, kind, fmt, staging, at)?);
         }
         last.ok_or_else(|| GpuError::Config("nothing to extract".into()))
     }

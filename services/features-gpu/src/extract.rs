@@ -1,11 +1,12 @@
 //! Feature extraction on the GPU into the store: tiles are read on host threads, each brick's
-//! features are computed and copied back while the next brick uploads, and writer threads
-//! (one per core, up to [`MAX_WRITERS`]) convert and compress them into f16 bricks in parallel
-//! (the same arrays, bytes and metadata as the CPU's `write_features`: each brick is its own
-//! chunk, so the order they finish in does not matter).
+//! features are computed, converted to f16 on the GPU (the store's encoding: half the bytes to
+//! copy back and map) and copied back while the next brick uploads, and writer threads (one
+//! per core, up to [`MAX_WRITERS`]) compress them into bricks in parallel (the same arrays and
+//! metadata as the CPU's `write_features`, values within f16 rounding of its: each brick is its
+//! own chunk, so the order they finish in does not matter).
 
 use crate::context::GpuContext;
-use crate::engine::{EngineOptions, GpuInr};
+use crate::engine::{EngineOptions, FeatureFormat, GpuInr};
 use crate::error::{GpuError, Result};
 use neuvolex_bricks::{Brick, BrickStore, Progress};
 use neuvolex_features::extract::{feature_output, ExtractReport};
@@ -48,9 +49,10 @@ pub fn write_features_gpu(
         EngineOptions::inference(store.info().brick),
     )?;
     let most = bricks.iter().map(|b| b.voxels()).max().unwrap_or(1);
+    let fmt = FeatureFormat::F16;
     let staging = [
-        engine.staging_for(most, kind)?,
-        engine.staging_for(most, kind)?,
+        engine.staging_in(most, kind, fmt)?,
+        engine.staging_in(most, kind, fmt)?,
     ];
     progress(Progress::Stage {
         name: "features",
@@ -64,7 +66,7 @@ pub fn write_features_gpu(
         let writers = std::thread::available_parallelism()
             .map_or(1, |n| n.get())
             .clamp(1, MAX_WRITERS);
-        let (out_tx, out_rx) = mpsc::sync_channel::<(Brick, Vec<f32>)>(2 * writers);
+        let (out_tx, out_rx) = mpsc::sync_channel::<(Brick, Vec<half::f16>)>(2 * writers);
         let out_rx = Arc::new(Mutex::new(out_rx));
         let list = &bricks;
         scope.spawn(move || {
@@ -90,7 +92,7 @@ pub fn write_features_gpu(
                         let Ok((b, f)) = next else {
                             return Ok(());
                         };
-                        va_ref.write_brick(&b, &f)?;
+                        va_ref.write_brick_f16(&b, &f)?;
                     }
                 })
             })
@@ -99,8 +101,12 @@ pub fn write_features_gpu(
         let mut done = 0u64;
         let mut flush = |prev: Option<(usize, Brick, wgpu::SubmissionIndex)>| -> Result<()> {
             if let Some((i, b, sub)) = prev {
-                let bytes = (b.voxels() * c * 4) as u64;
-                let f = ctx.map_read_f32(&staging[i % 2], bytes, Some(sub))?;
+                let values = b.voxels() * c;
+                let f = ctx
+                    .gpu
+                    .map_with(&staging[i % 2], fmt.bytes(values), Some(sub), |b| {
+                        bytemuck::cast_slice::<u8, half::f16>(b)[..values].to_vec()
+                    })?;
                 out_tx
                     .send((b, f))
                     .map_err(|_| GpuError::Config("the feature writer stopped".into()))?;
@@ -112,7 +118,7 @@ pub fn write_features_gpu(
         for (i, item) in tile_rx.iter().enumerate() {
             let (b, tile) = item?;
             engine.upload_tile(i % 2, &tile)?;
-            let sub = engine.record_tile(i % 2, tile.voxels(), kind, &staging[i % 2])?;
+            let sub = engine.record_tile_in(i % 2, tile.voxels(), kind, fmt, &staging[i % 2])?;
             flush(prev.take())?;
             prev = Some((i, b, sub));
         }

@@ -34,7 +34,7 @@ pub mod train;
 pub use neuvolex_gpu::wgpu;
 
 pub use context::{hardware_adapter, AdapterKind, GpuContext, GpuDevice, MemoryReport};
-pub use engine::{EngineOptions, GpuInr, MlpPath, StepRates};
+pub use engine::{EngineOptions, FeatureFormat, GpuInr, MlpPath, StepRates};
 pub use error::{GpuError, Result};
 pub use extract::write_features_gpu;
 /// The shared device's errors, which [`GpuError::Gpu`] carries.
