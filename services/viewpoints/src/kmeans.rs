@@ -507,63 +507,82 @@ impl KMeans {
     ) -> (Partial, usize) {
         let d = self.dim;
         let n = rows.len() / d;
-        let mut pending: Vec<u32> = Vec::new();
-        // Squared distances to the final centroid where computed (NaN: not computed).
-        let mut known = vec![f32::NAN; n];
-        if state.assign.len() != n {
+        let first = state.assign.len() != n;
+        if first {
             // First pass: every row gets its distances.
             state.assign = vec![0; n];
             state.upper = vec![0.0; n];
             state.lower = vec![0.0; n];
-            pending.extend(0..n as u32);
-        } else {
-            for (i, x) in rows.chunks_exact(d).enumerate() {
-                let a = state.assign[i] as usize;
-                let mut u = g.up(state.upper[i] + g.moved[a]);
-                let l = g.down(state.lower[i] - g.moved_other[a]).max(0.0);
-                state.lower[i] = l;
-                if !g.settled(a, u, l) {
-                    // Tighten the upper bound to the distance itself, then test again.
-                    let e = sq_dist(x, &self.centroids[a * d..(a + 1) * d]);
-                    known[i] = e;
-                    u = g.up(e.sqrt());
-                    if !g.settled(a, u, l) {
-                        pending.push(i as u32);
-                    }
-                }
-                state.upper[i] = u;
-            }
         }
-        // Rows the bounds cannot settle: the full assignment kernel, as `partial` runs it.
-        const GATHER: usize = 256;
+        // Blocks of TALLY_BLOCK rows, each tested, assigned and tallied while it is in cache
+        // (rows are independent and the tally runs in row order, so the blocks give the
+        // statistics of one pass over the chunk).
         let zero = vec![0.0f32; d];
-        let m = GATHER.min(pending.len());
-        let mut blk = vec![0.0f32; m * d];
+        let m = TALLY_BLOCK.min(n);
+        let mut gathered = vec![0.0f32; m * d];
         let (mut labels, mut seconds) = (vec![0u16; m], vec![0.0f32; m]);
-        for ids in pending.chunks(GATHER) {
-            for (j, &i) in ids.iter().enumerate() {
-                let i = i as usize;
-                blk[j * d..(j + 1) * d].copy_from_slice(&rows[i * d..(i + 1) * d]);
+        // Squared distances to the final centroid where computed (NaN: not computed).
+        let mut known = vec![f32::NAN; m];
+        let mut pending: Vec<u32> = Vec::with_capacity(m);
+        let mut p = Partial::new(self.k(), d);
+        let mut full = 0;
+        for (bi, blk) in rows.chunks(d * TALLY_BLOCK).enumerate() {
+            let o = bi * TALLY_BLOCK;
+            let len = blk.len() / d;
+            known[..len].fill(f32::NAN);
+            pending.clear();
+            if first {
+                pending.extend(0..len as u32);
+            } else {
+                for (j, x) in blk.chunks_exact(d).enumerate() {
+                    let i = o + j;
+                    let a = state.assign[i] as usize;
+                    let mut u = g.up(state.upper[i] + g.moved[a]);
+                    let l = g.down(state.lower[i] - g.moved_other[a]).max(0.0);
+                    state.lower[i] = l;
+                    if !g.settled(a, u, l) {
+                        // Tighten the upper bound to the distance itself, then test again.
+                        let e = sq_dist(x, &self.centroids[a * d..(a + 1) * d]);
+                        known[j] = e;
+                        u = g.up(e.sqrt());
+                        if !g.settled(a, u, l) {
+                            pending.push(j as u32);
+                        }
+                    }
+                    state.upper[i] = u;
+                }
             }
-            let b = &blk[..ids.len() * d];
+            full += pending.len();
+            // Rows the bounds cannot settle: the full assignment kernel, as `partial` runs
+            // it (on the block itself where every row is pending).
+            let src: &[f32] = if pending.len() == len {
+                blk
+            } else {
+                for (q, &j) in pending.iter().enumerate() {
+                    let j = j as usize;
+                    gathered[q * d..(q + 1) * d].copy_from_slice(&blk[j * d..(j + 1) * d]);
+                }
+                &gathered[..pending.len() * d]
+            };
+            let np = pending.len();
             g.packed
-                .nearest_on(path, b, &mut labels, None, Some(&mut seconds));
-            for (j, &i) in ids.iter().enumerate() {
-                let (x, i) = (&b[j * d..(j + 1) * d], i as usize);
-                let (a, second) = (labels[j] as usize, seconds[j]);
+                .nearest_on(path, src, &mut labels[..np], None, Some(&mut seconds[..np]));
+            for (q, &j) in pending.iter().enumerate() {
+                let (x, j) = (&src[q * d..(q + 1) * d], j as usize);
+                let (a, second) = (labels[q] as usize, seconds[q]);
                 let xn = sq_dist(x, &zero);
                 // |x|^2 + (|c|^2 - 2 x.c) is the squared distance within the kernel's error.
                 let e = g.error(g.up(xn.sqrt()));
+                let i = o + j;
                 state.assign[i] = a as u16;
                 let dist = sq_dist(x, &self.centroids[a * d..(a + 1) * d]);
-                known[i] = dist;
+                known[j] = dist;
                 state.upper[i] = g.up(dist.sqrt());
                 state.lower[i] = g.down((second + xn - e).max(0.0).sqrt());
             }
+            self.tally_on(path, &mut p, blk, &state.assign[o..o + len], &known[..len]);
         }
-        let mut p = Partial::new(self.k(), d);
-        self.tally_on(path, &mut p, rows, &state.assign, &known);
-        (p, pending.len())
+        (p, full)
     }
 
     /// Fits on `chunks` chunks of rows (`load(i)` gives chunk `i`, `dim` values per row); chunks
