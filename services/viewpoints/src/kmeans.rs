@@ -82,7 +82,7 @@ pub enum BoundsUse {
     /// Measured: the first pass runs without bounds, the next two with them (the first of
     /// those makes them), and the rest run the faster way. With the fused assignment kernel a
     /// pass without bounds is usually the faster on low-k features (k = 50 on 11-D or 64-D
-    /// features: about 2x in `benches/kmeans.rs`); the bounds can pay off where the distance
+    /// features: 1.6–1.7x in `benches/kmeans.rs`); the bounds can pay off where the distance
     /// product is large (`k x dim`) and most rows settle.
     #[default]
     Auto,
