@@ -393,16 +393,7 @@ impl VectorArray {
     /// only): their bytes are stored as given. A value that is not finite (an f32 feature
     /// past f16's range becomes infinite) is an error naming it, as there.
     pub fn write_brick_f16(&self, b: &Brick, values: &[half::f16]) -> Result<()> {
-        let c = self.info.channels;
-        if values.len() != b.voxels() * c {
-            return Err(BrickError::InvalidArgument(format!(
-                "brick {:?} needs {} values ({} voxels x {c}), got {}",
-                b.index,
-                b.voxels() * c,
-                b.voxels(),
-                values.len()
-            )));
-        }
+        self.check_brick(b, values.len())?;
         if !matches!(self.info.encoding, VectorEncoding::F16) {
             return Err(BrickError::InvalidArgument(format!(
                 "{}: f16 values written to an array encoded as {:?}",
@@ -416,36 +407,42 @@ impl VectorArray {
                 values[i], b.index
             )));
         }
-        let _ = self.chunk_of(b)?;
+        self.store(b, bytemuck::cast_slice(values).to_vec())
+    }
+
+    /// An error unless `b` is a brick of this store's grid and `n` values make it whole.
+    fn check_brick(&self, b: &Brick, n: usize) -> Result<()> {
+        let c = self.info.channels;
+        if n != b.voxels() * c {
+            return Err(BrickError::InvalidArgument(format!(
+                "brick {:?} needs {} values ({} voxels x {c}), got {n}",
+                b.index,
+                b.voxels() * c,
+                b.voxels(),
+            )));
+        }
+        self.chunk_of(b).map(|_| ())
+    }
+
+    /// Stores the encoded `bytes` of brick `b` (checked by [`Self::check_brick`]).
+    fn store(&self, b: &Brick, bytes: Vec<u8>) -> Result<()> {
         let mut sub = zyx(b.origin, b.size);
-        sub.push(0..c as u64);
-        write_bytes(&self.array, &sub, bytemuck::cast_slice(values).to_vec())
-            .map_err(|e| BrickError::zarr(&self.root, e))
+        sub.push(0..self.info.channels as u64);
+        write_bytes(&self.array, &sub, bytes).map_err(|e| BrickError::zarr(&self.root, e))
     }
 
     /// Writes one brick of vectors: `values` has `brick.voxels() * channels` entries, voxel-major
     /// (channels fastest), voxels x fastest.
     pub fn write_brick(&self, b: &Brick, values: &[f32]) -> Result<()> {
+        self.check_brick(b, values.len())?;
         let c = self.info.channels;
-        if values.len() != b.voxels() * c {
-            return Err(BrickError::InvalidArgument(format!(
-                "brick {:?} needs {} values ({} voxels x {c}), got {}",
-                b.index,
-                b.voxels() * c,
-                b.voxels(),
-                values.len()
-            )));
-        }
         if let Some(i) = values.iter().position(|v| !v.is_finite()) {
             return Err(BrickError::InvalidArgument(format!(
                 "vector value {} at index {i} of brick {:?} is not finite",
                 values[i], b.index
             )));
         }
-        let _ = self.chunk_of(b)?;
-        let mut sub = zyx(b.origin, b.size);
-        sub.push(0..c as u64);
-        let r = match &self.info.encoding {
+        let bytes = match &self.info.encoding {
             VectorEncoding::F16 => {
                 let v: Vec<half::f16> = values.iter().map(|&x| half::f16::from_f32(x)).collect();
                 if let Some(i) = v.iter().position(|h| !h.is_finite()) {
@@ -455,21 +452,18 @@ impl VectorArray {
                         values[i], b.index
                     )));
                 }
-                write_bytes(&self.array, &sub, bytemuck::cast_slice(&v).to_vec())
+                bytemuck::cast_slice(&v).to_vec()
             }
-            VectorEncoding::U8 { lo, hi } => {
-                let v: Vec<u8> = values
-                    .iter()
-                    .enumerate()
-                    .map(|(i, &x)| {
-                        let (l, h) = (lo[i % c], hi[i % c]);
-                        (((x - l) / (h - l)).clamp(0.0, 1.0) * 255.0).round() as u8
-                    })
-                    .collect();
-                write_bytes(&self.array, &sub, v)
-            }
+            VectorEncoding::U8 { lo, hi } => values
+                .iter()
+                .enumerate()
+                .map(|(i, &x)| {
+                    let (l, h) = (lo[i % c], hi[i % c]);
+                    (((x - l) / (h - l)).clamp(0.0, 1.0) * 255.0).round() as u8
+                })
+                .collect(),
         };
-        r.map_err(|e| BrickError::zarr(&self.root, e))
+        self.store(b, bytes)
     }
 
     /// Reads one brick of vectors (voxel-major, channels fastest). A brick never written is an

@@ -360,6 +360,20 @@ impl GpuContext {
             .map_with(staging, size, after, bytemuck::pod_collect_to_vec)?)
     }
 
+    /// The first `values` f16 values of `staging` (written packed two to a word, as
+    /// [`crate::FeatureFormat::F16`]), once submission `after` is done.
+    pub(crate) fn map_read_f16(
+        &self,
+        staging: &wgpu::Buffer,
+        values: usize,
+        after: Option<wgpu::SubmissionIndex>,
+    ) -> Result<Vec<half::f16>> {
+        let bytes = crate::FeatureFormat::F16.bytes(values);
+        Ok(self.gpu.map_with(staging, bytes, after, |b| {
+            bytemuck::cast_slice::<u8, half::f16>(b)[..values].to_vec()
+        })?)
+    }
+
     /// [`GpuContext::map_read_f32`] for u64 values (timestamps).
     pub(crate) fn map_read_u64(
         &self,

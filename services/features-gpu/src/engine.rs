@@ -1582,13 +1582,7 @@ impl GpuInr {
         self.upload_tile(0, tile)?;
         self.record_tile_in(0, tile.voxels(), kind, fmt, &staging)?;
         let c = kind.channels_of(&self.cfg, self.grid.out_dim(), self.layout.mlp_in());
-        let values = tile.voxels() * c;
-        self.ctx
-            .gpu
-            .map_with(&staging, fmt.bytes(values), None, |b| {
-                bytemuck::cast_slice::<u8, half::f16>(b)[..values].to_vec()
-            })
-            .map_err(GpuError::from)
+        self.ctx.map_read_f16(&staging, tile.voxels() * c, None)
     }
 
     /// A MAP_READ buffer for the f32 features of `voxels` voxels.
@@ -1671,10 +1665,8 @@ impl GpuInr {
         let mut last = None;
         for first in (0..voxels.max(1)).step_by(mb) {
             let n = mb.min(voxels - first.min(voxels));
-            let at = match fmt {
-                FeatureFormat::F32 => (first * c * 4) as u64,
-                FeatureFormat::F16 => (first * c * 2) as u64,
-            };
+            // Whole words for f16: first * c is even (checked above).
+            let at = fmt.bytes(first * c);
             last = Some(self.record_features(slot, first, n, kind, fmt, staging, at)?);
         }
         last.ok_or_else(|| GpuError::Config("nothing to extract".into()))

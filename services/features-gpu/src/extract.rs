@@ -101,12 +101,7 @@ pub fn write_features_gpu(
         let mut done = 0u64;
         let mut flush = |prev: Option<(usize, Brick, wgpu::SubmissionIndex)>| -> Result<()> {
             if let Some((i, b, sub)) = prev {
-                let values = b.voxels() * c;
-                let f = ctx
-                    .gpu
-                    .map_with(&staging[i % 2], fmt.bytes(values), Some(sub), |b| {
-                        bytemuck::cast_slice::<u8, half::f16>(b)[..values].to_vec()
-                    })?;
+                let f = ctx.map_read_f16(&staging[i % 2], b.voxels() * c, Some(sub))?;
                 out_tx
                     .send((b, f))
                     .map_err(|_| GpuError::Config("the feature writer stopped".into()))?;
