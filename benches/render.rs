@@ -17,7 +17,8 @@
 //! - VTK gets each volume in the file's integer type, narrowed without loss to 8 or 16 bits
 //!   (the fixed-point caster's fast path; bonsai uint8, the abdomen int16), the same camera,
 //!   TF control points (in data units), opacity unit distance, sample distance (automatic
-//!   adjustment off, full image resolution) and thread count (`render_vtk.py`);
+//!   adjustment off, full image resolution) and thread count (`render_vtk.py`), and our rays
+//!   end where its rays end (opacity 1 - 255/32767, its early termination, not our 0.99);
 //! - timed regions: ours is the whole `Renderer::render` call (per-frame ray set-up, the march,
 //!   compositing into an RGB image in memory); VTK's is its ray cast alone, between the mapper's
 //!   render start and end events (without its per-frame set-up and the OpenGL blit), so the
@@ -249,6 +250,10 @@ fn cells(c: &Result<(f32, f32, f32), neuvolex_render::RenderError>) -> String {
     }
 }
 
+/// The opacity at which VTK's fixed-point caster ends a ray: its remaining opacity (15-bit
+/// fixed point, 0x7fff for 1) below 0xff.
+const VTK_ERT: f32 = 1.0 - 255.0 / 32767.0;
+
 fn main() {
     let args: Vec<String> = std::env::args().collect();
     let size = arg(&args, "--size", 512);
@@ -293,7 +298,13 @@ fn main() {
         let dir = tempfile::tempdir().expect("tmp");
         let st = store(&src, labels.as_deref(), dir.path());
         let tf = TfFile::preset(preset).expect("preset");
-        let params = RenderParams::bench_view(size);
+        // Rays stop where VTK's fixed-point caster stops them: at a remaining opacity below
+        // 255 / 32767 (its `VTKKWRCHelper_CompositeColorAndCheckEarlyTermination`), not at
+        // our default 0.99, so both sides composite the same samples.
+        let params = RenderParams {
+            ert: VTK_ERT,
+            ..RenderParams::bench_view(size)
+        };
         let source = StoreSource::new(st.clone());
         let norm = source.normaliser();
         let it = tf.intensity.clone().expect("intensity tf");
