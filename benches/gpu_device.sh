@@ -1,8 +1,9 @@
 #!/usr/bin/env bash
 # Packages the GPU benchmarks for a machine with an NVIDIA GPU but no Rust toolchain and no
 # network (the device machine of /work/.library/device/README.md): the `inr_gpu`,
-# `classify_gpu`, `cluster` and `rounds` bench binaries (built here, stripped, xz-compressed), nats-server,
-# benches/inr_torch.py, the volumes they read, and the Vulkan loader .deb packages; the device
+# `classify_gpu`, `cluster`, `rounds` and `render` bench binaries (built here, stripped,
+# xz-compressed), nats-server, benches/inr_torch.py and benches/render_vtk.py, the volumes they
+# read, and the Vulkan loader .deb packages; the device
 # side is benches/gpu_device_run.sh. Everything goes into two git-ignored folders of the repository
 # root, `.gpubench/` and `.gl/`, which the device call carries; nothing here is committed.
 #
@@ -56,7 +57,7 @@ for l in sys.stdin:
 }
 rm -rf .gpubench
 mkdir -p .gpubench/data
-for bench in inr_gpu classify_gpu cluster rounds; do
+for bench in inr_gpu classify_gpu cluster rounds render; do
   echo "building the $bench bench binary (release, --features gpu)"
   exe=$(bench_exe "$bench")
   [ -x "$exe" ] || { echo "no $bench executable was built" >&2; exit 1; }
@@ -70,7 +71,7 @@ if [ -n "$nats" ]; then
 else
   echo "note: no nats-server here (deploy/cluster.sh install); the cluster part will not run" >&2
 fi
-cp benches/inr_torch.py .gpubench/
+cp benches/inr_torch.py benches/render_vtk.py .gpubench/
 # Where the figures come from: the device copy has no git history, so the commit, the dirty
 # flag and the build machine are recorded here and printed by the device command (with the
 # device's CPU, GPU, driver, and the versions of PyTorch, CUDA and numpy it runs against).
@@ -78,13 +79,13 @@ dirty=$(git status --porcelain --untracked-files=no | wc -l)
 {
   echo "commit: $(git rev-parse HEAD) ($(git log -1 --format=%cs)), $([ "$dirty" -eq 0 ] && echo clean || echo "dirty ($dirty tracked files modified)")"
   echo "built: $(date -u '+%F %H:%M') UTC on $(grep -m1 'model name' /proc/cpuinfo | cut -d: -f2 | xargs), $(rustc --version)"
-  for bench in inr_gpu classify_gpu cluster rounds; do
+  for bench in inr_gpu classify_gpu cluster rounds render; do
     echo "$bench sha256: $(sha256sum ".gpubench/$bench" | cut -c1-16)"
   done
 } >.gpubench/provenance.txt
 cat .gpubench/provenance.txt
 data="${NEUVOLEX_DATA:-$root/../shared/data}"
-for rel in tooth/tooth.nhdr tooth/tooth.raw abdomen_ct/ct.nii.gz scivis/bonsai.nii.gz; do
+for rel in tooth/tooth.nhdr tooth/tooth.raw abdomen_ct/ct.nii.gz abdomen_ct/labels.nii.gz scivis/bonsai.nii.gz; do
   if [ -f "$data/$rel" ]; then
     mkdir -p ".gpubench/data/$(dirname "$rel")"
     cp "$data/$rel" ".gpubench/data/$rel"
@@ -103,11 +104,11 @@ if ! ls .gl/libvulkan1_*.deb >/dev/null 2>&1; then
   (cd .gl && apt-get $o download libvulkan1 libegl1 libglvnd0 libopengl0 libgl1 libglx0 libgles2)
 fi
 
-xz -T0 -6 -f .gpubench/inr_gpu .gpubench/classify_gpu .gpubench/cluster .gpubench/rounds
+xz -T0 -6 -f .gpubench/inr_gpu .gpubench/classify_gpu .gpubench/cluster .gpubench/rounds .gpubench/render
 [ -f .gpubench/nats-server ] && xz -T0 -6 -f .gpubench/nats-server
 du -sh .gpubench .gl
 echo
 echo "device run: carry [\".gpubench\", \".gl\"], timeout_s 600, command (then, on the warm"
-echo "machine, 'bash benches/gpu_device_run.sh rounds' and 'bash benches/gpu_device_run.sh cluster'"
+echo "machine, 'bash benches/gpu_device_run.sh rounds', '... cluster' and '... render'"
 echo "with the time left):"
 device_command

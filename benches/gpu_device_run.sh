@@ -15,10 +15,16 @@
 #   rounds    benches/rounds.rs: whole session rounds of the 512x512x452 phantom predicted on
 #             the GPU (streamed blocks), then on the CPU for the ratio, with nothing kept in the
 #             store and then with the features kept (issue 49; about 6 minutes)
+#   render    benches/render.rs: the wgpu renderer against VTK's GPU mapper
+#             (vtkGPUVolumeRayCastMapper, offscreen EGL) and fixed-point caster on the same card
+#             and CPU, bonsai and the abdomen CT at 512^2 and 1024^2, still and orbiting, with the
+#             image check; VTK where the device's python3 imports vtk and nibabel, else the
+#             log says why and the renderers of ours run alone (issue 50; about 4 minutes)
 #
 #   bash benches/gpu_device_run.sh classify inr     # one device call (about 8 minutes)
 #   bash benches/gpu_device_run.sh cluster          # a second call on the warm machine
 #   bash benches/gpu_device_run.sh rounds           # a third
+#   bash benches/gpu_device_run.sh render           # a fourth
 #
 # At most 8 files come back from a device call: provenance.txt, smi.csv, and a JSON report and
 # a log per part.
@@ -71,7 +77,19 @@ for part in "$@"; do
         timeout "${ROUNDS_S:-540}" "$b/rounds" 2>&1 | tee "$OUT/rounds.log"
       rc=${PIPESTATUS[0]}
       ;;
-    *) echo "unknown part $part (classify, inr, cluster, rounds)"; rc=2 ;;
+    render)
+      python3 -c 'import vtk, nibabel; print(f"VTK {vtk.vtkVersion.GetVTKVersion()}, nibabel {nibabel.__version__}")' 2>&1 |
+        tee -a "$OUT/provenance.txt"
+      rc=0
+      for size in ${RENDER_SIZES:-512 1024}; do
+        NEUVOLEX_VTK_PYTHON=python3 NEUVOLEX_VTK_SCRIPT="$PWD/$b/render_vtk.py" \
+          timeout "${RENDER_S:-120}" "$b/render" --size "$size" --frames "${RENDER_FRAMES:-5}" 2>&1 |
+          tee -a "$OUT/render.log"
+        r=${PIPESTATUS[0]}
+        [ "$r" -ne 0 ] && rc=$r
+      done
+      ;;
+    *) echo "unknown part $part (classify, inr, cluster, rounds, render)"; rc=2 ;;
   esac
   echo "== $part ended $(date -u '+%T') UTC (exit $rc)" | tee -a "$OUT/provenance.txt"
 done

@@ -11,7 +11,8 @@
 //! intensity mode with shading and, on the abdomen, the probabilistic mode over its
 //! ground-truth labels; the wgpu renderer where built with `--features gpu`; and VTK's
 //! vtkFixedPointVolumeRayCastMapper and vtkGPUVolumeRayCastMapper where `NEUVOLEX_VTK_PYTHON`
-//! (or `python3`) imports vtk and nibabel.
+//! (or `python3`) imports vtk and nibabel (`NEUVOLEX_VTK_SCRIPT` names `render_vtk.py` where the
+//! binary runs away from its source tree, as on the device: `benches/gpu_device.sh`).
 //!
 //! Like for like, by construction:
 //! - VTK gets each volume in the file's integer type, narrowed without loss to 8 or 16 bits
@@ -92,7 +93,12 @@ impl Vtk {
         let py = std::env::var("NEUVOLEX_VTK_PYTHON").unwrap_or_else(|_| "python3".into());
         let jp = out.with_extension("job.json");
         std::fs::write(&jp, job.to_string()).expect("job");
-        let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("render_vtk.py");
+        // NEUVOLEX_VTK_SCRIPT names the script where the binary runs away from its source
+        // tree (benches/gpu_device.sh carries it to the device).
+        let script = std::env::var_os("NEUVOLEX_VTK_SCRIPT").map_or_else(
+            || Path::new(env!("CARGO_MANIFEST_DIR")).join("render_vtk.py"),
+            std::path::PathBuf::from,
+        );
         let child = JsonChild::start(
             "vtk",
             &py,
