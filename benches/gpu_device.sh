@@ -20,9 +20,14 @@
 # both sides from neuvolex's initial parameters (init.f32, checked by inr_torch.py against
 # neuvolex's heads on the first samples). neuvolex runs one side per fused block size
 # (`--paths fused,fused32,fused16`: 64, 32 and 16 samples per workgroup; the ratios are of the
-# first, the default); the launch-path x batch sweep runs layered and the three fused blocks
-# (`--sweep-paths`), the extraction sweep the three blocks at inference micro-batches of 32768,
-# 65536 and 262144, and the per-kernel profile uses GPU timestamps where the adapter has them.
+# first, the default), and one per f16 path with blocks of 64 and 32 (`fused-f16`,
+# `fused32-f16`: the GEMM tiles on the tensor cores where the NVIDIA driver reports cooperative
+# matrices, labelled [f16-tensor-cores], else [f16-rounded]); the launch-path x batch sweep runs
+# layered, the three fused blocks and the two f16 paths (`--sweep-paths`), the extraction sweep
+# the `--paths` paths at inference micro-batches of 32768, 65536 and 262144, the agreement check
+# compares the f16 paths with the layered f32 path and the tensor cores with the same f16
+# inputs on the f32 units, and the per-kernel profile uses GPU timestamps where the adapter has
+# them.
 # The report is rewritten after every stage, so a run cut short keeps what it measured.
 # `--only torch` runs that comparison alone (a shorter device call).
 set -euo pipefail

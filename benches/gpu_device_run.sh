@@ -9,7 +9,8 @@
 #   classify  benches/classify_gpu.rs: the filter bank and the forest on the GPU, streamed by
 #             brick over the 512x512x452 phantom, beside the CPU path (issue 49)
 #   inr       benches/inr_gpu.rs: INR training and extraction on the GPU against PyTorch from
-#             the same initial weights, the launch-path sweep, the kernel profile (issue 46)
+#             the same initial weights, on the f32 paths and the f16 ones (tensor cores), the
+#             launch-path sweep, the kernel profile, the f16 paths' agreement (issue 46)
 #   cluster   benches/cluster.rs: classification of the 512x512x452 phantom in one process and
 #             on 2 and 16 one-thread workers over nats-server (the serial part, issue 49)
 #   rounds    benches/rounds.rs: whole session rounds of the 512x512x452 phantom predicted on
@@ -57,8 +58,11 @@ for part in "$@"; do
       rc=${PIPESTATUS[0]}
       ;;
     inr)
-      timeout 420 "$b/inr_gpu" --cap-s 60 --sweep-s 8 --sweep-paths layered,fused,fused32,fused16 \
-        --paths fused,fused32,fused16 --torch-steps 400 --rounds 3 --cpu-s 5 \
+      # The f16 paths run on the tensor cores where the driver reports cooperative matrices
+      # (the log's path labels say [f16-tensor-cores] or [f16-rounded]); the agreement check
+      # compares them with the f32 path and with their own arithmetic on the f32 units.
+      timeout 420 "$b/inr_gpu" --cap-s 60 --sweep-s 6 --sweep-paths layered,fused,fused32,fused16,fused-f16,fused32-f16 \
+        --paths fused,fused32,fused16,fused-f16,fused32-f16 --torch-steps 400 --rounds 3 --cpu-s 5 \
         --out "$OUT/inr_gpu.json" 2>&1 | tee "$OUT/inr_gpu.log"
       rc=${PIPESTATUS[0]}
       ;;

@@ -6,7 +6,8 @@
 //! 2. on CT-Tooth, neuvolex's GPU engine against the same model in PyTorch on the same device
 //!    (`benches/inr_torch.py --device cuda`), like for like (below);
 //! 3. per-kernel times of one step on every launch path (layered; fused with blocks of 64, 32
-//!    and 16 samples per workgroup): GPU timestamps per dispatch in one submission where the
+//!    and 16 samples per workgroup; fused-f16, its GEMM tiles on the tensor cores where the
+//!    device has cooperative matrices): GPU timestamps per dispatch in one submission where the
 //!    adapter has timestamp queries, else each dispatch waited for; and a sweep of launch path
 //!    x batch size on CT-Tooth (samples/s and PSNR after the same seconds of training);
 //! 4. with `--features gpu`, the wgpu renderer against the CPU renderer (bonsai, abdomen;
@@ -22,10 +23,11 @@
 //! side of the comparison with PyTorch), `--rounds R` (default 3), `--torch-variants a,b,..`
 //! (default on CUDA fused,sparse,compile+fused,ro+fused,ro+cstep; ma+cstep (max-autotune) and
 //! eager exist too), `--screen 0` (every variant in every round), `--cpu-s S` (the CPU engine
-//! per volume), `--only agree` (only the fused-against-layered check), `--only torch` (only the
+//! per volume), `--only agree` (only the check of the fused paths, f32 and f16, against the layered one), `--only torch` (only the
 //! comparison with PyTorch), `--only stages` (only the path checks, profile, sweep and
 //! extraction sweep), `--volume FILE` (with `--only torch` or `--only stages`: that volume
-//! instead of CT-Tooth, e.g. a small one for a smoke test on lavapipe), `--sweep-paths P,P,..` (default layered,fused,fused32,fused16),
+//! instead of CT-Tooth, e.g. a small one for a smoke test on lavapipe), `--sweep-paths P,P,..` (default layered,fused,fused32,fused16; any `MlpPath` name, the f16
+//! ones `fused-f16`, `fused32-f16`, `fused16-f16` too),
 //! `--paths P,P,..` (neuvolex's sides in the comparison with PyTorch, default
 //! fused,fused32,fused16; the ratios are of the first), `--mlp P` (the per-volume runs'
 //! path, default fused), `--extract-batches B,B,..` (inference micro-batches of the
@@ -166,6 +168,7 @@ fn gpu_volume(
         GpuTune {
             mlp,
             micro_batch: None,
+            loss_scale_exp: None,
         },
     )
     .expect("GPU training");
@@ -353,7 +356,12 @@ fn vs_torch_gpu(
         .into_iter()
         .map(|(mlp, mut run)| -> Side<'_> {
             (
-                format!("neuvolex GPU {} ({})", mlp.name(), ctx.info().name),
+                format!(
+                    "neuvolex GPU {} [{}] ({})",
+                    mlp.name(),
+                    ctx.tile_arith_for(mlp.half()).name(),
+                    ctx.info().name
+                ),
                 Box::new(move || {
                     run(steps).unwrap_or_else(|e| {
                         eprintln!("neuvolex GPU round ({}) failed: {e}", mlp.name());
@@ -509,6 +517,7 @@ fn sweep(
                 GpuTune {
                     mlp,
                     micro_batch: Some(batch.min(65536)),
+                    loss_scale_exp: None,
                 },
             );
             let g = match r {
@@ -673,8 +682,8 @@ fn paths_agree(ctx: &Arc<GpuContext>, dims: [usize; 3]) -> Value {
             })
         })
         .collect();
-    let grads = |mlp| {
-        let mut e = GpuInr::new(
+    let engine = |mlp| {
+        GpuInr::new(
             ctx,
             &m,
             None,
@@ -687,9 +696,9 @@ fn paths_agree(ctx: &Arc<GpuContext>, dims: [usize; 3]) -> Value {
                 order_pairs: 0,
                 mlp,
             },
-        )?;
-        e.gradients(&xs, &ps, &ts)
+        )
     };
+    let grads = |mlp| engine(mlp)?.gradients(&xs, &ps, &ts);
     let a = match grads(MlpPath::Layered) {
         Ok(a) => a,
         Err(e) => {
@@ -735,12 +744,99 @@ fn paths_agree(ctx: &Arc<GpuContext>, dims: [usize; 3]) -> Value {
             "touched_equal": a.touched == b.touched, "pass": ok}),
         );
     }
+    // The f16 paths: against the layered f32 path (f16's rounding, stated tolerances: loss
+    // 1e-3 relative, dense 1e-2, table 5e-2 of the largest gradient), and, where the device
+    // has tensor cores, against their own arithmetic on the f32 units (inputs rounded to f16,
+    // products exact, only the f32 sums' order differs: 1e-5, 1e-4, 1e-3).
+    for mlp in MlpPath::HALF {
+        let mut e = match engine(mlp) {
+            Ok(e) => e,
+            Err(err) => {
+                println!(
+                    "
+{} against layered: failed ({err})",
+                    mlp.name()
+                );
+                out.push(json!({"path": mlp.name(), "error": err.to_string(), "pass": false}));
+                continue;
+            }
+        };
+        let arith = e.tile_arith();
+        let run = |e: &mut GpuInr| e.gradients(&xs, &ps, &ts);
+        let b = match run(&mut e) {
+            Ok(b) => b,
+            Err(err) => {
+                println!(
+                    "
+{} ({}) against layered: failed ({err})",
+                    mlp.name(),
+                    arith.name()
+                );
+                out.push(json!({"path": mlp.name(), "arith": arith.name(), "error": err.to_string(), "pass": false}));
+                continue;
+            }
+        };
+        let d = |x: &neuvolex_features_gpu::engine::Gradients,
+                 y: &neuvolex_features_gpu::engine::Gradients| {
+            (
+                (x.loss - y.loss).abs() / y.loss.abs().max(1e-30),
+                rel(&x.dense, &y.dense),
+                rel(&x.table, &y.table),
+            )
+        };
+        let (dl, dd, dt) = d(&b, &a);
+        let ok = dl < 1e-3 && dd < 1e-2 && dt < 5e-2;
+        println!(
+            "
+{} [{}] against the layered f32 path (paper model, {n} samples, loss scale 2^{}): loss {dl:.1e} relative, dense gradients {dd:.1e}, table gradients {dt:.1e} of the largest: {}",
+            mlp.name(),
+            arith.name(),
+            e.loss_scale_exp(n),
+            if ok { "PASS (tolerances 1e-3, 1e-2, 5e-2)" } else { "FAIL" }
+        );
+        let mut row = json!({"path": mlp.name(), "arith": arith.name(), "loss_rel": dl,
+            "dense_rel": dd, "table_rel": dt, "pass": ok});
+        if arith == neuvolex_features_gpu::TileArith::TensorCores {
+            let emu = e
+                .set_tile_arith(neuvolex_features_gpu::TileArith::HalfRounded)
+                .and_then(|_| run(&mut e));
+            match emu {
+                Ok(c) => {
+                    let (el, ed, et) = d(&b, &c);
+                    let ok2 = el < 1e-5 && ed < 1e-4 && et < 1e-3;
+                    println!(
+                        "{} tensor cores against the same f16 inputs on the f32 units: loss {el:.1e}, dense {ed:.1e}, table {et:.1e}: {}",
+                        mlp.name(),
+                        if ok2 { "PASS (tolerances 1e-5, 1e-4, 1e-3)" } else { "FAIL" }
+                    );
+                    row["vs_rounded"] =
+                        json!({"loss_rel": el, "dense_rel": ed, "table_rel": et, "pass": ok2});
+                    row["pass"] = json!(ok && ok2);
+                }
+                Err(err) => {
+                    println!("{}: the f32-unit reference failed ({err})", mlp.name());
+                    row["vs_rounded"] = json!({"error": err.to_string(), "pass": false});
+                    row["pass"] = json!(false);
+                }
+            }
+        }
+        out.push(row);
+    }
     // The first entry's fields at the top level, as before (the default fused path).
     let mut v = out.first().cloned().unwrap_or(json!({}));
     v["pass"] = json!(out.iter().all(|o| o["pass"] == true));
     v["paths"] = json!(out);
     v
 }
+
+/// The paths whose kernels are profiled: every f32 path and the f16 path with blocks of 64.
+const PROFILED: [MlpPath; 5] = [
+    MlpPath::Layered,
+    MlpPath::Fused,
+    MlpPath::Fused32,
+    MlpPath::Fused16,
+    MlpPath::FusedF16,
+];
 
 /// Seconds per kernel of one step of the paper's model on `store`'s first tiles, per path.
 fn profile(ctx: &Arc<GpuContext>, store: &BrickStore, paths: &[MlpPath]) -> Value {
@@ -1023,7 +1119,7 @@ fn main() {
             let store = store_for(&p, dir.path());
             report["paths_agree"] = paths_agree(&ctx, store.info().dims);
             write(&report);
-            report["profile"] = profile(&ctx, &store, &MlpPath::ALL);
+            report["profile"] = profile(&ctx, &store, &PROFILED);
             write(&report);
             report["sweep"] = sweep(&ctx, &store, sweep_s, &sweep_batches, &sweep_paths);
             write(&report);
@@ -1064,7 +1160,7 @@ fn main() {
         let v = gpu_volume(&ctx, name, &store, *epochs, *cap, cpu_s, mlp);
         if name == "CT-Tooth" {
             report["paths_agree"] = paths_agree(&ctx, store.info().dims);
-            report["profile"] = profile(&ctx, &store, &MlpPath::ALL);
+            report["profile"] = profile(&ctx, &store, &PROFILED);
             write(&report);
             report["sweep"] = sweep(&ctx, &store, sweep_s, &sweep_batches, &sweep_paths);
             write(&report);

@@ -6,6 +6,11 @@
 // the split whose partial it writes; FiLM and the loss: per sample), so no block waits for
 // another. The operations' arithmetic is the layered path's (inr_layers.wgsl).
 //
+// The GEMM tile is the module's `tile` (same arguments as inr_layers.wgsl `gemm_tile`), and the
+// entry point `fused` calls `fused_run`: both come from the file compiled after this one,
+// inr_fused_f32.wgsl (the f32 tile, or f16-rounded inputs on f32 units) or inr_fused_tc.wgsl
+// (the tile on cooperative matrices: tensor cores).
+//
 // The program sits in the uniform buffer: a header (operation count, samples n, -, -) and up
 // to MAX_OPS records of 24 words, a Gemm or an Elem with the operation's kind in the last word.
 
@@ -34,9 +39,8 @@ fn as_elem(g: Gemm) -> Elem {
     return Elem(g.dims, g.a, g.b, g.c, bitcast<vec4<f32>>(g.e), bitcast<vec4<f32>>(g.s));
 }
 
-@compute @workgroup_size(256)
-fn fused(@builtin(local_invocation_index) li: u32, @builtin(workgroup_id) wg: vec3<u32>) {
-    let b = wg.x;
+// Runs the program on block `b`, as invocation `li` of its 256.
+fn fused_run(li: u32, b: u32) {
     let n = P.head.y;
     let s0 = b * FB;
     for (var o = 0u; o < P.head.x; o++) {
@@ -45,14 +49,14 @@ fn fused(@builtin(local_invocation_index) li: u32, @builtin(workgroup_id) wg: ve
         if (kind == OP_COLS) {
             let mts = (g.dims.x + BM - 1u) / BM;
             for (var mt = 0u; mt < mts; mt++) {
-                gemm_tile(g, mt, b, 0u, li);
+                tile(g, mt, b, 0u, li);
             }
         } else if (kind == OP_WGRAD) {
             let mts = (g.dims.x + BM - 1u) / BM;
             let nts = (g.dims.y + BN - 1u) / BN;
             for (var mt = 0u; mt < mts; mt++) {
                 for (var nt = 0u; nt < nts; nt++) {
-                    gemm_tile(g, mt, nt, b, li);
+                    tile(g, mt, nt, b, li);
                 }
             }
         } else if (kind == OP_FILM_FWD || kind == OP_FILM_BWD) {

@@ -61,6 +61,73 @@ const TM: u32 = BM * BN / 1024u;
 var<workgroup> As: array<f32, SLICE>;
 var<workgroup> Bs: array<f32, SLICE>;
 
+// Element `e` of a k-slice of A (BK x BM, from k0, rows from m0) as (where it goes in the
+// slice, its value): rows past M and k past `ke` read 0. The slice is k-major (`kk * BM + mm`)
+// whichever way A is laid out in the arena; consecutive `e` read consecutive arena addresses.
+struct Staged {
+    i: u32,
+    v: f32,
+};
+
+fn a_elem(g: Gemm, m0: u32, k0: u32, ke: u32, e: u32) -> Staged {
+    var mm: u32;
+    var kk: u32;
+    if ((g.dims.w & F_A_KCONTIG) != 0u) {
+        mm = e / BK;
+        kk = e % BK;
+    } else {
+        mm = e % BM;
+        kk = e / BM;
+    }
+    let gm = m0 + mm;
+    let gk = k0 + kk;
+    var v = 0.0;
+    if (gm < g.dims.x && gk < ke) {
+        v = arena[g.a.x + gm * g.a.y + gk * g.a.z];
+    }
+    return Staged(kk * BM + mm, v);
+}
+
+// Element `e` of a k-slice of B (BK x BN, from k0, columns from n0), k-major (`kk * BN + nn`):
+// columns from B's `b.w` up to N read 1.0 (the column of ones), k past `ke` reads 0.
+fn b_elem(g: Gemm, n0: u32, k0: u32, ke: u32, e: u32) -> Staged {
+    var nn: u32;
+    var kk: u32;
+    if ((g.dims.w & F_B_NCONTIG) != 0u) {
+        nn = e % BN;
+        kk = e / BN;
+    } else {
+        nn = e / BK;
+        kk = e % BK;
+    }
+    let gn = n0 + nn;
+    let gk = k0 + kk;
+    var v = 0.0;
+    if (gk < ke) {
+        if (gn < g.b.w) {
+            v = arena[g.b.x + gk * g.b.y + gn * g.b.z];
+        } else if (gn < g.dims.y) {
+            v = 1.0;
+        }
+    }
+    return Staged(kk * BN + nn, v);
+}
+
+// Whether the GEMM's inputs are rounded to f16 as they are staged (the f16 path's arithmetic
+// emulated on f32 units, for adapters without cooperative matrices; the host rewrites this
+// line, see context.rs `fused_source`). Products of two f16 values are exact in f32, so this
+// computes what a tensor core computes, up to the order of the f32 sums.
+const HALF_INPUTS: bool = false;
+
+// `v` as the GEMM's input: itself, or with HALF_INPUTS rounded to the nearest f16 (saturating
+// at f16's largest finite value rather than overflowing to infinity).
+fn stage_in(v: f32) -> f32 {
+    if (HALF_INPUTS) {
+        return unpack2x16float(pack2x16float(vec2<f32>(clamp(v, -65504.0, 65504.0), 0.0))).x;
+    }
+    return v;
+}
+
 // One 64 x 64 tile (row tile `mt`, column tile `nt`) of split `z` of
 //   C[m][n] (op)= sum_k A[m][k] B[k][n]
 // with A, B and C anywhere in the arena under arbitrary strides, so one function computes
@@ -74,18 +141,13 @@ var<workgroup> Bs: array<f32, SLICE>;
 // every output, so an output's value does not depend on BN. Must be called in uniform control
 // flow by all 256 invocations of the workgroup.
 fn gemm_tile(g: Gemm, mt: u32, nt: u32, z: u32, li: u32) {
-    let M = g.dims.x;
-    let N = g.dims.y;
     let K = g.dims.z;
-    let flags = g.dims.w;
     let m0 = mt * BM;
     let n0 = nt * BN;
     let kb = z * g.s.x;
     let ke = min(kb + g.s.x, K);
     let tx = li % CG;
     let ty = li / CG;
-    let a_kc = (flags & F_A_KCONTIG) != 0u;
-    let b_nc = (flags & F_B_NCONTIG) != 0u;
     // Four named accumulators rather than an array: an array indexed in a loop the driver does
     // not unroll would live in local memory, one load and store per multiply-add.
     var acc0 = vec4<f32>(0.0);
@@ -94,46 +156,12 @@ fn gemm_tile(g: Gemm, mt: u32, nt: u32, z: u32, li: u32) {
     var acc3 = vec4<f32>(0.0);
     for (var k0 = kb; k0 < ke; k0 += BK) {
         for (var i = 0u; i < PER; i++) {
-            let e = li + i * 256u;
-            var mm: u32;
-            var kk: u32;
-            if (a_kc) {
-                mm = e / BK;
-                kk = e % BK;
-            } else {
-                mm = e % BM;
-                kk = e / BM;
-            }
-            let gm = m0 + mm;
-            let gk = k0 + kk;
-            var v = 0.0;
-            if (gm < M && gk < ke) {
-                v = arena[g.a.x + gm * g.a.y + gk * g.a.z];
-            }
-            As[kk * BM + mm] = v;
+            let t = a_elem(g, m0, k0, ke, li + i * 256u);
+            As[t.i] = stage_in(t.v);
         }
         for (var i = 0u; i < PER_B; i++) {
-            let e = li + i * 256u;
-            var nn: u32;
-            var kk: u32;
-            if (b_nc) {
-                nn = e % BN;
-                kk = e / BN;
-            } else {
-                nn = e / BK;
-                kk = e % BK;
-            }
-            let gn = n0 + nn;
-            let gk = k0 + kk;
-            var v = 0.0;
-            if (gk < ke) {
-                if (gn < g.b.w) {
-                    v = arena[g.b.x + gk * g.b.y + gn * g.b.z];
-                } else if (gn < N) {
-                    v = 1.0;
-                }
-            }
-            Bs[kk * BN + nn] = v;
+            let t = b_elem(g, n0, k0, ke, li + i * 256u);
+            Bs[t.i] = stage_in(t.v);
         }
         workgroupBarrier();
         for (var kk = 0u; kk < BK; kk++) {
@@ -226,9 +254,10 @@ fn film_bwd_at(p: Elem, j: u32, s: u32) {
 }
 
 // The loss of sample s and its output gradient: loss += w_k (y_k - t_k)^2 / B,
-// dy_k = 2 w_k (y_k - t_k) / B; returns (loss term, squared intensity error).
+// dy_k = 2 w_k (y_k - t_k) 2^e / B; returns (loss term, squared intensity error).
 // a: n, outputs, y off, y stride | b: t off, t stride, dy off, dy stride
-// c: loss weights off, partials off | f: 1 / B
+// c: loss weights off, partials off | f: 1 / B, 2^e / B (e: the loss-scale exponent, 0 on the
+// f32 paths)
 fn loss_at(p: Elem, s: u32) -> vec2<f32> {
     var part = vec2<f32>(0.0);
     let inv = p.f.x;
@@ -236,7 +265,7 @@ fn loss_at(p: Elem, s: u32) -> vec2<f32> {
         let e = arena[p.a.z + k * p.a.w + s] - arena[p.b.x + k * p.b.y + s];
         let w = arena[p.c.x + k];
         part.x += w * e * e * inv;
-        arena[p.b.z + k * p.b.w + s] = 2.0 * w * e * inv;
+        arena[p.b.z + k * p.b.w + s] = 2.0 * w * e * p.f.y;
         if (k == 0u) {
             part.y = e * e;
         }

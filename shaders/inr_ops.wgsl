@@ -76,8 +76,8 @@ fn adam(g: f32, m: ptr<function, f32>, v: ptr<function, f32>, p: ptr<function, f
 // last micro-batch, Adam on the dense parameters, and invocation 0 sums the loss partials in
 // order into the step's statistics slot.
 // a: params, splits, partials off, partial stride | b: g off, flags (1 first, 2 last), params
-// off, m off | c: v off, loss partials off, loss partial count, stats off | f: lr, b1, b2, eps
-// g: bias corrections c1, c2
+// off, m off | c: v off, loss partials off, loss partial count, stats off | d: loss-scale
+// exponent | f: lr, b1, b2, eps | g: bias corrections c1, c2
 @compute @workgroup_size(256)
 fn reduce_adam(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
                @builtin(local_invocation_index) li: u32) {
@@ -110,7 +110,8 @@ fn reduce_adam(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nw
     var m = arena[A.b.w + i];
     var v = arena[A.c.x + i];
     var p = arena[A.b.z + i];
-    adam(s, &m, &v, &p, A.f.x);
+    // The gradient of the loss scaled by 2^d.x (the f16 paths): divided back out, exactly.
+    adam(s * ldexp(1.0, -i32(A.d.x)), &m, &v, &p, A.f.x);
     arena[A.b.w + i] = m;
     arena[A.c.x + i] = v;
     arena[A.b.z + i] = p;
@@ -118,7 +119,8 @@ fn reduce_adam(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nw
 
 // Adam on the hash table from the fixed-point gradient, which it clears. Lazy: only entries
 // marked as touched this step; dense: every entry.
-// a: entries (levels x T), F, dense (0/1), marks off | b: misc off, batch | f: lr, b1, b2, eps
+// a: entries (levels x T), F, dense (0/1), marks off | b: misc off, batch, loss-scale exponent
+// f: lr, b1, b2, eps
 // g: c1, c2
 @compute @workgroup_size(256)
 fn adam_table(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
@@ -133,7 +135,8 @@ fn adam_table(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg
             return;
         }
     }
-    let inv = ldexp(1.0, -scale_exp(atomicLoad(&acc_hi[A.b.x]), A.b.y));
+    // The fixed-point scale, and the loss scale 2^b.z of the f16 paths, divided back out.
+    let inv = ldexp(1.0, -scale_exp(atomicLoad(&acc_hi[A.b.x]), A.b.y) - i32(A.b.z));
     let F = A.a.y;
     for (var f = 0u; f < F; f++) {
         let i = e * F + f;

@@ -17,6 +17,10 @@ pub const LAYERS_WGSL: &str = include_str!("../../../shaders/inr_layers.wgsl");
 pub const GEMM_WGSL: &str = include_str!("../../../shaders/inr_gemm.wgsl");
 /// The fused path: a micro-batch's whole forward, loss and backward in one dispatch.
 pub const FUSED_WGSL: &str = include_str!("../../../shaders/inr_fused.wgsl");
+/// The fused kernel's entry point and GEMM tile on f32 units (f32 or f16-rounded inputs).
+pub const FUSED_F32_WGSL: &str = include_str!("../../../shaders/inr_fused_f32.wgsl");
+/// The fused kernel's entry point and GEMM tile on cooperative matrices (tensor cores).
+pub const FUSED_TC_WGSL: &str = include_str!("../../../shaders/inr_fused_tc.wgsl");
 /// Sample staging, the hash-grid gather and the fixed-point table-gradient scatter.
 pub const GRID_WGSL: &str = include_str!("../../../shaders/inr_grid.wgsl");
 /// FiLM, loss, reductions, Adam and the feature gather.
@@ -77,16 +81,66 @@ pub const DEFAULT_FUSED_BLOCK: usize = 64;
 /// 16), each computing 64 x block GEMM tiles with fewer outputs per invocation.
 pub const FUSED_BLOCKS: [usize; 3] = [64, 32, 16];
 
-/// The fused module's WGSL for `block` samples per workgroup: the layer arithmetic with its
-/// tile width `BN` set to `block` (the fused kernel's `FB` is `BN`). `None` if `block` is not
-/// one of [`FUSED_BLOCKS`] (or the sources lost the line this rewrites).
-pub fn fused_source(block: usize) -> Option<String> {
+/// How the fused kernel's GEMM tiles compute.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum TileArith {
+    /// f32 inputs and sums on the f32 units (the reference).
+    F32,
+    /// Inputs rounded to f16 as they are staged, products and sums in f32 on the f32 units:
+    /// the tensor cores' arithmetic (f16 products are exact in f32) where there are none.
+    HalfRounded,
+    /// 16 x 16 x 16 cooperative matrices of f16 inputs and f32 accumulators (tensor cores).
+    TensorCores,
+}
+
+impl TileArith {
+    /// `f32`, `f16-rounded` or `f16-tensor-cores`.
+    pub fn name(self) -> &'static str {
+        match self {
+            TileArith::F32 => "f32",
+            TileArith::HalfRounded => "f16-rounded",
+            TileArith::TensorCores => "f16-tensor-cores",
+        }
+    }
+}
+
+/// The tensor-core module's uniformity directive. Cooperative-matrix operations must run in
+/// control flow that is uniform across their subgroup; naga's analysis knows only workgroup
+/// uniformity, so it rejects the tile's loop over its subgroup's sub-tiles (bounded by the
+/// subgroup's id: the same in every invocation of a subgroup). The directive lowers that rule
+/// off for this module only.
+const TC_UNIFORMITY: &str = "diagnostic(off, derivative_uniformity);";
+
+/// The fused module's WGSL for `block` samples per workgroup and tile arithmetic `arith`: the
+/// layer arithmetic with its tile width `BN` set to `block` (the fused kernel's `FB` is `BN`),
+/// the program runner, and the entry point with its tile. `None` if `block` is not one of
+/// [`FUSED_BLOCKS`] (or the sources lost a line this rewrites).
+///
+/// ```
+/// use neuvolex_features_gpu::{fused_source, TileArith};
+/// let tc = fused_source(32, TileArith::TensorCores).unwrap();
+/// assert!(tc.starts_with("enable f16;") && tc.contains("const BN: u32 = 32u;"));
+/// assert!(fused_source(8, TileArith::F32).is_none());
+/// ```
+pub fn fused_source(block: usize, arith: TileArith) -> Option<String> {
     const LINE: &str = "const BN: u32 = 64u;";
-    if !FUSED_BLOCKS.contains(&block) || LAYERS_WGSL.matches(LINE).count() != 1 {
+    const HALF: &str = "const HALF_INPUTS: bool = false;";
+    if !FUSED_BLOCKS.contains(&block)
+        || LAYERS_WGSL.matches(LINE).count() != 1
+        || LAYERS_WGSL.matches(HALF).count() != 1
+    {
         return None;
     }
-    let layers = LAYERS_WGSL.replace(LINE, &format!("const BN: u32 = {block}u;"));
-    Some(format!("{COMMON_WGSL}\n{layers}\n{FUSED_WGSL}"))
+    let mut layers = LAYERS_WGSL.replace(LINE, &format!("const BN: u32 = {block}u;"));
+    if arith == TileArith::HalfRounded {
+        layers = layers.replace(HALF, "const HALF_INPUTS: bool = true;");
+    }
+    Some(match arith {
+        TileArith::TensorCores => format!(
+            "enable f16;\nenable wgpu_cooperative_matrix;\n{TC_UNIFORMITY}\n{COMMON_WGSL}\n{layers}\n{FUSED_WGSL}\n{FUSED_TC_WGSL}"
+        ),
+        _ => format!("{COMMON_WGSL}\n{layers}\n{FUSED_WGSL}\n{FUSED_F32_WGSL}"),
+    })
 }
 
 /// Bytes of one dispatch's arguments (every kernel's uniform struct fits).
@@ -103,8 +157,8 @@ pub struct GpuContext {
     pub(crate) gpu: Arc<GpuDevice>,
     pub(crate) layout: wgpu::BindGroupLayout,
     pipelines: Vec<wgpu::ComputePipeline>,
-    /// Fused kernels for blocks other than [`DEFAULT_FUSED_BLOCK`], compiled on first use.
-    fused_variants: Mutex<Vec<(usize, wgpu::ComputePipeline)>>,
+    /// Fused kernels other than the f32 one for [`DEFAULT_FUSED_BLOCK`], compiled on first use.
+    fused_variants: Mutex<Vec<((usize, TileArith), wgpu::ComputePipeline)>>,
     pipeline_layout: wgpu::PipelineLayout,
 }
 
@@ -185,7 +239,6 @@ impl GpuContext {
             ("inr_gemm.wgsl", LAYERS_WGSL, GEMM_WGSL),
             ("inr_grid.wgsl", "", GRID_WGSL),
             ("inr_ops.wgsl", LAYERS_WGSL, OPS_WGSL),
-            ("inr_fused.wgsl", LAYERS_WGSL, FUSED_WGSL),
         ]
         .iter()
         .map(|(name, layers, src)| {
@@ -194,6 +247,16 @@ impl GpuContext {
                 source: wgpu::ShaderSource::Wgsl(format!("{COMMON_WGSL}\n{layers}\n{src}").into()),
             })
         })
+        .chain(std::iter::once(
+            device.create_shader_module(wgpu::ShaderModuleDescriptor {
+                label: Some("inr_fused.wgsl"),
+                source: wgpu::ShaderSource::Wgsl(
+                    fused_source(DEFAULT_FUSED_BLOCK, TileArith::F32)
+                        .unwrap_or_default()
+                        .into(),
+                ),
+            }),
+        ))
         .collect();
         let pipelines = KERNELS
             .iter()
@@ -263,20 +326,48 @@ impl GpuContext {
         &self.pipelines[i]
     }
 
-    /// The fused kernel for `block` samples per workgroup (one of [`FUSED_BLOCKS`]): the
-    /// context's own for [`DEFAULT_FUSED_BLOCK`], else compiled on first use and kept.
-    pub fn fused_pipeline(&self, block: usize) -> Result<wgpu::ComputePipeline> {
-        if block == DEFAULT_FUSED_BLOCK {
+    /// Whether the fused kernel's tiles can run on cooperative matrices here: the device was
+    /// opened with wgpu's cooperative-matrix extension, f16 in shaders and subgroups, and the
+    /// adapter reports 16 x 16 x 16 matrices of f16 inputs with f32 accumulators
+    /// ([`GpuDevice::tensor_cores`]).
+    pub fn has_tensor_cores(&self) -> bool {
+        self.gpu.tensor_cores()
+    }
+
+    /// The tile arithmetic of a fused path here: [`TileArith::F32`] for f32 inputs; for f16
+    /// inputs (`half`), [`TileArith::TensorCores`] where the device has them, else
+    /// [`TileArith::HalfRounded`] (the same arithmetic on the f32 units).
+    pub fn tile_arith_for(&self, half: bool) -> TileArith {
+        match (half, self.has_tensor_cores()) {
+            (false, _) => TileArith::F32,
+            (true, true) => TileArith::TensorCores,
+            (true, false) => TileArith::HalfRounded,
+        }
+    }
+
+    /// The fused kernel for `block` samples per workgroup (one of [`FUSED_BLOCKS`]) with tile
+    /// arithmetic `arith`: the context's own for f32 at [`DEFAULT_FUSED_BLOCK`], else
+    /// compiled on first use and kept. [`TileArith::TensorCores`] needs
+    /// [`GpuContext::has_tensor_cores`].
+    pub fn fused_pipeline(&self, block: usize, arith: TileArith) -> Result<wgpu::ComputePipeline> {
+        if block == DEFAULT_FUSED_BLOCK && arith == TileArith::F32 {
             return Ok(self.pipeline(Kernel::Fused).clone());
+        }
+        if arith == TileArith::TensorCores && !self.has_tensor_cores() {
+            return Err(GpuError::Config(format!(
+                "{} has no cooperative matrices of 16 x 16 f16 with f32 accumulators (or no \
+                 f16 in shaders, or no subgroups): the tensor-core kernel cannot run there",
+                self.describe()
+            )));
         }
         let mut v = self
             .fused_variants
             .lock()
             .unwrap_or_else(|p| p.into_inner());
-        if let Some((_, p)) = v.iter().find(|(b, _)| *b == block) {
+        if let Some((_, p)) = v.iter().find(|(k, _)| *k == (block, arith)) {
             return Ok(p.clone());
         }
-        let src = fused_source(block).ok_or_else(|| {
+        let src = fused_source(block, arith).ok_or_else(|| {
             GpuError::Config(format!(
                 "the fused kernel has blocks of {FUSED_BLOCKS:?} samples, not {block}"
             ))
@@ -297,11 +388,12 @@ impl GpuContext {
         });
         if let Some(e) = pollster::block_on(scope.pop()) {
             return Err(neuvolex_gpu::GpuError::Device(format!(
-                "compiling the fused kernel for blocks of {block}: {e}"
+                "compiling the fused kernel for blocks of {block} ({}): {e}",
+                arith.name()
             ))
             .into());
         }
-        v.push((block, p.clone()));
+        v.push(((block, arith), p.clone()));
         Ok(p)
     }
 

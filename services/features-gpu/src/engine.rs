@@ -5,7 +5,7 @@
 //! bound at a dynamic offset per dispatch, and submitted without waiting: the host runs ahead
 //! of the GPU and reads the step's loss back later (see `train`).
 
-use crate::context::{GpuContext, Kernel, Tracked, ARGS_BYTES, FUSED_OPS, WINDOW_BYTES};
+use crate::context::{GpuContext, Kernel, TileArith, Tracked, ARGS_BYTES, FUSED_OPS, WINDOW_BYTES};
 use crate::error::{GpuError, Result};
 use crate::plan::{Mat, Plan, FUSED_BLOCK, STATS_RING, WG};
 use neuvolex_features::adam::Adam;
@@ -60,10 +60,19 @@ pub enum MlpPath {
     /// [`MlpPath::Fused`] (1024 at 16 384 samples), 64 x 16 tiles, 1 x 4 outputs per
     /// invocation; partials over blocks of 16.
     Fused16,
+    /// [`MlpPath::Fused`] with the GEMMs' inputs in f16 and their sums in f32: on tensor
+    /// cores where the device has cooperative matrices ([`GpuContext::has_tensor_cores`]),
+    /// else rounded to f16 on the f32 units (the same arithmetic). The loss is scaled so that
+    /// the backward pass's gradients stay in f16's normal range ([`GpuInr::loss_scale_exp`]).
+    FusedF16,
+    /// [`MlpPath::Fused32`] with f16 inputs ([`MlpPath::FusedF16`]).
+    Fused32F16,
+    /// [`MlpPath::Fused16`] with f16 inputs ([`MlpPath::FusedF16`]).
+    Fused16F16,
 }
 
 impl MlpPath {
-    /// Every path: the layered reference, then the fused path with blocks of 64 (the
+    /// Every f32 path: the layered reference, then the fused path with blocks of 64 (the
     /// default), 32 and 16.
     pub const ALL: [MlpPath; 4] = [
         MlpPath::Layered,
@@ -72,13 +81,20 @@ impl MlpPath {
         MlpPath::Fused16,
     ];
 
-    /// `layered`, `fused` (blocks of 64), `fused32` or `fused16`.
+    /// The fused paths with f16 GEMM inputs, blocks of 64, 32 and 16.
+    pub const HALF: [MlpPath; 3] = [MlpPath::FusedF16, MlpPath::Fused32F16, MlpPath::Fused16F16];
+
+    /// `layered`, `fused` (blocks of 64), `fused32`, `fused16`, or one of those fused names
+    /// with `-f16`.
     pub fn name(self) -> &'static str {
         match self {
             MlpPath::Layered => "layered",
             MlpPath::Fused => "fused",
             MlpPath::Fused32 => "fused32",
             MlpPath::Fused16 => "fused16",
+            MlpPath::FusedF16 => "fused-f16",
+            MlpPath::Fused32F16 => "fused32-f16",
+            MlpPath::Fused16F16 => "fused16-f16",
         }
     }
 
@@ -87,16 +103,19 @@ impl MlpPath {
     /// ```
     /// use neuvolex_features_gpu::MlpPath;
     /// assert_eq!(MlpPath::from_name("fused32").unwrap(), MlpPath::Fused32);
+    /// assert_eq!(MlpPath::from_name("fused-f16").unwrap(), MlpPath::FusedF16);
     /// assert!(MlpPath::from_name("fused8").is_err());
     /// ```
     pub fn from_name(name: &str) -> Result<MlpPath> {
         MlpPath::ALL
             .into_iter()
+            .chain(MlpPath::HALF)
             .find(|p| p.name() == name)
             .ok_or_else(|| {
                 GpuError::Config(format!(
-                    "unknown MLP path '{name}' (one of {})",
-                    MlpPath::ALL.map(|p| p.name()).join(", ")
+                    "unknown MLP path '{name}' (one of {}, {})",
+                    MlpPath::ALL.map(|p| p.name()).join(", "),
+                    MlpPath::HALF.map(|p| p.name()).join(", ")
                 ))
             })
     }
@@ -105,10 +124,15 @@ impl MlpPath {
     pub fn block(self) -> Option<usize> {
         match self {
             MlpPath::Layered => None,
-            MlpPath::Fused => Some(FUSED_BLOCK),
-            MlpPath::Fused32 => Some(32),
-            MlpPath::Fused16 => Some(16),
+            MlpPath::Fused | MlpPath::FusedF16 => Some(FUSED_BLOCK),
+            MlpPath::Fused32 | MlpPath::Fused32F16 => Some(32),
+            MlpPath::Fused16 | MlpPath::Fused16F16 => Some(16),
         }
+    }
+
+    /// Whether the GEMMs take f16 inputs (one of [`MlpPath::HALF`]).
+    pub fn half(self) -> bool {
+        MlpPath::HALF.contains(&self)
     }
 }
 
@@ -323,6 +347,10 @@ pub struct GpuInr {
     profile_timer: &'static str,
     /// The fused kernel of this engine's block (on a fused path).
     fused_pipe: Option<wgpu::ComputePipeline>,
+    /// How the fused kernel's tiles compute.
+    arith: TileArith,
+    /// The loss-scale exponent where set by [`GpuInr::set_loss_scale_exp`].
+    loss_scale: Option<u32>,
 }
 
 fn bytes(v: &[f32]) -> &[u8] {
@@ -354,8 +382,9 @@ impl GpuInr {
         // dimension.
         let per_group = opts.mlp.block().unwrap_or(TILE as usize).min(TILE as usize);
         let most = per_group * ctx.max_groups().max(1) as usize;
+        let arith = ctx.tile_arith_for(opts.mlp.half());
         let fused_pipe = match opts.mlp.block() {
-            Some(b) => Some(ctx.fused_pipeline(b)?),
+            Some(b) => Some(ctx.fused_pipeline(b, arith)?),
             None => None,
         };
         let mut mb = opts
@@ -473,6 +502,8 @@ impl GpuInr {
             profile: None,
             profile_timer: "host",
             fused_pipe,
+            arith,
+            loss_scale: None,
         };
         e.upload_model(model);
         if train {
@@ -543,6 +574,64 @@ impl GpuInr {
     /// How the last profiled submission was timed: `gpu timestamps` or `host`.
     pub fn profile_timer(&self) -> &'static str {
         self.profile_timer
+    }
+
+    /// How the fused kernel's GEMM tiles compute on this engine ([`TileArith::F32`] on the
+    /// f32 paths; on the f16 paths, tensor cores where the device has them, else f16-rounded
+    /// inputs on the f32 units).
+    pub fn tile_arith(&self) -> TileArith {
+        self.arith
+    }
+
+    /// Runs the fused kernel's tiles with `arith` from now on: on an f16 path,
+    /// [`TileArith::HalfRounded`] or (where the device has them) [`TileArith::TensorCores`],
+    /// to check one against the other on the same engine; on an f32 path only
+    /// [`TileArith::F32`].
+    pub fn set_tile_arith(&mut self, arith: TileArith) -> Result<()> {
+        let Some(block) = self.opts.mlp.block() else {
+            return Err(GpuError::Config(
+                "the layered path has no fused tiles to change".into(),
+            ));
+        };
+        if self.opts.mlp.half() == (arith == TileArith::F32) {
+            return Err(GpuError::Config(format!(
+                "the {} path cannot run {} tiles",
+                self.opts.mlp.name(),
+                arith.name()
+            )));
+        }
+        self.fused_pipe = Some(self.ctx.fused_pipeline(block, arith)?);
+        self.arith = arith;
+        Ok(())
+    }
+
+    /// The loss-scale exponent `e` of a step of `len` samples: the output gradient is
+    /// `2 w (y - t) 2^e / len` instead of `2 w (y - t) / len`, every gradient of the backward
+    /// pass is `2^e` times the true one, and the optimisers divide it back out (exactly: a
+    /// power of two). 0 on the f32 paths; on the f16 paths `ceil(log2(len))`, so the output
+    /// gradient is about `2 w (y - t)`, whose size follows the error rather than the batch:
+    /// at batch 16 384 an error of 0.01 would give 1.2e-6 unscaled, below f16's smallest
+    /// normal value (6.1e-5), and 0.02 scaled. An explicit [`GpuInr::set_loss_scale_exp`]
+    /// wins.
+    pub fn loss_scale_exp(&self, len: usize) -> u32 {
+        self.loss_scale.unwrap_or(if self.opts.mlp.half() {
+            len.max(1).next_power_of_two().trailing_zeros()
+        } else {
+            0
+        })
+    }
+
+    /// Sets the loss-scale exponent for every later step (`None`: the path's own, see
+    /// [`GpuInr::loss_scale_exp`]); at most 60, so the fixed-point table gradient keeps its range.
+    pub fn set_loss_scale_exp(&mut self, e: Option<u32>) -> Result<()> {
+        if e.is_some_and(|e| e > 60) {
+            return Err(GpuError::Config(format!(
+                "a loss scale of 2^{} is past the largest, 2^60",
+                e.unwrap_or(0)
+            )));
+        }
+        self.loss_scale = e;
+        Ok(())
     }
 
     /// The MLP launch path.
@@ -1089,6 +1178,7 @@ impl GpuInr {
             pl.loss_parts + (2 * j * pl.loss_groups(pl.mb)) as u32,
         ]);
         args[16] = f(1.0 / len as f32);
+        args[17] = f((2.0f32).powi(self.loss_scale_exp(len) as i32) / len as f32);
         p.op(Op::Loss, Kernel::Loss, args, [n.div_ceil(WG) as u32, 1, 1]);
         self.wgrad(p, &lay.head, pl.dy, pl.h[last], n);
         self.bwd(
@@ -1203,7 +1293,7 @@ impl GpuInr {
             pl.loss_parts,
             groups as u32,
             pl.stats + 2 * (slot % STATS_RING) as u32,
-            0,
+            self.loss_scale_exp(len),
             0,
             0,
             0,
@@ -1280,7 +1370,7 @@ impl GpuInr {
             (rates.mode == TableAdam::Dense) as u32,
             self.marks,
         ]);
-        a[4..6].copy_from_slice(&[self.misc, len as u32]);
+        a[4..7].copy_from_slice(&[self.misc, len as u32, self.loss_scale_exp(len)]);
         a[16..20].copy_from_slice(&[
             f(rates.lr_table),
             f(self.adam.b1),
@@ -1338,7 +1428,13 @@ impl GpuInr {
             loss += c[0] as f64;
             sse += c[1] as f64;
         }
-        let dense = self.floats(&self.arena, pl.g as u64, self.layout.len)?;
+        // The backward pass ran on the loss scaled by 2^e: divide it back out.
+        let e = self.loss_scale_exp(len) as i32;
+        let dense = self
+            .floats(&self.arena, pl.g as u64, self.layout.len)?
+            .into_iter()
+            .map(|g| g * (2f32).powi(-e))
+            .collect();
         let tl = self.grid.table_len();
         let lo: Vec<u32> =
             bytemuck::pod_collect_to_vec(&self.ctx.read(&self.acc_lo, 0, tl as u64 * 4)?);
@@ -1347,7 +1443,7 @@ impl GpuInr {
         let maxbits = hi_all[self.misc as usize];
         let s = scale_exp(maxbits, len);
         let table = (0..tl)
-            .map(|i| fixed_to_f32(lo[i], hi_all[i]) * (2f32).powi(-s))
+            .map(|i| fixed_to_f32(lo[i], hi_all[i]) * (2f32).powi(-s) * (2f32).powi(-e))
             .collect();
         let touched = (0..tl)
             .map(|i| {

@@ -33,7 +33,9 @@ pub mod train;
 /// The wgpu this crate builds on (for callers that use the shared [`GpuDevice`] directly).
 pub use neuvolex_gpu::wgpu;
 
-pub use context::{hardware_adapter, AdapterKind, GpuContext, GpuDevice, MemoryReport};
+pub use context::{
+    fused_source, hardware_adapter, AdapterKind, GpuContext, GpuDevice, MemoryReport, TileArith,
+};
 pub use engine::{EngineOptions, FeatureFormat, GpuInr, MlpPath, StepRates};
 pub use error::{GpuError, Result};
 pub use extract::write_features_gpu;

@@ -254,6 +254,8 @@ pub struct GpuTune {
     /// Samples per micro-batch; `None`: 16384, halved until the activations fit the binding
     /// limit.
     pub micro_batch: Option<usize>,
+    /// The loss-scale exponent; `None`: the path's own ([`GpuInr::loss_scale_exp`]).
+    pub loss_scale_exp: Option<u32>,
 }
 
 /// Trains the INR on `store` on the GPU of `ctx`: [`neuvolex_features::train`]'s contract
@@ -357,6 +359,7 @@ pub fn train_gpu_tuned(
             mlp: tune.mlp,
         },
     )?;
+    engine.set_loss_scale_exp(tune.loss_scale_exp)?;
     drop(adam);
     let patch = model.cfg.patch;
     drop(model);

@@ -99,6 +99,7 @@ pub struct GpuDevice {
     info: wgpu::AdapterInfo,
     limits: wgpu::Limits,
     timestamps: bool,
+    tensor_cores: bool,
     mem: Arc<Mutex<Memory>>,
     error: Arc<Mutex<Option<String>>>,
 }
@@ -118,6 +119,29 @@ fn rank(t: wgpu::DeviceType) -> u8 {
         wgpu::DeviceType::VirtualGpu => 2,
         wgpu::DeviceType::Other => 3,
         wgpu::DeviceType::Cpu => 4,
+    }
+}
+
+/// The features tensor-core kernels need, where `adapter` has all of them and a 16 x 16 x 16
+/// cooperative-matrix configuration of f16 inputs with f32 accumulators (else none), unless
+/// `NEUVOLEX_GPU_TENSOR_CORES=0`.
+fn tensor_core_features(adapter: &wgpu::Adapter) -> wgpu::Features {
+    let need = wgpu::Features::EXPERIMENTAL_COOPERATIVE_MATRIX
+        | wgpu::Features::SHADER_F16
+        | wgpu::Features::SUBGROUP;
+    let off = std::env::var("NEUVOLEX_GPU_TENSOR_CORES").is_ok_and(|v| v.trim() == "0");
+    if off || !adapter.features().contains(need) {
+        return wgpu::Features::empty();
+    }
+    let f16_f32 = adapter.cooperative_matrix_properties().iter().any(|p| {
+        (p.m_size, p.n_size, p.k_size) == (16, 16, 16)
+            && p.ab_type == wgpu::CooperativeScalarType::F16
+            && p.cr_type == wgpu::CooperativeScalarType::F32
+    });
+    if f16_f32 {
+        need
+    } else {
+        wgpu::Features::empty()
     }
 }
 
@@ -345,13 +369,24 @@ impl GpuDevice {
             max_storage_buffer_binding_size: have.max_storage_buffer_binding_size,
             max_buffer_size: have.max_buffer_size,
             max_compute_workgroups_per_dimension: have.max_compute_workgroups_per_dimension,
+            max_compute_workgroup_storage_size: have.max_compute_workgroup_storage_size,
             ..wgpu::Limits::downlevel_defaults()
         };
-        let features = adapter.features() & wgpu::Features::TIMESTAMP_QUERY;
+        let tensor = tensor_core_features(&adapter);
+        let features = (adapter.features() & wgpu::Features::TIMESTAMP_QUERY) | tensor;
+        // SAFETY: the one experimental feature requested is the cooperative-matrix extension,
+        // and only where the adapter reports the configuration its one kernel uses
+        // (`tensor_core_features`); its shader compiles under wgpu's validation like any other.
+        let experimental = if tensor.is_empty() {
+            wgpu::ExperimentalFeatures::disabled()
+        } else {
+            unsafe { wgpu::ExperimentalFeatures::enabled() }
+        };
         let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
             label: Some("neuvolex"),
             required_features: features,
             required_limits: required.clone(),
+            experimental_features: experimental,
             ..Default::default()
         }))
         .map_err(|e| GpuError::Device(format!("{}: {e}", info.name)))?;
@@ -370,6 +405,7 @@ impl GpuDevice {
             info,
             limits: required,
             timestamps: features.contains(wgpu::Features::TIMESTAMP_QUERY),
+            tensor_cores: !tensor.is_empty(),
             mem: Arc::default(),
             error,
         }))
@@ -401,6 +437,14 @@ impl GpuDevice {
     /// Whether the device has GPU timestamp queries (`wgpu::Features::TIMESTAMP_QUERY`).
     pub fn has_timestamps(&self) -> bool {
         self.timestamps
+    }
+
+    /// Whether the device was opened for cooperative-matrix kernels (tensor cores): wgpu's
+    /// experimental cooperative-matrix extension with 16 x 16 x 16 matrices of f16 inputs and
+    /// f32 accumulators at subgroup scope, f16 in shaders, and subgroups. Never on lavapipe,
+    /// which has no `VK_KHR_cooperative_matrix`; `NEUVOLEX_GPU_TENSOR_CORES=0` turns it off.
+    pub fn tensor_cores(&self) -> bool {
+        self.tensor_cores
     }
 
     /// The largest buffer one storage binding may hold, in bytes.
