@@ -156,6 +156,7 @@ fn gpu_volume(
         .sum();
     let mut ev = Vec::new();
     let t = Instant::now();
+    let ctx = ctx_for(ctx, mlp);
     let g = train_gpu_tuned(
         ctx,
         store,
@@ -359,7 +360,7 @@ fn vs_torch_gpu(
                 format!(
                     "neuvolex GPU {} [{}] ({})",
                     mlp.name(),
-                    ctx.tile_arith_for(mlp.half()).name(),
+                    ctx_for(ctx, mlp).tile_arith_for(mlp.half()).name(),
                     ctx.info().name
                 ),
                 Box::new(move || {
@@ -404,6 +405,7 @@ fn gpu_side<'a>(
     mlp: MlpPath,
 ) -> Result<GpuRun<'a>, String> {
     use vs_torch::{evaluate, Round};
+    let ctx = ctx_for(ctx, mlp);
     let slots = bank.tiles.len();
     let setup = || -> neuvolex_features_gpu::Result<_> {
         let eng = GpuInr::new(
@@ -506,7 +508,7 @@ fn sweep(
                 ..cfg(1000.0, Some(seconds))
             };
             let r = train_gpu_tuned(
-                ctx,
+                ctx_for(ctx, mlp),
                 store,
                 &InrConfig::default(),
                 &c,
@@ -575,7 +577,7 @@ fn extract_sweep(
         for &mb in batches {
             let run = || -> neuvolex_features_gpu::Result<(usize, [f64; 4], [usize; 3])> {
                 let mut inf = GpuInr::new(
-                    ctx,
+                    ctx_for(ctx, mlp),
                     &model,
                     None,
                     EngineOptions {
@@ -684,7 +686,7 @@ fn paths_agree(ctx: &Arc<GpuContext>, dims: [usize; 3]) -> Value {
         .collect();
     let engine = |mlp| {
         GpuInr::new(
-            ctx,
+            ctx_for(ctx, mlp),
             &m,
             None,
             EngineOptions {
@@ -829,6 +831,39 @@ fn paths_agree(ctx: &Arc<GpuContext>, dims: [usize; 3]) -> Value {
     v
 }
 
+/// The context a launch path's engines run on: the f32 paths on `ctx`; the f16 paths on a
+/// second device on the same adapter opened for the tensor cores where it has them
+/// (`GpuContext::for_tensor_cores`: with the cooperative-matrix extension on, wgpu compiles every
+/// shader of the device under the Vulkan memory model, so the f32 paths stay on a device
+/// opened as before), else on `ctx` with the same arithmetic on the f32 units.
+fn ctx_for(ctx: &Arc<GpuContext>, mlp: MlpPath) -> &Arc<GpuContext> {
+    static TENSOR: std::sync::OnceLock<Option<Arc<GpuContext>>> = std::sync::OnceLock::new();
+    if !mlp.half() {
+        return ctx;
+    }
+    let tc = TENSOR.get_or_init(|| match ctx.for_tensor_cores() {
+        Ok(c) if c.has_tensor_cores() => {
+            println!(
+                "f16 paths: on a second device of {} opened for the tensor cores",
+                c.describe()
+            );
+            Some(c)
+        }
+        Ok(_) => {
+            println!(
+                "f16 paths: {} has no cooperative matrices of 16 x 16 f16 with f32 sums; the f16 arithmetic runs on the f32 units",
+                ctx.describe()
+            );
+            None
+        }
+        Err(e) => {
+            println!("f16 paths: the tensor-core device could not be opened ({e}); the f16 arithmetic runs on the f32 units");
+            None
+        }
+    });
+    tc.as_ref().unwrap_or(ctx)
+}
+
 /// The paths whose kernels are profiled: every f32 path and the f16 path with blocks of 64.
 const PROFILED: [MlpPath; 5] = [
     MlpPath::Layered,
@@ -869,7 +904,7 @@ fn profile_path(
     let m = neuvolex_features::InrModel::new(&InrConfig::default(), store.info().dims, 0);
     let brick = store.info().brick;
     let mut e = GpuInr::new(
-        ctx,
+        ctx_for(ctx, mlp),
         &m,
         None,
         EngineOptions {

@@ -798,6 +798,23 @@ fn gpu_errors_are_clear() {
         ) && e.to_string().contains("no-such-adapter"),
         "{e}"
     );
+    // A device is opened for the tensor cores only when asked (its other kernels are compiled
+    // under the Vulkan memory model then): a second device on the same adapter, which on
+    // lavapipe has none, and whose f16 engines run the arithmetic on the f32 units.
+    let tc = ctx.for_tensor_cores().unwrap();
+    assert_eq!(tc.info().name, ctx.info().name);
+    if std::env::var("NEUVOLEX_GPU_TENSOR_CORES").is_err() {
+        assert!(
+            !ctx.has_tensor_cores(),
+            "the default device asks for no tensor cores"
+        );
+    }
+    if ctx.is_software() {
+        assert!(!tc.has_tensor_cores());
+    }
+    let m = deep_model(Ablation::Full, 1, 16, 3, 2);
+    let h = GpuInr::new(&tc, &m, None, explicit(64, None, MlpPath::FusedF16)).unwrap();
+    assert_eq!(h.tile_arith(), tc.tile_arith_for(true));
     // The tensor-core kernel where the device has no cooperative matrices (lavapipe): an
     // error naming the adapter and what it lacks; an engine cannot be switched to tiles its
     // path does not compute.

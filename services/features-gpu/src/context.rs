@@ -326,6 +326,14 @@ impl GpuContext {
         &self.pipelines[i]
     }
 
+    /// The kernels compiled on a second device on this context's adapter, opened for the
+    /// tensor cores where the adapter has them ([`GpuDevice::reopen_for_tensor_cores`]); the
+    /// f16 paths' engines run there, the f32 ones stay on a device whose other shaders are
+    /// compiled as before.
+    pub fn for_tensor_cores(&self) -> Result<Arc<Self>> {
+        Self::on(self.gpu.reopen_for_tensor_cores()?)
+    }
+
     /// Whether the fused kernel's tiles can run on cooperative matrices here: the device was
     /// opened with wgpu's cooperative-matrix extension, f16 in shaders and subgroups, and the
     /// adapter reports 16 x 16 x 16 matrices of f16 inputs with f32 accumulators

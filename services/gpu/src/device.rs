@@ -96,6 +96,7 @@ pub struct GpuDevice {
     pub device: wgpu::Device,
     /// Its queue.
     pub queue: wgpu::Queue,
+    adapter: wgpu::Adapter,
     info: wgpu::AdapterInfo,
     limits: wgpu::Limits,
     timestamps: bool,
@@ -122,6 +123,10 @@ fn rank(t: wgpu::DeviceType) -> u8 {
     }
 }
 
+/// The variable that opens every device for tensor-core kernels (`1`) or none (`0`); unset,
+/// only [`GpuDevice::reopen_for_tensor_cores`] asks for them.
+pub const TENSOR_CORES_ENV: &str = "NEUVOLEX_GPU_TENSOR_CORES";
+
 /// The features tensor-core kernels need, where `adapter` has all of them and a 16 x 16 x 16
 /// cooperative-matrix configuration of f16 inputs with f32 accumulators (else none), unless
 /// `NEUVOLEX_GPU_TENSOR_CORES=0`.
@@ -129,7 +134,7 @@ fn tensor_core_features(adapter: &wgpu::Adapter) -> wgpu::Features {
     let need = wgpu::Features::EXPERIMENTAL_COOPERATIVE_MATRIX
         | wgpu::Features::SHADER_F16
         | wgpu::Features::SUBGROUP;
-    let off = std::env::var("NEUVOLEX_GPU_TENSOR_CORES").is_ok_and(|v| v.trim() == "0");
+    let off = std::env::var(TENSOR_CORES_ENV).is_ok_and(|v| v.trim() == "0");
     if off || !adapter.features().contains(need) {
         return wgpu::Features::empty();
     }
@@ -351,8 +356,10 @@ impl GpuDevice {
         Self::with_adapter(adapter)
     }
 
-    /// Opens `adapter`, asking for its largest buffers and dispatches, up to
-    /// [`STORAGE_BUFFERS`] storage buffers per stage, and timestamp queries where it has them.
+    /// Opens `adapter`, asking for its largest buffers, dispatches and workgroup memory, up to
+    /// [`STORAGE_BUFFERS`] storage buffers per stage, and timestamp queries where it has them
+    /// (and tensor cores with `NEUVOLEX_GPU_TENSOR_CORES=1`, see
+    /// [`GpuDevice::with_adapter_for`]).
     ///
     /// ```no_run
     /// let a = neuvolex_gpu::adapters().into_iter().next().expect("an adapter");
@@ -360,6 +367,23 @@ impl GpuDevice {
     /// # Ok::<(), neuvolex_gpu::GpuError>(())
     /// ```
     pub fn with_adapter(adapter: wgpu::Adapter) -> Result<Arc<Self>> {
+        let want = std::env::var(TENSOR_CORES_ENV).is_ok_and(|v| v.trim() == "1");
+        Self::with_adapter_for(adapter, want)
+    }
+
+    /// A second device on this one's adapter, opened for tensor-core kernels where the adapter
+    /// has what they need ([`GpuDevice::tensor_cores`] says whether it did), unless
+    /// `NEUVOLEX_GPU_TENSOR_CORES=0`. Its buffers and errors are its own.
+    pub fn reopen_for_tensor_cores(&self) -> Result<Arc<Self>> {
+        Self::with_adapter_for(self.adapter.clone(), true)
+    }
+
+    /// [`GpuDevice::with_adapter`], and, with `tensor_cores`, wgpu's experimental
+    /// cooperative-matrix extension, f16 in shaders and subgroups where the adapter has them
+    /// with a 16 x 16 x 16 f16 / f32 configuration. Asked for only by the kernels that use it:
+    /// with the extension on, wgpu compiles every shader of the device under the Vulkan memory
+    /// model, so the other kernels run on a device opened without it.
+    pub fn with_adapter_for(adapter: wgpu::Adapter, tensor_cores: bool) -> Result<Arc<Self>> {
         let info = adapter.get_info();
         let have = adapter.limits();
         let required = wgpu::Limits {
@@ -372,7 +396,11 @@ impl GpuDevice {
             max_compute_workgroup_storage_size: have.max_compute_workgroup_storage_size,
             ..wgpu::Limits::downlevel_defaults()
         };
-        let tensor = tensor_core_features(&adapter);
+        let tensor = if tensor_cores {
+            tensor_core_features(&adapter)
+        } else {
+            wgpu::Features::empty()
+        };
         let features = (adapter.features() & wgpu::Features::TIMESTAMP_QUERY) | tensor;
         // SAFETY: the one experimental feature requested is the cooperative-matrix extension,
         // and only where the adapter reports the configuration its one kernel uses
@@ -402,6 +430,7 @@ impl GpuDevice {
         Ok(Arc::new(GpuDevice {
             device,
             queue,
+            adapter,
             info,
             limits: required,
             timestamps: features.contains(wgpu::Features::TIMESTAMP_QUERY),
@@ -441,8 +470,10 @@ impl GpuDevice {
 
     /// Whether the device was opened for cooperative-matrix kernels (tensor cores): wgpu's
     /// experimental cooperative-matrix extension with 16 x 16 x 16 matrices of f16 inputs and
-    /// f32 accumulators at subgroup scope, f16 in shaders, and subgroups. Never on lavapipe,
-    /// which has no `VK_KHR_cooperative_matrix`; `NEUVOLEX_GPU_TENSOR_CORES=0` turns it off.
+    /// f32 accumulators at subgroup scope, f16 in shaders, and subgroups
+    /// ([`GpuDevice::reopen_for_tensor_cores`], or every device with
+    /// `NEUVOLEX_GPU_TENSOR_CORES=1`). Never on lavapipe, which has no
+    /// `VK_KHR_cooperative_matrix`; `NEUVOLEX_GPU_TENSOR_CORES=0` turns it off.
     pub fn tensor_cores(&self) -> bool {
         self.tensor_cores
     }
