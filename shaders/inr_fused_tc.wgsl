@@ -69,6 +69,8 @@ fn tile(g: Gemm, mt: u32, nt: u32, z: u32, li: u32) {
     let n0 = nt * BN;
     let kb = z * g.s.x;
     let ke = min(kb + g.s.x, K);
+    // The previous tile's epilogue has read its accumulators before they are cleared.
+    workgroupBarrier();
     for (var t = sg_id; t < TILES_M * TILES_N; t += sg_n) {
         c_store(coop_mat16x16<f32, C>(), t / TILES_N, t % TILES_N);
     }
@@ -101,16 +103,12 @@ fn tile(g: Gemm, mt: u32, nt: u32, z: u32, li: u32) {
     workgroupBarrier();
     let tx = li % CG;
     let ty = li / CG;
-    var acc: array<vec4<f32>, 4>;
+    // Row by row, no array of outputs (one the driver does not unroll lives in local memory).
     for (var r = 0u; r < TM; r++) {
         let row = ty * TM + r;
         let col = tx * 4u;
-        acc[r] = vec4<f32>(c_at(row, col), c_at(row, col + 1u), c_at(row, col + 2u), c_at(row, col + 3u));
-    }
-    // Every read of the accumulators is done before the next tile clears them.
-    workgroupBarrier();
-    for (var r = 0u; r < TM; r++) {
-        gemm_store(g, m0 + ty * TM + r, n0 + tx * 4u, z, acc[r]);
+        let acc = vec4<f32>(c_at(row, col), c_at(row, col + 1u), c_at(row, col + 2u), c_at(row, col + 3u));
+        gemm_store(g, m0 + row, n0 + col, z, acc);
     }
 }
 
