@@ -1,6 +1,5 @@
 //! `--backend cpu|gpu|auto` of `train` and `features`: which engine runs.
 
-#[cfg(not(feature = "gpu"))]
 use anyhow::bail;
 use anyhow::Result;
 use neuvolex_bricks::{BrickStore, Progress};
@@ -53,7 +52,8 @@ impl Engine {
         }
     }
 
-    /// Trains with this engine (the CPU trainer's contract).
+    /// Trains with this engine (the CPU trainer's contract); `gpu_mlp` names the GPU engine's
+    /// MLP launch path ([`check_gpu_mlp`]), an error on the CPU engine.
     #[allow(clippy::too_many_arguments)]
     pub fn train(
         &self,
@@ -64,15 +64,52 @@ impl Engine {
         ckpt: Option<&neuvolex_bricks::StoreLocation>,
         cancel: &AtomicBool,
         events: &mut dyn FnMut(TrainEvent),
+        gpu_mlp: Option<&str>,
     ) -> Result<Trained> {
         match self {
-            Engine::Cpu => Ok(neuvolex_features::train(
-                store, inr, cfg, resume, ckpt, cancel, events,
-            )?),
+            Engine::Cpu => {
+                if let Some(m) = gpu_mlp {
+                    bail!(
+                        "--gpu-mlp {m}: the CPU engine was chosen (no hardware GPU for \
+                         --backend auto); use --backend gpu"
+                    );
+                }
+                Ok(neuvolex_features::train(
+                    store, inr, cfg, resume, ckpt, cancel, events,
+                )?)
+            }
             #[cfg(feature = "gpu")]
             Engine::Gpu(ctx) => {
-                let g = neuvolex_features_gpu::train_gpu(
-                    ctx, store, inr, cfg, resume, ckpt, cancel, events,
+                let mlp = gpu_mlp
+                    .map(neuvolex_features_gpu::MlpPath::from_name)
+                    .transpose()?
+                    .unwrap_or_default();
+                // The f16 paths on a second device opened for the tensor cores where the card
+                // has them (the other kernels keep a device opened as before).
+                let tensor = if mlp.half() {
+                    Some(ctx.for_tensor_cores()?).filter(|c| c.has_tensor_cores())
+                } else {
+                    None
+                };
+                let ctx = tensor.as_ref().unwrap_or(ctx);
+                tracing::info!(
+                    mlp = mlp.name(),
+                    tiles = ctx.tile_arith_for(mlp.half()).name(),
+                    "GPU MLP path"
+                );
+                let g = neuvolex_features_gpu::train_gpu_tuned(
+                    ctx,
+                    store,
+                    inr,
+                    cfg,
+                    resume,
+                    ckpt,
+                    cancel,
+                    events,
+                    neuvolex_features_gpu::GpuTune {
+                        mlp,
+                        ..Default::default()
+                    },
                 )?;
                 let m = g.report.memory;
                 tracing::info!(
@@ -112,4 +149,20 @@ impl Engine {
             )?),
         }
     }
+}
+
+/// An error unless `name` is one of the GPU engine's MLP launch paths (`--gpu-mlp`), and
+/// unless this build has a GPU engine.
+pub fn check_gpu_mlp(name: &str) -> Result<()> {
+    #[cfg(feature = "gpu")]
+    {
+        neuvolex_features_gpu::MlpPath::from_name(name)
+            .map(|_| ())
+            .map_err(|e| anyhow::anyhow!("--gpu-mlp: {e}"))
+    }
+    #[cfg(not(feature = "gpu"))]
+    bail!(
+        "--gpu-mlp {name}: this build has no GPU engine; build with \
+         `cargo build --release -p neuvolex --features gpu`"
+    )
 }

@@ -337,6 +337,12 @@ struct TrainArgs {
     /// included), auto (a hardware GPU where one exists, else cpu). GPU needs `--features gpu`.
     #[arg(long, default_value = "auto")]
     backend: String,
+    /// The GPU engine's MLP launch path: fused (the default, f32), fused32, fused16, layered,
+    /// or fused-f16, fused32-f16, fused16-f16 (f16 GEMM inputs with f32 sums and loss scaling,
+    /// on the tensor cores where the card has cooperative matrices, else on the f32 units; not
+    /// yet measured on a GPU, BENCHMARKS.md). Only with the GPU engine.
+    #[arg(long)]
+    gpu_mlp: Option<String>,
 }
 
 impl TrainArgs {
@@ -394,6 +400,12 @@ impl TrainArgs {
             inr.log2_table = v;
         }
         let _: neuvolex_features::Backend = self.backend.parse().map_err(anyhow::Error::msg)?;
+        if let Some(m) = &self.gpu_mlp {
+            backend::check_gpu_mlp(m)?;
+            if self.backend == "cpu" {
+                bail!("--gpu-mlp {m}: the GPU engine's option, and --backend is cpu");
+            }
+        }
         Ok((inr, t))
     }
 }
@@ -509,6 +521,7 @@ fn run_train(store_path: &Path, args: &TrainArgs, quiet: bool) -> Result<()> {
         Some(&ckpt),
         &cancel,
         &mut on_event,
+        args.gpu_mlp.as_deref(),
     )?;
     let (path, slice_psnr) = save_model(&store, &t.model)?;
     println!(
@@ -518,7 +531,10 @@ fn run_train(store_path: &Path, args: &TrainArgs, quiet: bool) -> Result<()> {
         slice_psnr,
         t.state.samples,
         t.state.seconds,
-        engine.describe()
+        match &args.gpu_mlp {
+            Some(m) => format!("{}, MLP {m}", engine.describe()),
+            None => engine.describe(),
+        }
     );
     Ok(())
 }
@@ -537,8 +553,8 @@ fn run_train_distributed(
     if args.resume {
         bail!("--resume continues a single-node checkpoint: drop --replicas/--cluster");
     }
-    if args.backend == "gpu" {
-        bail!("distributed training runs the CPU engine on every worker: use --backend cpu");
+    if args.backend == "gpu" || args.gpu_mlp.is_some() {
+        bail!("distributed training runs the CPU engine on every worker: use --backend cpu without --gpu-mlp");
     }
     let store = BrickStore::open(store_path)?;
     let exec = cl.executor()?;

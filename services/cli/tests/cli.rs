@@ -216,6 +216,41 @@ fn train_features_and_their_errors() {
         &["train", &p("ph.zarr"), "--preset", "turbo"],
         "unknown preset",
     );
+    // The GPU engine's MLP path: a bad name, or on the CPU engine, before anything is read.
+    #[cfg(feature = "gpu")]
+    {
+        fails(
+            &["train", &p("ph.zarr"), "--gpu-mlp", "fused8"],
+            "unknown MLP path 'fused8'",
+        );
+        fails(
+            &[
+                "train",
+                &p("ph.zarr"),
+                "--backend",
+                "cpu",
+                "--gpu-mlp",
+                "fused-f16",
+            ],
+            "--backend is cpu",
+        );
+    }
+    #[cfg(not(feature = "gpu"))]
+    fails(
+        &["train", &p("ph.zarr"), "--gpu-mlp", "fused-f16"],
+        "no GPU engine",
+    );
+    fails(
+        &[
+            "train",
+            &p("ph.zarr"),
+            "--replicas",
+            "2",
+            "--gpu-mlp",
+            "fused",
+        ],
+        "--gpu-mlp",
+    );
     fails(&["train", &p("ph.zarr"), "--epochs", "0"], "--epochs");
     fails(&["train", &p("missing.zarr")], "missing.zarr");
     let out = ok(&[
@@ -259,16 +294,22 @@ fn train_and_features_on_the_gpu_backend() {
         "--brick",
         "16",
     ]);
-    let o = neuvolex(&[
-        "train",
-        &p("ph.zarr"),
-        "--samples",
-        "8192",
-        "--batch",
-        "2048",
-        "--backend",
-        "gpu",
-    ]);
+    let store = p("ph.zarr");
+    let gpu_train = |extra: &[&'static str]| -> Vec<&str> {
+        let mut a = vec![
+            "train",
+            store.as_str(),
+            "--samples",
+            "8192",
+            "--batch",
+            "2048",
+            "--backend",
+            "gpu",
+        ];
+        a.extend_from_slice(extra);
+        a
+    };
+    let o = neuvolex(&gpu_train(&[]));
     let err = String::from_utf8_lossy(&o.stderr);
     if !o.status.success() && err.contains("no GPU adapter") {
         assert!(
@@ -309,6 +350,12 @@ fn train_and_features_on_the_gpu_backend() {
         "gpu",
     ]);
     assert!(out.contains("inr_hidden") && out.contains("gpu ("), "{out}");
+    // The f16 path (tensor cores where the card has them; lavapipe: the f32 units).
+    let out = ok(&gpu_train(&["--gpu-mlp", "fused-f16"]));
+    assert!(
+        out.contains("after 8192 samples") && out.contains("MLP fused-f16"),
+        "{out}"
+    );
 }
 
 #[test]
