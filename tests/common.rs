@@ -124,11 +124,23 @@ pub fn skip(why: &str) {
 }
 
 /// A free TCP port on 127.0.0.1.
+///
+/// Never the same port twice in one process: the OS may hand a just-released port to the next
+/// bind, and two servers started by tests running side by side on one port make the second
+/// fail to bind while its readiness check reaches the first, whose test then stops it under
+/// the other (a flake seen once in `services/cluster/tests/runs.rs`, RELIABILITY.md).
 pub fn free_port() -> u16 {
-    std::net::TcpListener::bind("127.0.0.1:0")
-        .and_then(|l| l.local_addr())
-        .map(|a| a.port())
-        .expect("free port")
+    static GIVEN: std::sync::Mutex<std::collections::BTreeSet<u16>> =
+        std::sync::Mutex::new(std::collections::BTreeSet::new());
+    loop {
+        let port = std::net::TcpListener::bind("127.0.0.1:0")
+            .and_then(|l| l.local_addr())
+            .map(|a| a.port())
+            .expect("free port");
+        if GIVEN.lock().unwrap_or_else(|e| e.into_inner()).insert(port) {
+            return port;
+        }
+    }
 }
 
 /// Debian's nats-server, if installed.
@@ -191,6 +203,13 @@ impl NatsServer {
         let t = std::time::Instant::now();
         while std::net::TcpStream::connect((self.host.as_str(), self.port)).is_err() {
             assert!(t.elapsed().as_secs() < 20, "nats-server did not start");
+            // A server that could not bind its port has exited: say so rather than wait.
+            if let Some(Ok(Some(status))) = self.child.as_mut().map(|c| c.try_wait()) {
+                panic!(
+                    "nats-server exited ({status}) before listening on port {}",
+                    self.port
+                );
+            }
             std::thread::sleep(std::time::Duration::from_millis(50));
         }
     }
