@@ -837,31 +837,30 @@ fn paths_agree(ctx: &Arc<GpuContext>, dims: [usize; 3]) -> Value {
 /// shader of the device under the Vulkan memory model, so the f32 paths stay on a device
 /// opened as before), else on `ctx` with the same arithmetic on the f32 units.
 fn ctx_for(ctx: &Arc<GpuContext>, mlp: MlpPath) -> &Arc<GpuContext> {
-    static TENSOR: std::sync::OnceLock<Option<Arc<GpuContext>>> = std::sync::OnceLock::new();
+    static TENSOR: std::sync::OnceLock<Arc<GpuContext>> = std::sync::OnceLock::new();
     if !mlp.half() {
         return ctx;
     }
-    let tc = TENSOR.get_or_init(|| match ctx.for_tensor_cores() {
-        Ok(c) if c.has_tensor_cores() => {
-            println!(
-                "f16 paths: on a second device of {} opened for the tensor cores",
-                c.describe()
-            );
-            Some(c)
-        }
-        Ok(_) => {
-            println!(
-                "f16 paths: {} has no cooperative matrices of 16 x 16 f16 with f32 sums; the f16 arithmetic runs on the f32 units",
-                ctx.describe()
-            );
-            None
+    TENSOR.get_or_init(|| match ctx.for_tensor_cores() {
+        Ok(c) => {
+            if c.has_tensor_cores() {
+                println!(
+                    "f16 paths: on a second device of {} opened for the tensor cores",
+                    c.describe()
+                );
+            } else {
+                println!(
+                    "f16 paths: {} has no cooperative matrices of 16 x 16 f16 with f32 sums; the f16 arithmetic runs on the f32 units",
+                    ctx.describe()
+                );
+            }
+            c
         }
         Err(e) => {
             println!("f16 paths: the tensor-core device could not be opened ({e}); the f16 arithmetic runs on the f32 units");
-            None
+            ctx.clone()
         }
-    });
-    tc.as_ref().unwrap_or(ctx)
+    })
 }
 
 /// The paths whose kernels are profiled: every f32 path and the f16 path with blocks of 64.

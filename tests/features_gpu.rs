@@ -799,8 +799,8 @@ fn gpu_errors_are_clear() {
         "{e}"
     );
     // A device is opened for the tensor cores only when asked (its other kernels are compiled
-    // under the Vulkan memory model then): a second device on the same adapter, which on
-    // lavapipe has none, and whose f16 engines run the arithmetic on the f32 units.
+    // under the Vulkan memory model then), and only where the adapter has them: on lavapipe
+    // the context itself, whose f16 engines run the arithmetic on the f32 units.
     let tc = ctx.for_tensor_cores().unwrap();
     assert_eq!(tc.info().name, ctx.info().name);
     if std::env::var("NEUVOLEX_GPU_TENSOR_CORES").is_err() {
@@ -811,6 +811,10 @@ fn gpu_errors_are_clear() {
     }
     if ctx.is_software() {
         assert!(!tc.has_tensor_cores());
+        assert!(
+            Arc::ptr_eq(&tc, &ctx),
+            "no second device where it brings nothing"
+        );
     }
     let m = deep_model(Ablation::Full, 1, 16, 3, 2);
     let h = GpuInr::new(&tc, &m, None, explicit(64, None, MlpPath::FusedF16)).unwrap();

@@ -87,7 +87,7 @@ impl Engine {
                 // The f16 paths on a second device opened for the tensor cores where the card
                 // has them (the other kernels keep a device opened as before).
                 let tensor = if mlp.half() {
-                    Some(ctx.for_tensor_cores()?).filter(|c| c.has_tensor_cores())
+                    Some(ctx.for_tensor_cores()?)
                 } else {
                     None
                 };

@@ -326,12 +326,16 @@ impl GpuContext {
         &self.pipelines[i]
     }
 
-    /// The kernels compiled on a second device on this context's adapter, opened for the
-    /// tensor cores where the adapter has them ([`GpuDevice::reopen_for_tensor_cores`]); the
-    /// f16 paths' engines run there, the f32 ones stay on a device whose other shaders are
-    /// compiled as before.
-    pub fn for_tensor_cores(&self) -> Result<Arc<Self>> {
-        Self::on(self.gpu.reopen_for_tensor_cores()?)
+    /// The context for the f16 paths: the kernels compiled on a second device on this
+    /// context's adapter, opened for the tensor cores, where the adapter has them
+    /// ([`GpuDevice::reopen_for_tensor_cores`]); else this context. The f32 paths stay on a
+    /// device whose other shaders are compiled as before.
+    pub fn for_tensor_cores(self: &Arc<Self>) -> Result<Arc<Self>> {
+        let dev = self.gpu.reopen_for_tensor_cores()?;
+        if Arc::ptr_eq(&dev, &self.gpu) {
+            return Ok(self.clone());
+        }
+        Self::on(dev)
     }
 
     /// Whether the fused kernel's tiles can run on cooperative matrices here: the device was

@@ -624,10 +624,9 @@ impl GpuInr {
     /// Sets the loss-scale exponent for every later step (`None`: the path's own, see
     /// [`GpuInr::loss_scale_exp`]); at most 60, so the fixed-point table gradient keeps its range.
     pub fn set_loss_scale_exp(&mut self, e: Option<u32>) -> Result<()> {
-        if e.is_some_and(|e| e > 60) {
+        if let Some(e) = e.filter(|&e| e > 60) {
             return Err(GpuError::Config(format!(
-                "a loss scale of 2^{} is past the largest, 2^60",
-                e.unwrap_or(0)
+                "a loss scale of 2^{e} is past the largest, 2^60"
             )));
         }
         self.loss_scale = e;

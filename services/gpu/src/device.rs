@@ -371,10 +371,15 @@ impl GpuDevice {
         Self::with_adapter_for(adapter, want)
     }
 
-    /// A second device on this one's adapter, opened for tensor-core kernels where the adapter
-    /// has what they need ([`GpuDevice::tensor_cores`] says whether it did), unless
-    /// `NEUVOLEX_GPU_TENSOR_CORES=0`. Its buffers and errors are its own.
-    pub fn reopen_for_tensor_cores(&self) -> Result<Arc<Self>> {
+    /// A device for tensor-core kernels: a second one on this one's adapter, opened for them,
+    /// where the adapter has what they need (its buffers and errors are its own); this one
+    /// where it already has them, or where the adapter lacks them or
+    /// `NEUVOLEX_GPU_TENSOR_CORES=0` (a second device would bring nothing).
+    /// [`GpuDevice::tensor_cores`] says which.
+    pub fn reopen_for_tensor_cores(self: &Arc<Self>) -> Result<Arc<Self>> {
+        if self.tensor_cores || tensor_core_features(&self.adapter).is_empty() {
+            return Ok(self.clone());
+        }
         Self::with_adapter_for(self.adapter.clone(), true)
     }
 
