@@ -493,6 +493,8 @@ class Session:
             state.update(key=np.str_(key), index=index, scribbles=scribbled, labels=labels)
             if verdicts is not None:
                 state.update(forest=verdicts[0], verdict=verdicts[1])
+                if len(verdicts[2]):
+                    state.update(agree=verdicts[2])
         with builtins.open(os.fspath(path), "wb") as f:
             np.savez_compressed(f, **state)
 
@@ -516,15 +518,18 @@ class Session:
             raise FileError(f"{p}: saved for a volume of shape {tuple(state['shape'])}, the store is {store.shape}")
         s = cls(store, delta=float(state["delta"]), cache_bytes=cache_bytes)
         if "key" in state:
-            verdicts = None
+            verdicts, agree = None, None
             if "forest" in state and "verdict" in state:
                 verdicts = (state["forest"].astype(np.uint16).tolist(), state["verdict"].astype(np.uint16).tolist())
+                if "agree" in state:
+                    agree = state["agree"].astype(np.uint16).tolist()
             s._native.restore(
                 str(state["key"]),
                 state["index"].astype(np.uint64).tolist(),
                 state["scribbles"].astype(np.uint32).tolist(),
                 state["labels"].astype(np.uint16).tolist(),
                 verdicts,
+                agree,
             )
             s.classes = [int(c) for c in state["classes"]]
         return s

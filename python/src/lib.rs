@@ -1355,8 +1355,8 @@ impl Session {
 
     /// The last round (what the next one holds to): its settings key, its scribbles as
     /// voxel indices (x fastest) and labels, its label image, and its own decisions (the
-    /// forest's labels and the labels after the prior, or `None`), all flat, x fastest;
-    /// `None` before any round.
+    /// forest's labels, the labels after the prior and the forests in a row behind each forest
+    /// label, empty where not counted; or `None`), all flat, x fastest; `None` before any round.
     #[allow(clippy::type_complexity)]
     fn history<'py>(
         &self,
@@ -1367,6 +1367,7 @@ impl Session {
         Bound<'py, numpy::PyArray1<u32>>,
         Bound<'py, numpy::PyArray1<u16>>,
         Option<(
+            Bound<'py, numpy::PyArray1<u16>>,
             Bound<'py, numpy::PyArray1<u16>>,
             Bound<'py, numpy::PyArray1<u16>>,
         )>,
@@ -1382,6 +1383,7 @@ impl Session {
                     (
                         v.forest.clone().into_pyarray(py),
                         v.verdict.clone().into_pyarray(py),
+                        v.agree.clone().into_pyarray(py),
                     )
                 }),
             )
@@ -1390,7 +1392,8 @@ impl Session {
 
     /// Restores a round [`Session::history`] gave (a saved session), checked against the
     /// store's grid.
-    #[pyo3(signature = (key, index, scribbles, labels, verdicts=None))]
+    #[pyo3(signature = (key, index, scribbles, labels, verdicts=None, agree=None))]
+    #[allow(clippy::too_many_arguments)]
     fn restore(
         &mut self,
         py: Python<'_>,
@@ -1399,6 +1402,7 @@ impl Session {
         scribbles: Vec<u32>,
         labels: Vec<u16>,
         verdicts: Option<(Vec<u16>, Vec<u16>)>,
+        agree: Option<Vec<u16>>,
     ) -> PyResult<()> {
         let dims = self.store.bind(py).try_borrow()?.store.info().dims;
         let n: usize = dims.iter().product();
@@ -1426,13 +1430,25 @@ impl Session {
                 format!("verdicts: not {n} voxels each"),
             ));
         }
+        let agree = agree.unwrap_or_default();
+        if !agree.is_empty() && agree.len() != n {
+            return Err(run::raise(
+                py,
+                "FileError",
+                format!("agree: {} voxels, the store has {n}", agree.len()),
+            ));
+        }
         let voxels: Vec<(u64, u32)> = index.into_iter().zip(scribbles).collect();
         self.shown = Some(Shown {
             key,
             scribbles: ScribbleArray::from_parts(dims, voxels).scribbles(),
             labels,
             verdicts: verdicts.map(
-                |(forest, verdict)| neuvolex_classify::stable::RoundVerdicts { forest, verdict },
+                |(forest, verdict)| neuvolex_classify::stable::RoundVerdicts {
+                    forest,
+                    verdict,
+                    agree,
+                },
             ),
         });
         Ok(())

@@ -887,10 +887,13 @@ pub fn classify_scribbles_on<E: Executor + ?Sized>(
                 seconds: t.elapsed().as_secs_f64(),
             });
         }
-        let v = crate::stable::RoundVerdicts {
-            forest: forest_labels,
-            verdict: labels.clone(),
-        };
+        // Forests in a row count against the held round when this one extends its strokes.
+        let before = req
+            .hold
+            .as_ref()
+            .filter(|h| crate::stable::added(&h.scribbles, &scr).is_some())
+            .and_then(|h| h.verdicts.as_ref());
+        let v = crate::stable::RoundVerdicts::after(forest_labels, labels.clone(), before);
         if let Some(h) = &req.hold {
             voxels_held = hold_to(&store_arc, &stage, &scr, h, &v, &mut labels)?;
             if let (Some(held), Some(pc)) = (voxels_held.as_mut(), &req.prior) {
@@ -980,7 +983,7 @@ fn hold_to(
     now: &crate::stable::RoundVerdicts,
     labels: &mut [u16],
 ) -> Result<Option<u64>, ClassifyError> {
-    use crate::stable::{added, to_u8, Evidence, Verdicts};
+    use crate::stable::{added, to_u8, Evidence};
     let before = h.verdicts.as_ref().filter(|v| {
         v.forest.len() == labels.len()
             && v.verdict.len() == labels.len()
@@ -1010,11 +1013,7 @@ fn hold_to(
                 out_labels: &stage.out_labels,
                 bg,
             };
-            let v = before.map(|b| Verdicts {
-                forest: &now.forest[r.clone()],
-                forest_before: &b.forest[r.clone()],
-                verdict_before: &b.verdict[r.clone()],
-            });
+            let v = before.map(|b| b.span(&now.forest[r.clone()], r.clone()));
             held += h.config.hold(
                 &mut labels[r.clone()],
                 &h.labels[r.clone()],

@@ -18,7 +18,7 @@ use crate::features::{f16_saturating, BrickFeatures, FeatureMemo};
 use crate::pipeline::{ClassifyReport, PriorReport};
 use crate::scribble::Scribbles;
 use crate::shard::{argmax, fit, output_labels, training_set_boxed, ClassifyConfig};
-use crate::stable::{added, to_u8, Evidence, Hold, RoundVerdicts, Verdicts};
+use crate::stable::{added, to_u8, Evidence, Hold, RoundVerdicts};
 use crate::{ClassifyError, PriorConfig};
 use half::f16;
 use neuvolex_bricks::Brick;
@@ -311,10 +311,12 @@ pub fn classify_round(
             seconds: t.elapsed().as_secs_f64(),
         }
     });
-    let verdicts = RoundVerdicts {
-        forest: forest_labels,
-        verdict: labels.clone(),
-    };
+    // Forests in a row count against the held round when this one extends its strokes.
+    let before = req
+        .hold
+        .filter(|h| added(&h.scribbles, scr).is_some())
+        .and_then(|h| h.verdicts.as_ref());
+    let verdicts = RoundVerdicts::after(forest_labels, labels.clone(), before);
     let mut voxels_held = None;
     if let Some(h) = req.hold {
         voxels_held = hold_in_memory(h, scr, &verdicts, &proba, &out_labels, &mut labels);
@@ -423,11 +425,7 @@ fn hold_in_memory(
                     out_labels,
                     bg,
                 };
-                let v = before.map(|b| Verdicts {
-                    forest: &now.forest[r.clone()],
-                    forest_before: &b.forest[r.clone()],
-                    verdict_before: &b.verdict[r.clone()],
-                });
+                let v = before.map(|b| b.span(&now.forest[r.clone()], r.clone()));
                 h.config
                     .hold(l, &h.labels[r.clone()], &ev, &level[r], v.as_ref())
             })

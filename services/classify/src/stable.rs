@@ -24,11 +24,14 @@
 //!   decided for it. A component kept or dropped because a stroke elsewhere changed its
 //!   connectivity, or the mass of its class's scribbled component, is not evidence about it.
 //!   A label the rule held earlier is not such a decision: it goes when the evidence comes.
-//! - **Confirmed by two forests** (`confirm`): beyond the margin a change shows only when the
-//!   previous round's forest already gave it. On the development volumes the far drops were
-//!   a forest over-generalising from one stroke (a thin class spilling into look-alike tissue,
-//!   a brain boundary moving everywhere at once) that the next round's stroke corrected: a
-//!   change confirmed by the next forest shows a round later, a transient one never.
+//! - **Confirmed by three forests** (`confirm`, `forests`): beyond the margin a change shows
+//!   only when the forests of the two rounds before already gave it. On the development
+//!   volumes the far drops were a forest over-generalising from one stroke (a thin class
+//!   spilling into look-alike tissue, a brain boundary moving everywhere at once, bone marrow
+//!   taken for the soft tissue a background stroke covered): the next round's forest shares
+//!   that stroke and often still gives the change, so two forests in a row showed it a round
+//!   later whatever the next visit drew; a change that survives two further visits' strokes
+//!   is one they did not contradict.
 //! - **Growth follows what is shown** ([`follow`]): the boundary band growth fills grows from
 //!   the labels the rule shows, not from the round's verdict, so a boundary the rule moved
 //!   carries its band with it.
@@ -60,11 +63,16 @@ pub struct StableConfig {
     /// Absent from older settings: on.
     #[serde(default = "default_prior")]
     pub prior: bool,
-    /// Whether beyond the margin a change must be confirmed by two forests in a row: the
-    /// previous round's forest already gave the new label (needs the verdicts). Absent from
+    /// Whether beyond the margin a change must be confirmed by the forests of the rounds
+    /// before ([`Self::forests`] in a row; needs the verdicts). Absent from
     /// older settings: the default.
     #[serde(default = "default_confirm")]
     pub confirm: bool,
+    /// How many forests in a row must give a far change when [`Self::confirm`] is on (2: the
+    /// previous round's forest and this one; at most [`MAX_FORESTS`]; the rounds' [`agree`]
+    /// counts them). Absent from older settings: the default.
+    #[serde(default = "default_forests")]
+    pub forests: u8,
     /// Whether growth follows the labels shown ([`follow`]): after the rule, a doubtful voxel
     /// the round's growth gave class `c` takes `c` when it touches a shown voxel of `c`, as
     /// many steps as the prior grows. Absent from older settings: the default.
@@ -77,6 +85,16 @@ pub const DEFAULT_FOLLOW: bool = true;
 
 fn default_follow() -> bool {
     DEFAULT_FOLLOW
+}
+
+/// The default of [`StableConfig::forests`].
+pub const DEFAULT_FORESTS: u8 = 3;
+
+/// The most forests [`StableConfig::forests`] can ask for (and where [`agree`] stops counting).
+pub const MAX_FORESTS: u8 = 8;
+
+fn default_forests() -> u8 {
+    DEFAULT_FORESTS
 }
 
 /// The default of [`StableConfig::confirm`].
@@ -122,8 +140,17 @@ impl StableConfig {
             self.ramp,
             delta_u8(self.delta),
             forest.filter(|_| self.prior),
-            self.confirm,
+            self.confirmations(),
         )
+    }
+
+    /// The forests in a row a far change needs ([`hold`]'s `forests`): 0 without confirmation.
+    pub fn confirmations(&self) -> u8 {
+        if self.confirm {
+            self.forests.clamp(2, MAX_FORESTS)
+        } else {
+            0
+        }
     }
 
     /// [`follow`] over a whole volume of `dims` voxels when [`Self::follow`] is on; `now` is
@@ -157,6 +184,7 @@ impl Default for StableConfig {
             ramp: DEFAULT_RAMP,
             prior: true,
             confirm: DEFAULT_CONFIRM,
+            forests: DEFAULT_FORESTS,
             follow: DEFAULT_FOLLOW,
         }
     }
@@ -275,7 +303,7 @@ pub fn stick(
         0,
         delta,
         None,
-        false,
+        0,
     )
 }
 
@@ -289,6 +317,9 @@ pub struct Verdicts<'a> {
     pub forest_before: &'a [u16],
     /// The previous round's labels after the prior and growth, before the rule.
     pub verdict_before: &'a [u16],
+    /// How many forests in a row gave the previous round's forest label ([`agree`]); empty
+    /// where unknown (counted as 1: that forest alone).
+    pub agree_before: &'a [u16],
 }
 
 /// A round's class probabilities as the rule reads them: u8 per class per voxel
@@ -362,10 +393,12 @@ pub fn needed(level: u8, steps: u8, delta: u8) -> u8 {
 /// prior and growth now decide. A component kept or dropped because a stroke elsewhere
 /// changed its connectivity or its rivals' mass is not evidence about it.
 ///
-/// With `confirm` (and `forest`), beyond the margin a change must also be one the previous
-/// round's forest already proposed (its label there was the new one): a change shows one round
-/// after the forest first gives it, if the next forest still gives it. A forest that
-/// over-generalises from one stroke, and is corrected by the next, never shows it far away.
+/// With `forests` of 2 or more (and `forest`), beyond the margin a change must also be one the
+/// previous `forests - 1` rounds' forests already gave (the previous forest's label there is
+/// the new one, and its [`agree`] count at least `forests - 1`): a change shows `forests - 1`
+/// rounds after a forest first gives it, if the forests after it still give it. A forest that
+/// over-generalises from one stroke, and is corrected by the next visits, never shows it far
+/// away. Below 2, no confirmation.
 ///
 /// Returns the voxels that kept their previous label.
 #[allow(clippy::too_many_arguments)]
@@ -377,7 +410,7 @@ pub fn hold(
     steps: u8,
     delta: u8,
     forest: Option<&Verdicts>,
-    confirm: bool,
+    forests: u8,
 ) -> u64 {
     let nc = ev.out_labels.len().max(1);
     let mut kept = 0;
@@ -388,7 +421,10 @@ pub fn hold(
         let lev = level[v];
         if let Some(f) = forest {
             let same = f.forest[v] == f.forest_before[v] && p == f.verdict_before[v];
-            if lev > steps && (same || (confirm && *l != f.forest_before[v])) {
+            let unconfirmed = forests >= 2
+                && (*l != f.forest_before[v]
+                    || f.agree_before.get(v).map_or(1, |&a| a.max(1)) < u16::from(forests) - 1);
+            if lev > steps && (same || unconfirmed) {
                 *l = p;
                 kept += 1;
                 continue;
@@ -409,6 +445,24 @@ pub fn hold(
         }
     }
     kept
+}
+
+/// How many forests in a row, ending with this round's, gave each voxel its forest label: one
+/// more than the previous round's count (`agree_before`, empty where unknown: 1) where the
+/// forest label did not change, else 1; at most [`MAX_FORESTS`]. Spans of the same voxels.
+pub fn agree(forest: &[u16], forest_before: &[u16], agree_before: &[u16]) -> Vec<u16> {
+    forest
+        .iter()
+        .zip(forest_before)
+        .enumerate()
+        .map(|(v, (a, b))| {
+            if a == b {
+                (agree_before.get(v).map_or(1, |&c| c.max(1)) + 1).min(u16::from(MAX_FORESTS))
+            } else {
+                1
+            }
+        })
+        .collect()
 }
 
 /// Growth that follows the labels shown, over a whole volume (`dims`, x fastest): after
@@ -564,6 +618,36 @@ pub struct RoundVerdicts {
     pub forest: Vec<u16>,
     /// The labels after the prior and growth, before the rule.
     pub verdict: Vec<u16>,
+    /// How many forests in a row gave each voxel its forest label ([`agree`]); empty where
+    /// unknown (a first round, or one saved before they were counted).
+    pub agree: Vec<u16>,
+}
+
+impl RoundVerdicts {
+    /// This round's verdicts, with [`agree`] counted from the previous round's (`before`;
+    /// `None` or another grid: every count 1).
+    pub fn after(forest: Vec<u16>, verdict: Vec<u16>, before: Option<&RoundVerdicts>) -> Self {
+        let agree = match before.filter(|b| b.forest.len() == forest.len()) {
+            Some(b) => agree(&forest, &b.forest, &b.agree),
+            None => Vec::new(),
+        };
+        RoundVerdicts {
+            forest,
+            verdict,
+            agree,
+        }
+    }
+
+    /// [`Verdicts`] of a span `r` of voxels, this round's forest labels `forest` against these
+    /// (the previous round's).
+    pub fn span<'a>(&'a self, forest: &'a [u16], r: std::ops::Range<usize>) -> Verdicts<'a> {
+        Verdicts {
+            forest,
+            forest_before: &self.forest[r.clone()],
+            verdict_before: &self.verdict[r.clone()],
+            agree_before: self.agree.get(r).unwrap_or(&[]),
+        }
+    }
 }
 
 impl std::fmt::Debug for RoundVerdicts {
@@ -759,7 +843,7 @@ mod tests {
         // Levels 0..=5 with a ramp of 4 and delta 64: needs 0, 16, 32, 48, 64, 64.
         let level = [0u8, 1, 2, 3, 4, 5];
         let mut l = vec![0u16; 6];
-        assert_eq!(hold(&mut l, &prev, &ev, &level, 4, 64, None, false), 3);
+        assert_eq!(hold(&mut l, &prev, &ev, &level, 4, 64, None, 0), 3);
         assert_eq!(l, vec![0, 0, 0, 1, 1, 1]);
         // stick is the rule without a ramp: new labels stand anywhere within the margin.
         let mut l = vec![0u16; 6];
@@ -773,6 +857,7 @@ mod tests {
             forest: &[1, 1, 1, 1, 1, 0, 1],
             forest_before: &[1, 1, 1, 1, 1, 1, 1],
             verdict_before: &[1, 1, 1, 1, 1, 1, 0],
+            agree_before: &[],
         };
         let prev = vec![1u16; 7];
         let strong: Vec<u8> = [10u8, 240].repeat(7);
@@ -781,21 +866,22 @@ mod tests {
             out_labels: &out,
             bg: Some(1),
         };
-        let mut l = vec![0u16; 7];
-        assert_eq!(
-            hold(
+        // The rule beyond and inside the margin (levels 5 and 0, 2, 4) with `forests`.
+        let run = |v: &Verdicts, forests: u8| {
+            let mut l = vec![0u16; 7];
+            let kept = hold(
                 &mut l,
                 &prev,
                 &ev,
                 &[5, 5, 0, 2, 4, 5, 5],
                 4,
                 64,
-                Some(&v),
-                false
-            ),
-            2
-        );
-        assert_eq!(l, vec![1, 1, 0, 0, 0, 0, 0]);
+                Some(v),
+                forests,
+            );
+            (kept, l)
+        };
+        assert_eq!(run(&v, 0), (2, vec![1, 1, 0, 0, 0, 0, 0]));
         // Confirmed by two forests: beyond the margin only a change the previous forest
         // already gave shows. Voxel 5's forest gives 0 for the first time: held. Voxel 6's
         // gave 0 before too, and the rule held its label then (its verdict was 0): released.
@@ -803,22 +889,51 @@ mod tests {
             forest: &[1, 1, 1, 1, 1, 0, 0],
             forest_before: &[1, 1, 1, 1, 1, 1, 0],
             verdict_before: &[1, 1, 1, 1, 1, 1, 0],
+            agree_before: &[],
         };
-        let mut l = vec![0u16; 7];
+        assert_eq!(run(&v, 2), (3, vec![1, 1, 0, 0, 0, 1, 0]));
+        // Confirmed by three forests: voxel 6's change shows only where the forest before the
+        // previous one gave it too (the previous round's count 2), not on two forests alone.
+        for (agree_before, want) in [
+            (&[] as &[u16], 1u16),
+            (&[1u16; 7][..], 1),
+            (&[2u16; 7][..], 0),
+        ] {
+            let (_, l) = run(&Verdicts { agree_before, ..v }, 3);
+            assert_eq!(l, vec![1, 1, 0, 0, 0, 1, want], "{agree_before:?}");
+        }
+    }
+
+    #[test]
+    fn agree_counts_forests_in_a_row() {
+        assert_eq!(agree(&[1, 2, 0, 3], &[1, 1, 0, 3], &[]), vec![2, 1, 2, 2]);
         assert_eq!(
-            hold(
-                &mut l,
-                &prev,
-                &ev,
-                &[5, 5, 0, 2, 4, 5, 5],
-                4,
-                64,
-                Some(&v),
-                true
-            ),
-            3
+            agree(&[1, 2, 0, 3], &[1, 1, 0, 3], &[2, 5, 0, 8]),
+            vec![3, 1, 2, 8]
         );
-        assert_eq!(l, vec![1, 1, 0, 0, 0, 1, 0]);
+        let first = RoundVerdicts::after(vec![1, 0], vec![1, 0], None);
+        assert!(first.agree.is_empty(), "a first round counts nothing");
+        let second = RoundVerdicts::after(vec![1, 2], vec![1, 2], Some(&first));
+        assert_eq!(second.agree, vec![2, 1]);
+        let third = RoundVerdicts::after(vec![1, 2], vec![1, 2], Some(&second));
+        assert_eq!(third.agree, vec![3, 2]);
+        let other = RoundVerdicts::after(vec![1, 2, 3], vec![1, 2, 3], Some(&third));
+        assert!(other.agree.is_empty(), "another grid counts nothing");
+        let c = StableConfig::default();
+        assert_eq!(c.confirmations(), DEFAULT_FORESTS);
+        assert_eq!(
+            StableConfig {
+                confirm: false,
+                ..c
+            }
+            .confirmations(),
+            0
+        );
+        assert_eq!(StableConfig { forests: 0, ..c }.confirmations(), 2);
+        assert_eq!(
+            StableConfig { forests: 99, ..c }.confirmations(),
+            MAX_FORESTS
+        );
     }
 
     #[test]
@@ -841,6 +956,7 @@ mod tests {
         let old: StableConfig = serde_json::from_str(r#"{"margin": 24, "delta": 0.25}"#).unwrap();
         assert_eq!((old.ramp, old.prior), (DEFAULT_RAMP, true));
         assert_eq!((old.confirm, old.follow), (DEFAULT_CONFIRM, DEFAULT_FOLLOW));
+        assert_eq!(old.forests, DEFAULT_FORESTS);
     }
 
     #[test]

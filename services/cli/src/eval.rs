@@ -82,10 +82,14 @@ pub struct EvalArgs {
     /// beyond the margin (a voxel whose forest label did not change keeps its label).
     #[arg(long, default_value_t = true, action = clap::ArgAction::Set)]
     pub stable_prior: bool,
-    /// Robot rounds: whether a change beyond the margin must be confirmed by two forests in a
-    /// row (the previous round's forest already gave the new label).
+    /// Robot rounds: whether a change beyond the margin must be confirmed by the forests of
+    /// the rounds before (they already gave the new label; how many: `--stable-forests`).
     #[arg(long, default_value_t = neuvolex_classify::stable::DEFAULT_CONFIRM, action = clap::ArgAction::Set)]
     pub stable_confirm: bool,
+    /// Robot rounds: how many forests in a row a confirmed far change needs (2: the previous
+    /// round's and this one; 2 to 8).
+    #[arg(long, default_value_t = neuvolex_classify::stable::DEFAULT_FORESTS, value_parser = clap::value_parser!(u8).range(2..=neuvolex_classify::stable::MAX_FORESTS as i64))]
+    pub stable_forests: u8,
     /// Robot rounds: whether growth follows the labels the rule shows (a doubtful voxel that
     /// growth gave a class takes it when it touches a shown voxel of that class).
     #[arg(long, default_value_t = neuvolex_classify::stable::DEFAULT_FOLLOW, action = clap::ArgAction::Set)]
@@ -340,6 +344,7 @@ pub fn run_eval(a: &EvalArgs, quiet: bool) -> Result<()> {
             stable_ramp: a.stable_ramp,
             stable_prior: a.stable_prior,
             stable_confirm: a.stable_confirm,
+            stable_forests: a.stable_forests,
             stable_follow: a.stable_follow,
         };
         let rows = neuvolex_eval::robot::run(&cfg, &rc, &events)?;

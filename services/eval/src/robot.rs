@@ -30,7 +30,7 @@ use neuvolex_classify::components::{
     apply_in_memory, grow_in_memory, label_brick, Partial, PriorConfig,
 };
 use neuvolex_classify::scribble::{erode, longest_stroke, stroke_length, Axis};
-use neuvolex_classify::stable::{near_scribbles, Evidence, StableConfig, Verdicts};
+use neuvolex_classify::stable::{agree, near_scribbles, Evidence, StableConfig, Verdicts};
 use neuvolex_classify::{
     rasterise, simulate, thicken, BrickFeatures, FeatureSet, Level, Scribbles, SimConfig,
     SliceMass, Stroke, F1,
@@ -101,10 +101,14 @@ pub struct RobotConfig {
     /// ([`neuvolex_classify::StableConfig::prior`]).
     #[serde(default = "default_true")]
     pub stable_prior: bool,
-    /// Whether a far change must be confirmed by two forests in a row
+    /// Whether a far change must be confirmed by the forests of the rounds before
     /// ([`neuvolex_classify::StableConfig::confirm`]).
     #[serde(default = "default_confirm")]
     pub stable_confirm: bool,
+    /// How many forests in a row a confirmed far change needs
+    /// ([`neuvolex_classify::StableConfig::forests`]).
+    #[serde(default = "default_forests")]
+    pub stable_forests: u8,
     /// Whether growth follows the labels the rule shows
     /// ([`neuvolex_classify::StableConfig::follow`]).
     #[serde(default = "default_follow")]
@@ -113,6 +117,10 @@ pub struct RobotConfig {
 
 fn default_follow() -> bool {
     neuvolex_classify::stable::DEFAULT_FOLLOW
+}
+
+fn default_forests() -> u8 {
+    neuvolex_classify::stable::DEFAULT_FORESTS
 }
 
 fn default_confirm() -> bool {
@@ -144,6 +152,7 @@ impl Default for RobotConfig {
             stable_ramp: default_ramp(),
             stable_prior: true,
             stable_confirm: default_confirm(),
+            stable_forests: default_forests(),
             stable_follow: default_follow(),
         }
     }
@@ -724,6 +733,8 @@ pub fn run(cfg: &EvalConfig, rc: &RobotConfig, events: Events) -> Result<Vec<Rou
                             let mut added: Vec<Stroke> = Vec::new();
                             let mut prev: Option<(Vec<u16>, f64)> = None;
                             let mut prev_stages: Option<Stages> = None;
+                            // Forests in a row behind each voxel's previous forest label.
+                            let mut prev_agree: Vec<u16> = Vec::new();
                             for round in 0..=rc.rounds {
                                 let scr = rasterise(&thicken(&strokes, cfg.thicken, dims), dims)?;
                                 let t0 = Instant::now();
@@ -756,6 +767,7 @@ pub fn run(cfg: &EvalConfig, rc: &RobotConfig, events: Events) -> Result<Vec<Rou
                                         ramp: rc.stable_ramp,
                                         prior: rc.stable_prior,
                                         confirm: rc.stable_confirm,
+                                        forests: rc.stable_forests,
                                         follow: rc.stable_follow,
                                     };
                                     let ev = Evidence {
@@ -767,6 +779,7 @@ pub fn run(cfg: &EvalConfig, rc: &RobotConfig, events: Events) -> Result<Vec<Rou
                                         forest: &st.raw,
                                         forest_before: &ps.raw,
                                         verdict_before: &ps.grown,
+                                        agree_before: &prev_agree,
                                     };
                                     rule.hold(&mut labels, pl, &ev, &rule.levels(a), Some(&v));
                                     rule.follow(
@@ -833,6 +846,10 @@ pub fn run(cfg: &EvalConfig, rc: &RobotConfig, events: Events) -> Result<Vec<Rou
                                 events(EvalEvent::Round(row.clone()));
                                 rows.push(row);
                                 prev = Some((labels.clone(), mean_f1));
+                                prev_agree = match &prev_stages {
+                                    Some(ps) => agree(&st.raw, &ps.raw, &prev_agree),
+                                    None => Vec::new(),
+                                };
                                 prev_stages = Some(st);
                                 if round == rc.rounds {
                                     break;

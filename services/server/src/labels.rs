@@ -298,6 +298,10 @@ pub struct BrickVerdicts {
     pub forest: Arc<LabelBrick>,
     /// The labels after the prior and growth, before the rule.
     pub verdict: Arc<LabelBrick>,
+    /// How many forests in a row gave each voxel its forest label
+    /// ([`neuvolex_classify::stable::agree`]); `None` for a first round or one saved before
+    /// they were counted.
+    pub agree: Option<Arc<LabelBrick>>,
 }
 
 /// The labels every complete round of a session showed, the one shown now among them, and a
@@ -380,9 +384,11 @@ impl LabelHistory {
         self.rounds
             .iter()
             .flat_map(|r| {
-                r.labels
-                    .values()
-                    .chain(r.verdicts.values().flat_map(|v| [&v.forest, &v.verdict]))
+                r.labels.values().chain(
+                    r.verdicts
+                        .values()
+                        .flat_map(|v| [&v.forest, &v.verdict].into_iter().chain(v.agree.as_ref())),
+                )
             })
             .filter(|b| seen.insert(Arc::as_ptr(b)))
             .map(|b| b.zst.len())
@@ -454,16 +460,22 @@ pub fn save_bricks(
         }
         bricks.sort();
         let mut verdicts: Vec<([usize; 3], String, String)> = Vec::with_capacity(r.verdicts.len());
+        let mut agree: Vec<([usize; 3], String)> = Vec::new();
         for (idx, v) in &r.verdicts {
             verdicts.push((*idx, save(&v.forest)?, save(&v.verdict)?));
+            if let Some(a) = &v.agree {
+                agree.push((*idx, save(a)?));
+            }
         }
         verdicts.sort();
+        agree.sort();
         debug_assert!(line.starts_with(&r.strokes));
         out.push(neuvolex_session::RoundRef {
             strokes: r.strokes.len(),
             features: r.features.clone(),
             bricks,
             verdicts,
+            agree,
         });
     }
     Ok(out)
@@ -549,11 +561,16 @@ pub fn load_rounds(
         for (idx, name) in &r.bricks {
             labels.insert(*idx, load(*idx, name)?);
         }
+        let mut agree = HashMap::with_capacity(r.agree.len());
+        for (idx, name) in &r.agree {
+            agree.insert(*idx, load(*idx, name)?);
+        }
         let mut verdicts = HashMap::with_capacity(r.verdicts.len());
         for (idx, forest, verdict) in &r.verdicts {
             let v = BrickVerdicts {
                 forest: load(*idx, forest)?,
                 verdict: load(*idx, verdict)?,
+                agree: agree.remove(idx),
             };
             verdicts.insert(*idx, v);
         }
@@ -586,7 +603,8 @@ pub fn collect_garbage(work: &Path) -> usize {
             match neuvolex_session::SessionFile::parse(&text, &p.display().to_string()) {
                 Ok(s) => used.extend(s.rounds.into_iter().flat_map(|r| {
                     let v = r.verdicts.into_iter().flat_map(|(_, f, v)| [f, v]);
-                    r.bricks.into_iter().map(|b| b.1).chain(v)
+                    let a = r.agree.into_iter().map(|a| a.1);
+                    r.bricks.into_iter().map(|b| b.1).chain(v).chain(a)
                 })),
                 Err(_) => return 0,
             }
@@ -768,17 +786,41 @@ fn settle(
             .cloned()
             .unwrap_or_else(|| Arc::new(b))
     };
-    // This round's own decisions (the forest's labels, and the verdict before the rule),
-    // packed for the next round before the rule changes the verdict in place.
+    // The base's own decisions: its forest's labels, its verdict and its forests in a row.
+    type Decided = (Vec<u16>, Vec<u16>, Vec<u16>);
+    let decided: HashMap<[usize; 3], Decided> = match &base {
+        Some(prev) => prev
+            .verdicts
+            .par_iter()
+            .map(|(k, v)| {
+                let agree = match &v.agree {
+                    Some(a) => a.unpack()?,
+                    None => Vec::new(),
+                };
+                Ok((*k, (v.forest.unpack()?, v.verdict.unpack()?, agree)))
+            })
+            .collect::<ApiResult<_>>()?,
+        None => HashMap::new(),
+    };
+    // This round's own decisions (the forest's labels, the verdict before the rule, and the
+    // forests in a row), packed for the next round before the rule changes the verdict.
     let decisions: HashMap<[usize; 3], BrickVerdicts> = filtered
         .par_iter()
         .map(|(k, (f, v))| -> ApiResult<_> {
             let old = base.as_ref().and_then(|b| b.verdicts.get(k));
+            let agree = match decided.get(k).filter(|d| d.0.len() == f.len()) {
+                Some((fb, _, ab)) => Some(shared(
+                    LabelBrick::pack(&neuvolex_classify::stable::agree(f, fb, ab))?,
+                    old.and_then(|o| o.agree.as_ref()),
+                )),
+                None => None,
+            };
             Ok((
                 *k,
                 BrickVerdicts {
                     forest: shared(LabelBrick::pack(f)?, old.map(|o| &o.forest)),
                     verdict: shared(LabelBrick::pack(v)?, old.map(|o| &o.verdict)),
+                    agree,
                 },
             ))
         })
@@ -795,12 +837,6 @@ fn settle(
             .labels
             .par_iter()
             .map(|(k, b)| b.unpack().map(|l| (*k, l)))
-            .collect::<ApiResult<_>>()?;
-        type Pair = (Vec<u16>, Vec<u16>);
-        let decided: HashMap<[usize; 3], Pair> = prev
-            .verdicts
-            .par_iter()
-            .map(|(k, v)| Ok((*k, (v.forest.unpack()?, v.verdict.unpack()?))))
             .collect::<ApiResult<_>>()?;
         // The verdicts before the rule, for growth to follow what the rule shows.
         let verdict: HashMap<[usize; 3], Vec<u16>> = if cfg.follow && grow > 0 {
@@ -823,10 +859,11 @@ fn settle(
                     out_labels: &out,
                     bg,
                 };
-                let v = pair.map(|(fb, vb)| Verdicts {
+                let v = pair.map(|(fb, vb, ab)| Verdicts {
                     forest: &raw[r.clone()],
                     forest_before: &fb[r.clone()],
                     verdict_before: &vb[r.clone()],
+                    agree_before: ab.get(r.clone()).unwrap_or(&[]),
                 });
                 held += cfg.hold(
                     &mut l[r.clone()],

@@ -1770,8 +1770,11 @@ async fn a_new_stroke_changes_far_labels_only_on_clear_evidence() {
         // what it showed was its own verdict).
         let same_forest = band.is_none() && forest(&probs, v) == forest(&probs_before, v);
         decided += u64::from(new != old && same_forest);
-        // And with confirmation, a far change must be one the first round's forest gave too.
-        let unconfirmed = cfg.confirm && band.is_none() && forest(&probs_before, v) != new as u32;
+        // And with confirmation, a far change must be one the first round's forest gave too;
+        // with more than two forests in a row, more forests than two rounds have had.
+        let unconfirmed = cfg.confirm
+            && band.is_none()
+            && (forest(&probs_before, v) != new as u32 || cfg.confirmations() > 2);
         let want = if new == old
             || (!same_forest
                 && !unconfirmed

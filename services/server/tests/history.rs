@@ -280,6 +280,16 @@ async fn undo_redo_reload_restart_and_load_show_the_labels_last_shown() {
             "{r}"
         );
     }
+    // And how many forests in a row gave each voxel its forest label, counted from the round
+    // before (a first round has none to count from).
+    let rounds = state["rounds"].as_array().unwrap();
+    assert!(rounds[0].get("agree").is_none(), "{}", rounds[0]);
+    assert_eq!(
+        rounds[1]["agree"].as_array().map(|v| v.len()),
+        rounds[1]["bricks"].as_array().map(|b| b.len()),
+        "{}",
+        rounds[1]
+    );
     // A new round after the restart (the third, undone before the close, so not saved) is
     // held against the saved second round as the live session held it: the saved round's
     // own decisions (forest labels, prior verdict) came back with it.

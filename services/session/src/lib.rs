@@ -135,6 +135,10 @@ pub struct RoundRef {
     /// saved before they were kept).
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub verdicts: Vec<([usize; 3], String, String)>,
+    /// Each brick's grid index and the name of its saved file of how many forests in a row
+    /// gave each voxel its forest label (absent in files saved before they were counted).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub agree: Vec<([usize; 3], String)>,
 }
 
 impl SessionFile {
@@ -344,7 +348,8 @@ impl SessionFile {
                 .bricks
                 .iter()
                 .map(|(i, n)| (i, n))
-                .chain(r.verdicts.iter().flat_map(|(i, f, v)| [(i, f), (i, v)]));
+                .chain(r.verdicts.iter().flat_map(|(i, f, v)| [(i, f), (i, v)]))
+                .chain(r.agree.iter().map(|(i, n)| (i, n)));
             for (idx, name) in named {
                 if idx.iter().any(|&v| v > 1 << 20) || !label_file_name(name) {
                     return Err(err(
