@@ -235,6 +235,16 @@ def test_a_session_holds_corrections_beyond_the_margin_of_new_scribbles(tmp_path
     again, _ = restored.classify(second, trees=trees)
     np.testing.assert_array_equal(again, held)
     assert restored.last_report["voxels_held"] == n_held
+    # A second round's file also keeps how many forests in a row gave each voxel its forest
+    # label (a far change needs three), and a restored session holds to the same count.
+    two = tmp_path / "two.npz"
+    restored.save(two)
+    with np.load(two) as z:
+        assert z["agree"].shape == (v.size,) and 1 <= z["agree"].min() and z["agree"].max() <= 3
+    back = neuvolex.Session.load(two, store=s2)
+    live, _ = restored.classify(second, trees=trees)
+    again, _ = back.classify(second, trees=trees)
+    np.testing.assert_array_equal(again, live)
     # Another setting, or erased scribbles: every label as the round alone finds it.
     other = s2.session()
     other.classify(first, trees=trees)
