@@ -523,14 +523,17 @@ class Session:
                 verdicts = (state["forest"].astype(np.uint16).tolist(), state["verdict"].astype(np.uint16).tolist())
                 if "agree" in state:
                     agree = state["agree"].astype(np.uint16).tolist()
-            s._native.restore(
-                str(state["key"]),
-                state["index"].astype(np.uint64).tolist(),
-                state["scribbles"].astype(np.uint32).tolist(),
-                state["labels"].astype(np.uint16).tolist(),
-                verdicts,
-                agree,
-            )
+            try:
+                s._native.restore(
+                    str(state["key"]),
+                    state["index"].astype(np.uint64).tolist(),
+                    state["scribbles"].astype(np.uint32).tolist(),
+                    state["labels"].astype(np.uint16).tolist(),
+                    verdicts,
+                    agree,
+                )
+            except FileError as e:
+                raise FileError(f"{p}: {e}") from None
             s.classes = [int(c) for c in state["classes"]]
         return s
 

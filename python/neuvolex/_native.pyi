@@ -180,7 +180,7 @@ class Session:
             npt.NDArray[np.uint64],
             npt.NDArray[np.uint32],
             npt.NDArray[np.uint16],
-            Optional[tuple[npt.NDArray[np.uint16], npt.NDArray[np.uint16]]],
+            Optional[tuple[npt.NDArray[np.uint16], npt.NDArray[np.uint16], npt.NDArray[np.uint16]]],
         ]
     ]: ...
     def restore(
@@ -190,5 +190,6 @@ class Session:
         scribbles: list[int],
         labels: list[int],
         verdicts: Optional[tuple[list[int], list[int]]] = None,
+        agree: Optional[list[int]] = None,
     ) -> None: ...
     def reset(self) -> None: ...

@@ -245,6 +245,13 @@ def test_a_session_holds_corrections_beyond_the_margin_of_new_scribbles(tmp_path
     live, _ = restored.classify(second, trees=trees)
     again, _ = back.classify(second, trees=trees)
     np.testing.assert_array_equal(again, live)
+    # A file whose count covers another grid is refused, naming the file and the array.
+    with np.load(two) as z:
+        state = {k: z[k] for k in z.files}
+    state["agree"] = state["agree"][:-1]
+    np.savez_compressed(tmp_path / "short.npz", **state)
+    with pytest.raises(neuvolex.FileError, match=r"short\.npz: agree: \d+ voxels, the store has"):
+        neuvolex.Session.load(tmp_path / "short.npz", store=s2)
     # Another setting, or erased scribbles: every label as the round alone finds it.
     other = s2.session()
     other.classify(first, trees=trees)

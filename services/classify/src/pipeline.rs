@@ -888,11 +888,7 @@ pub fn classify_scribbles_on<E: Executor + ?Sized>(
             });
         }
         // Forests in a row count against the held round when this one extends its strokes.
-        let before = req
-            .hold
-            .as_ref()
-            .filter(|h| crate::stable::added(&h.scribbles, &scr).is_some())
-            .and_then(|h| h.verdicts.as_ref());
+        let before = req.hold.as_ref().and_then(|h| h.verdicts_before(&scr));
         let v = crate::stable::RoundVerdicts::after(forest_labels, labels.clone(), before);
         if let Some(h) = &req.hold {
             voxels_held = hold_to(&store_arc, &stage, &scr, h, &v, &mut labels)?;

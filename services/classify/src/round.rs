@@ -312,10 +312,7 @@ pub fn classify_round(
         }
     });
     // Forests in a row count against the held round when this one extends its strokes.
-    let before = req
-        .hold
-        .filter(|h| added(&h.scribbles, scr).is_some())
-        .and_then(|h| h.verdicts.as_ref());
+    let before = req.hold.and_then(|h| h.verdicts_before(scr));
     let verdicts = RoundVerdicts::after(forest_labels, labels.clone(), before);
     let mut voxels_held = None;
     if let Some(h) = req.hold {

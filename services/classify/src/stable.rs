@@ -423,7 +423,7 @@ pub fn hold(
             let same = f.forest[v] == f.forest_before[v] && p == f.verdict_before[v];
             let unconfirmed = forests >= 2
                 && (*l != f.forest_before[v]
-                    || f.agree_before.get(v).map_or(1, |&a| a.max(1)) < u16::from(forests) - 1);
+                    || in_a_row(f.agree_before, v) < u16::from(forests) - 1);
             if lev > steps && (same || unconfirmed) {
                 *l = p;
                 kept += 1;
@@ -457,12 +457,17 @@ pub fn agree(forest: &[u16], forest_before: &[u16], agree_before: &[u16]) -> Vec
         .enumerate()
         .map(|(v, (a, b))| {
             if a == b {
-                (agree_before.get(v).map_or(1, |&c| c.max(1)) + 1).min(u16::from(MAX_FORESTS))
+                (in_a_row(agree_before, v) + 1).min(u16::from(MAX_FORESTS))
             } else {
                 1
             }
         })
         .collect()
+}
+
+/// Voxel `v`'s count of forests in a row in `agree` ([`agree`]): 1 where unknown.
+fn in_a_row(agree: &[u16], v: usize) -> u16 {
+    agree.get(v).map_or(1, |&c| c.max(1))
 }
 
 /// Growth that follows the labels shown, over a whole volume (`dims`, x fastest): after
@@ -655,6 +660,16 @@ impl std::fmt::Debug for RoundVerdicts {
         f.debug_struct("RoundVerdicts")
             .field("voxels", &self.forest.len())
             .finish()
+    }
+}
+
+impl Hold {
+    /// The held round's verdicts when scribbles `scr` extend its own (the new round continues
+    /// it, so its forests in a row count on from the held round's).
+    pub fn verdicts_before(&self, scr: &crate::Scribbles) -> Option<&RoundVerdicts> {
+        self.verdicts
+            .as_ref()
+            .filter(|_| added(&self.scribbles, scr).is_some())
     }
 }
 

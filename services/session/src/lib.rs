@@ -487,9 +487,11 @@ mod tests {
         j["ui"] = serde_json::json!({"idx": {"z": 3}, "window": 400});
         j["prior"] = false.into();
         j["rounds"] = serde_json::json!([
-            {"strokes": 3, "features": "filters+xyz/0", "bricks": [[[0, 0, 0], "0123abcd0123abcd-4096"]]}
+            {"strokes": 3, "features": "filters+xyz/0", "bricks": [[[0, 0, 0], "0123abcd0123abcd-4096"]],
+             "agree": [[[0, 0, 0], "0123abcd0123abcd-4096"]]}
         ]);
         let s = SessionFile::parse(&j.to_string(), "a.json").unwrap();
+        assert_eq!(s.rounds[0].agree.len(), 1);
         // The line: the strokes, then the redo stack from the next to redo on.
         let line = s.line();
         assert_eq!(line.len(), 3);
@@ -503,6 +505,11 @@ mod tests {
             ("/rounds/0/strokes", 0.into(), "rounds[0]: 0 strokes"),
             (
                 "/rounds/0/bricks/0/1",
+                "../../etc".into(),
+                "is not a label file name",
+            ),
+            (
+                "/rounds/0/agree/0/1",
                 "../../etc".into(),
                 "is not a label file name",
             ),
