@@ -31,7 +31,10 @@
 //!   taken for the soft tissue a background stroke covered): the next round's forest shares
 //!   that stroke and often still gives the change, so two forests in a row showed it a round
 //!   later whatever the next visit drew; a change that survives two further visits' strokes
-//!   is one they did not contradict.
+//!   is one they did not contradict. A visit whose strokes name only the changed-to class
+//!   could not contradict it and does not count ([`agree`]): after rounds of vessel strokes
+//!   alone, each forest spreads the vessel further into look-alike tissue and all of them
+//!   agree.
 //! - **Growth follows what is shown** ([`follow`]): the boundary band growth fills grows from
 //!   the labels the rule shows, not from the round's verdict, so a boundary the rule moved
 //!   carries its band with it.
@@ -70,7 +73,8 @@ pub struct StableConfig {
     pub confirm: bool,
     /// How many forests in a row must give a far change when [`Self::confirm`] is on (2: the
     /// previous round's forest and this one; at most [`MAX_FORESTS`]; the rounds' [`agree`]
-    /// counts them). Absent from older settings: the default.
+    /// counts them, each after the first only when its round's strokes name another class).
+    /// Absent from older settings: the default.
     #[serde(default = "default_forests")]
     pub forests: u8,
     /// Whether growth follows the labels shown ([`follow`]): after the rule, a doubtful voxel
@@ -396,9 +400,10 @@ pub fn needed(level: u8, steps: u8, delta: u8) -> u8 {
 /// With `forests` of 2 or more (and `forest`), beyond the margin a change must also be one the
 /// previous `forests - 1` rounds' forests already gave (the previous forest's label there is
 /// the new one, and its [`agree`] count at least `forests - 1`): a change shows `forests - 1`
-/// rounds after a forest first gives it, if the forests after it still give it. A forest that
-/// over-generalises from one stroke, and is corrected by the next visits, never shows it far
-/// away. Below 2, no confirmation.
+/// tested rounds after a forest first gives it, if the forests after it still give it (a round
+/// tests it when its strokes name another class). A forest that over-generalises from one
+/// stroke, and is corrected by the next visits, never shows it far away. Below 2, no
+/// confirmation.
 ///
 /// Returns the voxels that kept their previous label.
 #[allow(clippy::too_many_arguments)]
@@ -447,22 +452,50 @@ pub fn hold(
     kept
 }
 
-/// How many forests in a row, ending with this round's, gave each voxel its forest label: one
-/// more than the previous round's count (`agree_before`, empty where unknown: 1) where the
-/// forest label did not change, else 1; at most [`MAX_FORESTS`]. Spans of the same voxels.
-pub fn agree(forest: &[u16], forest_before: &[u16], agree_before: &[u16]) -> Vec<u16> {
+/// How many forests in a row, ending with this round's, gave each voxel its forest label and
+/// were tested on it: where the forest label did not change, one more than the previous
+/// round's count (`agree_before`, empty where unknown: 1) when the round's new strokes name a
+/// class other than that label (`tested`, output labels: [`tested`]), the same count when they
+/// do not; else 1. At most [`MAX_FORESTS`]. Spans of the same voxels.
+///
+/// A round whose strokes name only the voxel's class is no test of it: its forest learnt from
+/// more of that class alone and grows it wherever it grew before, so its agreement confirms
+/// nothing (on the abdomen's aorta alone, three forests after three aorta-only rounds spread
+/// the aorta into look-alike tissue far away: a drop of 0.141 in one round; BENCHMARKS.md,
+/// issue 48). Nor is a round that adds no strokes.
+pub fn agree(
+    forest: &[u16],
+    forest_before: &[u16],
+    agree_before: &[u16],
+    tested: &[u16],
+) -> Vec<u16> {
     forest
         .iter()
         .zip(forest_before)
         .enumerate()
-        .map(|(v, (a, b))| {
+        .map(|(v, (&a, &b))| {
             if a == b {
-                (in_a_row(agree_before, v) + 1).min(u16::from(MAX_FORESTS))
+                let n = in_a_row(agree_before, v);
+                let step = u16::from(tested.iter().any(|&c| c != a));
+                (n + step).min(u16::from(MAX_FORESTS))
             } else {
                 1
             }
         })
         .collect()
+}
+
+/// The output labels (0 for the background) the strokes a round added (`new`) name, once
+/// each and sorted: [`agree`]'s `tested`.
+pub fn tested(new: &crate::Scribbles, background: u32) -> Vec<u16> {
+    let mut t: Vec<u16> = new
+        .voxels
+        .iter()
+        .map(|&(_, l)| crate::output_labels(&[l], background)[0])
+        .collect();
+    t.sort_unstable();
+    t.dedup();
+    t
 }
 
 /// Voxel `v`'s count of forests in a row in `agree` ([`agree`]): 1 where unknown.
@@ -630,10 +663,16 @@ pub struct RoundVerdicts {
 
 impl RoundVerdicts {
     /// This round's verdicts, with [`agree`] counted from the previous round's (`before`;
-    /// `None` or another grid: every count 1).
-    pub fn after(forest: Vec<u16>, verdict: Vec<u16>, before: Option<&RoundVerdicts>) -> Self {
+    /// `None` or another grid: every count 1) and the output labels the round's new strokes
+    /// name (`tested`, [`tested`]).
+    pub fn after(
+        forest: Vec<u16>,
+        verdict: Vec<u16>,
+        before: Option<&RoundVerdicts>,
+        tested: &[u16],
+    ) -> Self {
         let agree = match before.filter(|b| b.forest.len() == forest.len()) {
-            Some(b) => agree(&forest, &b.forest, &b.agree),
+            Some(b) => agree(&forest, &b.forest, &b.agree, tested),
             None => Vec::new(),
         };
         RoundVerdicts {
@@ -665,11 +704,15 @@ impl std::fmt::Debug for RoundVerdicts {
 
 impl Hold {
     /// The held round's verdicts when scribbles `scr` extend its own (the new round continues
-    /// it, so its forests in a row count on from the held round's).
-    pub fn verdicts_before(&self, scr: &crate::Scribbles) -> Option<&RoundVerdicts> {
-        self.verdicts
-            .as_ref()
-            .filter(|_| added(&self.scribbles, scr).is_some())
+    /// it, so its forests in a row count on from the held round's), with the output labels the
+    /// strokes added since name ([`tested`]; `background` is the background's scribble label).
+    pub fn verdicts_before(
+        &self,
+        scr: &crate::Scribbles,
+        background: u32,
+    ) -> Option<(&RoundVerdicts, Vec<u16>)> {
+        let v = self.verdicts.as_ref()?;
+        added(&self.scribbles, scr).map(|new| (v, tested(&new, background)))
     }
 }
 
@@ -920,19 +963,72 @@ mod tests {
     }
 
     #[test]
+    fn tested_names_the_classes_of_new_strokes() {
+        let new = crate::Scribbles {
+            dims: [4, 2, 1],
+            voxels: vec![(0, 255), (3, 4), (5, 255), (7, 1)],
+        };
+        assert_eq!(tested(&new, 255), vec![0, 1, 4]);
+        let none = crate::Scribbles {
+            dims: [4, 2, 1],
+            voxels: vec![],
+        };
+        assert!(tested(&none, 255).is_empty());
+        // A held round's verdicts come with the classes its continuation added.
+        let h = Hold {
+            scribbles: crate::Scribbles {
+                dims: [4, 2, 1],
+                voxels: vec![(0, 255)],
+            },
+            labels: vec![0; 8],
+            config: StableConfig::default(),
+            verdicts: Some(RoundVerdicts::after(vec![0; 8], vec![0; 8], None, &[])),
+        };
+        let (_, t) = h.verdicts_before(&new, 255).expect("extends");
+        assert_eq!(t, vec![0, 1, 4]);
+        let relabelled = crate::Scribbles {
+            dims: [4, 2, 1],
+            voxels: vec![(0, 1)],
+        };
+        assert!(h.verdicts_before(&relabelled, 255).is_none());
+    }
+
+    #[test]
     fn agree_counts_forests_in_a_row() {
-        assert_eq!(agree(&[1, 2, 0, 3], &[1, 1, 0, 3], &[]), vec![2, 1, 2, 2]);
+        // Strokes of the background (0) and class 1 test every voxel: counts go on where the
+        // forest label stayed, back to 1 where it changed.
+        let both = [0, 1];
         assert_eq!(
-            agree(&[1, 2, 0, 3], &[1, 1, 0, 3], &[2, 5, 0, 8]),
+            agree(&[1, 2, 0, 3], &[1, 1, 0, 3], &[], &both),
+            vec![2, 1, 2, 2]
+        );
+        assert_eq!(
+            agree(&[1, 2, 0, 3], &[1, 1, 0, 3], &[2, 5, 0, 8], &both),
             vec![3, 1, 2, 8]
         );
-        let first = RoundVerdicts::after(vec![1, 0], vec![1, 0], None);
+        // Strokes of class 1 alone test no voxel whose forest gives 1: its count stays (voxel
+        // 0), while the others' go on; a round without strokes tests nothing.
+        assert_eq!(
+            agree(&[1, 2, 0, 3], &[1, 1, 0, 3], &[2, 5, 0, 8], &[1]),
+            vec![2, 1, 2, 8]
+        );
+        assert_eq!(
+            agree(&[1, 2, 0, 3], &[1, 1, 0, 3], &[2, 5, 3, 4], &[]),
+            vec![2, 1, 3, 4]
+        );
+        let first = RoundVerdicts::after(vec![1, 0], vec![1, 0], None, &both);
         assert!(first.agree.is_empty(), "a first round counts nothing");
-        let second = RoundVerdicts::after(vec![1, 2], vec![1, 2], Some(&first));
+        let second = RoundVerdicts::after(vec![1, 2], vec![1, 2], Some(&first), &both);
         assert_eq!(second.agree, vec![2, 1]);
-        let third = RoundVerdicts::after(vec![1, 2], vec![1, 2], Some(&second));
+        let third = RoundVerdicts::after(vec![1, 2], vec![1, 2], Some(&second), &both);
         assert_eq!(third.agree, vec![3, 2]);
-        let other = RoundVerdicts::after(vec![1, 2, 3], vec![1, 2, 3], Some(&third));
+        // Three rounds of class 2 strokes alone: the change to 2 is still one forest's.
+        let mut only = second.clone();
+        for _ in 0..3 {
+            only = RoundVerdicts::after(vec![1, 2], vec![1, 2], Some(&only), &[2]);
+        }
+        assert_eq!(only.agree, vec![5, 1]);
+        let other = RoundVerdicts::after(vec![1, 2, 3], vec![1, 2, 3], Some(&third), &both);
         assert!(other.agree.is_empty(), "another grid counts nothing");
         let c = StableConfig::default();
         assert_eq!(c.confirmations(), DEFAULT_FORESTS);

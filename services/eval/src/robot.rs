@@ -30,7 +30,7 @@ use neuvolex_classify::components::{
     apply_in_memory, grow_in_memory, label_brick, Partial, PriorConfig,
 };
 use neuvolex_classify::scribble::{erode, longest_stroke, stroke_length, Axis};
-use neuvolex_classify::stable::{agree, near_scribbles, Evidence, StableConfig, Verdicts};
+use neuvolex_classify::stable::{agree, near_scribbles, tested, Evidence, StableConfig, Verdicts};
 use neuvolex_classify::{
     rasterise, simulate, thicken, BrickFeatures, FeatureSet, Level, Scribbles, SimConfig,
     SliceMass, Stroke, F1,
@@ -846,9 +846,14 @@ pub fn run(cfg: &EvalConfig, rc: &RobotConfig, events: Events) -> Result<Vec<Rou
                                 events(EvalEvent::Round(row.clone()));
                                 rows.push(row);
                                 prev = Some((labels.clone(), mean_f1));
-                                prev_agree = match &prev_stages {
-                                    Some(ps) => agree(&st.raw, &ps.raw, &prev_agree),
-                                    None => Vec::new(),
+                                prev_agree = match (&prev_stages, &added_scr) {
+                                    (Some(ps), Some(a)) => agree(
+                                        &st.raw,
+                                        &ps.raw,
+                                        &prev_agree,
+                                        &tested(a, cfg.classify.background),
+                                    ),
+                                    _ => Vec::new(),
                                 };
                                 prev_stages = Some(st);
                                 if round == rc.rounds {

@@ -780,6 +780,19 @@ fn settle(
         return Ok((held, true));
     }
     let cfg = StableConfig::default();
+    let d = store.info().dims;
+    // The strokes added since the base, rasterised, and the classes they name.
+    let new = match &base {
+        Some(prev) => Some(
+            rasterise(&strokes[prev.strokes.len()..], d)
+                .map_err(|e| ApiError::BadRequest(e.to_string()))?,
+        ),
+        None => None,
+    };
+    let tested = new
+        .as_ref()
+        .map(|n| neuvolex_classify::stable::tested(n, BACKGROUND))
+        .unwrap_or_default();
     // A packed brick, shared with the base's where their contents are equal.
     let shared = |b: LabelBrick, old: Option<&Arc<LabelBrick>>| {
         old.filter(|o| o.name == b.name)
@@ -810,7 +823,7 @@ fn settle(
             let old = base.as_ref().and_then(|b| b.verdicts.get(k));
             let agree = match decided.get(k).filter(|d| d.0.len() == f.len()) {
                 Some((fb, _, ab)) => Some(shared(
-                    LabelBrick::pack(&neuvolex_classify::stable::agree(f, fb, ab))?,
+                    LabelBrick::pack(&neuvolex_classify::stable::agree(f, fb, ab, &tested))?,
                     old.and_then(|o| o.agree.as_ref()),
                 )),
                 None => None,
@@ -826,11 +839,8 @@ fn settle(
         })
         .collect::<ApiResult<_>>()?;
     let mut held = 0;
-    if let Some(prev) = &base {
-        let d = store.info().dims;
-        let new = rasterise(&strokes[prev.strokes.len()..], d)
-            .map_err(|e| ApiError::BadRequest(e.to_string()))?;
-        let level = cfg.levels(&new);
+    if let (Some(prev), Some(new)) = (&base, &new) {
+        let level = cfg.levels(new);
         let out = neuvolex_classify::output_labels(&probs.ids, BACKGROUND);
         let bg = probs.ids.iter().position(|&i| i == BACKGROUND);
         let before: HashMap<[usize; 3], Vec<u16>> = prev
