@@ -52,6 +52,13 @@ fn close_req(id: &str) -> actix_http::Request {
         .to_request()
 }
 
+/// `GET /api/sessions/{id}/state` (the session file as it would be saved).
+fn state_req(id: &str) -> actix_http::Request {
+    test::TestRequest::get()
+        .uri(&format!("/api/sessions/{id}/state"))
+        .to_request()
+}
+
 /// `PUT /api/sessions/{id}/WHAT` with a JSON body.
 fn put_req(id: &str, what: &str, body: &Value) -> actix_http::Request {
     test::TestRequest::put()
@@ -233,13 +240,7 @@ async fn undo_redo_reload_restart_and_load_show_the_labels_last_shown() {
     let info = wait_done(&app, &id, v["generation"].as_u64().unwrap()).await;
     assert_eq!(info["prior"]["restored"], true, "{info}");
     assert_eq!(differing(&labels(&app, &id).await, &l2), 0, "restart");
-    let (_, state) = call(
-        &app,
-        test::TestRequest::get()
-            .uri(&format!("/api/sessions/{id}/state"))
-            .to_request(),
-    )
-    .await;
+    let (_, state) = call(&app, state_req(&id)).await;
     assert_eq!(state["ui"]["window"], 400, "{state}");
     assert!(
         state["rounds"].as_array().is_some_and(|r| r.len() >= 2),
@@ -251,13 +252,7 @@ async fn undo_redo_reload_restart_and_load_show_the_labels_last_shown() {
     let (r, _) = round(&app, &id, &all, &[]).await;
     assert_eq!(differing(&r, &l2), 0, "redo after a restart");
     // Loading the downloaded file into a new session on the same volume.
-    let (_, state) = call(
-        &app,
-        test::TestRequest::get()
-            .uri(&format!("/api/sessions/{id}/state"))
-            .to_request(),
-    )
-    .await;
+    let (_, state) = call(&app, state_req(&id)).await;
     let (_, v) = call(&app, open_req(json!({"volume": "ph.zarr"}))).await;
     let other = v["id"].as_str().unwrap().to_string();
     let (code, v) = call(
@@ -296,6 +291,100 @@ async fn undo_redo_reload_restart_and_load_show_the_labels_last_shown() {
     let (r3, p3) = round(&app, &id, &all3, &[]).await;
     assert_eq!(p3["restored"], false, "{p3}");
     assert_eq!(differing(&r3, &l3), 0, "a new round after a restart");
+}
+
+#[actix_web::test]
+async fn a_round_of_one_class_alone_confirms_nothing_of_that_class() {
+    // Forests in a row count a forest after the first only where its round's new strokes name
+    // another class than the voxel's forest label: the third round adds one stroke, of one
+    // class, so where its forest still gives that class the count stays, where it still gives
+    // another the count goes on, and where it changed it starts again at 1.
+    let (_d, cfg, classes, first, more, extra) = setup();
+    let work = cfg.work_dir.clone();
+    let all: Vec<Stroke> = first.iter().chain(&more).cloned().collect();
+    let all3: Vec<Stroke> = all.iter().chain([&extra]).cloned().collect();
+    let app = app!(cfg);
+    let (_, v) = call(&app, open_req(json!({"volume": "ph.zarr"}))).await;
+    let id = v["id"].as_str().unwrap().to_string();
+    call(&app, put_req(&id, "classes", &classes)).await;
+    for s in [&first, &all, &all3] {
+        round(&app, &id, s, &[]).await;
+    }
+    let (_, state) = call(&app, state_req(&id)).await;
+    let rounds = state["rounds"].as_array().unwrap();
+    let of = |n: usize| {
+        rounds
+            .iter()
+            .find(|r| r["strokes"] == json!(n))
+            .unwrap_or_else(|| panic!("no round of {n} strokes: {state}"))
+    };
+    let (two, three) = (of(all.len()), of(all3.len()));
+    // A saved brick file (named by content, its voxel count last) read back.
+    let dir = neuvolex_server::labels::bricks_dir(&work);
+    let read = |name: &Value| -> Vec<u16> {
+        let name = name.as_str().unwrap();
+        let voxels: usize = name.rsplit('-').next().unwrap().parse().unwrap();
+        neuvolex_server::labels::LabelBrick::read(&dir.join(format!("{name}.zst")), voxels)
+            .unwrap()
+            .unpack()
+            .unwrap()
+    };
+    // Each brick's forest labels and counts in a round.
+    let bricks = |r: &Value| -> std::collections::HashMap<String, (Vec<u16>, Vec<u16>)> {
+        let agree: std::collections::HashMap<String, Vec<u16>> = r["agree"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|e| (e[0].to_string(), read(&e[1])))
+            .collect();
+        r["verdicts"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|e| {
+                let k = e[0].to_string();
+                let a = agree.get(&k).cloned().unwrap_or_default();
+                (k, (read(&e[1]), a))
+            })
+            .collect()
+    };
+    let (before, now) = (bricks(two), bricks(three));
+    let c = if extra.class == 255 {
+        0
+    } else {
+        extra.class as u16
+    };
+    let (mut stayed, mut went_on, mut counted) = (0, 0, 0);
+    for (k, (f, a)) in &now {
+        let (fb, ab) = &before[k];
+        if a.is_empty() {
+            continue;
+        }
+        counted += 1;
+        assert_eq!(a.len(), f.len(), "brick {k}: a count per voxel");
+        for v in 0..f.len() {
+            let prev = ab.get(v).copied().unwrap_or(1).max(1);
+            let want = if f[v] != fb[v] {
+                1
+            } else if f[v] == c {
+                stayed += 1;
+                prev
+            } else {
+                went_on += 1;
+                (prev + 1).min(8)
+            };
+            assert_eq!(
+                a[v], want,
+                "brick {k} voxel {v}: forest {} before {}",
+                f[v], fb[v]
+            );
+        }
+    }
+    assert!(counted > 0, "no brick's count saved: {three}");
+    assert!(
+        stayed > 0 && went_on > 0,
+        "{stayed} stayed, {went_on} went on"
+    );
 }
 
 #[actix_web::test]
