@@ -892,11 +892,7 @@ pub fn classify_scribbles_on<E: Executor + ?Sized>(
             .hold
             .as_ref()
             .and_then(|h| h.verdicts_before(&scr, cfg.background));
-        let (before, tested) = match &before {
-            Some((b, t)) => (Some(*b), t.as_slice()),
-            None => (None, &[][..]),
-        };
-        let v = crate::stable::RoundVerdicts::after(forest_labels, labels.clone(), before, tested);
+        let v = crate::stable::RoundVerdicts::after(forest_labels, labels.clone(), before);
         if let Some(h) = &req.hold {
             voxels_held = hold_to(&store_arc, &stage, &scr, h, &v, &mut labels)?;
             if let (Some(held), Some(pc)) = (voxels_held.as_mut(), &req.prior) {

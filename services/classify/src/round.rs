@@ -315,10 +315,7 @@ pub fn classify_round(
     let before = req
         .hold
         .and_then(|h| h.verdicts_before(scr, cfg.background));
-    let verdicts = match before {
-        Some((b, tested)) => RoundVerdicts::after(forest_labels, labels.clone(), Some(b), &tested),
-        None => RoundVerdicts::after(forest_labels, labels.clone(), None, &[]),
-    };
+    let verdicts = RoundVerdicts::after(forest_labels, labels.clone(), before);
     let mut voxels_held = None;
     if let Some(h) = req.hold {
         voxels_held = hold_in_memory(h, scr, &verdicts, &proba, &out_labels, &mut labels);

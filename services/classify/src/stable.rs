@@ -488,11 +488,10 @@ pub fn agree(
 /// The output labels (0 for the background) the strokes a round added (`new`) name, once
 /// each and sorted: [`agree`]'s `tested`.
 pub fn tested(new: &crate::Scribbles, background: u32) -> Vec<u16> {
-    let mut t: Vec<u16> = new
-        .voxels
-        .iter()
-        .map(|&(_, l)| crate::output_labels(&[l], background)[0])
-        .collect();
+    let mut named: Vec<u32> = new.voxels.iter().map(|&(_, l)| l).collect();
+    named.sort_unstable();
+    named.dedup();
+    let mut t = crate::output_labels(&named, background);
     t.sort_unstable();
     t.dedup();
     t
@@ -662,17 +661,16 @@ pub struct RoundVerdicts {
 }
 
 impl RoundVerdicts {
-    /// This round's verdicts, with [`agree`] counted from the previous round's (`before`;
-    /// `None` or another grid: every count 1) and the output labels the round's new strokes
-    /// name (`tested`, [`tested`]).
+    /// This round's verdicts, with [`agree`] counted from the previous round's and the output
+    /// labels the round's new strokes name (`before`, as [`Hold::verdicts_before`] gives them;
+    /// `None` or another grid: every count 1).
     pub fn after(
         forest: Vec<u16>,
         verdict: Vec<u16>,
-        before: Option<&RoundVerdicts>,
-        tested: &[u16],
+        before: Option<(&RoundVerdicts, Vec<u16>)>,
     ) -> Self {
-        let agree = match before.filter(|b| b.forest.len() == forest.len()) {
-            Some(b) => agree(&forest, &b.forest, &b.agree, tested),
+        let agree = match before.filter(|(b, _)| b.forest.len() == forest.len()) {
+            Some((b, tested)) => agree(&forest, &b.forest, &b.agree, &tested),
             None => Vec::new(),
         };
         RoundVerdicts {
@@ -982,7 +980,7 @@ mod tests {
             },
             labels: vec![0; 8],
             config: StableConfig::default(),
-            verdicts: Some(RoundVerdicts::after(vec![0; 8], vec![0; 8], None, &[])),
+            verdicts: Some(RoundVerdicts::after(vec![0; 8], vec![0; 8], None)),
         };
         let (_, t) = h.verdicts_before(&new, 255).expect("extends");
         assert_eq!(t, vec![0, 1, 4]);
@@ -1016,19 +1014,20 @@ mod tests {
             agree(&[1, 2, 0, 3], &[1, 1, 0, 3], &[2, 5, 3, 4], &[]),
             vec![2, 1, 3, 4]
         );
-        let first = RoundVerdicts::after(vec![1, 0], vec![1, 0], None, &both);
+        let first = RoundVerdicts::after(vec![1, 0], vec![1, 0], None);
         assert!(first.agree.is_empty(), "a first round counts nothing");
-        let second = RoundVerdicts::after(vec![1, 2], vec![1, 2], Some(&first), &both);
+        let second = RoundVerdicts::after(vec![1, 2], vec![1, 2], Some((&first, both.to_vec())));
         assert_eq!(second.agree, vec![2, 1]);
-        let third = RoundVerdicts::after(vec![1, 2], vec![1, 2], Some(&second), &both);
+        let third = RoundVerdicts::after(vec![1, 2], vec![1, 2], Some((&second, both.to_vec())));
         assert_eq!(third.agree, vec![3, 2]);
         // Three rounds of class 2 strokes alone: the change to 2 is still one forest's.
         let mut only = second.clone();
         for _ in 0..3 {
-            only = RoundVerdicts::after(vec![1, 2], vec![1, 2], Some(&only), &[2]);
+            only = RoundVerdicts::after(vec![1, 2], vec![1, 2], Some((&only, vec![2])));
         }
         assert_eq!(only.agree, vec![5, 1]);
-        let other = RoundVerdicts::after(vec![1, 2, 3], vec![1, 2, 3], Some(&third), &both);
+        let other =
+            RoundVerdicts::after(vec![1, 2, 3], vec![1, 2, 3], Some((&third, both.to_vec())));
         assert!(other.agree.is_empty(), "another grid counts nothing");
         let c = StableConfig::default();
         assert_eq!(c.confirmations(), DEFAULT_FORESTS);

@@ -349,7 +349,7 @@ async fn a_round_of_one_class_alone_confirms_nothing_of_that_class() {
             .collect()
     };
     let (before, now) = (bricks(two), bricks(three));
-    let c = if extra.class == 255 {
+    let c = if extra.class == neuvolex_server::labels::BACKGROUND {
         0
     } else {
         extra.class as u16
@@ -371,7 +371,7 @@ async fn a_round_of_one_class_alone_confirms_nothing_of_that_class() {
                 prev
             } else {
                 went_on += 1;
-                (prev + 1).min(8)
+                (prev + 1).min(u16::from(neuvolex_classify::stable::MAX_FORESTS))
             };
             assert_eq!(
                 a[v], want,
