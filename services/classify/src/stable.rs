@@ -34,7 +34,8 @@
 //!   is one they did not contradict. A visit whose strokes name only the changed-to class
 //!   could not contradict it and does not count ([`agree`]): after rounds of vessel strokes
 //!   alone, each forest spreads the vessel further into look-alike tissue and all of them
-//!   agree.
+//!   agree. Nor does the forest of such a visit count as the first to give a change: it
+//!   proposes its class's spread.
 //! - **Growth follows what is shown** ([`follow`]): the boundary band growth fills grows from
 //!   the labels the rule shows, not from the round's verdict, so a boundary the rule moved
 //!   carries its band with it.
@@ -73,7 +74,7 @@ pub struct StableConfig {
     pub confirm: bool,
     /// How many forests in a row must give a far change when [`Self::confirm`] is on (2: the
     /// previous round's forest and this one; at most [`MAX_FORESTS`]; the rounds' [`agree`]
-    /// counts them, each after the first only when its round's strokes name another class).
+    /// counts the forests before this one only when their rounds' strokes name another class).
     /// Absent from older settings: the default.
     #[serde(default = "default_forests")]
     pub forests: u8,
@@ -321,8 +322,8 @@ pub struct Verdicts<'a> {
     pub forest_before: &'a [u16],
     /// The previous round's labels after the prior and growth, before the rule.
     pub verdict_before: &'a [u16],
-    /// How many forests in a row gave the previous round's forest label ([`agree`]); empty
-    /// where unknown (counted as 1: that forest alone).
+    /// How many tested forests in a row gave the previous round's forest label ([`agree`]);
+    /// empty where unknown (counted as 1: that forest alone).
     pub agree_before: &'a [u16],
 }
 
@@ -399,9 +400,9 @@ pub fn needed(level: u8, steps: u8, delta: u8) -> u8 {
 ///
 /// With `forests` of 2 or more (and `forest`), beyond the margin a change must also be one the
 /// previous `forests - 1` rounds' forests already gave (the previous forest's label there is
-/// the new one, and its [`agree`] count at least `forests - 1`): a change shows `forests - 1`
-/// tested rounds after a forest first gives it, if the forests after it still give it (a round
-/// tests it when its strokes name another class). A forest that over-generalises from one
+/// the new one, and its [`agree`] count at least `forests - 1`): a change shows once
+/// `forests - 1` tested forests in a row gave it before this one (a round tests it when its
+/// strokes name another class), if this forest still gives it. A forest that over-generalises from one
 /// stroke, and is corrected by the next visits, never shows it far away. Below 2, no
 /// confirmation.
 ///
@@ -453,16 +454,18 @@ pub fn hold(
 }
 
 /// How many forests in a row, ending with this round's, gave each voxel its forest label and
-/// were tested on it: where the forest label did not change, one more than the previous
-/// round's count (`agree_before`, empty where unknown: 1) when the round's new strokes name a
-/// class other than that label (`tested`, output labels: [`tested`]), the same count when they
-/// do not; else 1. At most [`MAX_FORESTS`]. Spans of the same voxels.
+/// were tested on it: a forest counts when its round's new strokes name a class other than that
+/// label (`tested`, output labels: [`tested`]). Where the forest label did not change, the
+/// previous round's count (`agree_before`, empty where unknown: 1) plus this forest's; where it
+/// changed, this forest's alone (1 or 0). At most [`MAX_FORESTS`]. Spans of the same voxels.
 ///
 /// A round whose strokes name only the voxel's class is no test of it: its forest learnt from
 /// more of that class alone and grows it wherever it grew before, so its agreement confirms
 /// nothing (on the abdomen's aorta alone, three forests after three aorta-only rounds spread
 /// the aorta into look-alike tissue far away: a drop of 0.141 in one round; BENCHMARKS.md,
-/// issue 48). Nor is a round that adds no strokes.
+/// issue 48), and a change it is the first to give is that spread, not evidence (on the brain
+/// against the rest, a background-only round's forest moved the brain's boundary inward and two
+/// tested forests confirmed it: a drop of 0.024). Nor is a round that adds no strokes.
 pub fn agree(
     forest: &[u16],
     forest_before: &[u16],
@@ -474,12 +477,11 @@ pub fn agree(
         .zip(forest_before)
         .enumerate()
         .map(|(v, (&a, &b))| {
+            let step = u16::from(tested.iter().any(|&c| c != a));
             if a == b {
-                let n = in_a_row(agree_before, v);
-                let step = u16::from(tested.iter().any(|&c| c != a));
-                (n + step).min(u16::from(MAX_FORESTS))
+                (in_a_row(agree_before, v) + step).min(u16::from(MAX_FORESTS))
             } else {
-                1
+                step
             }
         })
         .collect()
@@ -497,9 +499,11 @@ pub fn tested(new: &crate::Scribbles, background: u32) -> Vec<u16> {
     t
 }
 
-/// Voxel `v`'s count of forests in a row in `agree` ([`agree`]): 1 where unknown.
+/// Voxel `v`'s count of tested forests in a row in `agree` ([`agree`]; 0 when the forest that
+/// first gave its label was not tested): 1 where unknown (a first round, or a round saved
+/// before the forests were counted).
 fn in_a_row(agree: &[u16], v: usize) -> u16 {
-    agree.get(v).map_or(1, |&c| c.max(1))
+    agree.get(v).map_or(1, |&c| c)
 }
 
 /// Growth that follows the labels shown, over a whole volume (`dims`, x fastest): after
@@ -655,7 +659,7 @@ pub struct RoundVerdicts {
     pub forest: Vec<u16>,
     /// The labels after the prior and growth, before the rule.
     pub verdict: Vec<u16>,
-    /// How many forests in a row gave each voxel its forest label ([`agree`]); empty where
+    /// How many tested forests in a row gave each voxel its forest label ([`agree`]); empty where
     /// unknown (a first round, or one saved before they were counted).
     pub agree: Vec<u16>,
 }
@@ -952,6 +956,7 @@ mod tests {
         // previous one gave it too (the previous round's count 2), not on two forests alone.
         for (agree_before, want) in [
             (&[] as &[u16], 1u16),
+            (&[0u16; 7][..], 1),
             (&[1u16; 7][..], 1),
             (&[2u16; 7][..], 0),
         ] {
@@ -1000,20 +1005,27 @@ mod tests {
             agree(&[1, 2, 0, 3], &[1, 1, 0, 3], &[], &both),
             vec![2, 1, 2, 2]
         );
+        // A stored 0 (the forest that first gave the label was not tested) counts from 0.
         assert_eq!(
             agree(&[1, 2, 0, 3], &[1, 1, 0, 3], &[2, 5, 0, 8], &both),
-            vec![3, 1, 2, 8]
+            vec![3, 1, 1, 8]
         );
         // Strokes of class 1 alone test no voxel whose forest gives 1: its count stays (voxel
-        // 0), while the others' go on; a round without strokes tests nothing.
+        // 0), while the others' go on; a round without strokes tests nothing, and a change it
+        // gives starts at 0.
         assert_eq!(
             agree(&[1, 2, 0, 3], &[1, 1, 0, 3], &[2, 5, 0, 8], &[1]),
-            vec![2, 1, 2, 8]
+            vec![2, 1, 1, 8]
         );
         assert_eq!(
             agree(&[1, 2, 0, 3], &[1, 1, 0, 3], &[2, 5, 3, 4], &[]),
-            vec![2, 1, 3, 4]
+            vec![2, 0, 3, 4]
         );
+        // A change to the only class the strokes name is that class's spread: it starts at 0,
+        // and the next tested forest that still gives it is the first to count.
+        let spread = agree(&[1, 2], &[1, 1], &[2, 2], &[2]);
+        assert_eq!(spread, vec![3, 0]);
+        assert_eq!(agree(&[1, 2], &[1, 2], &spread, &[0, 2]), vec![4, 1]);
         let first = RoundVerdicts::after(vec![1, 0], vec![1, 0], None);
         assert!(first.agree.is_empty(), "a first round counts nothing");
         let second = RoundVerdicts::after(vec![1, 2], vec![1, 2], Some((&first, both.to_vec())));

@@ -87,8 +87,8 @@ pub struct EvalArgs {
     #[arg(long, default_value_t = neuvolex_classify::stable::DEFAULT_CONFIRM, action = clap::ArgAction::Set)]
     pub stable_confirm: bool,
     /// Robot rounds: how many forests in a row a confirmed far change needs (2: the previous
-    /// round's and this one; 2 to 8); a forest after the first counts only when its round's
-    /// strokes name another class than the change's.
+    /// round's and this one; 2 to 8); a forest before this round's counts only when its
+    /// round's strokes name another class than the change's.
     #[arg(long, default_value_t = neuvolex_classify::stable::DEFAULT_FORESTS, value_parser = clap::value_parser!(u8).range(2..=neuvolex_classify::stable::MAX_FORESTS as i64))]
     pub stable_forests: u8,
     /// Robot rounds: whether growth follows the labels the rule shows (a doubtful voxel that
