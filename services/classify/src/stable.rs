@@ -402,8 +402,8 @@ pub fn needed(level: u8, steps: u8, delta: u8) -> u8 {
 /// previous `forests - 1` rounds' forests already gave (the previous forest's label there is
 /// the new one, and its [`agree`] count at least `forests - 1`): a change shows once
 /// `forests - 1` tested forests in a row gave it before this one (a round tests it when its
-/// strokes name another class), if this forest still gives it. A forest that over-generalises from one
-/// stroke, and is corrected by the next visits, never shows it far away. Below 2, no
+/// strokes name another class), if this forest still gives it. A forest that over-generalises
+/// from one stroke, and is corrected by the next visits, never shows it far away. Below 2, no
 /// confirmation.
 ///
 /// Returns the voxels that kept their previous label.
@@ -659,8 +659,8 @@ pub struct RoundVerdicts {
     pub forest: Vec<u16>,
     /// The labels after the prior and growth, before the rule.
     pub verdict: Vec<u16>,
-    /// How many tested forests in a row gave each voxel its forest label ([`agree`]); empty where
-    /// unknown (a first round, or one saved before they were counted).
+    /// How many tested forests in a row gave each voxel its forest label ([`agree`]); empty
+    /// where unknown (a first round, or one saved before they were counted).
     pub agree: Vec<u16>,
 }
 
@@ -1084,8 +1084,9 @@ mod tests {
     #[test]
     fn growth_follows_the_shown_labels_for_its_steps_only() {
         // One row of 10 voxels: the rule shows class 1 on 0..3, nothing on 3..8, and held
-        // label 2 on 8..10 (label 3 in the second case). The forest is confident on 0..3 (1) and on 9 (2), doubtful on
-        // 3..9; growth gave 3..6 class 1 and 6..9 class 2 (its verdict, from before the rule).
+        // label 2 on 8..10 (label 3 in the second case). The forest is confident on 0..3 (1)
+        // and on 9 (2), doubtful on 3..9; growth gave 3..6 class 1 and 6..9 class 2 (its
+        // verdict, from before the rule).
         let dims = [10, 1, 1];
         let forest = [1, 1, 1, 0, 0, 0, 0, 0, 0, 2];
         let verdict = [1, 1, 1, 1, 1, 1, 2, 2, 2, 2];
