@@ -186,16 +186,17 @@ pub fn robot_table(rows: &[RoundRow], targets: &[f64]) -> String {
 /// What changed the labels beyond the margin of each round's strokes
 /// ([`crate::robot::attribute`]), per dataset, method and placement: each cause's share of the
 /// far changed voxels, the mean F1 change it made beyond the margin per round, and the rounds
-/// dropping more than [`BIG_DROP`] whose largest far loss it made; then the runs whose last
-/// round ended below their first.
+/// dropping more than [`BIG_DROP`] whose largest far loss it made; then the far verdicts the
+/// rule held back and the mean F1 change per round showing them would have made; then the runs
+/// whose last round ended below their first.
 pub fn far_table(rows: &[RoundRow], targets: &[f64]) -> String {
     let sums = summarise(rows, targets);
     let mut s = String::new();
     let _ = writeln!(
         s,
-        "| dataset | method | robot | far voxels changed | forest | prior | growth | release | mean far F1 change per round: forest / prior / growth / release | drops > {BIG_DROP} by cause (forest prior growth release) | runs ending below r0 |"
+        "| dataset | method | robot | far voxels changed | forest | prior | growth | release | mean far F1 change per round: forest / prior / growth / release | drops > {BIG_DROP} by cause (forest prior growth release) | far verdicts held back | mean far F1 change per round had they been shown | runs ending below r0 |"
     );
-    let _ = writeln!(s, "|---|---|---|---|---|---|---|---|---|---|---|");
+    let _ = writeln!(s, "|---|---|---|---|---|---|---|---|---|---|---|---|---|");
     for m in &sums {
         let f = &m.far;
         let total = f.forest + f.prior + f.growth + f.release;
@@ -223,7 +224,7 @@ pub fn far_table(rows: &[RoundRow], targets: &[f64]) -> String {
         };
         let _ = writeln!(
             s,
-            "| {} | {} | {} | {} | {} | {} | {} | {} | {:+.4} / {:+.4} / {:+.4} / {:+.4} | {} {} {} {} | {} of {} |",
+            "| {} | {} | {} | {} | {} | {} | {} | {} | {:+.4} / {:+.4} / {:+.4} / {:+.4} | {} {} {} {} | {} | {:+.4} | {} of {} |",
             m.dataset,
             m.method,
             m.placement,
@@ -240,6 +241,8 @@ pub fn far_table(rows: &[RoundRow], targets: &[f64]) -> String {
             m.drops_by_cause[1],
             m.drops_by_cause[2],
             m.drops_by_cause[3],
+            f.held,
+            f.d_held / n,
             m.ended_below,
             seeds,
         );

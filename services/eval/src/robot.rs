@@ -274,6 +274,10 @@ impl Stages {
 /// - `release`: no stage changed, a label the rule held earlier was let go.
 ///
 /// Each cause's `d_*` is the mean F1 change beyond the margin had only its voxels changed.
+/// Apart from the causes, `held` counts the far voxels whose round verdict the rule held back
+/// (what the round shows is not what the forest, the prior and growth decided), and `d_held` is
+/// what showing them would have changed: the far field's price of the rule (positive: holding
+/// cost accuracy) or its gain (negative: holding prevented a loss).
 #[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
 pub struct FarChanges {
     /// Voxels changed by the forest.
@@ -292,10 +296,17 @@ pub struct FarChanges {
     pub d_growth: f64,
     /// From the releases alone.
     pub d_release: f64,
+    /// Far voxels whose round verdict the rule held back (shown label ≠ verdict).
+    #[serde(default)]
+    pub held: u64,
+    /// Mean F1 change beyond the margin had the held verdicts been shown instead.
+    #[serde(default)]
+    pub d_held: f64,
 }
 
 /// Attributes the changes beyond the margin (`!close`) from the shown labels `prev` to `now`
-/// to the stage that made them ([`FarChanges`]), from the two rounds' [`Stages`].
+/// to the stage that made them ([`FarChanges`]), from the two rounds' [`Stages`], and measures
+/// the verdicts (`after.grown`) the rule held back there.
 pub fn attribute(
     before: &Stages,
     after: &Stages,
@@ -342,6 +353,22 @@ pub fn attribute(
             mean_f1_outside(&only, truth, close, classes) - base
         })
         .collect();
+    let held: Vec<bool> = (0..now.len())
+        .into_par_iter()
+        .map(|v| !close[v] && now[v] != after.grown[v])
+        .collect();
+    let n_held = held.iter().filter(|&&h| h).count() as u64;
+    let d_held = if n_held == 0 {
+        0.0
+    } else {
+        let shown: Vec<u16> = now
+            .iter()
+            .zip(&after.grown)
+            .zip(&held)
+            .map(|((&n, &g), &h)| if h { g } else { n })
+            .collect();
+        mean_f1_outside(&shown, truth, close, classes) - mean_f1_outside(now, truth, close, classes)
+    };
     FarChanges {
         forest: count[0],
         prior: count[1],
@@ -351,6 +378,8 @@ pub fn attribute(
         d_prior: d[1],
         d_growth: d[2],
         d_release: d[3],
+        held: n_held,
+        d_held,
     }
 }
 
@@ -1001,6 +1030,8 @@ pub fn summarise(rows: &[RoundRow], targets: &[f64]) -> Vec<Summary> {
                 sum.d_prior += f.d_prior;
                 sum.d_growth += f.d_growth;
                 sum.d_release += f.d_release;
+                sum.held += f.held;
+                sum.d_held += f.d_held;
                 if r.delta.is_some_and(|d| d < -BIG_DROP) {
                     let d = [f.d_forest, f.d_prior, f.d_growth, f.d_release];
                     let k = (0..4).min_by(|&a, &b| d[a].total_cmp(&d[b])).unwrap_or(0);
@@ -1110,9 +1141,31 @@ mod tests {
         // false ones: each cause's F1 change has its sign.
         assert!(f.d_forest < 0.0 && f.d_prior > 0.0, "{f:?}");
         assert!(f.d_growth > 0.0 && f.d_release > 0.0, "{f:?}");
+        // The round showed its verdicts: nothing held back.
+        assert_eq!((f.held, f.d_held), (0, 0.0));
         // Nothing changed: nothing attributed.
         let none = attribute(&after, &after, &now, &now, &close, &truth, &[1]);
         assert_eq!(none, FarChanges::default());
+        // What the round showed, the verdicts held back, and the sign of the far F1 change
+        // showing them would make: voxel 0 held at its true 1 against the forest's 0 (holding
+        // saved F1), voxel 2 held at 0 against the prior's true 1 (holding cost F1), and a
+        // verdict held near the strokes (not counted).
+        for (shown, held, sign) in [
+            ([1u16, 0, 1, 0, 0, 1], 1, -1.0),
+            ([0, 0, 0, 0, 0, 1], 1, 1.0),
+            ([0, 0, 1, 0, 0, 0], 0, 0.0),
+        ] {
+            let f = attribute(&before, &after, &prev, &shown, &close, &truth, &[1]);
+            assert_eq!(f.held, held, "{shown:?}");
+            assert!(
+                if sign == 0.0 {
+                    f.d_held == 0.0
+                } else {
+                    f.d_held * sign > 0.0
+                },
+                "{shown:?}: {f:?}"
+            );
+        }
     }
 
     #[test]
