@@ -353,20 +353,17 @@ pub fn attribute(
             mean_f1_outside(&only, truth, close, classes) - base
         })
         .collect();
-    let held: Vec<bool> = (0..now.len())
-        .into_par_iter()
-        .map(|v| !close[v] && now[v] != after.grown[v])
+    // Beyond the margin the round's verdicts as they were, before the rule held any back.
+    let shown: Vec<u16> = now
+        .iter()
+        .zip(&after.grown)
+        .zip(close)
+        .map(|((&n, &g), &c)| if c { n } else { g })
         .collect();
-    let n_held = held.iter().filter(|&&h| h).count() as u64;
+    let n_held = now.iter().zip(&shown).filter(|(a, b)| a != b).count() as u64;
     let d_held = if n_held == 0 {
         0.0
     } else {
-        let shown: Vec<u16> = now
-            .iter()
-            .zip(&after.grown)
-            .zip(&held)
-            .map(|((&n, &g), &h)| if h { g } else { n })
-            .collect();
         mean_f1_outside(&shown, truth, close, classes) - mean_f1_outside(now, truth, close, classes)
     };
     FarChanges {
