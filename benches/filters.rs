@@ -4,11 +4,15 @@
 //! on the same halo reads, threads and timed region, the outputs checked equal bit for bit.
 //! Boxes: a 64^3 brick (the service's brick) and one whole axial slice, of the abdomen CT
 //! (a generated volume of the same size where `../shared/data` is absent).
+//!
+//! Then what the enclosure rays (`neuvolex_filters::enclosure`, the `encl` features) add to a
+//! box: their time from the store's pyramid against the filter bank's on the same box.
 
 use neuvolex_benches::{machine, shared};
 use neuvolex_bricks::derived::{halo_from_volume, Normaliser};
 use neuvolex_bricks::open_volume;
-use neuvolex_filters::{compute, filter_bank_reference, Classic};
+use neuvolex_filters::{compute, enclosure, filter_bank_reference, Classic};
+use neuvolex_ingest::downsample_mean;
 use std::time::Instant;
 
 fn main() {
@@ -40,23 +44,23 @@ fn main() {
     println!("volume: {name} {dims:?}, halo {h}");
     println!("| box | voxels | restricted s (median, range of 5) | whole-halo s (median, range of 5) | speed-up | equal |");
     println!("|---|---|---|---|---|---|");
+    let time = |f: &dyn Fn() -> Vec<f32>| {
+        let mut t: Vec<f64> = (0..5)
+            .map(|_| {
+                let s = Instant::now();
+                std::hint::black_box(f());
+                s.elapsed().as_secs_f64()
+            })
+            .collect();
+        t.sort_by(f64::total_cmp);
+        (t[2], t[0], t[4])
+    };
     let z = dims[2] / 2;
     for (label, o, s) in [
         ("64^3 brick", [0, 0, 0], [64, 64, 64]),
         ("axial slice", [0, 0, z], [dims[0], dims[1], 1]),
     ] {
         let b = halo_from_volume(&vals, dims, o, s, h);
-        let time = |f: &dyn Fn() -> Vec<f32>| {
-            let mut t: Vec<f64> = (0..5)
-                .map(|_| {
-                    let s = Instant::now();
-                    std::hint::black_box(f());
-                    s.elapsed().as_secs_f64()
-                })
-                .collect();
-            t.sort_by(f64::total_cmp);
-            (t[2], t[0], t[4])
-        };
         let fast = compute(Classic::Filters, &b, &norm, dims);
         let full = filter_bank_reference(&b, &norm);
         let equal = fast.len() == full.len()
@@ -72,5 +76,39 @@ fn main() {
             r / a
         );
         assert!(equal, "{label}: the restricted filter bank changed a value");
+    }
+    // The pyramid the store keeps (2x means), from which the rays read.
+    let mut data = vec![vals.clone()];
+    let mut levels = vec![dims];
+    for _ in 1..3 {
+        let pd = *levels.last().expect("level 0");
+        data.push(downsample_mean(data.last().expect("level"), pd));
+        levels.push(pd.map(|d| d.div_ceil(2)));
+    }
+    let read = |k: usize, o: [usize; 3], s: [usize; 3]| -> Result<Vec<f32>, ()> {
+        let d = levels[k];
+        let mut out = Vec::with_capacity(s.iter().product());
+        for z in o[2]..o[2] + s[2] {
+            for y in o[1]..o[1] + s[1] {
+                let row = (z * d[1] + y) * d[0];
+                out.extend_from_slice(&data[k][row + o[0]..row + o[0] + s[0]]);
+            }
+        }
+        Ok(out)
+    };
+    println!();
+    println!("| box | enclosure s (median, range of 5) | filter bank s (median) | enclosure / filter bank |");
+    println!("|---|---|---|---|");
+    for (label, o, s) in [
+        ("64^3 brick", [0, 0, 0], [64, 64, 64]),
+        ("axial slice", [0, 0, z], [dims[0], dims[1], 1]),
+    ] {
+        let b = halo_from_volume(&vals, dims, o, s, h);
+        let (e, e0, e1) = time(&|| enclosure::compute(&levels, &norm, o, s, read).expect("read"));
+        let (f, _, _) = time(&|| compute(Classic::Filters, &b, &norm, dims));
+        println!(
+            "| {label} | {e:.3} ({e0:.3}–{e1:.3}) | {f:.3} | {:.2} |",
+            e / f
+        );
     }
 }

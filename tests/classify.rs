@@ -570,3 +570,64 @@ fn tube_measures_come_from_the_same_filter_bank_in_any_set() {
     assert!(at(11, 11) > at(4, 11) + 0.3, "{} {}", at(11, 11), at(4, 11));
     assert!("tubes+tubes".parse::<FeatureSet>().is_err());
 }
+
+#[test]
+fn enclosure_reads_the_stores_pyramid_and_marks_what_a_shell_closes_in() {
+    // A bright spherical shell in a noisy dark volume, stored in bricks of 16 (with its
+    // pyramid): the `encl` part of `filters+xyz+encl` equals `encl` alone and one whole-volume
+    // computation from the store's levels, and the shell's inside is closed in on every side
+    // while the same dark tissue outside it is not.
+    let d = [40, 36, 34];
+    let mut v = neuvolex_tests::noise(d.iter().product(), 5, 0.0, 0.05);
+    let c = [20.0f32, 18.0, 17.0];
+    for z in 0..d[2] {
+        for y in 0..d[1] {
+            for x in 0..d[0] {
+                let r = ((x as f32 - c[0]).powi(2)
+                    + (y as f32 - c[1]).powi(2)
+                    + (z as f32 - c[2]).powi(2))
+                .sqrt();
+                if (7.0..=9.0).contains(&r) {
+                    v[(z * d[1] + y) * d[0] + x] += 1.0;
+                }
+            }
+        }
+    }
+    let (_d, store) = store_of(&mut MemVolume::from_f32(d, &v), 16);
+    let set = BrickFeatures::new(&store, "filters+xyz+encl".parse().unwrap(), None, false).unwrap();
+    let encl = BrickFeatures::new(&store, "encl".parse().unwrap(), None, false).unwrap();
+    let ce = neuvolex_filters::enclosure::CHANNELS;
+    assert_eq!(encl.channels(), ce);
+    assert_eq!(
+        set.channels(),
+        neuvolex_filters::Classic::Filters.channels() + 3 + ce
+    );
+    let whole = neuvolex_filters::enclosure::compute(
+        &store.info().levels,
+        &store.normaliser(),
+        [0; 3],
+        d,
+        |k, o, s| store.read_box(k, o, s),
+    )
+    .unwrap();
+    let at_whole = |p: [usize; 3], ch: usize| whole[((p[2] * d[1] + p[1]) * d[0] + p[0]) * ce + ch];
+    let cs = set.channels();
+    for b in store.bricks() {
+        let (x, e) = (set.brick(&b).unwrap(), encl.brick(&b).unwrap());
+        for (i, (row, er)) in x.chunks(cs).zip(e.chunks(ce)).enumerate() {
+            assert_eq!(&row[cs - ce..], er);
+            let q = [
+                b.origin[0] + i % b.size[0],
+                b.origin[1] + (i / b.size[0]) % b.size[1],
+                b.origin[2] + i / (b.size[0] * b.size[1]),
+            ];
+            for (ch, &val) in er.iter().enumerate() {
+                assert!((val - at_whole(q, ch)).abs() < 1e-5, "{q:?} channel {ch}");
+            }
+        }
+    }
+    let inside = at_whole([20, 18, 17], 0);
+    let outside = at_whole([20, 4, 2], 0);
+    assert!(inside > outside + 0.2, "inside {inside}, outside {outside}");
+    assert!("encl+encl".parse::<FeatureSet>().is_err());
+}

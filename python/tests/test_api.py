@@ -396,6 +396,22 @@ def test_features_are_always_one_lazy_type():
     np.testing.assert_allclose(da.from_array(lazy, chunks=(20, 24, 28, 5)).sum(axis=-1).compute(), dense.sum(axis=-1), rtol=1e-6)
 
 
+
+def test_enclosure_features_sit_after_the_bank_and_position():
+    # The `encl` rays (6 channels) append to `filters+xyz` as `encl` alone gives them, from
+    # the same store; a set naming them twice is refused.
+    v, _ = spheres((40, 48, 56))
+    s = neuvolex.from_array(v, brick=16)
+    base, encl = s.features("filters+xyz"), s.features("encl")
+    both = np.asarray(s.features("filters+xyz+encl"))
+    assert encl.channels == 6 and both.shape[-1] == base.channels + 6
+    e = np.asarray(encl)
+    np.testing.assert_array_equal(both[..., base.channels:], e)
+    np.testing.assert_array_equal(both[..., : base.channels], np.asarray(base))
+    with pytest.raises(neuvolex.ArgumentError, match="appears twice"):
+        s.features("encl+encl")
+
+
 def _png(path):
     import imageio.v3 as iio
 

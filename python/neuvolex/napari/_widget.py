@@ -55,7 +55,7 @@ BACKGROUND = 255
 SCRIBBLES = "neuvolex scribbles"
 CLASSES = "neuvolex classes"
 ROLE = "neuvolex_role"  # metadata key on the layers this widget makes
-FEATURE_SETS = ("filters+xyz", "filters", "local", "intensity", "inr", "paper")
+FEATURE_SETS = ("filters+xyz", "filters+xyz+encl", "filters", "local", "intensity", "inr", "paper")
 NEEDS_TRAINING = ("inr", "paper")
 _STORE_DTYPES = ("uint8", "int8", "uint16", "int16", "uint32", "int32", "float32", "float64")
 

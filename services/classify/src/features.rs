@@ -21,6 +21,9 @@ pub enum Component {
     /// Long-range context: smoothed intensity at displaced positions, from the pyramid
     /// ([`neuvolex_filters::context`]).
     Context(Offsets),
+    /// Enclosure: how bright and how dark the tissue is that closes a voxel in on every side,
+    /// from rays through the pyramid ([`neuvolex_filters::enclosure`]).
+    Enclosure,
 }
 
 impl Component {
@@ -38,6 +41,7 @@ impl Component {
             Component::Xyz => "xyz",
             Component::Context(Offsets::Axes) => "ctx",
             Component::Context(Offsets::Plane) => "ctxp",
+            Component::Enclosure => "encl",
         }
     }
 }
@@ -101,10 +105,11 @@ impl std::str::FromStr for FeatureSet {
                 "hidden" | "pos" | "mod" | "concat" | "region" => Component::Inr(p.parse()?),
                 "ctx" => Component::Context(Offsets::Axes),
                 "ctxp" => Component::Context(Offsets::Plane),
+                "encl" => Component::Enclosure,
                 _ => {
                     return Err(format!(
                         "unknown feature '{p}' in '{s}': use inr, paper, or a '+' list of \
-                         intensity, local, filters, tubes, xyz, ctx, ctxp, hidden, pos, mod, \
+                         intensity, local, filters, tubes, xyz, ctx, ctxp, encl, hidden, pos, mod, \
                          concat, region"
                     ))
                 }
@@ -258,6 +263,7 @@ impl<'s> BrickFeatures<'s> {
                 (Component::Classic(k), _) => (None, k.channels()),
                 (Component::Xyz, _) => (None, 3),
                 (Component::Context(o), _) => (None, o.channels()),
+                (Component::Enclosure, _) => (None, neuvolex_filters::enclosure::CHANNELS),
             };
             stored.push(arr);
             widths.push(w);
@@ -367,6 +373,13 @@ impl<'s> BrickFeatures<'s> {
                 },
                 Component::Context(o) => neuvolex_filters::context::compute(
                     *o,
+                    &self.store.info().levels,
+                    &norm,
+                    b.origin,
+                    b.size,
+                    |k, org, sz| self.store.read_box(k, org, sz),
+                )?,
+                Component::Enclosure => neuvolex_filters::enclosure::compute(
                     &self.store.info().levels,
                     &norm,
                     b.origin,

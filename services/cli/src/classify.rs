@@ -109,7 +109,7 @@ pub struct ClassifyArgs {
     pub scribbles: PathBuf,
     /// Feature set: filters+xyz (default: the filter bank and position), inr (learned + local),
     /// paper (the last hidden layer), intensity, local, filters, or a '+' list of intensity,
-    /// local, filters, xyz, ctxp, hidden, pos, mod, concat.
+    /// local, filters, tubes, xyz, ctx, ctxp, encl, hidden, pos, mod, concat, region.
     #[arg(long, default_value = neuvolex_classify::DEFAULT_FEATURES)]
     pub features: String,
     /// Turn the spatial prior off: the label image is the forest's labels as they are. By

@@ -126,54 +126,22 @@ pub fn compute<E>(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::scale::tests::{pyramid, reader};
+    use crate::scale::tests::{bricks_equal_whole, pyramid, reader, waves};
 
     #[test]
     fn bricks_equal_a_whole_volume_computation() {
         let d = [40, 33, 29];
-        let v: Vec<f32> = (0..d.iter().product::<usize>())
-            .map(|i| {
-                let (x, y, z) = (i % d[0], (i / d[0]) % d[1], i / (d[0] * d[1]));
-                ((0.3 * x as f32).sin() * (0.11 * y as f32).cos() + 0.02 * z as f32) * 100.0
-            })
-            .collect();
-        let (data, dims) = pyramid(&v, d, 3);
+        let (data, dims) = pyramid(&waves(d), d, 3);
         let norm = Normaliser {
             lo: -100.0,
             hi: 100.0,
         };
         for offsets in [Offsets::Axes, Offsets::Plane] {
             let ch = offsets.channels();
-            let whole = compute(offsets, &dims, &norm, [0; 3], d, reader(&data, &dims)).unwrap();
-            assert_eq!(whole.len(), d.iter().product::<usize>() * ch);
             assert_eq!(offsets.names().len(), ch);
-            let bs = 16;
-            for bz in (0..d[2]).step_by(bs) {
-                for by in (0..d[1]).step_by(bs) {
-                    for bx in (0..d[0]).step_by(bs) {
-                        let o = [bx, by, bz];
-                        let s = [bs.min(d[0] - bx), bs.min(d[1] - by), bs.min(d[2] - bz)];
-                        let part =
-                            compute(offsets, &dims, &norm, o, s, reader(&data, &dims)).unwrap();
-                        for z in 0..s[2] {
-                            for y in 0..s[1] {
-                                for x in 0..s[0] {
-                                    let pi = (z * s[1] + y) * s[0] + x;
-                                    let wi = ((z + bz) * d[1] + y + by) * d[0] + x + bx;
-                                    for c in 0..ch {
-                                        let (a, b) = (part[pi * ch + c], whole[wi * ch + c]);
-                                        assert!(
-                                            (a - b).abs() < 1e-5,
-                                            "{offsets:?} channel {c} at {:?}: {a} vs {b}",
-                                            [x + bx, y + by, z + bz]
-                                        );
-                                    }
-                                }
-                            }
-                        }
-                    }
-                }
-            }
+            bricks_equal_whole(d, ch, |o, s| {
+                compute(offsets, &dims, &norm, o, s, reader(&data, &dims)).unwrap()
+            });
         }
     }
 

@@ -8,6 +8,7 @@ use neuvolex_bricks::derived::{HaloBrick, Normaliser};
 use rayon::prelude::*;
 
 pub mod context;
+pub mod enclosure;
 pub mod scale;
 use serde::{Deserialize, Serialize};
 

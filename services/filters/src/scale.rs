@@ -147,34 +147,48 @@ impl ScaleField {
     /// (clamped into the volume; it must lie in the region the field was computed for).
     #[inline]
     pub fn sample(&self, p: [isize; 3]) -> (f32, f32) {
-        let f = (1usize << self.level) as f32;
+        let (mut v, mut g) = (0.0f32, 0.0f32);
+        self.corners(p, |i, w| {
+            v += w * self.smooth[i];
+            g += w * self.grad[i];
+        });
+        (v, g)
+    }
+
+    /// The smoothed intensity alone at level-0 position `p` ([`Self::sample`]'s first value,
+    /// the same bits).
+    #[inline]
+    pub fn smooth_at(&self, p: [isize; 3]) -> f32 {
+        let mut v = 0.0f32;
+        self.corners(p, |i, w| v += w * self.smooth[i]);
+        v
+    }
+
+    /// Calls `f(index, weight)` for the 8 trilinear corners of level-0 position `p`, in a fixed
+    /// order.
+    #[inline]
+    fn corners(&self, p: [isize; 3], mut f: impl FnMut(usize, f32)) {
+        let fl = (1usize << self.level) as f32;
         let mut i0 = [0usize; 3];
         let mut i1 = [0usize; 3];
         let mut t = [0.0f32; 3];
         for a in 0..3 {
             let pc = p[a].clamp(0, self.dims[a] as isize - 1) as f32;
-            let q = ((pc + 0.5) / f - 0.5).clamp(0.0, (self.level_dims[a] - 1) as f32);
-            let fl = q.floor();
-            let g0 = fl as isize;
+            let q = ((pc + 0.5) / fl - 0.5).clamp(0.0, (self.level_dims[a] - 1) as f32);
+            let g0 = q.floor() as isize;
             let g1 = (g0 + 1).min(self.level_dims[a] as isize - 1);
             i0[a] = (g0 - self.lo[a]) as usize;
             i1[a] = (g1 - self.lo[a]) as usize;
-            t[a] = q - fl;
+            t[a] = q - q.floor();
         }
         let s = self.size;
-        let at = |x: usize, y: usize, z: usize| (z * s[1] + y) * s[0] + x;
-        let (mut v, mut g) = (0.0f32, 0.0f32);
         for (cz, wz) in [(i0[2], 1.0 - t[2]), (i1[2], t[2])] {
             for (cy, wy) in [(i0[1], 1.0 - t[1]), (i1[1], t[1])] {
                 for (cx, wx) in [(i0[0], 1.0 - t[0]), (i1[0], t[0])] {
-                    let w = wx * wy * wz;
-                    let i = at(cx, cy, cz);
-                    v += w * self.smooth[i];
-                    g += w * self.grad[i];
+                    f((cz * s[1] + cy) * s[0] + cx, wx * wy * wz);
                 }
             }
         }
-        (v, g)
     }
 }
 
@@ -182,6 +196,52 @@ impl ScaleField {
 pub(crate) mod tests {
     use super::*;
     use neuvolex_ingest::downsample_mean;
+
+    /// A smooth test volume of `d` voxels (x fastest) with structure at several scales.
+    pub(crate) fn waves(d: [usize; 3]) -> Vec<f32> {
+        (0..d.iter().product::<usize>())
+            .map(|i| {
+                let (x, y, z) = (i % d[0], (i / d[0]) % d[1], i / (d[0] * d[1]));
+                ((0.3 * x as f32).sin() * (0.11 * y as f32).cos() + 0.02 * z as f32) * 100.0
+            })
+            .collect()
+    }
+
+    /// Checks that `compute(origin, size)` (`voxels x ch`, x fastest) over bricks of 16 equals
+    /// its whole-volume result on a grid of `d` voxels, within 1e-5.
+    pub(crate) fn bricks_equal_whole(
+        d: [usize; 3],
+        ch: usize,
+        compute: impl Fn([usize; 3], [usize; 3]) -> Vec<f32>,
+    ) {
+        let whole = compute([0; 3], d);
+        assert_eq!(whole.len(), d.iter().product::<usize>() * ch);
+        let bs = 16;
+        for bz in (0..d[2]).step_by(bs) {
+            for by in (0..d[1]).step_by(bs) {
+                for bx in (0..d[0]).step_by(bs) {
+                    let s = [bs.min(d[0] - bx), bs.min(d[1] - by), bs.min(d[2] - bz)];
+                    let part = compute([bx, by, bz], s);
+                    for z in 0..s[2] {
+                        for y in 0..s[1] {
+                            for x in 0..s[0] {
+                                let pi = (z * s[1] + y) * s[0] + x;
+                                let wi = ((z + bz) * d[1] + y + by) * d[0] + x + bx;
+                                for c in 0..ch {
+                                    let (a, b) = (part[pi * ch + c], whole[wi * ch + c]);
+                                    assert!(
+                                        (a - b).abs() < 1e-5,
+                                        "channel {c} at {:?}: {a} vs {b}",
+                                        [x + bx, y + by, z + bz]
+                                    );
+                                }
+                            }
+                        }
+                    }
+                }
+            }
+        }
+    }
 
     /// A pyramid of `n` levels over `v`.
     pub(crate) fn pyramid(v: &[f32], d: [usize; 3], n: usize) -> (Vec<Vec<f32>>, Vec<[usize; 3]>) {
