@@ -112,14 +112,7 @@ pub fn compute<E>(
                     (origin[2] + z) as isize,
                 ];
                 for (j, r) in rays.iter().enumerate() {
-                    let (mut hi, mut lo) = (f32::NEG_INFINITY, f32::INFINITY);
-                    for o in r {
-                        let v = field.smooth_at([p[0] + o[0], p[1] + o[1], p[2] + o[2]]);
-                        hi = hi.max(v);
-                        lo = lo.min(v);
-                    }
-                    maxima[j] = hi;
-                    minima[j] = lo;
+                    (maxima[j], minima[j]) = field.extremes(p, r);
                 }
                 maxima.sort_unstable_by(f32::total_cmp);
                 minima.sort_unstable_by(|a, b| b.total_cmp(a));
@@ -150,6 +143,45 @@ mod tests {
         bricks_equal_whole(d, CHANNELS, |o, s| {
             compute(&dims, &norm, o, s, reader(&data, &dims)).unwrap()
         });
+    }
+
+    #[test]
+    fn shared_weights_give_the_bits_of_each_sample_alone() {
+        // Every voxel of an odd grid (so the level's last corner is clamped on every axis),
+        // every ray, borders included: `extremes` equals folding `smooth_at`, bit for bit.
+        let d = [37, 30, 27];
+        let (data, dims) = pyramid(&waves(d), d, 3);
+        let norm = Normaliser {
+            lo: -100.0,
+            hi: 100.0,
+        };
+        let m = margin();
+        let field = ScaleField::compute(
+            SCALE,
+            &dims,
+            &norm,
+            [-m; 3],
+            d.map(|n| n as isize - 1 + m),
+            reader(&data, &dims),
+        )
+        .unwrap();
+        let rays: Vec<_> = DIRECTIONS.iter().map(|&r| ray(r)).collect();
+        for z in 0..d[2] as isize {
+            for y in 0..d[1] as isize {
+                for x in 0..d[0] as isize {
+                    for r in &rays {
+                        let (hi, lo) = field.extremes([x, y, z], r);
+                        let each: Vec<f32> = r
+                            .iter()
+                            .map(|o| field.smooth_at([x + o[0], y + o[1], z + o[2]]))
+                            .collect();
+                        let h = each.iter().copied().fold(f32::NEG_INFINITY, f32::max);
+                        let l = each.iter().copied().fold(f32::INFINITY, f32::min);
+                        assert_eq!((hi.to_bits(), lo.to_bits()), (h.to_bits(), l.to_bits()));
+                    }
+                }
+            }
+        }
     }
 
     #[test]

@@ -164,6 +164,82 @@ impl ScaleField {
         v
     }
 
+    /// The largest and smallest smoothed intensity ([`Self::smooth_at`]) at the level-0
+    /// positions `p + o` for `o` in `offsets`, the same bits as folding `smooth_at` over them.
+    ///
+    /// An offset of whole level voxels moves a position's trilinear corners by whole voxels and
+    /// keeps its weights: where neither the position nor its corners meet the volume's or the
+    /// level's edge, the 8 weights of `p` serve every sample and only the corner index moves
+    /// (the enclosure's rays: 100 samples per voxel). Elsewhere each sample goes through
+    /// `smooth_at`.
+    pub fn extremes(&self, p: [isize; 3], offsets: &[[isize; 3]]) -> (f32, f32) {
+        let (mut hi, mut lo) = (f32::NEG_INFINITY, f32::INFINITY);
+        let mut take = |v: f32| {
+            hi = hi.max(v);
+            lo = lo.min(v);
+        };
+        let step = 1isize << self.level;
+        let fl = step as f32;
+        // Per axis: p's level coordinate (unclamped) and its lower corner.
+        let mut g0 = [0isize; 3];
+        let mut t = [0.0f32; 3];
+        let mut fast = true;
+        for a in 0..3 {
+            let q = (p[a] as f32 + 0.5) / fl - 0.5;
+            let inside = p[a] >= 0 && p[a] < self.dims[a] as isize;
+            if !inside || q < 0.0 {
+                fast = false;
+                break;
+            }
+            g0[a] = q.floor() as isize;
+            t[a] = q - q.floor();
+        }
+        if !fast {
+            offsets
+                .iter()
+                .for_each(|o| take(self.smooth_at([p[0] + o[0], p[1] + o[1], p[2] + o[2]])));
+            return (hi, lo);
+        }
+        let s = self.size;
+        let (sy, sz) = (s[0], s[0] * s[1]);
+        let mut w = [0.0f32; 8];
+        let mut k = 0;
+        for wz in [1.0 - t[2], t[2]] {
+            for wy in [1.0 - t[1], t[1]] {
+                for wx in [1.0 - t[0], t[0]] {
+                    w[k] = wx * wy * wz;
+                    k += 1;
+                }
+            }
+        }
+        let corner = [0, 1, sy, sy + 1, sz, sz + 1, sz + sy, sz + sy + 1];
+        for o in offsets {
+            let mut at = [0isize; 3];
+            let mut ok = true;
+            for a in 0..3 {
+                let pa = p[a] + o[a];
+                let g = g0[a] + (o[a] >> self.level);
+                ok &= o[a] & (step - 1) == 0
+                    && pa >= 0
+                    && pa < self.dims[a] as isize
+                    && g >= 0
+                    && g < self.level_dims[a] as isize - 1;
+                at[a] = g - self.lo[a];
+            }
+            if !ok {
+                take(self.smooth_at([p[0] + o[0], p[1] + o[1], p[2] + o[2]]));
+                continue;
+            }
+            let base = (at[2] as usize * s[1] + at[1] as usize) * s[0] + at[0] as usize;
+            let mut v = 0.0f32;
+            for (wc, c) in w.iter().zip(corner) {
+                v += wc * self.smooth[base + c];
+            }
+            take(v);
+        }
+        (hi, lo)
+    }
+
     /// Calls `f(index, weight)` for the 8 trilinear corners of level-0 position `p`, in a fixed
     /// order.
     #[inline]
