@@ -329,6 +329,9 @@ impl<'s> BrickFeatures<'s> {
             None
         };
         let norm = self.store.normaliser();
+        // The pyramid, for the parts that read it (context, enclosure).
+        let levels = &self.store.info().levels;
+        let read = |k, org, sz| self.store.read_box(k, org, sz);
         let mut out = vec![0.0f32; n * ch];
         let mut off = 0;
         // The filter bank once, when the tube measures derive from it beside it.
@@ -371,21 +374,12 @@ impl<'s> BrickFeatures<'s> {
                         *k,
                     )?,
                 },
-                Component::Context(o) => neuvolex_filters::context::compute(
-                    *o,
-                    &self.store.info().levels,
-                    &norm,
-                    b.origin,
-                    b.size,
-                    |k, org, sz| self.store.read_box(k, org, sz),
-                )?,
-                Component::Enclosure => neuvolex_filters::enclosure::compute(
-                    &self.store.info().levels,
-                    &norm,
-                    b.origin,
-                    b.size,
-                    |k, org, sz| self.store.read_box(k, org, sz),
-                )?,
+                Component::Context(o) => {
+                    neuvolex_filters::context::compute(*o, levels, &norm, b.origin, b.size, read)?
+                }
+                Component::Enclosure => {
+                    neuvolex_filters::enclosure::compute(levels, &norm, b.origin, b.size, read)?
+                }
                 Component::Xyz => {
                     let p = neuvolex_filters::pos;
                     let mut v = Vec::with_capacity(n * 3);

@@ -139,7 +139,9 @@ mod tests {
         for offsets in [Offsets::Axes, Offsets::Plane] {
             let ch = offsets.channels();
             assert_eq!(offsets.names().len(), ch);
-            bricks_equal_whole(d, ch, |o, s| {
+            let what = format!("{offsets:?}");
+            let close = |a: f32, b: f32| (a - b).abs() < 1e-5;
+            bricks_equal_whole(&what, d, ch, [16; 3], close, |o, s| {
                 compute(offsets, &dims, &norm, o, s, reader(&data, &dims)).unwrap()
             });
         }

@@ -605,6 +605,7 @@ fn filter_bank_over(b: &HaloBrick, n: &[f32], restrict: bool) -> Vec<f32> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::scale::tests::bricks_equal_whole;
     use neuvolex_bricks::derived::halo_from_volume;
 
     fn norm() -> Normaliser {
@@ -684,50 +685,23 @@ mod tests {
         let d = [21, 13, 11];
         let v = volume(d);
         for kind in [Classic::Intensity, Classic::Local, Classic::Filters] {
-            let whole = compute(
-                kind,
-                &halo_from_volume(&v, d, [0; 3], d, kind.halo()),
-                &norm(),
+            let close = |a: f32, b: f32| (a - b).abs() <= 1e-4 * (1.0 + b.abs());
+            let whole = bricks_equal_whole(
+                &format!("{kind:?}"),
                 d,
+                kind.channels(),
+                [8, 8, 8],
+                close,
+                |o, s| {
+                    compute(
+                        kind,
+                        &halo_from_volume(&v, d, o, s, kind.halo()),
+                        &norm(),
+                        d,
+                    )
+                },
             );
-            let ch = kind.channels();
-            assert_eq!(whole.len(), d.iter().product::<usize>() * ch);
             assert!(whole.iter().all(|x| x.is_finite()));
-            let bs = [8, 8, 8];
-            for bz in (0..d[2]).step_by(bs[2]) {
-                for by in (0..d[1]).step_by(bs[1]) {
-                    for bx in (0..d[0]).step_by(bs[0]) {
-                        let o = [bx, by, bz];
-                        let s = [
-                            bs[0].min(d[0] - bx),
-                            bs[1].min(d[1] - by),
-                            bs[2].min(d[2] - bz),
-                        ];
-                        let part = compute(
-                            kind,
-                            &halo_from_volume(&v, d, o, s, kind.halo()),
-                            &norm(),
-                            d,
-                        );
-                        for z in 0..s[2] {
-                            for y in 0..s[1] {
-                                for x in 0..s[0] {
-                                    let pi = (z * s[1] + y) * s[0] + x;
-                                    let wi = ((z + bz) * d[1] + y + by) * d[0] + x + bx;
-                                    for c in 0..ch {
-                                        let (a, b) = (part[pi * ch + c], whole[wi * ch + c]);
-                                        assert!(
-                                            (a - b).abs() <= 1e-4 * (1.0 + b.abs()),
-                                            "{kind:?} channel {c} at {:?}: {a} vs {b}",
-                                            [x + bx, y + by, z + bz]
-                                        );
-                                    }
-                                }
-                            }
-                        }
-                    }
-                }
-            }
         }
     }
 

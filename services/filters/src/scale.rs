@@ -164,41 +164,27 @@ impl ScaleField {
         v
     }
 
-    /// The largest and smallest smoothed intensity ([`Self::smooth_at`]) at the level-0
-    /// positions `p + o` for `o` in `offsets`, the same bits as folding `smooth_at` over them.
+    /// Per ray of `rays`, the largest and smallest smoothed intensity ([`Self::smooth_at`]) at
+    /// the level-0 positions `p + o` for `o` in the ray, into `out` (one per ray): the same bits
+    /// as folding `smooth_at` over them.
     ///
     /// An offset of whole level voxels moves a position's trilinear corners by whole voxels and
     /// keeps its weights: where neither the position nor its corners meet the volume's or the
-    /// level's edge, the 8 weights of `p` serve every sample and only the corner index moves
-    /// (the enclosure's rays: 100 samples per voxel). Elsewhere each sample goes through
-    /// `smooth_at`.
-    pub fn extremes(&self, p: [isize; 3], offsets: &[[isize; 3]]) -> (f32, f32) {
-        let (mut hi, mut lo) = (f32::NEG_INFINITY, f32::INFINITY);
-        let mut take = |v: f32| {
-            hi = hi.max(v);
-            lo = lo.min(v);
-        };
+    /// level's edge, the 8 weights of `p`, found once, serve every sample of every ray and only
+    /// the corner index moves (the enclosure's rays: 100 samples per voxel). Elsewhere each
+    /// sample goes through `smooth_at`.
+    pub fn extremes(&self, p: [isize; 3], rays: &[Vec<[isize; 3]>], out: &mut [(f32, f32)]) {
         let step = 1isize << self.level;
         let fl = step as f32;
-        // Per axis: p's level coordinate (unclamped) and its lower corner.
+        // Per axis: p's level coordinate (unclamped) and its lower corner; none off the edges.
         let mut g0 = [0isize; 3];
         let mut t = [0.0f32; 3];
         let mut fast = true;
         for a in 0..3 {
             let q = (p[a] as f32 + 0.5) / fl - 0.5;
-            let inside = p[a] >= 0 && p[a] < self.dims[a] as isize;
-            if !inside || q < 0.0 {
-                fast = false;
-                break;
-            }
+            fast &= p[a] >= 0 && p[a] < self.dims[a] as isize && q >= 0.0;
             g0[a] = q.floor() as isize;
             t[a] = q - q.floor();
-        }
-        if !fast {
-            offsets
-                .iter()
-                .for_each(|o| take(self.smooth_at([p[0] + o[0], p[1] + o[1], p[2] + o[2]])));
-            return (hi, lo);
         }
         let s = self.size;
         let (sy, sz) = (s[0], s[0] * s[1]);
@@ -213,31 +199,39 @@ impl ScaleField {
             }
         }
         let corner = [0, 1, sy, sy + 1, sz, sz + 1, sz + sy, sz + sy + 1];
-        for o in offsets {
-            let mut at = [0isize; 3];
-            let mut ok = true;
+        // The sample at `p + o` from the shared weights, when no edge is met.
+        let shared = |o: &[isize; 3]| -> Option<f32> {
+            let mut at = [0usize; 3];
             for a in 0..3 {
                 let pa = p[a] + o[a];
                 let g = g0[a] + (o[a] >> self.level);
-                ok &= o[a] & (step - 1) == 0
+                let ok = o[a] & (step - 1) == 0
                     && pa >= 0
                     && pa < self.dims[a] as isize
                     && g >= 0
                     && g < self.level_dims[a] as isize - 1;
-                at[a] = g - self.lo[a];
+                if !ok {
+                    return None;
+                }
+                at[a] = (g - self.lo[a]) as usize;
             }
-            if !ok {
-                take(self.smooth_at([p[0] + o[0], p[1] + o[1], p[2] + o[2]]));
-                continue;
-            }
-            let base = (at[2] as usize * s[1] + at[1] as usize) * s[0] + at[0] as usize;
+            let base = (at[2] * s[1] + at[1]) * s[0] + at[0];
             let mut v = 0.0f32;
             for (wc, c) in w.iter().zip(corner) {
                 v += wc * self.smooth[base + c];
             }
-            take(v);
+            Some(v)
+        };
+        for (r, e) in rays.iter().zip(out.iter_mut()) {
+            *e =
+                r.iter()
+                    .fold((f32::NEG_INFINITY, f32::INFINITY), |(hi, lo), o| {
+                        let v = fast.then(|| shared(o)).flatten().unwrap_or_else(|| {
+                            self.smooth_at([p[0] + o[0], p[1] + o[1], p[2] + o[2]])
+                        });
+                        (hi.max(v), lo.min(v))
+                    });
         }
-        (hi, lo)
     }
 
     /// Calls `f(index, weight)` for the 8 trilinear corners of level-0 position `p`, in a fixed
@@ -283,20 +277,27 @@ pub(crate) mod tests {
             .collect()
     }
 
-    /// Checks that `compute(origin, size)` (`voxels x ch`, x fastest) over bricks of 16 equals
-    /// its whole-volume result on a grid of `d` voxels, within 1e-5.
+    /// Checks that `compute(origin, size)` (`voxels x ch`, x fastest) over bricks of `bs`
+    /// equals its whole-volume result on a grid of `d` voxels: `close(brick, whole)` for every
+    /// value (`what` names the case in a failure). Returns the whole-volume result.
     pub(crate) fn bricks_equal_whole(
+        what: &str,
         d: [usize; 3],
         ch: usize,
+        bs: [usize; 3],
+        close: impl Fn(f32, f32) -> bool,
         compute: impl Fn([usize; 3], [usize; 3]) -> Vec<f32>,
-    ) {
+    ) -> Vec<f32> {
         let whole = compute([0; 3], d);
-        assert_eq!(whole.len(), d.iter().product::<usize>() * ch);
-        let bs = 16;
-        for bz in (0..d[2]).step_by(bs) {
-            for by in (0..d[1]).step_by(bs) {
-                for bx in (0..d[0]).step_by(bs) {
-                    let s = [bs.min(d[0] - bx), bs.min(d[1] - by), bs.min(d[2] - bz)];
+        assert_eq!(whole.len(), d.iter().product::<usize>() * ch, "{what}");
+        for bz in (0..d[2]).step_by(bs[2]) {
+            for by in (0..d[1]).step_by(bs[1]) {
+                for bx in (0..d[0]).step_by(bs[0]) {
+                    let s = [
+                        bs[0].min(d[0] - bx),
+                        bs[1].min(d[1] - by),
+                        bs[2].min(d[2] - bz),
+                    ];
                     let part = compute([bx, by, bz], s);
                     for z in 0..s[2] {
                         for y in 0..s[1] {
@@ -306,8 +307,8 @@ pub(crate) mod tests {
                                 for c in 0..ch {
                                     let (a, b) = (part[pi * ch + c], whole[wi * ch + c]);
                                     assert!(
-                                        (a - b).abs() < 1e-5,
-                                        "channel {c} at {:?}: {a} vs {b}",
+                                        close(a, b),
+                                        "{what} channel {c} at {:?}: {a} vs {b}",
                                         [x + bx, y + by, z + bz]
                                     );
                                 }
@@ -317,6 +318,7 @@ pub(crate) mod tests {
                 }
             }
         }
+        whole
     }
 
     /// A pyramid of `n` levels over `v`.
